@@ -1,0 +1,195 @@
+"""The simulated cell: the plant that vservo's controllers and calibrations act on.
+
+It holds the TRUE cell (camera intrinsics and distortion, eMc, cMl, the arm with its
+kinematic errors, repeatability and pixel noise, where the cube lies) and hands out only
+what a real cell would: joint and Cartesian readouts from the robot controller, which
+computes them with its NOMINAL model, and pixel measurements of the cube corners and the
+laser spot. Nothing nominal is used to produce a measurement, and nothing true leaks
+into one, except through the ``ground_truth_*`` accessors that exist for evaluation
+(path lengths, final pose errors) and are never to be called by a controller.
+
+Moves follow the robot controller's logic: the target flange pose is turned into joints
+by the controller's nominal inverse kinematics, and the real arm ends where its true
+kinematics put those joints, plus a settling (repeatability) error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from core.config import CellConfig, CellModel
+from core.kinematics import ArmKinematics
+from core.scene import Scene
+from core.spatial import Matrix, exp_twist, inverse, pose_error
+from core.step_policy import PositionCommand, RobotCommand, VelocityCommand
+from robot_models.loader import load_arm
+
+# Rotation rate a MOVL uses when the rotation, not the translation, sets the duration.
+ROTATION_SPEED_RAD_S = 0.5
+
+
+@dataclass(frozen=True)
+class CellTruth:
+    """What the cell really is. Only the simulator holds one."""
+
+    arm: ArmKinematics
+    model: CellModel
+    pixel_noise_px: float
+    repeatability_m: float
+    repeatability_rad: float
+
+    @classmethod
+    def from_config(cls, config: CellConfig, nominal_arm: ArmKinematics, rng: np.random.Generator) -> CellTruth:
+        sim = config.simulation
+        arm = nominal_arm.with_mount(sim.truth.mount)
+        if sim.joint_placement_error_m > 0.0 or sim.joint_placement_error_rad > 0.0:
+            arm = arm.with_joint_placement_errors(rng, sim.joint_placement_error_m, sim.joint_placement_error_rad)
+        return cls(arm, sim.truth, sim.pixel_noise_px, sim.repeatability_m, sim.repeatability_rad)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One sample of everything the cell's sensors report.
+
+    corners_px holds the four top-face corners in feature order, NaN where a corner is
+    outside the image or hidden; laser_spot_px is NaN when the spot is not seen.
+    """
+
+    time_s: float
+    q: Matrix
+    bMe: Matrix
+    corners_px: Matrix
+    laser_spot_px: Matrix
+
+    @property
+    def corners_visible(self) -> Matrix:
+        return ~np.isnan(self.corners_px).any(axis=1)
+
+    @property
+    def laser_visible(self) -> bool:
+        return not bool(np.isnan(self.laser_spot_px).any())
+
+
+@dataclass(frozen=True)
+class PlantState:
+    """The plant's state between two moves."""
+
+    time_s: float
+    q: Matrix
+    eMe_settle: Matrix  # repeatability: where the true flange sits relative to fk_true(q)
+    scene: Scene  # where the table, the cube and the metal part really are
+
+
+@dataclass(frozen=True)
+class MoveReport:
+    """What one executed move did, as the robot controller knows it."""
+
+    duration_s: float
+    q: Matrix
+    bMe: Matrix
+
+
+class SimulatedCell:
+    """The plant. ``execute`` one command at a time, ``measure`` in between.
+
+    The nominal arm is the robot controller's own model (the JRC computes joint angles
+    itself); the truth is built from the configuration's [simulation] section with the
+    seeded generator, so a cell is reproducible from (config, seed).
+    """
+
+    def __init__(self, config: CellConfig, seed: int | None = None) -> None:
+        self.rng = np.random.default_rng(config.simulation.seed if seed is None else seed)
+        self.controller_arm = ArmKinematics(load_arm(config.arm), config.nominal.mount)
+        if config.home_q.shape != (self.controller_arm.dof,):
+            raise ValueError(
+                f"{config.source}: robot.home_joints_deg has {config.home_q.size} values, "
+                f"the {config.arm} arm has {self.controller_arm.dof} joints"
+            )
+        self.truth = CellTruth.from_config(config, self.controller_arm, self.rng)
+        self.state = PlantState(0.0, config.home_q.copy(), np.eye(4), config.simulation.scene)
+
+    # -- sensors ---------------------------------------------------------------------
+
+    def measure(self) -> Measurement:
+        """Read the robot controller and take one (noisy) look through the true camera."""
+        bMc = self.ground_truth_bMe() @ self.truth.model.eMc
+        cMb = inverse(bMc)
+        camera = self.truth.model.camera
+        eye_b = bMc[:3, 3]
+
+        scene = self.state.scene
+        corners_b = scene.cube.corners_b
+        corners_c = corners_b @ cMb[:3, :3].T + cMb[:3, 3]
+        corners_px = self._observe(camera.project(corners_c))
+        hidden = [not scene.visible_from(eye_b, corner_b) for corner_b in corners_b]
+        corners_px[hidden] = np.nan
+
+        spot_px = np.full(2, np.nan)
+        hit = scene.raycast(self.truth.model.laser.beam(bMc))
+        if hit is not None and scene.visible_from(eye_b, hit.point_b):
+            spot_c = cMb[:3, :3] @ hit.point_b + cMb[:3, 3]
+            spot_px = self._observe(camera.project(spot_c[None, :]))[0]
+
+        q = self.state.q.copy()
+        return Measurement(self.state.time_s, q, self.controller_arm.fk(q), corners_px, spot_px)
+
+    def _observe(self, uv: Matrix) -> Matrix:
+        """Pixel noise, then the image bounds: what falls outside is not measured."""
+        uv = uv + self.rng.normal(0.0, self.truth.pixel_noise_px, uv.shape) if self.truth.pixel_noise_px else uv
+        return np.where(self.truth.model.camera.in_view(uv)[:, None], uv, np.nan)
+
+    # -- actuation -------------------------------------------------------------------
+
+    def execute(self, command: RobotCommand) -> MoveReport:
+        """Carry out one command (see core.step_policy); raises UnreachableTarget unmoved."""
+        bMe = self.controller_arm.fk(self.state.q)
+        if isinstance(command, VelocityCommand):
+            # Holding a constant body twist for dt lands exactly on bMe exp(twist dt).
+            target = bMe @ exp_twist(np.asarray(command.eVe, dtype=float) * command.dt_s)
+            return self._move(target, command.dt_s)
+        if isinstance(command, PositionCommand):
+            translation, rotation = pose_error(bMe, command.bMe_target)
+            travel = max(translation / command.speed_m_s, rotation / ROTATION_SPEED_RAD_S)
+            return self._move(command.bMe_target, max(travel, command.period_s))
+        raise TypeError(f"not a robot command: {command!r}")
+
+    def _move(self, bMe_target: Matrix, duration_s: float) -> MoveReport:
+        q = self.controller_arm.ik(bMe_target, self.state.q).q
+        self.state = replace(self.state, time_s=self.state.time_s + duration_s, q=q, eMe_settle=self._settle())
+        return MoveReport(duration_s, q.copy(), self.controller_arm.fk(q))
+
+    def _settle(self) -> Matrix:
+        """A fresh repeatability error: a small random rigid motion of the flange."""
+        if not (self.truth.repeatability_m or self.truth.repeatability_rad):
+            return np.eye(4)
+        twist = np.concatenate([
+            self.rng.normal(0.0, self.truth.repeatability_m, 3),
+            self.rng.normal(0.0, self.truth.repeatability_rad, 3),
+        ])
+        return exp_twist(twist)
+
+    def place_cube(self, bMo: Matrix) -> None:
+        """Put the part somewhere else on the table (a new task, or after a pick)."""
+        cube = self.state.scene.cube.moved_to(np.asarray(bMo, dtype=float))
+        self.state = replace(self.state, scene=self.state.scene.with_cube(cube))
+
+    def set_joints(self, q: Matrix) -> MoveReport:
+        """Move straight to a joint configuration (set-up of a scenario, not a servo step)."""
+        q = np.asarray(q, dtype=float)
+        if not self.controller_arm.within_limits(q):
+            raise ValueError(f"joints {np.rad2deg(q).round(2).tolist()} deg are outside the joint limits")
+        self.state = replace(self.state, q=q.copy(), eMe_settle=self._settle())
+        return MoveReport(0.0, q.copy(), self.controller_arm.fk(q))
+
+    # -- evaluation only: what no controller may read --------------------------------
+
+    def ground_truth_bMe(self) -> Matrix:
+        """The true flange pose."""
+        return self.truth.arm.fk(self.state.q) @ self.state.eMe_settle
+
+    def ground_truth_cMo(self) -> Matrix:
+        """The true pose of the cube frame O in the true camera frame."""
+        bMc = self.ground_truth_bMe() @ self.truth.model.eMc
+        return inverse(bMc) @ self.state.scene.cube.bMo
