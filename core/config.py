@@ -1,9 +1,11 @@
 """The cell configuration file (TOML): the nominal cell, its layout, and the simulated truth.
 
-One file describes a cell. Its nominal sections (camera, hand_eye, laser, vacuum) are
-what controllers and calibrations may use; ``[simulation]`` describes the plant the
-simulator plays, including ``[simulation.truth.*]`` tables that override nominal values
-with what the cell really is (the robustness test of Table 5-3 is such a file).
+One file describes a cell. Its nominal sections (robot, camera, hand_eye, laser,
+vacuum, motion) are what controllers and calibrations may use; ``[simulation]``
+describes the plant the simulator plays: its seed and noise, ``[simulation.scene]``
+(where the table, cube and metal part really are) and ``[simulation.truth.*]`` tables
+that override nominal values with what the cell really is (the robustness test of
+Table 5-3 is such a file).
 
 Poses are written as [X, Y, Z, phi, theta, psi] in mm and degrees with
 R = Rz(phi) Ry(theta) Rx(psi) (eq. 2-13), the form of the thesis tables; they are
@@ -130,15 +132,16 @@ class _Table:
             raise self.fail(key, value, f"must be one of {', '.join(options)}")
         return value
 
-    def vector(self, key: str, length: int, default: Sequence[float] | None = None) -> Matrix:
+    def vector(self, key: str, length: int | None, default: Sequence[float] | None = None) -> Matrix:
+        """A list of finite numbers, of the given length or of any non-zero length if None."""
         value = self._raw(key, default)
         ok = (
             isinstance(value, list)
-            and len(value) == length
+            and (len(value) == length if length is not None else len(value) > 0)
             and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
         )
         if not ok:
-            raise self.fail(key, value, f"must be a list of {length} finite numbers")
+            raise self.fail(key, value, f"must be a list of {length or 'one or more'} finite numbers")
         return np.array(value, dtype=float)
 
     def pose(self, key: str, default: Sequence[float] | None = None) -> Matrix:
@@ -265,7 +268,7 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>") -> CellConfig:
     root = _Table(data, "", source)
     robot = root.table("robot")
     arm = robot.choice("arm", ARM_NAMES, "upj")
-    home_q = np.deg2rad(robot.vector("home_joints_deg", 6, None))
+    home_q = np.deg2rad(robot.vector("home_joints_deg", None, None))
     robot.finish()
 
     nominal = _cell_model(root)

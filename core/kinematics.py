@@ -24,6 +24,8 @@ def _pose(M: ArrayLike, name: str) -> Matrix:
     M = np.array(M, dtype=float)
     if M.shape != (4, 4):
         raise ValueError(f"{name} must be a 4x4 homogeneous matrix, got shape {M.shape}")
+    if not np.all(np.isfinite(M)):
+        raise ValueError(f"{name} contains NaN or infinite values")
     return M
 
 
@@ -267,4 +269,6 @@ class ArmKinematics:
         q = np.asarray(q, dtype=float)
         if q.shape != (self.dof,):
             raise ValueError(f"{self.name} expects q of shape ({self.dof},), got {q.shape}")
+        if not np.all(np.isfinite(q)):
+            raise ValueError(f"{self.name} joint vector contains NaN or infinite values: {q}")
         return q

@@ -155,7 +155,8 @@ def exp_twist(twist: ArrayLike) -> Matrix:
         V = np.eye(3) + 0.5 * W
     else:
         a = np.sin(angle) / angle
-        b = (1.0 - np.cos(angle)) / angle**2
+        # 1 - cos(angle) cancels to 0 below ~1e-8 rad; the half-angle form does not.
+        b = 0.5 * (np.sin(angle / 2.0) / (angle / 2.0)) ** 2
         c = (angle - np.sin(angle)) / angle**3
         R = np.eye(3) + a * W + b * W @ W
         V = np.eye(3) + b * W + c * W @ W
@@ -177,8 +178,10 @@ def theta_u(R: ArrayLike) -> NDArray[np.float64]:
         return axis_sin
     if angle < np.pi - 1e-4:
         return axis_sin * (angle / sin_angle)
-    # At pi, (R + I) / 2 = u u^T: take the column of its largest diagonal entry.
-    S = (R + np.eye(3)) / 2.0
+    # R = cos I + sin sk(u) + (1 - cos) u u^T, so the symmetric part gives u u^T exactly
+    # ((R + I) / 2 would keep the sin sk(u) term, an axis error of ~(pi - angle) / 2).
+    cos_angle = (np.trace(R) - 1.0) / 2.0
+    S = ((R + R.T) / 2.0 - cos_angle * np.eye(3)) / (1.0 - cos_angle)
     k = int(np.argmax(np.diag(S)))
     u = S[:, k] / np.sqrt(S[k, k])
     if np.dot(u, axis_sin) < 0.0:

@@ -1,0 +1,83 @@
+"""The vservo command line: --help, info --json, demo, and one-line errors."""
+
+import json
+import subprocess
+import sys
+from importlib import resources
+
+import numpy as np
+import pytest
+
+from core.cli import main
+from robot_models.upj_dh import UPJ_DH
+
+
+def run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "core.cli", *args], capture_output=True, text=True, timeout=120)
+
+
+def shipped_cell() -> str:
+    return resources.files("static").joinpath("cell.toml").read_text()
+
+
+def test_help_lists_every_command():
+    result = run("--help")
+    assert result.returncode == 0
+    for command in ("info", "demo"):
+        assert command in result.stdout
+
+
+def test_info_json_describes_robot_camera_and_laser(capsys):
+    assert main(["info", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["robot"]["name"] == "upj" and info["robot"]["dof"] == 6
+    limits = np.radians(info["robot"]["joint_limits_deg"])
+    assert np.allclose(limits, [[link.lower, link.upper] for link in UPJ_DH])
+    assert info["camera"]["fx_px"] == pytest.approx(6.0 / 0.0074, abs=1e-3)
+    assert info["camera"]["fy_px"] == pytest.approx(6.0 / 0.0074, abs=1e-3)
+    assert info["camera"]["image_size_px"] == [640, 480]
+    assert info["camera"]["principal_point_px"] == [320.0, 240.0]
+    assert info["laser"]["baseline_mm"] == pytest.approx(30.0)
+    assert info["laser"]["alpha_deg"] == pytest.approx(80.0)
+
+
+def test_info_follows_the_cell_file(tmp_path, capsys):
+    cell = tmp_path / "ur5.toml"
+    cell.write_text(shipped_cell().replace('arm = "upj"', 'arm = "ur5"').replace("focal_length_mm = 6.0", "focal_length_mm = 7.2"))
+    assert main(["--cell", str(cell), "info", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["robot"]["name"] == "ur5" and info["robot"]["dof"] == 6
+    assert info["camera"]["fx_px"] == pytest.approx(7.2 / 0.0074, abs=1e-3)
+
+
+def test_a_bad_cell_file_gives_one_line_and_a_non_zero_exit(tmp_path):
+    cell = tmp_path / "bad.toml"
+    cell.write_text(shipped_cell().replace("focal_length_mm = 6.0", "focal_length_mm = -6.0"))
+    result = run("--cell", str(cell), "info", "--json")
+    assert result.returncode == 2
+    assert result.stdout == ""
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1
+    assert "camera.focal_length_mm = -6.0" in lines[0] and "bad.toml" in lines[0]
+
+    missing = run("--cell", str(tmp_path / "none.toml"), "info")
+    assert missing.returncode == 2 and "cell file not found" in missing.stderr
+
+
+def test_unknown_command_is_refused():
+    result = run("teleport")
+    assert result.returncode != 0 and "invalid choice" in result.stderr
+
+
+def test_demo_sees_the_thesis_laser_spot_and_measures_its_depth(capsys):
+    assert main(["demo", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    home, teach, steps = report["steps"]
+    assert home["corners_seen"] == 4
+    assert teach["laser_spot_px"] == pytest.approx([327.2, 240.0], abs=0.1)
+    assert teach["laser_depth_mm"] == pytest.approx(teach["true_depth_of_cube_face_mm"], abs=1e-3)
+    # The four corners form the 100 px square of Table 5-2 around the principal point.
+    corners = np.array(teach["corners_px"])
+    assert np.allclose(np.ptp(corners, axis=0), [100.1, 100.1], atol=0.5)
+    assert steps["elapsed_s"] == pytest.approx(10.0)
+    assert steps["deviation_from_commanded_mm"] == pytest.approx(0.0, abs=1e-6)

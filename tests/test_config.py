@@ -1,0 +1,113 @@
+"""The cell configuration file: defaults of the thesis, truth overrides, errors that name the key."""
+
+import tomllib
+from importlib import resources
+
+import numpy as np
+import pytest
+
+from core.config import ConfigError, load_cell, parse_cell
+from core.laser import LaserPointer
+from core.spatial import matrix_from_pose, pose_from_mm_deg
+
+
+def default_data() -> dict:
+    return tomllib.loads(resources.files("static").joinpath("cell.toml").read_text())
+
+
+def test_default_cell_holds_the_thesis_values():
+    cell = load_cell()
+    intrinsics = cell.nominal.camera.intrinsics
+    assert intrinsics.fx == pytest.approx(6.0 / 0.0074) and intrinsics.fy == pytest.approx(6.0 / 0.0074)
+    assert (intrinsics.u0, intrinsics.v0, intrinsics.width, intrinsics.height) == (320, 240, 640, 480)
+    assert np.allclose(cell.nominal.laser.cMl, LaserPointer.in_plane(0.030, np.radians(80.0)).cMl)
+    assert np.allclose(cell.nominal.eMc, np.eye(4))
+    assert cell.motion.divide_factor == 50 and cell.motion.sampling_period_s == 2.0
+    assert cell.arm == "upj" and cell.home_q.shape == (6,)
+    assert cell.simulation.scene.cube.side_m == pytest.approx(0.020)
+
+
+def test_without_overrides_the_truth_equals_the_nominal_cell():
+    cell = load_cell()
+    assert cell.simulation.truth.camera == cell.nominal.camera
+    assert np.array_equal(cell.simulation.truth.eMc, cell.nominal.eMc)
+    assert np.array_equal(cell.simulation.truth.laser.cMl, cell.nominal.laser.cMl)
+
+
+def test_truth_overrides_change_the_truth_only():
+    """Table 5-3's robustness cell: the applied values are nominal, the actual ones true."""
+    data = default_data()
+    data["camera"].update(focal_length_mm=7.2, principal_point_px=[384.0, 288.0])
+    data["laser"]["cMl"] = [30.0, 10.0, 10.0, 0.0, -12.0, 2.0]
+    data["simulation"]["truth"] = {
+        "camera": {"focal_length_mm": 6.0, "principal_point_px": [320.0, 240.0]},
+        "hand_eye": {"eMc": [-20.0, 20.0, 20.0, 5.0, 5.0, 5.0]},
+        "laser": {"cMl": [30.0, 0.0, 0.0, 0.0, -10.0, 0.0]},
+    }
+    cell = parse_cell(data, "robustness")
+    nominal, truth = cell.nominal, cell.simulation.truth
+    assert nominal.camera.intrinsics.fx == pytest.approx(7.2 / 0.0074)
+    assert truth.camera.intrinsics.fx == pytest.approx(6.0 / 0.0074)
+    assert (truth.camera.intrinsics.u0, truth.camera.intrinsics.v0) == (320.0, 240.0)
+    assert (nominal.camera.intrinsics.u0, nominal.camera.intrinsics.v0) == (384.0, 288.0)
+    assert np.allclose(nominal.eMc, np.eye(4))
+    assert np.allclose(truth.eMc, matrix_from_pose(pose_from_mm_deg([-20, 20, 20, 5, 5, 5])))
+    assert np.allclose(truth.laser.cMl, matrix_from_pose(pose_from_mm_deg([30, 0, 0, 0, -10, 0])))
+    assert np.allclose(nominal.laser.cMl, matrix_from_pose(pose_from_mm_deg([30, 10, 10, 0, -12, 2])))
+    # The vacuum cup was not overridden: the truth inherits it.
+    assert np.array_equal(truth.eMv, nominal.eMv)
+
+
+@pytest.mark.parametrize(
+    ("edit", "names"),
+    [
+        (lambda d: d["camera"].update(focal_length_mm=-6.0), ["camera.focal_length_mm", "-6.0", "positive"]),
+        (lambda d: d["camera"].update(focal_length_mm="six"), ["camera.focal_length_mm", "'six'"]),
+        (lambda d: d["camera"].update(focal_length_mm=float("nan")), ["camera.focal_length_mm", "nan", "finite"]),
+        (lambda d: d["camera"].update(pixel_size_mm=[0.0074, 0.0]), ["camera.pixel_size_mm", "positive"]),
+        (lambda d: d["camera"].update(image_size_px=[640.5, 480]), ["camera.image_size_px", "640.5"]),
+        (lambda d: d["camera"].update(distortion=[0.1, 0.0]), ["camera.distortion", "5 finite numbers"]),
+        (lambda d: d["hand_eye"].update(eMc=[0, 0, 0]), ["hand_eye.eMc", "6 finite numbers"]),
+        (lambda d: d["laser"].update(cMl=[30, 0, 0, 0, True, 0]), ["laser.cMl"]),
+        (lambda d: d["robot"].update(arm="kuka"), ["robot.arm", "'kuka'", "upj, ur5"]),
+        (lambda d: d["robot"].pop("home_joints_deg"), ["missing key robot.home_joints_deg"]),
+        (lambda d: d["camera"].update(focal_lenght_mm=6.0), ["unknown key camera.focal_lenght_mm"]),
+        (lambda d: d.update(cameras={}), ["unknown key cameras"]),
+        (lambda d: d["motion"].update(mode="teleport"), ["motion.mode", "position_steps, velocity"]),
+        (lambda d: d["motion"].update(divide_factor=0.5), ["motion.divide_factor", "at least 1"]),
+        (lambda d: d["simulation"].update(pixel_noise_px=-1), ["simulation.pixel_noise_px", ">= 0"]),
+        (lambda d: d["simulation"].update(seed=1.5), ["simulation.seed", "integer"]),
+        (lambda d: d["simulation"]["scene"].pop("object_pose"), ["simulation.scene.object_pose"]),
+        (lambda d: d["simulation"].update(truth={"camera": {"focal_length_mm": 0}}),
+         ["[simulation.truth]", "camera.focal_length_mm", "positive"]),
+        (lambda d: d["simulation"].update(truth={"lens": {}}), ["unknown key simulation.truth.lens"]),
+        (lambda d: d.update(camera=3), ["camera must be a table"]),
+    ],
+)
+def test_a_bad_value_is_reported_with_its_key_and_value(edit, names):
+    data = default_data()
+    edit(data)
+    with pytest.raises(ConfigError) as error:
+        parse_cell(data, "bad.toml")
+    message = str(error.value)
+    assert message.startswith("bad.toml")
+    for name in names:
+        assert name in message, (name, message)
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ConfigError, match="cell file not found: .*nowhere.toml"):
+        load_cell(tmp_path / "nowhere.toml")
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[camera\nfocal_length_mm = 6\n")
+    with pytest.raises(ConfigError, match=r"broken.toml: not valid TOML"):
+        load_cell(broken)
+
+
+def test_a_cell_file_on_disk_round_trips(tmp_path):
+    text = resources.files("static").joinpath("cell.toml").read_text()
+    path = tmp_path / "my_cell.toml"
+    path.write_text(text.replace("focal_length_mm = 6.0", "focal_length_mm = 6.02"))
+    cell = load_cell(path)
+    assert cell.source == str(path)
+    assert cell.nominal.camera.intrinsics.fx == pytest.approx(6.02 / 0.0074)
