@@ -17,7 +17,7 @@ from robot_models.loader import load_arm
 
 
 def _round(values: Any, digits: int = 4) -> Any:
-    return np.round(np.asarray(values, dtype=float), digits).tolist()
+    return (np.round(np.asarray(values, dtype=float), digits) + 0.0).tolist()  # + 0.0: no "-0.0"
 
 
 def cell_info(config: CellConfig) -> dict[str, Any]:

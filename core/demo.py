@@ -34,7 +34,7 @@ DEMO_cVc = np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.1])
 
 
 def _mm_deg(bMx: np.ndarray) -> list[float]:
-    return np.round(pose_to_mm_deg(pose_from_matrix(bMx)), 2).tolist()
+    return (np.round(pose_to_mm_deg(pose_from_matrix(bMx)), 2) + 0.0).tolist()  # + 0.0: no "-0.0"
 
 
 def _px(uv: np.ndarray) -> list[Any]:

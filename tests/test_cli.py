@@ -43,7 +43,8 @@ def test_info_json_describes_robot_camera_and_laser(capsys):
 
 def test_info_follows_the_cell_file(tmp_path, capsys):
     cell = tmp_path / "ur5.toml"
-    cell.write_text(shipped_cell().replace('arm = "upj"', 'arm = "ur5"').replace("focal_length_mm = 6.0", "focal_length_mm = 7.2"))
+    text = shipped_cell().replace('arm = "upj"', 'arm = "ur5"')
+    cell.write_text(text.replace("focal_length_mm = 6.0", "focal_length_mm = 7.2"))
     assert main(["--cell", str(cell), "info", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["robot"]["name"] == "ur5" and info["robot"]["dof"] == 6
