@@ -80,6 +80,11 @@ class Cube:
         return self.corners_o @ self.bMo[:3, :3].T + self.bMo[:3, 3]
 
     @property
+    def reference_b(self) -> Matrix:
+        """The bottom corner below corner 0, in B: a model point off the top face's plane."""
+        return self.bMo[:3, :3] @ np.array([0.0, 0.0, -self.side_m]) + self.bMo[:3, 3]
+
+    @property
     def box(self) -> Box:
         s = self.side_m
         return Box("cube", self.bMo @ transform(t=(s / 2, s / 2, -s / 2)), np.full(3, s / 2))

@@ -20,6 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from core.config import CellConfig, CellModel
+from core.features import ObjectRegion, polygon_moments
 from core.kinematics import ArmKinematics
 from core.scene import Scene
 from core.spatial import Matrix, exp_twist, inverse, pose_error
@@ -54,7 +55,11 @@ class Measurement:
     """One sample of everything the cell's sensors report.
 
     corners_px holds the four top-face corners in feature order, NaN where a corner is
-    outside the image or hidden; laser_spot_px is NaN when the spot is not seen.
+    outside the image or hidden; laser_spot_px is NaN when the spot is not seen; region
+    is the part of the top face inside the image (area and centroid, eqs. 4-33 .. 4-35).
+    corner_depths_m comes from the simulator's ideal range sensor (the exact depths the
+    thesis gave its classic-IBVS baseline); reference_px is the cube's bottom corner
+    below corner 0, the non-coplanar fifth point of DeMenthon's POSIT, NaN when hidden.
     """
 
     time_s: float
@@ -62,6 +67,9 @@ class Measurement:
     bMe: Matrix
     corners_px: Matrix
     laser_spot_px: Matrix
+    region: ObjectRegion
+    corner_depths_m: Matrix
+    reference_px: Matrix
 
     @property
     def corners_visible(self) -> Matrix:
@@ -70,6 +78,38 @@ class Measurement:
     @property
     def laser_visible(self) -> bool:
         return not bool(np.isnan(self.laser_spot_px).any())
+
+
+def _clip(polygon: list[Matrix], axis: int, limit: float, keep_below: bool) -> list[Matrix]:
+    """One Sutherland-Hodgman pass: the part of a polygon on one side of a border line."""
+
+    def inside(p: Matrix) -> bool:
+        return p[axis] <= limit if keep_below else p[axis] >= limit
+
+    clipped = []
+    for previous, current in zip(polygon[-1:] + polygon[:-1], polygon):
+        if inside(current) != inside(previous):
+            s = (limit - previous[axis]) / (current[axis] - previous[axis])
+            clipped.append(previous + s * (current - previous))
+        if inside(current):
+            clipped.append(current)
+    return clipped
+
+
+def visible_region(polygon_px: Matrix, image_size: tuple[int, int]) -> ObjectRegion:
+    """The part of a projected face inside the image, and its moments (eqs. 4-33 .. 4-35).
+
+    A face with a vertex behind the camera (NaN projection) is not seen as a region.
+    """
+    if np.isnan(polygon_px).any():
+        return ObjectRegion(0.0, np.full(2, np.nan))
+    width, height = image_size
+    polygon = list(np.asarray(polygon_px, dtype=float))
+    for axis, limit, keep_below in ((0, 0.0, False), (0, width, True), (1, 0.0, False), (1, height, True)):
+        polygon = _clip(polygon, axis, limit, keep_below)
+        if len(polygon) < 3:
+            return ObjectRegion(0.0, np.full(2, np.nan))
+    return ObjectRegion(*polygon_moments(np.array(polygon)))
 
 
 @dataclass(frozen=True)
@@ -122,9 +162,16 @@ class SimulatedCell:
         scene = self.state.scene
         corners_b = scene.cube.corners_b
         corners_c = corners_b @ cMb[:3, :3].T + cMb[:3, 3]
-        corners_px = self._observe(camera.project(corners_c))
+        projected = camera.project(corners_c)
+        corners_px = self._observe(projected)
         hidden = [not scene.visible_from(eye_b, corner_b) for corner_b in corners_b]
         corners_px[hidden] = np.nan
+        region = visible_region(projected, camera.image_size)
+
+        reference_b = scene.cube.reference_b
+        reference_px = self._observe(camera.project(cMb[:3, :3] @ reference_b + cMb[:3, 3]))[0]
+        if not scene.visible_from(eye_b, reference_b):
+            reference_px[:] = np.nan
 
         spot_px = np.full(2, np.nan)
         hit = scene.raycast(self.truth.model.laser.beam(bMc))
@@ -133,7 +180,9 @@ class SimulatedCell:
             spot_px = self._observe(camera.project(spot_c[None, :]))[0]
 
         q = self.state.q.copy()
-        return Measurement(self.state.time_s, q, self.controller_arm.fk(q), corners_px, spot_px)
+        return Measurement(
+            self.state.time_s, q, self.controller_arm.fk(q), corners_px, spot_px, region, corners_c[:, 2].copy(), reference_px
+        )
 
     def _observe(self, uv: Matrix) -> Matrix:
         """Pixel noise, then the image bounds: what falls outside is not measured."""

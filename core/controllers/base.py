@@ -1,0 +1,85 @@
+"""What every visual servo controller shares: its output, its verdicts, its safeguards.
+
+A controller is a small immutable object holding its settings and the NOMINAL camera;
+``step(features, desired, stage)`` maps one frame's features to a camera twist cVc
+(v, w in the camera frame) and the stage to use next cycle. The loop carries the stage,
+so a controller holds no hidden state and any cycle can be replayed on its own.
+Following ViSP, a controller that cannot act returns a zero twist with a failure, and
+the loop stops the robot.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+from typing import Protocol
+
+import numpy as np
+
+from core.features import DesiredImage, ImageFeatures
+from core.spatial import Matrix
+
+# Below this ratio of smallest to largest singular value a Jacobian is singular: its
+# pseudo-inverse would command huge twists for pixel-sized errors.
+SINGULAR_RATIO = 1e-6
+
+
+class Failure(str, Enum):
+    """Why a servo run stopped without reaching the desired image."""
+
+    FEATURES_LOST = "features_lost"
+    CAMERA_RETREAT = "camera_retreat"
+    NO_PROGRESS = "no_progress"
+    UNREACHABLE = "unreachable"
+    SINGULAR_JACOBIAN = "singular_jacobian"
+    ITERATION_LIMIT = "iteration_limit"
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    """One control step.
+
+    cVc: camera twist (v, w) in C, m/s and rad/s; zero when done or failed.
+    stage: the stage that produced it (and the one to continue in next cycle).
+    error_px: norm of the object-feature error to the desired image (8 coordinates),
+      NaN when not every corner is seen: the final criterion of every method.
+    stage_error: the error the current stage regulates (a switch threshold applies to it).
+    converged / failure: the verdict; note says why (a switch, a lost feature, ...).
+    """
+
+    cVc: Matrix
+    stage: str
+    error_px: float
+    stage_error: float
+    converged: bool = False
+    failure: Failure | None = None
+    note: str = ""
+
+    @classmethod
+    def stop(cls, stage: str, error_px: float, failure: Failure, note: str) -> ControlOutput:
+        return cls(np.zeros(6), stage, error_px, float("nan"), failure=failure, note=note)
+
+
+class Controller(Protocol):
+    name: str
+
+    def step(self, features: ImageFeatures, desired: DesiredImage, stage: str | None) -> ControlOutput: ...
+
+
+class SingularJacobian(ValueError):
+    """A Jacobian too close to singular to invert."""
+
+
+def checked_pinv(J: Matrix) -> Matrix:
+    """Moore-Penrose pseudo-inverse of J; raises SingularJacobian near a singularity."""
+    singular_values = np.linalg.svd(J, compute_uv=False)
+    if not np.all(np.isfinite(singular_values)) or singular_values[-1] < SINGULAR_RATIO * singular_values[0]:
+        raise SingularJacobian(f"singular values {singular_values.min():.3g} .. {singular_values.max():.3g}")
+    return np.linalg.pinv(J)
+
+
+def feature_error_px(features: ImageFeatures, desired: DesiredImage) -> float:
+    """||f_d - f|| over the four corners, NaN unless all are seen."""
+    if not features.all_corners_visible:
+        return float("nan")
+    return float(np.linalg.norm(desired.corners_px - features.corners_px))
