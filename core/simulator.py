@@ -29,6 +29,10 @@ from robot_models.loader import load_arm
 
 # Rotation rate a MOVL uses when the rotation, not the translation, sets the duration.
 ROTATION_SPEED_RAD_S = 0.5
+# The robot controller's own IK precision: far below any arm's repeatability, and loose
+# enough to converge near singularities where 1e-9 takes too many iterations.
+IK_TOLERANCE_M = 1e-7
+IK_TOLERANCE_RAD = 1e-7
 
 
 @dataclass(frozen=True)
@@ -205,7 +209,7 @@ class SimulatedCell:
         raise TypeError(f"not a robot command: {command!r}")
 
     def _move(self, bMe_target: Matrix, duration_s: float) -> MoveReport:
-        q = self.controller_arm.ik(bMe_target, self.state.q).q
+        q = self.controller_arm.ik(bMe_target, self.state.q, tolerance_m=IK_TOLERANCE_M, tolerance_rad=IK_TOLERANCE_RAD).q
         self.state = replace(self.state, time_s=self.state.time_s + duration_s, q=q, eMe_settle=self._settle())
         return MoveReport(duration_s, q.copy(), self.controller_arm.fk(q))
 
@@ -231,6 +235,18 @@ class SimulatedCell:
             raise ValueError(f"joints {np.rad2deg(q).round(2).tolist()} deg are outside the joint limits")
         self.state = replace(self.state, q=q.copy(), eMe_settle=self._settle())
         return MoveReport(0.0, q.copy(), self.controller_arm.fk(q))
+
+    def place_camera(self, cMo: Matrix) -> None:
+        """Scenario set-up: put the TRUE camera at cMo from the true cube, as an operator
+        jogging the arm until the view is right would (teaching, a task's initial pose).
+
+        Solved with the true arm, so it is exact even when the nominal model is wrong;
+        a controller never calls it.
+        """
+        bMc = self.state.scene.cube.bMo @ inverse(np.asarray(cMo, dtype=float))
+        bMe = bMc @ inverse(self.truth.model.eMc)
+        q = self.truth.arm.ik(bMe, self.state.q).q
+        self.state = replace(self.state, q=q, eMe_settle=np.eye(4))
 
     # -- evaluation only: what no controller may read --------------------------------
 

@@ -4,7 +4,7 @@ Three sub-controllers, switched on image errors:
 
 - Stage 1.A (all corners seen): turn the camera (3 rotational DOF) until the corners sit
   on the imaginary desired features, the desired corners shifted by the current laser
-  spot minus the desired spot (Fig. 4-5); the laser then lies on the part where it lies
+  spot minus the desired spot (Fig. 4-5) and scaled to the current pattern (below); the laser then lies on the part where it lies
   in the desired image, and a half turn about the optical axis is done here by rotation
   rather than by IBVS's retreat (eqs. 4-26 .. 4-29). Switch when ||f_id - f|| <= f0.
 - Stage 1.B (part of the object outside the image): turn the camera (2 DOF) to bring the
@@ -19,7 +19,18 @@ Three sub-controllers, switched on image errors:
 - Stage 3: classic IBVS with the constant interaction matrix at the desired features and
   depth (eqs. 4-50, 4-51) until ||f_d - f|| is below the final threshold.
 
-Interpretation (THESIS-NOTES section 5): the laser spot is rigid with the camera, so a
+Interpretation (THESIS-NOTES section 5). Fig. 4-5 shifts the desired corners to the
+current spot; from 0.42 m the part's image is less than half the desired size and no
+rotation can make the corners match that, so ||f_id - f|| would never fall below f0.
+The imaginary features therefore also take the current pattern's scale (about the
+spot): at the desired depth this is the construction of Fig. 4-5, and the stage then
+regulates what rotation can change, which eq. 4-26 (a sum of errors) already hinted
+at. Stage 1.A takes w_z from the orientation of the
+pattern, the angle that turns the current corners onto the imaginary ones, and w_x, w_y
+from the least squares of eq. 4-29 for what is left (the partitioning of Corke &
+Hutchinson 2001): at a half turn about the optical axis every error is radial, the
+least-squares w_z of eq. 4-29 is exactly zero, and only this turns the camera round as
+Fig. 5-1 shows. And the laser spot is rigid with the camera, so a
 rotation does not move the spot in the image, it moves the object. Stages 1.B and 2
 therefore turn the camera so that the object centroid c moves onto the spot,
 J^r(c) w = K (f^l - c); the thesis writes the same goal as the spot moving onto the
@@ -52,6 +63,27 @@ def rotational_jacobian(camera: CameraModel, uv: Matrix) -> Matrix:
 def translational_jacobian(camera: CameraModel, uv: Matrix, Z: float) -> Matrix:
     """J^t of eq. 4-23 stacked for every point (eq. 4-42) at the common depth Z."""
     return pixel_interaction_matrix(camera, uv, Z)[:, :3]
+
+
+def image_rotation(from_px: Matrix, to_px: Matrix) -> float:
+    """Angle in (-pi, pi] of the plane rotation that best turns one point pattern onto
+    another about their centroids (2D Procrustes), counter-clockwise in (u, v)."""
+    a = from_px - from_px.mean(axis=0)
+    b = to_px - to_px.mean(axis=0)
+    return float(np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b)))
+
+
+def pattern_scale(points_px: Matrix) -> float:
+    """RMS distance of a point pattern to its centroid (px)."""
+    return float(np.sqrt(np.mean(np.sum((points_px - points_px.mean(axis=0)) ** 2, axis=1))))
+
+
+def imaginary_features(desired: DesiredImage, features: ImageFeatures) -> Matrix:
+    """The desired corners moved with the laser spot (Fig. 4-5) and scaled to the current
+    pattern about the spot: where the corners are when the spot lies on the part as in
+    the desired image, seen from the current distance."""
+    scale = pattern_scale(features.corners_px) / pattern_scale(desired.corners_px)
+    return features.laser_spot_px + scale * (desired.corners_px - desired.laser_spot_px)
 
 
 @dataclass(frozen=True)
@@ -91,13 +123,19 @@ class LaserIbvs:
         if not features.all_corners_visible:
             return self._stage_1b(features, error_px)
 
-        # Stage 1.A: imaginary features, Fig. 4-5.
-        f_id = desired.corners_px + (features.laser_spot_px - desired.laser_spot_px)
+        # Stage 1.A: imaginary features, Fig. 4-5, at the scale of the current pattern.
+        f_id = imaginary_features(desired, features)
         e = (f_id - features.corners_px).ravel()
         stage_error = float(np.linalg.norm(e))
         if stage_error <= self.f0_px:
             return self._stage_2(features, desired, error_px, note=f"1A -> 2: ||f_id - f|| = {stage_error:.2f} px")
-        w = self.k_rotation_1a * checked_pinv(rotational_jacobian(self.camera, features.corners_px)) @ e
+        # The turn about the optical axis comes from the pattern's orientation: a least-
+        # squares w_z vanishes at a half turn, where every error is radial (eq. 4-25).
+        # An image pattern turns at -w_z (x right, y down), hence the sign.
+        J = rotational_jacobian(self.camera, features.corners_px)
+        w_z = -self.k_rotation_1a * image_rotation(features.corners_px, f_id)
+        w_xy = checked_pinv(J[:, :2]) @ (self.k_rotation_1a * e - J[:, 2] * w_z)
+        w = np.array([w_xy[0], w_xy[1], w_z])
         return ControlOutput(self._with_compensation(w), STAGE_1A, error_px, stage_error)
 
     def _stage_1b(self, features: ImageFeatures, error_px: float) -> ControlOutput:

@@ -1,0 +1,69 @@
+"""2.5D visual servoing (Malis, Chaumette & Boudet 1999), the thesis's second baseline.
+
+From the homography between the desired and the current corners (normalized
+coordinates), decomposed into c*Rc, t/d* and the plane normal n*, the features are
+
+    e = (x - x*, y - y*, log(Z / Z*), theta u(c*Rc))
+
+for a reference point of the plane (the point whose desired image is the corners'
+centroid): x, y its current image, Z/Z* = (H m*)_z its depth ratio. The rotation is
+decoupled, w = -lambda theta u, and the translation cancels the rest:
+
+    v = -L_v^-1 (lambda e_v + L_vw w),
+    L_v = 1/Z [[-1, 0, x], [0, -1, y], [0, 0, -1]],
+    L_vw = [[x y, -(1 + x^2), y], [1 + y^2, -x y, -x], [-y, x, 0]],
+
+with Z = (Z / Z*) Z* and Z* the laser depth taught at the desired pose. Of the two
+physically valid decompositions, the one whose normal is closest to the taught normal
+(from the pose estimated at teaching) is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.camera import CameraModel
+from core.controllers.base import ControlOutput, Failure, feature_error_px
+from core.features import DesiredImage, ImageFeatures
+from core.pose_estimation import PoseEstimationError, decompose_homography, euclidean_homography
+from core.spatial import theta_u
+
+
+@dataclass(frozen=True)
+class Hybrid25D:
+    camera: CameraModel
+    gain: float = 1.0
+    final_threshold_px: float = 1.0
+    name: str = "2.5d"
+
+    def step(self, features: ImageFeatures, desired: DesiredImage, stage: str | None) -> ControlOutput:
+        error_px = feature_error_px(features, desired)
+        if not features.all_corners_visible:
+            lost = int((~features.corners_visible).sum())
+            return ControlOutput.stop(self.name, error_px, Failure.FEATURES_LOST, f"{lost} of 4 corners not seen")
+        if error_px <= self.final_threshold_px:
+            return ControlOutput(np.zeros(6), self.name, error_px, error_px, converged=True)
+
+        desired_xn = self.camera.pixel_to_normalized(desired.corners_px)
+        current_xn = self.camera.pixel_to_normalized(features.corners_px)
+        # The taught plane normal, from the camera towards the face: -z of O in C*.
+        normal_hint = -desired.cdMo[:3, 2]
+        try:
+            motion = decompose_homography(euclidean_homography(desired_xn, current_xn), desired_xn, normal_hint)
+        except PoseEstimationError as exc:
+            return ControlOutput.stop(self.name, error_px, Failure.SINGULAR_JACOBIAN, f"no homography: {exc}")
+
+        m_star = np.append(desired_xn.mean(axis=0), 1.0)
+        p = motion.H @ m_star
+        rho = p[2]  # Z / Z*
+        x, y = p[:2] / p[2]
+        x_star, y_star = m_star[:2]
+        Z = rho * desired.depth_m
+        e_v = np.array([x - x_star, y - y_star, np.log(rho)])
+        w = -self.gain * theta_u(motion.cRcd.T)
+        L_v = np.array([[-1.0, 0.0, x], [0.0, -1.0, y], [0.0, 0.0, -1.0]]) / Z
+        L_vw = np.array([[x * y, -(1.0 + x * x), y], [1.0 + y * y, -x * y, -x], [-y, x, 0.0]])
+        v = -np.linalg.solve(L_v, self.gain * e_v + L_vw @ w)
+        return ControlOutput(np.concatenate([v, w]), self.name, error_px, error_px)

@@ -1,0 +1,166 @@
+"""The look-and-move loop: measure, control, convert, command, and watch for failure.
+
+One cycle (ARCHITECTURE.md): the cell's measurement becomes image features (laser depth
+from the NOMINAL laser and camera), the controller turns them into a camera twist cVc,
+the nominal eVc carries it to the flange, the step policy makes it a robot command and
+the robot executes it. The loop watches what a cell operator would: a shrinking image
+(the camera retreating), an error that stops falling (a local minimum), a robot that
+cannot reach the target, and the iteration budget. It stops the robot (no further
+command) on the first failure and names the cause.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from core.config import CellModel
+from core.controllers.base import Controller, ControlOutput, Failure
+from core.features import DesiredImage, ImageFeatures, features_from_measurement, polygon_moments
+from core.kinematics import UnreachableTarget
+from core.simulator import Measurement, SimulatedCell
+from core.spatial import Matrix, twist_transform
+from core.step_policy import StepPolicy
+
+log = logging.getLogger("vservo.servo")
+
+
+@dataclass(frozen=True)
+class LoopLimits:
+    """When the loop gives up.
+
+    retreat_area_fraction: the corners' image area below this fraction of both the first
+      and the desired area means the camera is backing away (IBVS's retreat, Chaumette 1998).
+    progress_window / progress_fraction: a stage whose error has not fallen by this
+      fraction over this many cycles is stuck in a local minimum.
+    spot_hold_cycles: for how many cycles a laser spot that vanished (hidden behind the
+      part's edge as it climbs onto it) is taken to be where it was last seen.
+    """
+
+    max_iterations: int = 3000
+    retreat_area_fraction: float = 0.75
+    progress_window: int = 150
+    progress_fraction: float = 0.01
+    spot_hold_cycles: int = 10
+
+
+@dataclass(frozen=True)
+class Cycle:
+    """One look-and-move cycle as the loop saw it."""
+
+    iteration: int
+    measurement: Measurement
+    features: ImageFeatures
+    output: ControlOutput
+
+
+@dataclass(frozen=True)
+class ServoOutcome:
+    converged: bool
+    failure: Failure | None
+    reason: str
+    cycles: tuple[Cycle, ...]
+
+    @property
+    def iterations(self) -> int:
+        return len(self.cycles)
+
+    @property
+    def final_error_px(self) -> float:
+        return self.cycles[-1].output.error_px if self.cycles else float("nan")
+
+    @property
+    def stages(self) -> list[dict[str, int | str]]:
+        """Consecutive stages in the order they ran, with their iteration counts."""
+        runs: list[dict[str, int | str]] = []
+        for cycle in self.cycles:
+            if runs and runs[-1]["stage"] == cycle.output.stage:
+                runs[-1]["iterations"] += 1
+            else:
+                runs.append({"stage": cycle.output.stage, "iterations": 1})
+        return runs
+
+
+def hold_spot(features: ImageFeatures, last_seen: ImageFeatures | None) -> ImageFeatures:
+    """The features with a vanished laser spot replaced by its last sighting, if any.
+
+    The spot's image position depends only on the depth it lands at, which changes little
+    over a few cycles, so the last sighting is a good estimate while it stays hidden.
+    """
+    if features.laser_visible or last_seen is None:
+        return features
+    return replace(features, laser_spot_px=last_seen.laser_spot_px, laser_depth_m=last_seen.laser_depth_m)
+
+
+def corner_area_px2(corners_px: Matrix) -> float:
+    return polygon_moments(corners_px)[0] if not np.isnan(corners_px).any() else float("nan")
+
+
+def run_servo(
+    cell: SimulatedCell,
+    controller: Controller,
+    desired: DesiredImage,
+    model: CellModel,
+    policy: StepPolicy,
+    limits: LoopLimits = LoopLimits(),
+    on_cycle: Callable[[Cycle], None] | None = None,
+) -> ServoOutcome:
+    """Servo ``cell`` to the desired image with ``controller``; ``model`` is the nominal cell."""
+    eVc = twist_transform(model.eMc)
+    desired_area = corner_area_px2(desired.corners_px)
+    first_area = float("nan")
+    cycles: list[Cycle] = []
+    stage: str | None = None
+    last_spot: ImageFeatures | None = None  # the last frame that saw the laser spot
+    spot_hidden_for = 0
+    recent_errors: deque[float] = deque(maxlen=limits.progress_window + 1)  # of the current stage
+
+    def finish(converged: bool, failure: Failure | None, reason: str) -> ServoOutcome:
+        if failure is not None:
+            log.info("servo stopped at cycle %d: %s (%s)", len(cycles), failure.value, reason)
+        return ServoOutcome(converged, failure, reason, tuple(cycles))
+
+    for iteration in range(limits.max_iterations):
+        measurement = cell.measure()
+        seen = features_from_measurement(measurement, model.camera, model.laser)
+        if seen.laser_visible:
+            last_spot, spot_hidden_for = seen, 0
+        else:
+            spot_hidden_for += 1
+        features = hold_spot(seen, last_spot if spot_hidden_for <= limits.spot_hold_cycles else None)
+        output = controller.step(features, desired, stage)
+        cycle = Cycle(iteration, measurement, features, output)
+        cycles.append(cycle)
+        if on_cycle is not None:
+            on_cycle(cycle)
+        if output.note:
+            log.info("cycle %d: %s", iteration, output.note)
+        if output.failure is not None:
+            return finish(False, output.failure, output.note)
+        if output.converged:
+            return finish(True, None, f"feature error {output.error_px:.3f} px")
+
+        area = corner_area_px2(features.corners_px)
+        if np.isnan(first_area):
+            first_area = area
+        if area < limits.retreat_area_fraction * min(first_area, desired_area):
+            return finish(False, Failure.CAMERA_RETREAT, f"corner area {area:.0f} px^2, first {first_area:.0f} px^2")
+
+        if output.stage != stage:
+            recent_errors.clear()
+        stage = output.stage
+        recent_errors.append(output.stage_error)
+        if len(recent_errors) == recent_errors.maxlen and recent_errors[-1] > (1.0 - limits.progress_fraction) * recent_errors[0]:
+            return finish(
+                False, Failure.NO_PROGRESS, f"stage {stage} error {recent_errors[-1]:.2f} after {limits.progress_window} cycles"
+            )
+
+        try:
+            cell.execute(policy.command(measurement.bMe, eVc @ output.cVc))
+        except UnreachableTarget as exc:
+            return finish(False, Failure.UNREACHABLE, str(exc))
+    return finish(False, Failure.ITERATION_LIMIT, f"{limits.max_iterations} cycles")

@@ -1,0 +1,191 @@
+"""One servo run of the simulation study: teach, start, servo, evaluate (chapter 5).
+
+The run follows the thesis's procedure on the simulated cell: the camera is put at the
+task's desired pose and the desired image is taught from what it sees (features, laser
+depth Z*, a pose estimate for the methods that need one); the camera is put at the
+initial pose; the controller servoes with the NOMINAL cell model. Only the evaluation
+(end-effector path, final pose error) reads the simulator's truth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from core.config import CellConfig, CellModel
+from core.controllers.base import Controller
+from core.controllers.ibvs import ClassicIbvs
+from core.controllers.laser_ibvs import LaserIbvs
+from core.features import DesiredImage, features_from_measurement
+from core.pose_estimation import PoseEstimationError, pose_from_planar_points
+from core.servo_loop import Cycle, LoopLimits, ServoOutcome, run_servo
+from core.simulator import SimulatedCell
+from core.spatial import Matrix, inverse, pose_error
+from core.step_policy import IntegratedVelocity
+from core.tasks import ServoTask
+
+METHODS = ("laser", "ibvs", "pbvs", "2.5d")
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """What a study run may change; the defaults are the thesis's (all gains 1)."""
+
+    method: str = "laser"
+    gain: float = 1.0
+    dt_s: float = 0.1
+    max_iterations: int = 3000
+    k_rotation: float = 1.0  # K2 of the laser method (eq. 4-49)
+    ibvs_interaction: str = "current"
+    ibvs_depth: str = "exact"
+    pbvs_pose: str = "pnp"
+    final_threshold_px: float = 1.0
+
+
+def build_controller(model: CellModel, settings: RunSettings) -> Controller:
+    """The controller of ``settings.method`` on the nominal cell ``model``."""
+    from core.controllers.hybrid import Hybrid25D
+    from core.controllers.pbvs import Pbvs
+
+    camera, gain, final = model.camera, settings.gain, settings.final_threshold_px
+    if settings.method == "laser":
+        return LaserIbvs(
+            camera,
+            cTe=inverse(model.eMc)[:3, 3],
+            k_rotation_1a=gain,
+            k_rotation_1b=gain,
+            k_translation=gain,
+            k_rotation=settings.k_rotation * gain,
+            k_final=gain,
+            final_threshold_px=final,
+        )
+    if settings.method == "ibvs":
+        return ClassicIbvs(camera, gain, settings.ibvs_interaction, settings.ibvs_depth, final)
+    if settings.method == "pbvs":
+        return Pbvs(camera, gain, settings.pbvs_pose, final)
+    if settings.method == "2.5d":
+        return Hybrid25D(camera, gain, final)
+    raise ValueError(f"unknown method {settings.method!r}: choose one of {', '.join(METHODS)}")
+
+
+def teach(cell: SimulatedCell, cdMo_true: Matrix, model: CellModel) -> DesiredImage:
+    """Teach the desired image at the true pose cdMo_true (Fig. C-2), with the nominal model."""
+    from core.scene import Cube
+
+    cell.place_camera(cdMo_true)
+    features = features_from_measurement(cell.measure(), model.camera, model.laser)
+    if not (features.all_corners_visible and features.laser_visible):
+        raise ValueError("the desired view must show the four corners and the laser spot")
+    cube = Cube(np.eye(4), cell.state.scene.cube.side_m)
+    try:
+        cdMo = pose_from_planar_points(features.corners_px, cube.corners_o, model.camera)
+    except PoseEstimationError as exc:
+        raise ValueError(f"cannot estimate the taught pose: {exc}") from exc
+    corner_depths = cube.corners_o @ cdMo[:3, :3].T[:, 2] + cdMo[2, 3]
+    return DesiredImage(features.corners_px, features.laser_spot_px, features.laser_depth_m, cdMo, corner_depths)
+
+
+@dataclass(frozen=True)
+class RunTrace:
+    """Per-cycle arrays of one run, for figures; truth columns are for evaluation only."""
+
+    time_s: Matrix  # (T,)
+    corners_px: Matrix  # (T, 4, 2)
+    laser_px: Matrix  # (T, 2)
+    cVc: Matrix  # (T, 6)
+    error_px: Matrix  # (T,)
+    stages: tuple[str, ...]
+    bMe_position_true: Matrix  # (T + 1, 3): the end-effector path, after every move
+    pose_error_true: Matrix  # (T, 2): translation m, rotation rad to the desired pose
+
+
+@dataclass(frozen=True)
+class RunResult:
+    task: str
+    method: str
+    outcome: ServoOutcome
+    desired: DesiredImage
+    trace: RunTrace
+    path_length_m: float
+    straight_line_m: float
+    final_translation_m: float
+    final_rotation_rad: float
+
+    def summary(self) -> dict[str, Any]:
+        """The JSON object of ``vservo simulate --json``."""
+        outcome = self.outcome
+        return {
+            "task": self.task,
+            "method": self.method,
+            "converged": outcome.converged,
+            "failure": outcome.failure.value if outcome.failure else None,
+            "reason": outcome.reason,
+            "iterations": outcome.iterations,
+            "final_error_px": _finite_or_none(outcome.final_error_px),
+            "path_length_m": round(self.path_length_m, 6),
+            "straight_line_m": round(self.straight_line_m, 6),
+            "final_pose_error": {
+                "translation_m": round(self.final_translation_m, 6),
+                "rotation_rad": round(self.final_rotation_rad, 6),
+            },
+            "stages": outcome.stages,
+        }
+
+
+def _finite_or_none(value: float) -> float | None:
+    return round(float(value), 6) if np.isfinite(value) else None
+
+
+def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: int | None = None) -> RunResult:
+    """Teach ``task``'s desired image, start at its initial pose and servo with ``settings``."""
+    cell = SimulatedCell(config, seed)
+    scene = config.simulation.scene
+    cell.place_cube(task.placement.bMo(scene.table_height_m, scene.cube.side_m))
+    model = config.nominal
+    desired = teach(cell, task.desired_cMo, model)
+    cell.place_camera(task.initial_cMo)
+
+    # Evaluation only: the true end-effector path and pose error, read at every cycle
+    # (before its move) and once more after the last move.
+    path: list[Matrix] = []
+    pose_errors: list[tuple[float, float]] = []
+
+    def record(cycle: Cycle) -> None:
+        path.append(cell.ground_truth_bMe()[:3, 3])
+        pose_errors.append(pose_error(cell.ground_truth_cMo(), task.desired_cMo))
+
+    outcome = run_servo(
+        cell,
+        build_controller(model, settings),
+        desired,
+        model,
+        IntegratedVelocity(settings.dt_s),
+        LoopLimits(max_iterations=settings.max_iterations),
+        on_cycle=record,
+    )
+    path.append(cell.ground_truth_bMe()[:3, 3])
+    trace = RunTrace(
+        time_s=np.array([c.measurement.time_s for c in outcome.cycles]),
+        corners_px=np.array([c.features.corners_px for c in outcome.cycles]),
+        laser_px=np.array([c.features.laser_spot_px for c in outcome.cycles]),
+        cVc=np.array([c.output.cVc for c in outcome.cycles]),
+        error_px=np.array([c.output.error_px for c in outcome.cycles]),
+        stages=tuple(c.output.stage for c in outcome.cycles),
+        bMe_position_true=np.array(path),
+        pose_error_true=np.array(pose_errors),
+    )
+    positions = trace.bMe_position_true
+    translation, rotation = pose_error(cell.ground_truth_cMo(), task.desired_cMo)
+    return RunResult(
+        task=task.name,
+        method=settings.method,
+        outcome=outcome,
+        desired=desired,
+        trace=trace,
+        path_length_m=float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()),
+        straight_line_m=float(np.linalg.norm(positions[-1] - positions[0])),
+        final_translation_m=translation,
+        final_rotation_rad=rotation,
+    )
