@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -94,13 +95,103 @@ def report_text(report: dict[str, Any]) -> str:
     return "\n".join([report["title"], *lines])
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, as every vservo error is."""
+
+    def error(self, message: str) -> None:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _pose_argument(text: str) -> np.ndarray:
+    """X,Y,Z,phi,theta,psi in m and rad (Table 5-1's convention)."""
+    try:
+        values = np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        values = np.array([])
+    if values.shape != (6,) or not np.all(np.isfinite(values)):
+        raise argparse.ArgumentTypeError(f"expected 6 comma-separated numbers X,Y,Z,phi,theta,psi (m, rad), got {text!r}")
+    return values
+
+
+def _positive(kind: type) -> Any:
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}") from None
+        if not value > 0:
+            raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}")
+        return value
+
+    return parse
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from core.simulate import simulate
+
+    result = simulate(
+        cell_path=args.cell,
+        task_number=args.task,
+        method=args.method,
+        robust=args.robust,
+        seed=args.seed,
+        initial=args.initial,
+        desired=args.desired,
+        gain=args.gain,
+        max_iterations=args.max_iterations,
+        dt_s=args.dt,
+    )
+    summary = result.summary()
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        verdict = "converged" if summary["converged"] else f"failed: {summary['failure']} ({summary['reason']})"
+        print(f"{summary['task']}, {summary['method']}: {verdict} after {summary['iterations']} iterations")
+        print(f"  final error {summary['final_error_px']} px, end-effector path {summary['path_length_m']:.3f} m "
+              f"(straight line {summary['straight_line_m']:.3f} m)")
+        pose = summary["final_pose_error"]
+        print(f"  final pose error {pose['translation_m'] * 1000:.3f} mm, {np.degrees(pose['rotation_rad']):.3f} deg")
+        print("  stages: " + ", ".join(f"{s['stage']} x{s['iterations']}" for s in summary["stages"]))
+    return 0
+
+
+def _cmd_montecarlo(args: argparse.Namespace) -> int:
+    from core.montecarlo import run_montecarlo
+    from core.progress import Progress
+    from core.study import RunSettings
+
+    config = load_cell(args.cell)
+    progress = Progress(args.n, f"montecarlo {args.method}")
+    summary = run_montecarlo(
+        config, RunSettings(method=args.method), args.n, args.seed, args.processes,
+        on_sample=lambda outcome: progress.advance("ok" if outcome.converged else outcome.failure),
+    )
+    progress.close()
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"{args.method}: {summary['success_rate']:.1%} of {args.n} converged; failures {summary['failures']}")
+        print(f"  path length (m) median {summary['path_length_m']['median']}, p95 {summary['path_length_m']['p95']}")
+        print(f"  iterations median {summary['iterations']['median']}, p95 {summary['iterations']['p95']}")
+        print(f"  {summary['distribution']}")
+    return 0
+
+
+def _cmd_reproduce(args: argparse.Namespace) -> int:
+    from core.report import reproduce
+
+    summaries = reproduce(Path(args.out), args.cell, args.montecarlo, args.seed)
+    print(f"wrote {args.out}/results.json, {args.out}/report.md and {len(summaries['figures'])} figures")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="vservo",
         description="Vision-guided robotic assembly: a camera and a laser pointer on an industrial arm.",
     )
     parser.add_argument("--cell", metavar="FILE", help="cell configuration (TOML); default: the shipped cell")
-    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
 
     info = commands.add_parser("info", help="print the loaded robot, camera and laser settings")
     info.add_argument("--json", action="store_true", help="one JSON object")
@@ -110,6 +201,44 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=int, default=None, help="seed of the simulated cell (default: the cell's)")
     demo.add_argument("--json", action="store_true", help="one JSON object")
     demo.set_defaults(run=_cmd_demo)
+
+    simulate = commands.add_parser(
+        "simulate",
+        help="one visual servo run of the thesis's simulation study (Tables 5-1 .. 5-4)",
+        description="Teach the desired image, start at the initial pose and servo. Poses are the object "
+        "in the camera frame, X,Y,Z,phi,theta,psi in m and rad (Table 5-1); write negative values as "
+        "--initial=-0.12,...",
+    )
+    simulate.add_argument("--task", type=int, choices=(1, 2, 3, 4), help="task of Table 5-1 (default 2)")
+    simulate.add_argument("--method", choices=("laser", "ibvs", "pbvs", "2.5d"), default="laser")
+    simulate.add_argument("--robust", action="store_true", help="the calibration errors of Table 5-3")
+    simulate.add_argument("--seed", type=int, default=None, help="seed of the simulated cell")
+    simulate.add_argument("--initial", type=_pose_argument, help="initial cMo, replaces the task's")
+    simulate.add_argument("--desired", type=_pose_argument, help="desired cMo, replaces the task's")
+    simulate.add_argument("--gain", type=_positive(float), default=1.0, help="gain of every control law (default 1)")
+    simulate.add_argument("--max-iterations", type=_positive(int), default=3000)
+    simulate.add_argument("--dt", type=_positive(float), default=0.1, help="control period in s (default 0.1)")
+    simulate.add_argument("--json", action="store_true", help="one JSON object")
+    simulate.set_defaults(run=_cmd_simulate)
+
+    montecarlo = commands.add_parser(
+        "montecarlo", help="success rate of a method from random initial poses, on all cores"
+    )
+    montecarlo.add_argument("--method", choices=("laser", "ibvs", "pbvs", "2.5d"), default="laser")
+    montecarlo.add_argument("--n", type=_positive(int), default=100, help="number of initial poses (default 100)")
+    montecarlo.add_argument("--seed", type=int, default=0, help="seed of the initial poses (default 0)")
+    montecarlo.add_argument("--processes", type=_positive(int), default=None, help="worker processes (default: all cores)")
+    montecarlo.add_argument("--json", action="store_true", help="one JSON object")
+    montecarlo.set_defaults(run=_cmd_montecarlo)
+
+    reproduce = commands.add_parser(
+        "reproduce", help="every task and method of chapter 5: results.json, report.md and figures"
+    )
+    reproduce.add_argument("--out", required=True, metavar="DIR", help="folder for the results (created)")
+    reproduce.add_argument("--montecarlo", type=int, default=500, metavar="N",
+                           help="random initial poses per method for the Monte Carlo table (default 500, 0 skips it)")
+    reproduce.add_argument("--seed", type=int, default=0, help="seed of the Monte Carlo poses (default 0)")
+    reproduce.set_defaults(run=_cmd_reproduce)
     return parser
 
 

@@ -281,8 +281,8 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>") -> CellConfig:
     return CellConfig(source, arm, home_q, nominal, motion, simulation)
 
 
-def load_cell(path: str | Path | None = None) -> CellConfig:
-    """Load a cell file; ``None`` loads the default cell shipped in ``static/``."""
+def read_cell_data(path: str | Path | None = None) -> tuple[dict[str, Any], str]:
+    """The parsed TOML of a cell file and its name; ``None`` reads the shipped cell."""
     if path is None:
         text = resources.files("static").joinpath(DEFAULT_CELL).read_text(encoding="utf-8")
         source = f"static/{DEFAULT_CELL}"
@@ -292,7 +292,11 @@ def load_cell(path: str | Path | None = None) -> CellConfig:
             raise ConfigError(f"cell file not found: {path}")
         text, source = path.read_text(encoding="utf-8"), str(path)
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text), source
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from None
-    return parse_cell(data, source)
+
+
+def load_cell(path: str | Path | None = None) -> CellConfig:
+    """Load a cell file; ``None`` loads the default cell shipped in ``static/``."""
+    return parse_cell(*read_cell_data(path))

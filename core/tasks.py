@@ -19,10 +19,12 @@ table (distance from the base axis, yaw) where the arm can follow both ways a se
 go, turning then translating or straight, within its joint limits and away from its
 singularities; ``find_placement`` searched them for the shipped cell, whose table is
 175 mm below the robot base. Margins (worst joint clearance in rad or smallest singular
-value of the flange Jacobian) of tasks 1 to 3: 0.13, 0.085, 0.025. No placement of task 4
-lets the arm both turn in place and go straight with a margin; it lies where the laser
-servo's path stays feasible, 0.40 to 0.44 m at 285 deg (every other method stops at the
-first frame anyway, which lacks a corner).
+value of the flange Jacobian) of tasks 1 and 2: 0.13, 0.085. Tasks 3 and 4 sweep more of
+the workspace than the UPJ has, and their placements were checked by running the
+servos: task 3 lies where the arm can follow both the laser method and 2.5D (0.36 m at
+0 deg and 0.40 m at 345 deg are the only such places on the grid), task 4 where the
+laser servo's path stays feasible (0.40 .. 0.44 m at 285 deg; every other method stops
+at the first frame, which lacks a corner).
 """
 
 from __future__ import annotations
@@ -153,7 +155,7 @@ TASKS: dict[int, ServoTask] = {
         "task 3",
         matrix_from_pose(Pose6(-0.07, -0.08, 0.44, 0.175, -0.175, -2.444)),
         _DESIRED_SET_2,
-        Placement(0.42, 0.0),
+        Placement(0.40, 345.0),
         "large pose discrepancy",
     ),
     4: ServoTask(
