@@ -9,7 +9,7 @@ import pytest
 
 from core.config import parse_cell
 from core.kinematics import UnreachableTarget
-from core.simulator import SimulatedCell
+from core.simulator import IK_TOLERANCE_M, SimulatedCell
 from core.spatial import Pose6, exp_twist, inverse, matrix_from_pose, pose_error, transform, twist_transform
 from core.step_policy import DividedPositionStep, IntegratedVelocity, PositionCommand, VelocityCommand
 
@@ -95,7 +95,7 @@ def test_velocity_command_integrates_the_twist_exactly():
     eVe = np.array([0.01, -0.02, 0.005, 0.05, -0.1, 0.2])
     report = cell.execute(IntegratedVelocity(0.1).command(before.bMe, eVe))
     after = cell.measure()
-    assert np.allclose(after.bMe, before.bMe @ exp_twist(eVe * 0.1), atol=1e-9)
+    assert np.allclose(after.bMe, before.bMe @ exp_twist(eVe * 0.1), atol=IK_TOLERANCE_M)
     assert after.time_s - before.time_s == pytest.approx(0.1) == report.duration_s
 
 
@@ -109,7 +109,7 @@ def test_jrc_style_steps_move_a_divided_step_per_sampling_period():
     assert np.allclose(command.bMe_target, before.bMe @ exp_twist(eVe / 50.0))
     cell.execute(command)
     after = cell.measure()
-    assert np.allclose(after.bMe, command.bMe_target, atol=1e-9)
+    assert np.allclose(after.bMe, command.bMe_target, atol=IK_TOLERANCE_M)
     assert np.linalg.norm(after.bMe[:3, 3] - before.bMe[:3, 3]) == pytest.approx(0.001, rel=1e-3)
     # A 1 mm step takes 20 ms at 50 mm/s: the sampling period sets the pace.
     assert after.time_s - before.time_s == pytest.approx(2.0)
