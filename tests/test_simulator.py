@@ -114,8 +114,8 @@ def test_jrc_style_steps_move_a_divided_step_per_sampling_period():
     # A 1 mm step takes 20 ms at 50 mm/s: the sampling period sets the pace.
     assert after.time_s - before.time_s == pytest.approx(2.0)
     # A long move outlasts the period.
-    far = PositionCommand(after.bMe @ transform(t=(0.0, 0.0, -0.2)), 0.05, 2.0)
-    assert cell.execute(far).duration_s == pytest.approx(4.0)
+    far = PositionCommand(after.bMe @ transform(t=(0.0, 0.0, -0.15)), 0.05, 2.0)
+    assert cell.execute(far).duration_s == pytest.approx(3.0)
 
 
 def test_an_unreachable_target_leaves_the_arm_where_it_was():
