@@ -18,7 +18,7 @@ from core.config import parse_cell, read_cell_data
 from core.montecarlo import run_montecarlo
 from core.progress import Progress
 from core.study import METHODS, RunResult, RunSettings, run_task
-from core.tasks import TASKS, THESIS_DESIRED_FEATURES_PX, THESIS_PATH_LENGTH_M, robustness_cell
+from core.tasks import TASKS, THESIS_DESIRED_FEATURES_PX, THESIS_PATH_LENGTH_M, distance_to_thesis_set, robustness_cell
 
 MONTECARLO_METHODS = ("laser", "ibvs", "2.5d")
 CORNER_COLORS = ((180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214))  # BGR, one per corner
@@ -176,12 +176,15 @@ def report_markdown(summaries: dict[str, Any], notes: list[str]) -> str:
         "",
         "## Desired features taught in simulation beside Table 5-2 (corrected sets)",
         "",
+        "The corners are numbered from the corner where the object frame sits, so the order may be a cyclic "
+        "shift of the thesis's; the sets are compared as sets.",
+        "",
     ]
     for task in TASKS:
         taught = np.array(summaries["desired_features_px"][str(task)])
         thesis = THESIS_DESIRED_FEATURES_PX[2 if task in (1, 3) else 1]
         lines.append(f"- task {task}: taught {np.round(taught, 1).tolist()}, thesis {thesis.astype(int).tolist()}, "
-                     f"largest difference {np.abs(taught - thesis).max():.1f} px")
+                     f"largest distance between the sets {distance_to_thesis_set(taught, thesis):.1f} px")
 
     montecarlo = summaries.get("montecarlo")
     if montecarlo:

@@ -52,6 +52,16 @@ THESIS_DESIRED_FEATURES_PX = {
 THESIS_DESIRED_LASER_PX = np.array([327.0, 240.0])
 
 
+def distance_to_thesis_set(corners_px: Matrix, thesis_px: Matrix) -> float:
+    """Largest distance (px) from a point of a Table 5-2 set to the nearest given corner.
+
+    The sets are compared as sets: which corner is called the first depends on where the
+    object frame sits on the face, which the thesis does not say.
+    """
+    distances = np.linalg.norm(thesis_px[:, None, :] - corners_px[None, :, :], axis=2)
+    return float(distances.min(axis=1).max())
+
+
 @dataclass(frozen=True)
 class ServoTask:
     name: str

@@ -9,9 +9,7 @@ for a reference point of the plane (the point whose desired image is the corners
 centroid): x, y its current image, Z/Z* = (H m*)_z its depth ratio. The rotation is
 decoupled, w = -lambda theta u, and the translation cancels the rest:
 
-    v = -L_v^-1 (lambda e_v + L_vw w),
-    L_v = 1/Z [[-1, 0, x], [0, -1, y], [0, 0, -1]],
-    L_vw = [[x y, -(1 + x^2), y], [1 + y^2, -x y, -x], [-y, x, 0]],
+    v = -L_v^-1 (lambda e_v + L_vw w)   (translation_interaction gives L_v, L_vw)
 
 with Z = (Z / Z*) Z* and Z* the laser depth taught at the desired pose. Of the two
 physically valid decompositions, the one whose normal is closest to the taught normal
@@ -29,6 +27,13 @@ from core.controllers.base import ControlOutput, Failure, feature_error_px
 from core.features import DesiredImage, ImageFeatures
 from core.pose_estimation import PoseEstimationError, decompose_homography, euclidean_homography
 from core.spatial import theta_u
+
+
+def translation_interaction(x: float, y: float, Z: float) -> tuple[np.ndarray, np.ndarray]:
+    """(L_v, L_vw): e_v = (x, y, log Z) of a point moves as L_v v + L_vw w (Malis 1999)."""
+    L_v = np.array([[-1.0, 0.0, x], [0.0, -1.0, y], [0.0, 0.0, -1.0]]) / Z
+    L_vw = np.array([[x * y, -(1.0 + x * x), y], [1.0 + y * y, -x * y, -x], [-y, x, 0.0]])
+    return L_v, L_vw
 
 
 @dataclass(frozen=True)
@@ -63,7 +68,6 @@ class Hybrid25D:
         Z = rho * desired.depth_m
         e_v = np.array([x - x_star, y - y_star, np.log(rho)])
         w = -self.gain * theta_u(motion.cRcd.T)
-        L_v = np.array([[-1.0, 0.0, x], [0.0, -1.0, y], [0.0, 0.0, -1.0]]) / Z
-        L_vw = np.array([[x * y, -(1.0 + x * x), y], [1.0 + y * y, -x * y, -x], [-y, x, 0.0]])
+        L_v, L_vw = translation_interaction(x, y, Z)
         v = -np.linalg.solve(L_v, self.gain * e_v + L_vw @ w)
         return ControlOutput(np.concatenate([v, w]), self.name, error_px, error_px)

@@ -1,0 +1,218 @@
+"""Control laws: interaction matrices against finite differences, the half turn that makes
+IBVS retreat, and every switch of the IBVS with laser."""
+
+import numpy as np
+import pytest
+
+from core.controllers.base import Failure
+from core.controllers.hybrid import Hybrid25D, translation_interaction
+from core.controllers.ibvs import ClassicIbvs
+from core.controllers.laser_ibvs import (
+    STAGE_1A,
+    STAGE_1B,
+    STAGE_2,
+    STAGE_3,
+    LaserIbvs,
+    image_rotation,
+    rotational_jacobian,
+    translational_jacobian,
+)
+from core.controllers.pbvs import Pbvs
+from core.simulator import visible_region
+from core.spatial import exp_twist, inverse, matrix_from_pose, transform, twist_transform
+from tests.servo_fixtures import CAMERA, CORNERS_O, DESIRED_SPOT, DESIRED_cMo, desired_image, features, project, rotate_about
+
+H = 1e-6
+
+
+def moved(cMo, cVc, h):
+    """The object pose after the camera held the twist cVc for h seconds."""
+    return inverse(exp_twist(np.asarray(cVc) * h)) @ cMo
+
+
+def pixel_velocity(cMo, cVc, points_o=CORNERS_O):
+    """d(pixels)/dt of the points by central differences of the projection."""
+    return ((project(moved(cMo, cVc, H), points_o) - project(moved(cMo, cVc, -H), points_o)) / (2 * H)).ravel()
+
+
+@pytest.mark.parametrize("pose", [[0.011, -0.01, 0.162, np.pi, 0.0, -np.pi], [-0.05, 0.03, 0.3, 0.3, -0.2, -2.6]])
+def test_rotational_and_translational_jacobians_match_finite_differences(pose):
+    cMo = matrix_from_pose(pose)
+    uv = project(cMo)
+    depth = (CORNERS_O @ cMo[:3, :3].T + cMo[:3, 3])[:, 2]
+    J_r = rotational_jacobian(CAMERA, uv)
+    for k in range(3):
+        w = np.zeros(6)
+        w[3 + k] = 1.0
+        assert np.allclose(J_r[:, k], pixel_velocity(cMo, w), rtol=1e-5, atol=1e-3)
+    for i in range(4):  # J^t per point, at that point's own depth
+        J_t = translational_jacobian(CAMERA, uv[i], depth[i])
+        for k in range(3):
+            v = np.zeros(6)
+            v[k] = 1.0
+            assert np.allclose(J_t[:, k], pixel_velocity(cMo, v)[2 * i : 2 * i + 2], rtol=1e-5, atol=1e-3)
+
+
+def test_2_5d_interaction_matches_finite_differences():
+    """(x, y, log Z) of a point against (L_v, L_vw) of Malis's 2.5D law."""
+    cP = np.array([0.03, -0.02, 0.25])
+
+    def features_of(twist, h):
+        P = inverse(exp_twist(np.asarray(twist) * h)) @ np.append(cP, 1.0)
+        return np.array([P[0] / P[2], P[1] / P[2], np.log(P[2])])
+
+    L_v, L_vw = translation_interaction(cP[0] / cP[2], cP[1] / cP[2], cP[2])
+    L = np.hstack([L_v, L_vw])
+    for k in range(6):
+        twist = np.zeros(6)
+        twist[k] = 1.0
+        numeric = (features_of(twist, H) - features_of(twist, -H)) / (2 * H)
+        assert np.allclose(L[:, k], numeric, atol=1e-6)
+
+
+def test_half_turn_makes_current_feature_ibvs_retreat():
+    """Chaumette 1998: a pi turn about the optical axis gives a pure backward translation."""
+    centre = np.array([CAMERA.intrinsics.u0, CAMERA.intrinsics.v0])
+    desired_corners = centre + np.array([[-50.0, -50.0], [50.0, -50.0], [50.0, 50.0], [-50.0, 50.0]])
+    desired = desired_image()
+    desired = type(desired)(desired_corners, desired.laser_spot_px, 0.162, desired.cdMo, np.full(4, 0.162))
+    current = features(rotate_about(desired_corners, centre, np.pi), depth=0.162)
+    out = ClassicIbvs(CAMERA, interaction="current", depth="exact").step(current, desired, None)
+    v, w = out.cVc[:3], out.cVc[3:]
+    assert v[2] < 0.0  # backwards, away from the part
+    assert abs(v[2]) > 1e3 * max(np.abs(v[:2]).max(), np.abs(w).max())
+    # The laser method turns instead: its stage 1.A commands a rotation about the optical axis.
+    turn = laser_controller().step(current, desired, None)
+    assert turn.stage == STAGE_1A
+    assert abs(turn.cVc[5]) > 10 * np.abs(turn.cVc[:5]).max()
+
+
+def laser_controller(**settings):
+    return LaserIbvs(CAMERA, cTe=np.zeros(3), **settings)
+
+
+def test_stage_1a_starts_and_switches_to_2_on_the_imaginary_features():
+    desired = desired_image()
+    controller = laser_controller()
+    # The part seen turned by 0.5 rad about the spot: far from the imaginary features.
+    turned = features(rotate_about(desired.corners_px, DESIRED_SPOT, 0.5))
+    first = controller.step(turned, desired, None)
+    assert first.stage == STAGE_1A and not first.converged and first.failure is None
+    assert first.stage_error > controller.f0_px
+    assert np.allclose(first.cVc[:3], 0.0)  # rotation only (cTe = 0: no compensation)
+
+    # The corners on the imaginary features, the spot 40 px away from its desired place: 1.A -> 2.
+    shift = np.array([-40.0, 0.0])
+    at_imaginary = features(desired.corners_px + shift, spot_px=DESIRED_SPOT + shift)
+    second = controller.step(at_imaginary, desired, STAGE_1A)
+    assert second.stage == STAGE_2 and "1A -> 2" in second.note
+
+
+def test_stage_1a_turns_the_pattern_the_right_way():
+    """One small step of the stage-1.A twist brings the corners closer to the imaginary ones."""
+    desired = desired_image()
+    for angle in (0.4, -0.4, np.pi - 0.01):
+        cMo = transform(matrix_from_pose([0, 0, 0, angle, 0, 0])[:3, :3]) @ DESIRED_cMo
+        current = features(project(cMo))
+        out = laser_controller().step(current, desired, None)
+        after = features(project(moved(cMo, out.cVc, 0.05)))
+        assert abs(image_rotation(after.corners_px, desired.corners_px)) < abs(
+            image_rotation(current.corners_px, desired.corners_px)
+        )
+
+
+def test_stage_1b_turns_the_visible_region_onto_the_spot_with_two_dof():
+    desired = desired_image()
+    cMo = matrix_from_pose([-0.055, -0.01, 0.162, np.pi, 0.0, -np.pi])  # corners at u = 45 and -55 px
+    projected = project(cMo)
+    corners = np.where(CAMERA.in_view(projected)[:, None], projected, np.nan)
+    assert np.isnan(corners).any() and not np.isnan(corners).all()
+    seen = features(corners, region=visible_region(projected, CAMERA.image_size))
+    out = laser_controller().step(seen, desired, None)
+    assert out.stage == STAGE_1B and out.cVc[5] == 0.0 and np.allclose(out.cVc[:3], 0.0)
+    # The centroid's rotational velocity points from the centroid to the spot (eq. 4-36 read as THESIS-NOTES).
+    centroid = seen.region.centroid_px
+    velocity = rotational_jacobian(CAMERA, centroid) @ out.cVc[3:]
+    assert velocity @ (DESIRED_SPOT - centroid) > 0.9 * np.linalg.norm(velocity) * np.linalg.norm(DESIRED_SPOT - centroid)
+    # Once every corner is seen again, 1.B hands over to 1.A.
+    assert laser_controller().step(features(desired.corners_px + 30.0), desired, STAGE_1B).stage == STAGE_1A
+
+
+def test_stage_1c_keeps_the_flange_in_place_while_the_camera_turns():
+    eMc = matrix_from_pose([0.02, -0.03, 0.05, 0.1, 0.2, -0.1])
+    controller = LaserIbvs(CAMERA, cTe=inverse(eMc)[:3, 3])
+    desired = desired_image()
+    out = controller.step(features(rotate_about(desired.corners_px, DESIRED_SPOT, 0.5)), desired, None)
+    eVe = twist_transform(eMc) @ out.cVc
+    assert np.linalg.norm(out.cVc[:3]) > 1e-3  # the camera translates ...
+    assert np.allclose(eVe[:3], 0.0, atol=1e-12)  # ... so that the flange only turns (eq. 4-38)
+
+
+def test_stage_2_switches_to_3_at_the_laser_threshold_and_3_converges():
+    desired = desired_image()
+    controller = laser_controller()
+    near = features(desired.corners_px + [3.0, -2.0], spot_px=DESIRED_SPOT + [4.0, 0.0])
+    out = controller.step(near, desired, STAGE_2)
+    assert out.stage == STAGE_3 and "2 -> 3" in out.note
+    far = features(desired.corners_px * 0.8 + 60, spot_px=DESIRED_SPOT + [30.0, 0.0], depth=0.2)
+    stay = controller.step(far, desired, STAGE_2)
+    assert stay.stage == STAGE_2 and stay.stage_error == pytest.approx(30.0)
+    done = controller.step(features(desired.corners_px + 0.2), desired, STAGE_3)
+    assert done.converged and np.allclose(done.cVc, 0.0)
+
+
+def test_stage_2_rotation_keeps_the_spot_on_the_centroid():
+    desired = desired_image()
+    corners = desired.corners_px * 0.7 + [110.0, 60.0]
+    spot = DESIRED_SPOT + [30.0, 0.0]
+    out = laser_controller().step(features(corners, spot_px=spot, depth=0.25), desired, STAGE_2)
+    centroid = corners.mean(axis=0)
+    velocity = rotational_jacobian(CAMERA, centroid) @ out.cVc[3:]
+    assert velocity @ (spot - centroid) > 0.9 * np.linalg.norm(velocity) * np.linalg.norm(spot - centroid)
+
+
+@pytest.mark.parametrize("stage", [STAGE_2, STAGE_3])
+def test_a_lost_corner_after_stage_1_stops_with_zero_twist(stage):
+    desired = desired_image()
+    corners = desired.corners_px + 20.0
+    corners[2] = np.nan
+    out = laser_controller().step(features(corners, spot_px=DESIRED_SPOT + [30.0, 0.0]), desired, stage)
+    assert out.failure is Failure.FEATURES_LOST and np.array_equal(out.cVc, np.zeros(6))
+
+
+def test_no_spot_stops_the_laser_method():
+    desired = desired_image()
+    out = laser_controller().step(features(desired.corners_px + 40.0, spot_px=[np.nan, np.nan], depth=np.nan), desired, None)
+    assert out.failure is Failure.FEATURES_LOST and "laser" in out.note
+
+
+@pytest.mark.parametrize("controller", [ClassicIbvs(CAMERA), Pbvs(CAMERA), Hybrid25D(CAMERA)])
+def test_every_baseline_needs_all_four_corners_and_stops_at_the_final_threshold(controller):
+    desired = desired_image()
+    corners = desired.corners_px + 15.0
+    corners[0] = np.nan
+    assert controller.step(features(corners), desired, None).failure is Failure.FEATURES_LOST
+    done = controller.step(features(desired.corners_px + 0.3), desired, None)
+    assert done.converged and np.array_equal(done.cVc, np.zeros(6))
+
+
+@pytest.mark.parametrize("controller", [ClassicIbvs(CAMERA), Pbvs(CAMERA), Hybrid25D(CAMERA), laser_controller()])
+def test_a_small_step_reduces_the_feature_error(controller):
+    """Every law, one step from a nearby pose (turned and shifted), moves the corners closer."""
+    desired = desired_image()
+    cMo = matrix_from_pose([0.015, -0.005, 0.175, np.pi - 0.1, 0.05, -np.pi + 0.05])
+    stage = STAGE_3 if isinstance(controller, LaserIbvs) else None
+    out = controller.step(features(project(cMo), depth=0.175, corner_depths=(CORNERS_O @ cMo[:3, :3].T + cMo[:3, 3])[:, 2]),
+                          desired, stage)
+    after = project(moved(cMo, out.cVc, 0.1))
+    assert np.linalg.norm(after - desired.corners_px) < 0.95 * np.linalg.norm(project(cMo) - desired.corners_px)
+
+
+def test_pbvs_law_is_a_straight_line_of_the_camera_centre():
+    desired = desired_image()
+    cMo = matrix_from_pose([-0.02, 0.01, 0.2, np.pi - 0.2, 0.1, -np.pi])
+    out = Pbvs(CAMERA).step(features(project(cMo)), desired, None)
+    cdMc = desired.cdMo @ inverse(cMo)
+    # v is along -(c*Rc)^T c*t_c: the centre heads straight for the desired centre.
+    direction = -cdMc[:3, :3].T @ cdMc[:3, 3]
+    assert np.allclose(np.cross(out.cVc[:3], direction), 0.0, atol=1e-6)
