@@ -132,6 +132,8 @@ def summarize(method: str, n: int, seed: int, outcomes: list[SampleOutcome]) -> 
         "path_length_m": _stats([o.path_length_m for o in converged]),
         "iterations": _stats([float(o.iterations) for o in converged]),
         "failures": dict(sorted(Counter(o.failure for o in outcomes if not o.converged).items())),
+        # How strongly the arm's reach filters the distribution: draws per kept pose.
+        "draws_per_sample": round(float(np.mean([o.draws for o in outcomes])), 2) if outcomes else None,
         "distribution": (
             f"initial camera: rotation uniform in [0, pi] about a random axis and translation uniform in "
             f"[0, {MAX_TRANSLATION_M}] m in a random direction from task 2's desired pose; kept when the face "

@@ -98,7 +98,7 @@ class RunTrace:
     error_px: Matrix  # (T,)
     stages: tuple[str, ...]
     bMe_position_true: Matrix  # (T + 1, 3): the end-effector path, after every move
-    pose_error_true: Matrix  # (T, 2): translation m, rotation rad to the desired pose
+    pose_error_true: Matrix  # (T, 2): the camera's translation m, rotation rad to its desired pose
 
 
 @dataclass(frozen=True)
@@ -138,6 +138,11 @@ def _finite_or_none(value: float) -> float | None:
     return round(float(value), 6) if np.isfinite(value) else None
 
 
+def camera_pose_error(cMo: Matrix, cdMo: Matrix) -> tuple[float, float]:
+    """(m, rad) between the camera's pose and its desired pose, both seen from the object."""
+    return pose_error(inverse(cMo), inverse(cdMo))
+
+
 def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: int | None = None) -> RunResult:
     """Teach ``task``'s desired image, start at its initial pose and servo with ``settings``."""
     cell = SimulatedCell(config, seed)
@@ -154,7 +159,7 @@ def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: i
 
     def record(cycle: Cycle) -> None:
         path.append(cell.ground_truth_bMe()[:3, 3])
-        pose_errors.append(pose_error(cell.ground_truth_cMo(), task.desired_cMo))
+        pose_errors.append(camera_pose_error(cell.ground_truth_cMo(), task.desired_cMo))
 
     outcome = run_servo(
         cell,
@@ -177,7 +182,7 @@ def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: i
         pose_error_true=np.array(pose_errors),
     )
     positions = trace.bMe_position_true
-    translation, rotation = pose_error(cell.ground_truth_cMo(), task.desired_cMo)
+    translation, rotation = camera_pose_error(cell.ground_truth_cMo(), task.desired_cMo)
     return RunResult(
         task=task.name,
         method=settings.method,

@@ -49,7 +49,8 @@ def test_the_laser_method_converges_on_every_task_with_the_thesis_path_lengths(r
         result = runs[task, "laser"]
         assert result.outcome.converged, (task, result.outcome.reason)
         assert result.outcome.final_error_px <= 1.0
-        assert result.final_translation_m < 1e-3
+        # 1 px on a 100 px face leaves about a degree of tilt: a few mm of camera position.
+        assert result.final_translation_m < 5e-3 and result.final_rotation_rad < 0.03
     # Task 1 turns in place: no translation beyond 5 mm.
     assert runs[1, "laser"].path_length_m < 0.005
     for task in (2, 3, 4):
