@@ -63,10 +63,21 @@ class RayHit:
 
 @dataclass(frozen=True)
 class Cube:
-    """The part to pick: a cube of side ``side_m`` whose frame O is at a top-face corner."""
+    """The part to pick: a cube of side ``side_m`` whose frame O is at a top-face corner.
+
+    The top face carries an orientation mark, a dark disc near corner 0 (like the pin-1
+    dot of a chip): a square's corners are symmetric, and without it no image could say
+    which corner is which after a half turn (task 1).
+    """
 
     bMo: Matrix
     side_m: float = 0.020
+    mark_radius_m: float = 0.0025
+
+    @property
+    def mark_o(self) -> Matrix:
+        """Centre of the orientation mark in O: on the top face, a fifth of the side from corner 0."""
+        return np.array([0.2 * self.side_m, 0.2 * self.side_m, 0.0])
 
     @property
     def corners_o(self) -> Matrix:
@@ -90,7 +101,7 @@ class Cube:
         return Box("cube", self.bMo @ transform(t=(s / 2, s / 2, -s / 2)), np.full(3, s / 2))
 
     def moved_to(self, bMo: Matrix) -> Cube:
-        return Cube(bMo, self.side_m)
+        return Cube(bMo, self.side_m, self.mark_radius_m)
 
 
 @dataclass(frozen=True)

@@ -143,6 +143,9 @@ def run_servo(
             return finish(False, output.failure, output.note)
         if output.converged:
             return finish(True, None, f"feature error {output.error_px:.3f} px")
+        if not np.all(np.isfinite(output.cVc)):
+            # Never send a NaN to a robot: the law broke down (a degenerate Jacobian or depth).
+            return finish(False, Failure.SINGULAR_JACOBIAN, f"stage {output.stage} returned a non-finite twist")
 
         area = corner_area_px2(features.corners_px)
         if np.isnan(first_area):

@@ -16,10 +16,13 @@ import numpy as np
 
 from core.config import CellConfig, CellModel
 from core.controllers.base import Controller
+from core.controllers.hybrid import Hybrid25D
 from core.controllers.ibvs import ClassicIbvs
 from core.controllers.laser_ibvs import LaserIbvs
+from core.controllers.pbvs import Pbvs
 from core.features import DesiredImage, features_from_measurement
 from core.pose_estimation import PoseEstimationError, pose_from_planar_points
+from core.scene import Cube
 from core.servo_loop import Cycle, LoopLimits, ServoOutcome, run_servo
 from core.simulator import SimulatedCell
 from core.spatial import Matrix, inverse, pose_error
@@ -46,9 +49,6 @@ class RunSettings:
 
 def build_controller(model: CellModel, settings: RunSettings) -> Controller:
     """The controller of ``settings.method`` on the nominal cell ``model``."""
-    from core.controllers.hybrid import Hybrid25D
-    from core.controllers.pbvs import Pbvs
-
     camera, gain, final = model.camera, settings.gain, settings.final_threshold_px
     if settings.method == "laser":
         return LaserIbvs(
@@ -72,8 +72,6 @@ def build_controller(model: CellModel, settings: RunSettings) -> Controller:
 
 def teach(cell: SimulatedCell, cdMo_true: Matrix, model: CellModel) -> DesiredImage:
     """Teach the desired image at the true pose cdMo_true (Fig. C-2), with the nominal model."""
-    from core.scene import Cube
-
     cell.place_camera(cdMo_true)
     features = features_from_measurement(cell.measure(), model.camera, model.laser)
     if not (features.all_corners_visible and features.laser_visible):
@@ -83,7 +81,7 @@ def teach(cell: SimulatedCell, cdMo_true: Matrix, model: CellModel) -> DesiredIm
         cdMo = pose_from_planar_points(features.corners_px, cube.corners_o, model.camera)
     except PoseEstimationError as exc:
         raise ValueError(f"cannot estimate the taught pose: {exc}") from exc
-    corner_depths = cube.corners_o @ cdMo[:3, :3].T[:, 2] + cdMo[2, 3]
+    corner_depths = (cube.corners_o @ cdMo[:3, :3].T + cdMo[:3, 3])[:, 2]
     return DesiredImage(features.corners_px, features.laser_spot_px, features.laser_depth_m, cdMo, corner_depths)
 
 

@@ -104,6 +104,27 @@ def test_the_loop_names_no_progress_and_the_iteration_limit(cell_config):
     assert short.outcome.failure is Failure.ITERATION_LIMIT and short.outcome.iterations == 5
 
 
+@dataclass(frozen=True)
+class Broken:
+    """A controller whose law breaks down: it returns NaN."""
+
+    name: str = "broken"
+
+    def step(self, features, desired, stage):
+        return ControlOutput(np.full(6, np.nan), "broken", 50.0, 50.0)
+
+
+def test_a_non_finite_twist_never_reaches_the_robot(cell_config):
+    cell = SimulatedCell(cell_config)
+    scene = cell_config.simulation.scene
+    cell.place_cube(TASKS[2].placement.bMo(scene.table_height_m, scene.cube.side_m))
+    desired = teach(cell, TASKS[2].desired_cMo, cell_config.nominal)
+    q_before = cell.state.q.copy()
+    outcome = run_servo(cell, Broken(), desired, cell_config.nominal, IntegratedVelocity(0.1))
+    assert outcome.failure is Failure.SINGULAR_JACOBIAN and "non-finite" in outcome.reason
+    assert np.array_equal(cell.state.q, q_before)
+
+
 def test_the_arm_that_cannot_follow_is_named(cell_config):
     """A scene the UPJ can start but not finish: IBVS on task 3 asks for a pose out of reach."""
     result = run_task(cell_config, TASKS[3], RunSettings(method="ibvs"))
