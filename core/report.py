@@ -190,9 +190,9 @@ def report_markdown(summaries: dict[str, Any], notes: list[str]) -> str:
     if montecarlo:
         first = next(iter(montecarlo.values()))
         lines += ["", f"## Monte Carlo: {first['n']} random initial poses, seed {first['seed']}", "",
-                  first["distribution"] + f". On average {first['draws_per_sample']} poses were drawn for each one "
-                  "kept: most poses of the distribution lie outside the UPJ's reach, so the kept ones lean towards "
-                  "small displacements. Every method meets the same poses.", "",
+                  first["distribution"] + f". On average {first['draws_per_sample']} poses that passed the view checks "
+                  "were drawn for each one the arm could reach: the UPJ's small workspace filters the distribution "
+                  "towards smaller displacements. Every method meets the same poses.", "",
                   "| method | success rate | path median (m) | path p95 (m) | iterations median | iterations p95 | failures |",
                   "|---|---|---|---|---|---|---|"]
         for method, m in montecarlo.items():
