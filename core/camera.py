@@ -11,8 +11,10 @@ Conventions (OpenCV's, not the thesis's):
   ``cv2.calibrateCamera`` drop straight in. The thesis writes the opposite direction
   in metric image units (x_u = x_d + k1 x_d r_d^2, eqs. 2-4, 2-5); those coefficients
   are not interchangeable with these.
-* The image is the rectangle [0, width] x [0, height] in pixels, so the centre of a
-  640 x 480 sensor is (320, 240), as in thesis Table 3-1.
+* Pixel coordinates follow OpenCV: the pixel in row r and column c has its centre at
+  (u, v) = (c, r), so the image covers [-0.5, width - 0.5] x [-0.5, height - 0.5]. The
+  renderer and the detectors use the same convention. (The thesis's principal point
+  (320, 240) is then half a pixel off the sensor's centre, well within any calibration.)
 
 Shapes: every function takes N points as an (N, k) array or a single point as a (k,)
 array, and always returns the 2-D (N, ...) result (N = 1 for a single point).
@@ -210,15 +212,16 @@ class CameraModel:
         return directions / np.linalg.norm(directions, axis=1, keepdims=True)
 
     def in_view(self, uv: ArrayLike, margin_px: float = 0.0) -> NDArray[np.bool_]:
-        """(N,) mask of pixels inside the image shrunk by ``margin_px`` on every side; NaN is outside."""
+        """(N,) mask of points on the sensor, [-0.5, size - 0.5], shrunk by ``margin_px``; NaN is outside."""
         uv = as_points(uv, 2, "uv")
         width, height = self.image_size
+        low = margin_px - 0.5
         # NaN compares False, so points without an image are never in view.
         return (
-            (uv[:, 0] >= margin_px)
-            & (uv[:, 0] <= width - margin_px)
-            & (uv[:, 1] >= margin_px)
-            & (uv[:, 1] <= height - margin_px)
+            (uv[:, 0] >= low)
+            & (uv[:, 0] <= width - 0.5 - margin_px)
+            & (uv[:, 1] >= low)
+            & (uv[:, 1] <= height - 0.5 - margin_px)
         )
 
 

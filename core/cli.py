@@ -140,6 +140,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         gain=args.gain,
         max_iterations=args.max_iterations,
         dt_s=args.dt,
+        features=args.features,
+        record_to=args.record,
     )
     summary = result.summary()
     if args.json:
@@ -185,6 +187,64 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_detect(args: argparse.Namespace) -> int:
+    import cv2
+
+    from core.camera_source import CameraSourceError, to_mono8
+    from core.scene import Cube
+    from core.vision.pipeline import ImageFeatureExtractor, front_winding
+
+    image = cv2.imread(args.image, cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ValueError(f"cannot read an image from {args.image}")
+    try:
+        image = to_mono8(image)
+    except CameraSourceError as exc:
+        raise ValueError(f"{args.image}: {exc}") from None
+    config = load_cell(args.cell)
+    extractor = ImageFeatureExtractor(
+        config.nominal.camera, config.nominal.laser, front_winding(Cube(np.eye(4)).corners_o),
+        spot_threshold=args.spot_threshold, region_threshold=args.region_threshold,
+    )
+    features, report = extractor.extract(image)
+    result = {"image": args.image, "size": [image.shape[1], image.shape[0]], **report.as_dict(),
+              "laser_depth_mm": None if np.isnan(features.laser_depth_m) else round(features.laser_depth_m * 1000.0, 3)}
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for key, value in result.items():
+            print(f"{key}: {value}")
+    return 0
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from core.recording import RecordingError
+    from core.replay import replay
+
+    try:
+        result = replay(args.folder, args.cell)
+    except RecordingError as exc:
+        raise ValueError(str(exc)) from None
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for key, value in result.items():
+            print(f"{key}: {value}")
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from core.bench import bench_vision
+
+    result = bench_vision(load_cell(args.cell), seed=args.seed)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for key, value in result.items():
+            print(f"{key}: {value}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="vservo",
@@ -218,6 +278,9 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--gain", type=_positive(float), default=1.0, help="gain of every control law (default 1)")
     simulate.add_argument("--max-iterations", type=_positive(int), default=3000)
     simulate.add_argument("--dt", type=_positive(float), default=0.1, help="control period in s (default 0.1)")
+    simulate.add_argument("--features", choices=("projected", "rendered"), default="projected",
+                          help="projected points, or detections in the simulated camera's images")
+    simulate.add_argument("--record", metavar="FOLDER", help="record the run (frames, features, commands, stages)")
     simulate.add_argument("--json", action="store_true", help="one JSON object")
     simulate.set_defaults(run=_cmd_simulate)
 
@@ -239,6 +302,28 @@ def build_parser() -> argparse.ArgumentParser:
                            help="random initial poses per method for the Monte Carlo table (default 500, 0 skips it)")
     reproduce.add_argument("--seed", type=int, default=0, help="seed of the Monte Carlo poses (default 0)")
     reproduce.set_defaults(run=_cmd_reproduce)
+
+    detect = commands.add_parser(
+        "detect", help="the laser spot, the four corners and the object region found in one image file"
+    )
+    detect.add_argument("image", help="image file (8- or 16-bit, grey or colour)")
+    detect.add_argument("--spot-threshold", type=int, default=250, help="fixed level of the laser spot (default 250)")
+    detect.add_argument("--region-threshold", type=int, default=100, help="fixed level of the object region (default 100)")
+    detect.add_argument("--json", action="store_true", help="one JSON object")
+    detect.set_defaults(run=_cmd_detect)
+
+    replay_command = commands.add_parser(
+        "replay", help="play a recorded run back through the vision and the controller and compare"
+    )
+    replay_command.add_argument("folder", help="a recording (vservo simulate --record FOLDER)")
+    replay_command.add_argument("--json", action="store_true", help="one JSON object")
+    replay_command.set_defaults(run=_cmd_replay)
+
+    bench = commands.add_parser("bench", help="measure speed and accuracy on this machine")
+    bench.add_argument("what", choices=("vision",), help="vision: render, detection and loop times, detection accuracy")
+    bench.add_argument("--seed", type=int, default=0)
+    bench.add_argument("--json", action="store_true", help="one JSON object")
+    bench.set_defaults(run=_cmd_bench)
     return parser
 
 

@@ -28,6 +28,11 @@ class Box:
     name: str
     bMx: Matrix
     half_extents: Matrix
+    xMb: Matrix = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        # Ray casting is the simulator's inner loop: invert the pose once, not per ray.
+        object.__setattr__(self, "xMb", inverse(self.bMx))
 
     def intersect(self, ray: Ray) -> float | None:
         """Distance along ``ray`` (in B) to the first entry into the box, by the slab method.
@@ -35,7 +40,7 @@ class Box:
         A ray starting inside the box returns its exit distance, so a beam leaving a
         surface it lies on still reports that surface.
         """
-        xMb = inverse(self.bMx)
+        xMb = self.xMb
         origin = xMb[:3, :3] @ ray.origin + xMb[:3, 3]
         direction = xMb[:3, :3] @ ray.direction
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -15,13 +15,16 @@ import logging
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Protocol
 
 import numpy as np
 
+from core.camera import CameraModel
 from core.config import CellModel
 from core.controllers.base import Controller, ControlOutput, Failure
 from core.features import DesiredImage, ImageFeatures, features_from_measurement, polygon_moments
 from core.kinematics import UnreachableTarget
+from core.laser import LaserPointer
 from core.simulator import Measurement, SimulatedCell
 from core.spatial import Matrix, twist_transform
 from core.step_policy import StepPolicy
@@ -85,6 +88,29 @@ class ServoOutcome:
         return runs
 
 
+class Perception(Protocol):
+    """Where the loop's features come from: the measurement's projections or a camera.
+
+    uses_projection: whether it reads the measurement's projected features at all.
+    """
+
+    uses_projection: bool
+
+    def perceive(self, measurement: Measurement) -> ImageFeatures: ...
+
+
+@dataclass(frozen=True)
+class ProjectedPerception:
+    """Ideal detection: the simulator's projected corners and spot (with its pixel noise)."""
+
+    camera: CameraModel
+    laser: LaserPointer
+    uses_projection: bool = True
+
+    def perceive(self, measurement: Measurement) -> ImageFeatures:
+        return features_from_measurement(measurement, self.camera, self.laser)
+
+
 def hold_spot(features: ImageFeatures, last_seen: ImageFeatures | None) -> ImageFeatures:
     """The features with a vanished laser spot replaced by its last sighting, if any.
 
@@ -108,8 +134,13 @@ def run_servo(
     policy: StepPolicy,
     limits: LoopLimits = LoopLimits(),
     on_cycle: Callable[[Cycle], None] | None = None,
+    perception: Perception | None = None,
 ) -> ServoOutcome:
-    """Servo ``cell`` to the desired image with ``controller``; ``model`` is the nominal cell."""
+    """Servo ``cell`` to the desired image with ``controller``; ``model`` is the nominal cell.
+
+    Features come from ``perception``, by default the simulator's projected points.
+    """
+    perception = perception or ProjectedPerception(model.camera, model.laser)
     eVc = twist_transform(model.eMc)
     desired_area = corner_area_px2(desired.corners_px)
     first_area = float("nan")
@@ -125,8 +156,8 @@ def run_servo(
         return ServoOutcome(converged, failure, reason, tuple(cycles))
 
     for iteration in range(limits.max_iterations):
-        measurement = cell.measure()
-        seen = features_from_measurement(measurement, model.camera, model.laser)
+        measurement = cell.measure(look=perception.uses_projection)
+        seen = perception.perceive(measurement)
         if seen.laser_visible:
             last_spot, spot_hidden_for = seen, 0
         else:

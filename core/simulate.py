@@ -26,6 +26,8 @@ def simulate(
     gain: float = 1.0,
     max_iterations: int = 3000,
     dt_s: float = 0.1,
+    features: str = "projected",
+    record_to: str | None = None,
 ) -> RunResult:
     """Run a task (default task 2) or a scene given by its poses; see ``vservo simulate --help``."""
     data, source = read_cell_data(cell_path)
@@ -36,7 +38,8 @@ def simulate(
     task = TASKS[task_number or 2]
     if initial is not None or desired is not None:
         task = _scene_task(task, initial, desired, config)
-    settings = RunSettings(method=method, gain=gain, dt_s=dt_s, max_iterations=max_iterations)
+    settings = RunSettings(method=method, gain=gain, dt_s=dt_s, max_iterations=max_iterations, features=features,
+                           record_to=record_to)
     return run_task(config, task, settings, seed)
 
 

@@ -109,7 +109,9 @@ def visible_region(polygon_px: Matrix, image_size: tuple[int, int]) -> ObjectReg
         return ObjectRegion(0.0, np.full(2, np.nan))
     width, height = image_size
     polygon = list(np.asarray(polygon_px, dtype=float))
-    for axis, limit, keep_below in ((0, 0.0, False), (0, width, True), (1, 0.0, False), (1, height, True)):
+    # The sensor's edges: pixel centres are integers (OpenCV), so they lie at -0.5 and size - 0.5.
+    borders = ((0, -0.5, False), (0, width - 0.5, True), (1, -0.5, False), (1, height - 0.5, True))
+    for axis, limit, keep_below in borders:
         polygon = _clip(polygon, axis, limit, keep_below)
         if len(polygon) < 3:
             return ObjectRegion(0.0, np.full(2, np.nan))
@@ -156,8 +158,17 @@ class SimulatedCell:
 
     # -- sensors ---------------------------------------------------------------------
 
-    def measure(self) -> Measurement:
-        """Read the robot controller and take one (noisy) look through the true camera."""
+    def measure(self, look: bool = True) -> Measurement:
+        """Read the robot controller and take one (noisy) look through the true camera.
+
+        ``look=False`` reads the robot only (a loop whose features come from camera
+        images has no use for the projected ones): the camera fields are then unseen.
+        """
+        if not look:
+            q = self.state.q.copy()
+            unseen = np.full(2, np.nan)
+            return Measurement(self.state.time_s, q, self.controller_arm.fk(q), np.full((4, 2), np.nan), unseen,
+                               ObjectRegion(0.0, unseen), np.full(4, np.nan), unseen)
         bMc = self.ground_truth_bMe() @ self.truth.model.eMc
         cMb = inverse(bMc)
         camera = self.truth.model.camera
@@ -178,15 +189,26 @@ class SimulatedCell:
             reference_px[:] = np.nan
 
         spot_px = np.full(2, np.nan)
-        hit = scene.raycast(self.truth.model.laser.beam(bMc))
-        if hit is not None and scene.visible_from(eye_b, hit.point_b):
-            spot_c = cMb[:3, :3] @ hit.point_b + cMb[:3, 3]
-            spot_px = self._observe(camera.project(spot_c[None, :]))[0]
+        spot_b = self._visible_spot_b(bMc)
+        if spot_b is not None:
+            spot_px = self._observe(camera.project((cMb[:3, :3] @ spot_b + cMb[:3, 3])[None, :]))[0]
 
         q = self.state.q.copy()
         return Measurement(
             self.state.time_s, q, self.controller_arm.fk(q), corners_px, spot_px, region, corners_c[:, 2].copy(), reference_px
         )
+
+    def _visible_spot_b(self, bMc: Matrix) -> Matrix | None:
+        """Where the true beam lands, in B, if the true camera sees that point."""
+        hit = self.state.scene.raycast(self.truth.model.laser.beam(bMc))
+        if hit is None or not self.state.scene.visible_from(bMc[:3, 3], hit.point_b):
+            return None
+        return hit.point_b
+
+    def ground_truth_view(self) -> tuple[Matrix, Matrix | None]:
+        """(bMc, laser spot in B or None): what a synthetic camera renders, the true view."""
+        bMc = self.ground_truth_bMe() @ self.truth.model.eMc
+        return bMc, self._visible_spot_b(bMc)
 
     def _observe(self, uv: Matrix) -> Matrix:
         """Pixel noise, then the image bounds: what falls outside is not measured."""

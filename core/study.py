@@ -9,6 +9,7 @@ initial pose; the controller servoes with the NOMINAL cell model. Only the evalu
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,14 +21,18 @@ from core.controllers.hybrid import Hybrid25D
 from core.controllers.ibvs import ClassicIbvs
 from core.controllers.laser_ibvs import LaserIbvs
 from core.controllers.pbvs import Pbvs
-from core.features import DesiredImage, features_from_measurement
+from core.features import DesiredImage
 from core.pose_estimation import PoseEstimationError, pose_from_planar_points
+from core.recording import RunRecorder
+from core.render import RenderSettings
 from core.scene import Cube
-from core.servo_loop import Cycle, LoopLimits, ServoOutcome, run_servo
+from core.servo_loop import Cycle, LoopLimits, Perception, ProjectedPerception, ServoOutcome, run_servo
+from core.sim_camera import SimulatedCamera
 from core.simulator import SimulatedCell
 from core.spatial import Matrix, inverse, pose_error
 from core.step_policy import IntegratedVelocity
 from core.tasks import ServoTask
+from core.vision.pipeline import CameraPerception, ImageFeatureExtractor, front_winding
 
 METHODS = ("laser", "ibvs", "pbvs", "2.5d")
 
@@ -45,6 +50,9 @@ class RunSettings:
     ibvs_depth: str = "exact"
     pbvs_pose: str = "pnp"
     final_threshold_px: float = 1.0
+    features: str = "projected"  # or "rendered": detected in the simulated camera's images
+    render: RenderSettings = RenderSettings()
+    record_to: str | None = None  # a folder for the run's recording (frames and cycles)
 
 
 def build_controller(model: CellModel, settings: RunSettings) -> Controller:
@@ -70,10 +78,21 @@ def build_controller(model: CellModel, settings: RunSettings) -> Controller:
     raise ValueError(f"unknown method {settings.method!r}: choose one of {', '.join(METHODS)}")
 
 
-def teach(cell: SimulatedCell, cdMo_true: Matrix, model: CellModel) -> DesiredImage:
+def perception_for(cell: SimulatedCell, model: CellModel, settings: RunSettings) -> Perception:
+    """The features the run's controller sees: projected points, or detections in rendered frames."""
+    if settings.features == "projected":
+        return ProjectedPerception(model.camera, model.laser)
+    if settings.features == "rendered":
+        extractor = ImageFeatureExtractor(model.camera, model.laser, front_winding(cell.state.scene.cube.corners_o))
+        return CameraPerception(SimulatedCamera(cell, settings.render), extractor)
+    raise ValueError(f"unknown features {settings.features!r}: choose projected or rendered")
+
+
+def teach(cell: SimulatedCell, cdMo_true: Matrix, model: CellModel, perception: Perception | None = None) -> DesiredImage:
     """Teach the desired image at the true pose cdMo_true (Fig. C-2), with the nominal model."""
+    perception = perception or ProjectedPerception(model.camera, model.laser)
     cell.place_camera(cdMo_true)
-    features = features_from_measurement(cell.measure(), model.camera, model.laser)
+    features = perception.perceive(cell.measure())
     if not (features.all_corners_visible and features.laser_visible):
         raise ValueError("the desired view must show the four corners and the laser spot")
     cube = Cube(np.eye(4), cell.state.scene.cube.side_m)
@@ -136,19 +155,51 @@ def _finite_or_none(value: float) -> float | None:
     return round(float(value), 6) if np.isfinite(value) else None
 
 
+def cycle_record(cycle: Cycle) -> dict[str, Any]:
+    """What a recording keeps of one cycle: what the loop saw, decided and commanded."""
+    output, features = cycle.output, cycle.features
+    return {
+        "iteration": cycle.iteration,
+        "time_s": cycle.measurement.time_s,
+        "q": cycle.measurement.q,
+        "bMe": cycle.measurement.bMe,
+        "corners_px": features.corners_px,
+        "laser_spot_px": features.laser_spot_px,
+        "laser_depth_m": features.laser_depth_m,
+        "region": features.region,
+        "stage": output.stage,
+        "cVc": output.cVc,
+        "error_px": output.error_px,
+        "stage_error": output.stage_error,
+        "converged": output.converged,
+        "failure": output.failure,
+        "note": output.note,
+    }
+
+
 def camera_pose_error(cMo: Matrix, cdMo: Matrix) -> tuple[float, float]:
     """(m, rad) between the camera's pose and its desired pose, both seen from the object."""
     return pose_error(inverse(cMo), inverse(cdMo))
 
 
-def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: int | None = None) -> RunResult:
-    """Teach ``task``'s desired image, start at its initial pose and servo with ``settings``."""
+def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: int | None = None,
+             on_cycle: Callable[[Cycle], None] | None = None) -> RunResult:
+    """Teach ``task``'s desired image, start at its initial pose and servo with ``settings``.
+
+    ``on_cycle`` sees every cycle as the loop does (for benchmarks and recordings).
+    """
     cell = SimulatedCell(config, seed)
     scene = config.simulation.scene
     cell.place_cube(task.placement.bMo(scene.table_height_m, scene.cube.side_m))
     model = config.nominal
-    desired = teach(cell, task.desired_cMo, model)
+    desired = teach(cell, task.desired_cMo, model, perception_for(cell, model, settings))
     cell.place_camera(task.initial_cMo)
+    perception = perception_for(cell, model, settings)  # a fresh tracker: nothing carried over from teaching
+
+    recorder = None
+    if settings.record_to is not None:
+        meta = {"task": task.name, "cell": config.source, "settings": settings, "desired": desired}
+        recorder = RunRecorder(settings.record_to, meta)
 
     # Evaluation only: the true end-effector path and pose error, read at every cycle
     # (before its move) and once more after the last move.
@@ -158,6 +209,10 @@ def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: i
     def record(cycle: Cycle) -> None:
         path.append(cell.ground_truth_bMe()[:3, 3])
         pose_errors.append(camera_pose_error(cell.ground_truth_cMo(), task.desired_cMo))
+        if recorder is not None:
+            recorder.record(getattr(perception, "last_frame", None), cycle_record(cycle))
+        if on_cycle is not None:
+            on_cycle(cycle)
 
     outcome = run_servo(
         cell,
@@ -167,8 +222,11 @@ def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: i
         IntegratedVelocity(settings.dt_s),
         LoopLimits(max_iterations=settings.max_iterations),
         on_cycle=record,
+        perception=perception,
     )
     path.append(cell.ground_truth_bMe()[:3, 3])
+    if recorder is not None:
+        recorder.close({"converged": outcome.converged, "failure": outcome.failure, "reason": outcome.reason})
     trace = RunTrace(
         time_s=np.array([c.measurement.time_s for c in outcome.cycles]),
         corners_px=np.array([c.features.corners_px for c in outcome.cycles]),

@@ -19,8 +19,9 @@ WIDE = CameraModel(
 
 
 def image_corners(camera: CameraModel) -> np.ndarray:
+    """The outer corners of the sensor: pixel centres are integers, so its edges are at -0.5."""
     width, height = camera.image_size
-    return np.array([[0.0, 0.0], [width, 0.0], [0.0, height], [width, height]])
+    return np.array([[-0.5, -0.5], [width - 0.5, -0.5], [-0.5, height - 0.5], [width - 0.5, height - 0.5]])
 
 
 def normalized_grid(camera: CameraModel, n: int = 41) -> np.ndarray:
@@ -162,11 +163,11 @@ def test_in_view():
     camera = sony_xc55()
     inside = np.vstack((image_corners(camera), [[320.0, 240.0]]))
     assert camera.in_view(inside).all()
-    outside = [[-0.1, 240.0], [640.1, 240.0], [320.0, -1.0], [320.0, 480.5], [np.nan, 240.0]]
+    outside = [[-0.6, 240.0], [639.6, 240.0], [320.0, -1.0], [320.0, 479.6], [np.nan, 240.0]]
     assert not camera.in_view(outside).any()
     assert camera.in_view([320.0, 240.0]).shape == (1,)
     with_margin = camera.in_view(
-        [[5.0, 240.0], [635.0, 240.0], [320.0, 5.0], [320.0, 475.0], [10.0, 10.0], [630.0, 470.0]],
+        [[5.0, 240.0], [634.0, 240.0], [320.0, 5.0], [320.0, 474.0], [10.0, 10.0], [629.0, 469.0]],
         margin_px=10.0,
     )
     np.testing.assert_array_equal(with_margin, [False, False, False, False, True, True])

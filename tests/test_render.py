@@ -327,10 +327,9 @@ def test_spot_centroid_is_the_projected_spot(camera, on_top):
             spot_b = spot_on_plane(camera, bMc, base + np.array([du, dv]), plane)
             expected = project_b(camera, bMc, spot_b)[0]
             image = renderer.render(scene, bMc, spot_b, np.random.default_rng(0))
-            # The spot reaches 255 at its exact centre; at worst the nearest pixel centre
-            # is (0.5, 0.5) px off, exp(-0.5 / 1.2^2) of the way up.
-            peak = image[int(round(expected[1])), int(round(expected[0]))]
-            assert peak >= (205 if on_top else 60) + (255 - (205 if on_top else 60)) * 0.7
+            # A laser saturates its core: the pixel nearest the centre, at most (0.5, 0.5) px
+            # off, is at 255 on any surface, so a fixed-level threshold finds it.
+            assert image[int(round(expected[1])), int(round(expected[0]))] == 255
             worst = max(worst, float(np.max(np.abs(spot_centroid(image, expected) - expected))))
     assert worst < 0.05
 
@@ -592,3 +591,13 @@ def test_default_camera_renders_the_task_1_desired_view():
     assert np.all(np.abs(np.sort(corners[:, 0]) - [275, 275, 375, 375]) < 0.1)
     mid, area = top_edge_errors(image, camera, bMc, scene.cube)
     assert np.max(np.abs(mid)) < 0.1 and np.max(np.abs(area)) < 0.02
+
+
+def test_rasterize_a_polygon_outside_the_window_gives_float_zeros():
+    """No edge piece in the window: numpy's bincount would hand back integers."""
+    from core.render import rasterize
+
+    above = np.array([[1.0, 1.0], [1.0, 3.0], [4.0, 3.0], [4.0, 1.0]])
+    coverage = rasterize([above], np.array([[1.0, 0.5]]), 0, 10, 6, 4)
+    assert coverage.dtype == np.float64 and coverage.shape == (2, 4, 6)
+    assert not coverage.any()

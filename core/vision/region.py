@@ -1,0 +1,125 @@
+"""The object's region: area and centroid from image moments (thesis section 4.4, stage 1.B).
+
+Stage 1.B of the thesis servos on "the area occupied by pixels satisfying the required
+threshold": the object's pixels by a fixed-level threshold, their area m00 and centroid
+(m10 / m00, m01 / m00) from the moments of eqs. 4-33 .. 4-35. It works when the object
+is only partly in view, which is when it is needed: ``touches_border`` says so.
+
+The laser spot is bright enough to pass any threshold, so it is not object evidence on
+its own: a bright blob made only of the spot (its clipped core and its halo) is dropped.
+Holes inside the object (the dark orientation mark on the top face) belong to it, as they
+do to the projected face the simulator measures (core.simulator.visible_region).
+
+Pixel convention (OpenCV): the pixel at row r, column c has its centre at (u, v) = (c, r),
+which is also what cv2.moments sums.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from core.features import ObjectRegion
+from core.vision import frozen_array, image_problem
+
+#: Pixels at or above this level are the laser spot (or clipped), not evidence of the object.
+SATURATED_LEVEL = 250
+#: How far the spot's halo reaches beyond its clipped core (px).
+SPOT_HALO_PX = 3
+#: Clipped blobs up to this many pixels are a laser spot; larger ones are scene (a glare).
+MAX_SPOT_AREA_PX = 150
+
+
+@dataclass(frozen=True)
+class RegionDetection:
+    """The object's region in one image.
+
+    region: area m00 (px^2) and centroid (u, v); area 0 and NaN centroid when not found.
+    touches_border: the region reaches the image border (the object is cut: stage 1.B).
+    confidence: in [0, 1]; 0 when not found, lower when the region is cut by the border.
+    reason: "" on success, otherwise why no region is given.
+    """
+
+    region: ObjectRegion
+    touches_border: bool
+    confidence: float
+    reason: str
+
+    @property
+    def found(self) -> bool:
+        return self.region.seen
+
+
+def _no_region(reason: str) -> RegionDetection:
+    return RegionDetection(ObjectRegion(0.0, frozen_array([np.nan, np.nan], (2,))), False, 0.0, reason)
+
+
+def detect_object_region(image: np.ndarray, threshold: float = 100, min_area_px2: float = 30) -> RegionDetection:
+    """The object's pixels (>= ``threshold``), its largest part, and their moments; never raises.
+
+    Connected parts (8-connected, holes filled) with fewer than ``min_area_px2`` pixels
+    outside the laser spot's reach count as nothing; of the others the largest is the
+    object.
+    """
+    try:
+        return _detect(image, threshold, min_area_px2)
+    except Exception as error:  # noqa: BLE001 - a detector reports, it never raises
+        return _no_region(f"region detection failed: {type(error).__name__}: {error}")
+
+
+def _detect(image: np.ndarray, threshold: float, min_area_px2: float) -> RegionDetection:
+    problem = image_problem(image)
+    if problem:
+        return _no_region(problem)
+    img = np.ascontiguousarray(image)
+    height, width = img.shape
+    binary = (img >= threshold).view(np.uint8)
+    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if not contours:
+        return _no_region(f"no object: no pixel at or above {threshold:g}")
+
+    # Largest first (by outline area); the first with enough evidence besides the spot wins.
+    outline = np.array([cv2.contourArea(c) for c in contours])
+    chosen = None
+    for index in np.argsort(-outline, kind="stable"):
+        contour = contours[int(index)]
+        x, y, w, h = cv2.boundingRect(contour)
+        if w * h < min_area_px2:
+            break  # this and all smaller ones cannot hold min_area_px2 pixels
+        mask = np.zeros((h, w), np.uint8)
+        cv2.drawContours(mask, [contour], -1, 1, thickness=cv2.FILLED, offset=(-x, -y))
+        evidence = mask & (1 - _spot_zone(img[y : y + h, x : x + w]))
+        if cv2.countNonZero(evidence) >= min_area_px2:
+            chosen = (mask, x, y, w, h)
+            break
+    if chosen is None:
+        return _no_region(
+            f"no object: no region of at least {min_area_px2:g} px^2 at or above {threshold:g} besides the laser spot"
+        )
+
+    mask, x, y, w, h = chosen
+    moments = cv2.moments(mask, binaryImage=True)
+    m00 = moments["m00"]
+    if m00 >= 0.95 * height * width:
+        return _no_region(f"region fills the whole image ({m00:.0f} px^2): overexposed or saturated frame")
+    centroid = np.array([moments["m10"] / m00 + x, moments["m01"] / m00 + y])
+    touches = x <= 0 or y <= 0 or x + w >= width or y + h >= height
+    confidence = (0.7 if touches else 1.0) * float(min(1.0, m00 / (10.0 * max(min_area_px2, 1.0))))
+    return RegionDetection(ObjectRegion(float(m00), frozen_array(centroid, (2,))), bool(touches), confidence, "")
+
+
+def _spot_zone(roi: np.ndarray) -> np.ndarray:
+    """1 within the reach of small clipped blobs (the laser spot and its halo), else 0."""
+    zone = np.zeros(roi.shape, np.uint8)
+    if cv2.minMaxLoc(roi)[1] < SATURATED_LEVEL:
+        return zone
+    saturated = (roi >= SATURATED_LEVEL).view(np.uint8)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(saturated, connectivity=8)
+    small = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] <= MAX_SPOT_AREA_PX) + 1
+    if small.size == 0:
+        return zone
+    zone[np.isin(labels, small)] = 1
+    size = 2 * SPOT_HALO_PX + 1
+    return cv2.dilate(zone, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
