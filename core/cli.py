@@ -62,18 +62,22 @@ def cell_info(config: CellConfig) -> dict[str, Any]:
     }
 
 
+def _print(result: dict[str, Any], as_json: bool) -> None:
+    """One JSON object, or one line per key (a nested table indented under its name)."""
+    if as_json:
+        print(json.dumps(result))
+        return
+    for key, value in result.items():
+        if isinstance(value, dict):
+            print(f"{key}:")
+            for inner, inner_value in value.items():
+                print(f"  {inner}: {inner_value}")
+        else:
+            print(f"{key}: {value}")
+
+
 def _cmd_info(args: argparse.Namespace) -> int:
-    info = cell_info(load_cell(args.cell))
-    if args.json:
-        print(json.dumps(info))
-    else:
-        for section, values in info.items():
-            if isinstance(values, dict):
-                print(f"{section}:")
-                for key, value in values.items():
-                    print(f"  {key}: {value}")
-            else:
-                print(f"{section}: {values}")
+    _print(cell_info(load_cell(args.cell)), args.json)
     return 0
 
 
@@ -209,11 +213,7 @@ def _cmd_detect(args: argparse.Namespace) -> int:
     features, report = extractor.extract(image)
     result = {"image": args.image, "size": [image.shape[1], image.shape[0]], **report.as_dict(),
               "laser_depth_mm": None if np.isnan(features.laser_depth_m) else round(features.laser_depth_m * 1000.0, 3)}
-    if args.json:
-        print(json.dumps(result))
-    else:
-        for key, value in result.items():
-            print(f"{key}: {value}")
+    _print(result, args.json)
     return 0
 
 
@@ -225,11 +225,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         result = replay(args.folder, args.cell)
     except RecordingError as exc:
         raise ValueError(str(exc)) from None
-    if args.json:
-        print(json.dumps(result))
-    else:
-        for key, value in result.items():
-            print(f"{key}: {value}")
+    _print(result, args.json)
     return 0
 
 
@@ -237,11 +233,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from core.bench import bench_vision
 
     result = bench_vision(load_cell(args.cell), seed=args.seed)
-    if args.json:
-        print(json.dumps(result))
-    else:
-        for key, value in result.items():
-            print(f"{key}: {value}")
+    _print(result, args.json)
     return 0
 
 

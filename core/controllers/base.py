@@ -83,3 +83,18 @@ def feature_error_px(features: ImageFeatures, desired: DesiredImage) -> float:
     if not features.all_corners_visible:
         return float("nan")
     return float(np.linalg.norm(desired.corners_px - features.corners_px))
+
+
+def verdict_on_all_corners(name: str, features: ImageFeatures, error_px: float, final_threshold_px: float
+                           ) -> ControlOutput | None:
+    """The verdict a law on the four corners reaches before computing anything, or None.
+
+    It stops (zero twist) when a corner is not seen and reports convergence once the
+    feature error is below the final threshold; None means: go on and compute the twist.
+    """
+    if not features.all_corners_visible:
+        lost = int((~features.corners_visible).sum())
+        return ControlOutput.stop(name, error_px, Failure.FEATURES_LOST, f"{lost} of 4 corners not seen")
+    if error_px <= final_threshold_px:
+        return ControlOutput(np.zeros(6), name, error_px, error_px, converged=True)
+    return None

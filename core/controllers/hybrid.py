@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.camera import CameraModel
-from core.controllers.base import ControlOutput, Failure, feature_error_px
+from core.controllers.base import ControlOutput, Failure, feature_error_px, verdict_on_all_corners
 from core.features import DesiredImage, ImageFeatures
 from core.pose_estimation import PoseEstimationError, decompose_homography, euclidean_homography
 from core.spatial import theta_u
@@ -45,11 +45,9 @@ class Hybrid25D:
 
     def step(self, features: ImageFeatures, desired: DesiredImage, stage: str | None) -> ControlOutput:
         error_px = feature_error_px(features, desired)
-        if not features.all_corners_visible:
-            lost = int((~features.corners_visible).sum())
-            return ControlOutput.stop(self.name, error_px, Failure.FEATURES_LOST, f"{lost} of 4 corners not seen")
-        if error_px <= self.final_threshold_px:
-            return ControlOutput(np.zeros(6), self.name, error_px, error_px, converged=True)
+        verdict = verdict_on_all_corners(self.name, features, error_px, self.final_threshold_px)
+        if verdict is not None:
+            return verdict
 
         desired_xn = self.camera.pixel_to_normalized(desired.corners_px)
         current_xn = self.camera.pixel_to_normalized(features.corners_px)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.camera import CameraModel
-from core.controllers.base import ControlOutput, Failure, SingularJacobian, checked_pinv, feature_error_px
+from core.controllers.base import ControlOutput, Failure, SingularJacobian, checked_pinv, feature_error_px, verdict_on_all_corners
 from core.features import DesiredImage, ImageFeatures
 from core.interaction import pixel_interaction_matrix
 
@@ -56,11 +56,9 @@ class ClassicIbvs:
 
     def step(self, features: ImageFeatures, desired: DesiredImage, stage: str | None) -> ControlOutput:
         error_px = feature_error_px(features, desired)
-        if not features.all_corners_visible:
-            lost = int((~features.corners_visible).sum())
-            return ControlOutput.stop(self.name, error_px, Failure.FEATURES_LOST, f"{lost} of 4 corners not seen")
-        if error_px <= self.final_threshold_px:
-            return ControlOutput(np.zeros(6), self.name, error_px, error_px, converged=True)
+        verdict = verdict_on_all_corners(self.name, features, error_px, self.final_threshold_px)
+        if verdict is not None:
+            return verdict
         if self.interaction != "desired" and self.depth != "constant":
             depths = corner_depths(features, desired, self.depth)
             if not np.all(np.isfinite(depths) & (depths > 0)):
