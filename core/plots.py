@@ -21,6 +21,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -629,26 +630,14 @@ def line_plot_with_axes(
     return img, replace(axes, legend_box=legend)
 
 
-def line_plot(
-    series: Sequence[Series],
-    title: str = "",
-    xlabel: str = "",
-    ylabel: str = "",
-    size: tuple[int, int] = (640, 400),
-    *,
-    xlim: tuple[float, float] | None = None,
-    ylim: tuple[float, float] | None = None,
-) -> Image:
+def line_plot(*args: Any, **kwargs: Any) -> Image:
     """Lines y(x) in a box with ticks, a light grid, title, axis labels and a legend.
 
     Limits fit the finite data with a small margin unless ``xlim``/``ylim`` are given.
     The legend lists the series with a non-empty label, in the corner that hides the
     least data. ``size`` is (width, height) in pixels.
     """
-    return line_plot_with_axes(series, title, xlabel, ylabel, size, xlim=xlim, ylim=ylim)[0]
-
-
-# --------------------------------------------------------------------------- image plane
+    return line_plot_with_axes(*args, **kwargs)[0]
 
 
 def _as_points(points: ArrayLike | None, name: str) -> NDArray[np.float64]:
@@ -731,21 +720,7 @@ def image_trajectory_plot_with_axes(
     return img, replace(axes, legend_box=legend)
 
 
-def image_trajectory_plot(
-    trajectories: Sequence[Series],
-    image_size: tuple[int, int] = (640, 480),
-    title: str = "",
-    initial_marker_points: ArrayLike | None = None,
-    desired_points: ArrayLike | None = None,
-    extra_points: Sequence[tuple[str, ArrayLike, BGR] | tuple[str, ArrayLike, BGR, str]] = (),
-    *,
-    margin: float = 0.25,
-    size: tuple[int, int] = (640, 540),
-    xlabel: str = "u (pixel)",
-    ylabel: str = "v (pixel)",
-    initial_label: str = "initial",
-    desired_label: str = "desired",
-) -> Image:
+def image_trajectory_plot(*args: Any, **kwargs: Any) -> Image:
     """Feature trajectories on the image plane, drawn as a camera image: u right, v down.
 
     trajectories: Series with x = u and y = v in pixels. The view covers the image
@@ -755,23 +730,7 @@ def image_trajectory_plot(
     ``(label, (K, 2) points, color)`` with an optional 4th marker ('o', '*', 'x', '+',
     's' or '.', default 's'). Equal scale on u and v.
     """
-    return image_trajectory_plot_with_axes(
-        trajectories,
-        image_size,
-        title,
-        initial_marker_points,
-        desired_points,
-        extra_points,
-        margin=margin,
-        size=size,
-        xlabel=xlabel,
-        ylabel=ylabel,
-        initial_label=initial_label,
-        desired_label=desired_label,
-    )[0]
-
-
-# --------------------------------------------------------------------------- 3-D paths
+    return image_trajectory_plot_with_axes(*args, **kwargs)[0]
 
 
 def _box_limits(paths: Sequence[Series3]) -> Limits3:
@@ -963,14 +922,7 @@ def path_3d_plot_with_view(
     return img, view
 
 
-def path_3d_plot(
-    paths: Sequence[Series3],
-    title: str = "",
-    azimuth_deg: float = -37.5,
-    elevation_deg: float = 30.0,
-    size: tuple[int, int] = (640, 480),
-    axis_labels: tuple[str, str, str] = ("X (m)", "Y (m)", "Z (m)"),
-) -> Image:
+def path_3d_plot(*args: Any, **kwargs: Any) -> Image:
     """3-D polylines in an orthographic view with MATLAB's ``view(azimuth, elevation)``.
 
     The data's bounding box is drawn with a light grid on its three back faces and
@@ -978,10 +930,7 @@ def path_3d_plot(
     all axes. Each path has an 'o' at its start and a '*' at its end. Z is up on the
     image for any elevation in (-90, 90).
     """
-    return path_3d_plot_with_view(paths, title, azimuth_deg, elevation_deg, size, axis_labels)[0]
-
-
-# --------------------------------------------------------------------------- composition and output
+    return path_3d_plot_with_view(*args, **kwargs)[0]
 
 
 def _as_bgr(panel: ArrayLike) -> Image:
