@@ -10,7 +10,6 @@ the source's grey conversion is exercised by the real decoder.
 from __future__ import annotations
 
 import itertools
-import time
 from pathlib import Path
 
 import cv2
@@ -122,12 +121,10 @@ def test_file_that_is_not_a_video(tmp_path: Path) -> None:
         VideoCaptureSource(str(junk))
 
 
-def test_missing_device_fails_fast() -> None:
-    # OpenCV's V4L2 backend answers for a missing /dev/video99 in well under a millisecond.
-    start = time.monotonic()
+def test_a_missing_device_is_a_set_up_error_named_by_its_index() -> None:
+    # Through the real OpenCV: no retries for a device that does not exist.
     with pytest.raises(CameraSourceError, match="camera device 99"):
         VideoCaptureSource(99)
-    assert time.monotonic() - start < 2.0
 
 
 def test_bad_arguments() -> None:
