@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from core.features import polygon_moments
-from core.vision import image_problem
 from core.vision.corners import CornerDetection, detect_corners
+from core.vision.edges import image_problem
 from core.vision.region import RegionDetection, detect_object_region
 from core.vision.spot import SpotDetection, detect_laser_spot
 

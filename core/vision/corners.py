@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 
 from core.spatial import Matrix
-from core.vision import Strips, edge_points_many, fit_lines, frozen_array, image_problem, intersect, sample_strips
+from core.vision.edges import Strips, edge_points_many, fit_lines, frozen_array, image_problem, intersect, sample_strips
 from core.vision.spot import SpotDetection
 
 #: Smallest top face, in pixels of area, worth measuring.

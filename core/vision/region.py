@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from core.features import ObjectRegion
-from core.vision import frozen_array, image_problem
+from core.vision.edges import frozen_array, image_problem
 
 #: Pixels at or above this level are the laser spot (or clipped), not evidence of the object.
 SATURATED_LEVEL = 250

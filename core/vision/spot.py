@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from core.spatial import Matrix
-from core.vision import edge_points_many, fit_lines, frozen_array, image_problem
+from core.vision.edges import edge_points_many, fit_lines, frozen_array, image_problem
 
 #: Grey level from which a pixel counts as clipped by the sensor.
 CLIPPED_LEVEL = 254

@@ -1,0 +1,283 @@
+"""What the detectors share: input checks and straight-edge location by the partial-area effect.
+
+Pixel convention (OpenCV): the pixel at row r, column c has its centre at (u, v) = (c, r).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.spatial import Matrix
+
+#: Smallest image side any detector accepts.
+MIN_IMAGE_SIDE = 16
+
+
+def image_problem(image: object) -> str:
+    """Why ``image`` cannot be measured, or "" when it is an 8-bit single-channel image."""
+    if not isinstance(image, np.ndarray):
+        return f"image must be an 8-bit single channel numpy array, got {type(image).__name__}"
+    if image.dtype != np.uint8 or image.ndim != 2:
+        return f"image must be 8-bit single channel, got {image.dtype} {image.shape}"
+    if min(image.shape) < MIN_IMAGE_SIDE:
+        return f"image too small: {image.shape}, need at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE}"
+    return ""
+
+
+def frozen_array(values: object, shape: tuple[int, ...]) -> Matrix:
+    """A read-only float64 copy of ``values`` with the given shape."""
+    array = np.array(values, dtype=np.float64).reshape(shape)
+    array.flags.writeable = False
+    return array
+
+
+#: One straight edge to sample: (unit normal from dark to bright, offset, start, stop).
+Segment = tuple[Matrix, float, Matrix, Matrix]
+
+
+def edge_points(
+    image: np.ndarray,
+    normal: Matrix,
+    offset: float,
+    start: Matrix,
+    stop: Matrix,
+    half_width: float = 1.5,
+    level_px: int = 1,
+    keep_out: list[tuple[Matrix, float]] = (),
+    end_margin: float = 0.0,
+) -> Matrix:
+    """Sub-pixel points (N, 2) of one straight edge; see ``edge_points_many``."""
+    return edge_points_many(image, [(normal, offset, start, stop)], half_width, level_px, keep_out, end_margin)[0]
+
+
+@dataclass(frozen=True)
+class Strips:
+    """Strips of pixels across straight edges (see ``sample_strips``), one row per strip.
+
+    segment: which segment the strip belongs to (sorted); along: the strip's column (its
+    row for a steep edge); steep: the edge runs more along v than along u; base: the
+    pixel across the edge nearest the segment's line; values: grey levels from base - r
+    to base + r (r = half the row length); bright_high: the bright side is at the larger
+    index across.
+    """
+
+    segment: np.ndarray
+    along: np.ndarray
+    steep: np.ndarray
+    base: np.ndarray
+    values: Matrix
+    bright_high: np.ndarray
+
+
+def sample_strips(
+    image: np.ndarray,
+    segments: list[Segment],
+    reach: int,
+    keep_out: list[tuple[Matrix, float]] = (),
+    end_margin: float = 0.0,
+) -> Strips | None:
+    """One strip of 2 reach + 1 pixels per column (per row for a steep edge) across each
+    segment (normal, offset, start, stop), centred on the pixel nearest its line, from
+    ``end_margin`` px (along the strips' axis) after start to as much before stop; strips
+    leaving the image or reaching within a disc of ``keep_out`` [(centre, radius), ...]
+    are skipped. None when there is no strip."""
+    height, width = image.shape
+    count = len(segments)
+    span = np.arange(-reach, reach + 1)
+    # Per segment: which way the strips run and which pixels along the edge they cover.
+    steep_s, across_n, along_n, offsets, firsts, counts = [], [], [], [], [], []
+    for normal, offset, start, stop in segments:
+        steep = abs(normal[0]) > abs(normal[1])  # the edge runs more along v than along u
+        axis = 1 if steep else 0
+        lo, hi = sorted((float(start[axis]), float(stop[axis])))
+        lo, hi = lo + end_margin, hi - end_margin
+        first = max(math.ceil(lo), 0)
+        last = min(math.floor(hi), (height if steep else width) - 1)
+        steep_s.append(steep)
+        across_n.append(float(normal[0] if steep else normal[1]))
+        along_n.append(float(normal[1] if steep else normal[0]))
+        offsets.append(float(offset))
+        firsts.append(first)
+        counts.append(max(last - first + 1, 0))
+    total = sum(counts)
+    if total == 0:
+        return None
+    counts_a = np.array(counts)
+    seg = np.repeat(np.arange(count), counts_a)
+    run_start = np.repeat(np.cumsum(counts_a) - counts_a, counts_a)
+    along = np.arange(total) - run_start + np.repeat(np.array(firsts), counts_a)
+    steep = np.array(steep_s)[seg]
+    n_across, n_along = np.array(across_n)[seg], np.array(along_n)[seg]
+    base = np.rint((np.array(offsets)[seg] - n_along * along) / n_across).astype(np.int64)
+    across = base[:, None] + span[None, :]
+    keep = (across[:, 0] >= 0) & (across[:, -1] < np.where(steep, width, height))
+    for point, radius in keep_out:
+        # The disc's centre in each strip's frame: along the edge and across it.
+        za = np.where(steep, float(point[1]), float(point[0]))
+        zc = np.where(steep, float(point[0]), float(point[1]))
+        nearest = np.minimum(np.maximum(zc, across[:, 0] - 0.5), across[:, -1] + 0.5)
+        keep &= (along - za) ** 2 + (nearest - zc) ** 2 > radius * radius
+    if not keep.any():
+        return None
+    seg, along, steep, base, across, n_across = seg[keep], along[keep], steep[keep], base[keep], across[keep], n_across[keep]
+    rows = np.where(steep[:, None], along[:, None], across)
+    cols = np.where(steep[:, None], across, along[:, None])
+    return Strips(seg, along, steep, base, image[rows, cols].astype(np.float64), n_across > 0.0)
+
+
+def edge_points_many(
+    image: np.ndarray,
+    segments: list[Segment],
+    half_width: float = 1.5,
+    level_px: int = 1,
+    keep_out: list[tuple[Matrix, float]] = (),
+    end_margin: float = 0.0,
+    min_contrast: float = 12.0,
+) -> list[Matrix]:
+    """Sub-pixel points of straight edges, each near its line normal . x = offset.
+
+    ``normal`` (unit) points from the dark side to the bright side. Each edge is sampled
+    between the points ``start`` and ``stop`` (on or near its line), one strip of
+    2 ceil(half_width) + 1 pixels per column (per row for a steep edge) across it: the
+    strip's grey levels, scaled to 0 on the dark level and 1 on the bright one, sum to
+    the length of its bright part, which puts the edge where a box-filtered (or any
+    symmetrically blurred) straight step has it, whatever its phase against the pixel
+    grid: the partial-area effect. The dark and bright levels are read on ``level_px``
+    pixels just beyond the strip's two ends and smoothed along the edge (a running
+    median of 5 strips), which also follows uneven lighting. A narrow strip stays on a
+    side face a few pixels wide next to the edge, which a wide one would cross.
+
+    Strips within ``end_margin`` px of a segment's ends (along the strips' axis) or
+    reaching within a disc of ``keep_out`` [(centre, radius), ...] are skipped. Returns
+    one (N_i, 2) array of points (u, v) per segment.
+    """
+    count = len(segments)
+    empty = [np.empty((0, 2)) for _ in range(count)]
+    k = math.ceil(half_width)
+    strips = sample_strips(image, segments, k + level_px, keep_out, end_margin)
+    if strips is None:
+        return empty
+    values = strips.values
+    low_end = values[:, :level_px].sum(axis=1) / level_px
+    high_end = values[:, -level_px:].sum(axis=1) / level_px
+    bright_high = strips.bright_high
+    bright_raw = np.where(bright_high, high_end, low_end)
+    dark_raw = np.where(bright_high, low_end, high_end)
+    ok = bright_raw - dark_raw > min_contrast
+    if not ok.any():
+        return empty
+    seg, along, steep, base, bright_high = (
+        strips.segment[ok],
+        strips.along[ok],
+        strips.steep[ok],
+        strips.base[ok],
+        bright_high[ok],
+    )
+    strip = values[ok, level_px:-level_px]
+    bright = running_median(bright_raw[ok], seg)
+    dark = running_median(dark_raw[ok], seg)
+    contrast = bright - dark
+    bright_length = ((strip - dark[:, None]) / np.where(contrast > 0.0, contrast, 1.0)[:, None]).sum(axis=1)
+    position = np.where(bright_high, base + k + 0.5 - bright_length, base - k - 0.5 + bright_length)
+    # The edge must lie inside its strip, away from the ends.
+    good = (contrast > min_contrast) & (np.abs(position - base) < k - 0.25)
+    points = np.column_stack([np.where(steep, position, along), np.where(steep, along, position)])[good]
+    seg = seg[good]
+    bounds = np.searchsorted(seg, np.arange(count + 1))
+    return [points[bounds[i] : bounds[i + 1]] for i in range(count)]
+
+
+def running_median(levels: Matrix, segment: np.ndarray, width: int = 5) -> Matrix:
+    """Running median of ``width`` successive strips of the same segment (sorted by segment).
+
+    A median keeps the step where the far side of an edge changes (a side face ending
+    at a junction) and follows uneven lighting, while it quietens the noise.
+    """
+    index = np.arange(levels.size)
+    starts = np.searchsorted(segment, segment, side="left")
+    stops = np.searchsorted(segment, segment, side="right") - 1
+    window = np.clip(index[:, None] + (np.arange(width) - width // 2)[None, :], starts[:, None], stops[:, None])
+    return np.sort(levels[window], axis=1)[:, width // 2]
+
+
+def fit_line(points: Matrix, normal_hint: Matrix, min_points: int = 3) -> tuple[Matrix, float, Matrix, float] | None:
+    """Robust straight-line fit to edge points: (unit normal, offset, inlier mask, RMS); see ``fit_lines``."""
+    return fit_lines([points], [normal_hint], min_points)[0]
+
+
+def fit_lines(
+    points: list[Matrix], normal_hints: list[Matrix], min_points: int = 3, rounds: int = 4
+) -> list[tuple[Matrix, float, Matrix, float] | None]:
+    """Robust straight-line fits, one per set of edge points: (unit normal, offset,
+    inlier mask, RMS of the inliers' distances), or None with too few points.
+
+    Least squares across each line's main direction (the points' errors are along one
+    image axis, see ``edge_points_many``), then points beyond three sigmas (and beyond
+    0.1 px) are dropped and the fit repeated. Normals are oriented like the
+    hints. All sets are fitted together, which costs little more than one; ``rounds``
+    bounds the fits per set.
+    """
+    count = len(points)
+    results: list[tuple[Matrix, float, Matrix, float] | None] = [None] * count
+    sizes = np.array([len(p) for p in points])
+    if sizes.sum() == 0:
+        return results
+    seg = np.repeat(np.arange(count), sizes)
+    stacked = np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in points])
+    hints = np.array([np.asarray(h, dtype=np.float64) for h in normal_hints])
+    steep_s = np.abs(hints[:, 0]) > np.abs(hints[:, 1])
+    steep = steep_s[seg]
+    a = np.where(steep, stacked[:, 1], stacked[:, 0])
+    b = np.where(steep, stacked[:, 0], stacked[:, 1])
+    a_mean = np.bincount(seg, a, count) / np.maximum(sizes, 1)
+    a = a - a_mean[seg]
+    keep = np.ones(len(a), bool)
+    bounds = np.concatenate([[0], np.cumsum(sizes)])
+    for round_index in range(rounds):
+        w = keep.astype(np.float64)
+        n = np.bincount(seg, w, count)
+        sa, sb = np.bincount(seg, w * a, count), np.bincount(seg, w * b, count)
+        saa, sab = np.bincount(seg, w * a * a, count), np.bincount(seg, w * a * b, count)
+        det = n * saa - sa * sa
+        ok = (n >= min_points) & (det > 1e-12)
+        slope = np.where(ok, (n * sab - sa * sb) / np.where(ok, det, 1.0), 0.0)
+        intercept = (sb - slope * sa) / np.maximum(n, 1.0)
+        residual = b - intercept[seg] - slope[seg] * a
+        if round_index == rounds - 1:
+            break
+        magnitude = np.abs(residual)
+        # Each set's median |residual| over its inliers (one sort for all sets).
+        order = np.lexsort((np.where(keep, magnitude, np.inf), seg))
+        middle = np.minimum(bounds[:-1] + (np.maximum(n, 1.0).astype(np.int64) - 1) // 2, len(a) - 1)
+        sigma = 1.4826 * magnitude[order][middle]
+        new_keep = magnitude <= np.maximum(3.0 * sigma, 0.1)[seg]
+        enough = np.bincount(seg, new_keep.astype(np.float64), count) >= min_points
+        new_keep |= ~enough[seg] & keep  # a set that would fall short keeps its last inliers
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    # b = slope (a_img - a_mean) + intercept  <=>  b - slope a_img = intercept - slope a_mean
+    scale = np.hypot(1.0, slope)
+    normals = np.where(steep_s[:, None], np.column_stack([np.ones(count), -slope]), np.column_stack([-slope, np.ones(count)]))
+    normals /= scale[:, None]
+    offsets = (intercept - slope * a_mean) / scale
+    flip = (normals * hints).sum(axis=1) < 0.0
+    normals[flip] *= -1.0
+    offsets[flip] *= -1.0
+    rms = np.sqrt(np.bincount(seg, keep * residual**2, count) / np.maximum(n, 1.0)) / scale
+    for i in np.flatnonzero(ok):
+        results[i] = (normals[i], float(offsets[i]), keep[bounds[i] : bounds[i + 1]].copy(), float(rms[i]))
+    return results
+
+
+def intersect(line_a: tuple[Matrix, float], line_b: tuple[Matrix, float]) -> Matrix:
+    """Crossing point of two lines n . x = d; NaN when they are parallel."""
+    (a0, a1), da = line_a[0], line_a[1]
+    (b0, b1), db = line_b[0], line_b[1]
+    det = float(a0 * b1 - a1 * b0)
+    if abs(det) < 1e-9:
+        return np.full(2, np.nan)
+    return np.array([(da * b1 - a1 * db) / det, (a0 * db - da * b0) / det])
