@@ -108,9 +108,6 @@ class _Table:
             raise ConfigError(f"{self._source}: missing key {self._key(key)}")
         return default
 
-    def has(self, key: str) -> bool:
-        return key in self._data
-
     def number(self, key: str, default: float | None = None, *, check: Callable[[float], bool] | None = None,
                why: str = "") -> float:
         value = self._raw(key, default)

@@ -14,10 +14,10 @@ from typing import Any
 import numpy as np
 
 from core.config import CellConfig
+from core.features import pixel_or_none
 from core.simulator import SimulatedCell
 from core.spatial import (
     Pose6,
-    exp_twist,
     inverse,
     matrix_from_pose,
     pose_error,
@@ -25,7 +25,7 @@ from core.spatial import (
     pose_to_mm_deg,
     twist_transform,
 )
-from core.step_policy import DividedPositionStep, PositionCommand
+from core.step_policy import PositionCommand, step_policy_from_config
 
 # Task 1 of Table 5-1: the desired pose of the cube in the camera frame (m, rad).
 TEACH_cMo = matrix_from_pose(Pose6(0.011, -0.01, 0.162, np.pi, 0.0, -np.pi))
@@ -35,10 +35,6 @@ DEMO_cVc = np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.1])
 
 def _mm_deg(bMx: np.ndarray) -> list[float]:
     return (np.round(pose_to_mm_deg(pose_from_matrix(bMx)), 2) + 0.0).tolist()  # + 0.0: no "-0.0"
-
-
-def _px(uv: np.ndarray) -> list[Any]:
-    return [None if np.isnan(p).any() else np.round(p, 2).tolist() for p in np.atleast_2d(uv)]
 
 
 def run_demo(config: CellConfig, seed: int | None = None, steps: int = 5) -> dict[str, Any]:
@@ -65,31 +61,33 @@ def run_demo(config: CellConfig, seed: int | None = None, steps: int = 5) -> dic
         "what": "jogged to the teach pose of task 1 (cube 162 mm below the camera)",
         "move_duration_s": round(move.duration_s, 2),
         "flange_pose_mm_deg": _mm_deg(teach.bMe),
-        "corners_px": _px(teach.corners_px),
-        "laser_spot_px": _px(teach.laser_spot_px)[0],
+        "corners_px": [pixel_or_none(corner, 2) for corner in teach.corners_px],
+        "laser_spot_px": pixel_or_none(teach.laser_spot_px, 2),
         "laser_depth_mm": round(depth.depth_m * 1000.0, 3),
         "true_depth_of_cube_face_mm": round(true_depth * 1000.0, 3),
     })
 
-    # JRC style: each control step divided by the factor, one target per sampling period.
-    policy = DividedPositionStep(config.motion.divide_factor, config.motion.sampling_period_s,
-                                 config.motion.speed_m_s)
+    # Steps through the cell's own step policy: on the JRC, each control step divided by
+    # the factor and one target per sampling period.
+    motion = config.motion
+    policy = step_policy_from_config(motion)
     eVe = twist_transform(nominal.eMc) @ DEMO_cVc
     start = cell.measure()
     for _ in range(steps):
-        cell.execute(policy.command(cell.measure().bMe, eVe))
+        bMe = cell.measure().bMe
+        command = policy.command(bMe, eVe)
+        target = command.target(bMe)
+        cell.execute(command)
     end = cell.measure()
-    expected = start.bMe
-    for _ in range(steps):
-        expected = expected @ exp_twist(eVe / config.motion.divide_factor)
-    translation, rotation = pose_error(end.bMe, expected)
+    translation, rotation = pose_error(end.bMe, target)
+    how = (f"JRC-style steps divided by {motion.divide_factor:g}, one per {motion.sampling_period_s:g} s"
+           if motion.mode == "position_steps" else f"velocity steps of {motion.dt_s:g} s")
     report.append({
-        "what": f"{steps} JRC-style steps of the camera twist {DEMO_cVc.tolist()} divided by "
-                f"{config.motion.divide_factor:g}, one per {config.motion.sampling_period_s:g} s",
+        "what": f"{steps} {how}, camera twist {DEMO_cVc.tolist()}",
         "elapsed_s": round(end.time_s - start.time_s, 2),
         "flange_moved_mm": round(float(np.linalg.norm(end.bMe[:3, 3] - start.bMe[:3, 3])) * 1000.0, 3),
-        "deviation_from_commanded_mm": round(translation * 1000.0, 6),
-        "deviation_from_commanded_deg": round(float(np.degrees(rotation)), 6),
-        "laser_spot_px": _px(end.laser_spot_px)[0],
+        "deviation_from_last_target_mm": round(translation * 1000.0, 6),
+        "deviation_from_last_target_deg": round(float(np.degrees(rotation)), 6),
+        "laser_spot_px": pixel_or_none(end.laser_spot_px, 2),
     })
     return {"title": f"vservo demo: simulated cell from {config.source}", "steps": report}

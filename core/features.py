@@ -20,6 +20,11 @@ if TYPE_CHECKING:  # the simulator imports this module; only its type is needed 
     from core.simulator import Measurement
 
 
+def pixel_or_none(point: Matrix, digits: int = 4) -> list[float] | None:
+    """A pixel for a report: rounded, or None when unseen (NaN)."""
+    return None if np.isnan(point).any() else [round(float(v), digits) for v in point]
+
+
 def polygon_moments(polygon_px: Matrix) -> tuple[float, Matrix]:
     """Area m00 and centroid (m10/m00, m01/m00) of a simple polygon (eqs. 4-33 .. 4-35).
 

@@ -221,9 +221,7 @@ class SimulatedCell:
         """Carry out one command (see core.step_policy); raises UnreachableTarget unmoved."""
         bMe = self.controller_arm.fk(self.state.q)
         if isinstance(command, VelocityCommand):
-            # Holding a constant body twist for dt lands exactly on bMe exp(twist dt).
-            target = bMe @ exp_twist(np.asarray(command.eVe, dtype=float) * command.dt_s)
-            return self._move(target, command.dt_s)
+            return self._move(command.target(bMe), command.dt_s)
         if isinstance(command, PositionCommand):
             translation, rotation = pose_error(bMe, command.bMe_target)
             travel = max(translation / command.speed_m_s, rotation / ROTATION_SPEED_RAD_S)

@@ -26,6 +26,10 @@ class VelocityCommand:
     eVe: Matrix
     dt_s: float
 
+    def target(self, bMe: Matrix) -> Matrix:
+        """Where the flange lands from bMe: a constant body twist held for dt_s, exactly."""
+        return bMe @ exp_twist(np.asarray(self.eVe, dtype=float) * self.dt_s)
+
 
 @dataclass(frozen=True)
 class PositionCommand:
@@ -34,6 +38,10 @@ class PositionCommand:
     bMe_target: Matrix
     speed_m_s: float
     period_s: float
+
+    def target(self, bMe: Matrix) -> Matrix:
+        """Where the flange lands: the target, wherever it starts."""
+        return self.bMe_target
 
 
 RobotCommand = VelocityCommand | PositionCommand

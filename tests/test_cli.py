@@ -17,10 +17,6 @@ def run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "core.cli", *args], capture_output=True, text=True, timeout=120)
 
 
-def steps_taken(step_report: dict) -> int:
-    return int(step_report["what"].split()[0])
-
-
 def shipped_cell() -> str:
     return resources.files("static").joinpath("cell.toml").read_text()
 
@@ -87,4 +83,14 @@ def test_demo_sees_the_thesis_laser_spot_and_measures_its_depth(capsys):
     assert np.allclose(np.ptp(corners, axis=0), [100.1, 100.1], atol=0.5)
     assert steps["elapsed_s"] == pytest.approx(10.0)
     # The robot controller's IK stops at 0.1 um (core.simulator.IK_TOLERANCE_M).
-    assert steps["deviation_from_commanded_mm"] == pytest.approx(0.0, abs=IK_TOLERANCE_M * 1000.0 * steps_taken(steps))
+    assert steps["deviation_from_last_target_mm"] == pytest.approx(0.0, abs=IK_TOLERANCE_M * 1000.0)
+
+
+def test_the_demo_steps_through_the_cells_motion_mode(tmp_path, capsys):
+    cell = tmp_path / "velocity.toml"
+    cell.write_text(shipped_cell().replace('mode = "position_steps"', 'mode = "velocity"'))
+    assert main(["--cell", str(cell), "demo", "--json"]) == 0
+    steps = json.loads(capsys.readouterr().out)["steps"][-1]
+    assert steps["what"].startswith("5 velocity steps of 0.05 s")
+    assert steps["elapsed_s"] == pytest.approx(5 * 0.05)
+    assert steps["deviation_from_last_target_mm"] == pytest.approx(0.0, abs=IK_TOLERANCE_M * 1000.0)

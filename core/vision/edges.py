@@ -38,21 +38,6 @@ def frozen_array(values: object, shape: tuple[int, ...]) -> Matrix:
 Segment = tuple[Matrix, float, Matrix, Matrix]
 
 
-def edge_points(
-    image: np.ndarray,
-    normal: Matrix,
-    offset: float,
-    start: Matrix,
-    stop: Matrix,
-    half_width: float = 1.5,
-    level_px: int = 1,
-    keep_out: list[tuple[Matrix, float]] = (),
-    end_margin: float = 0.0,
-) -> Matrix:
-    """Sub-pixel points (N, 2) of one straight edge; see ``edge_points_many``."""
-    return edge_points_many(image, [(normal, offset, start, stop)], half_width, level_px, keep_out, end_margin)[0]
-
-
 @dataclass(frozen=True)
 class Strips:
     """Strips of pixels across straight edges (see ``sample_strips``), one row per strip.
@@ -201,11 +186,6 @@ def running_median(levels: Matrix, segment: np.ndarray, width: int = 5) -> Matri
     stops = np.searchsorted(segment, segment, side="right") - 1
     window = np.clip(index[:, None] + (np.arange(width) - width // 2)[None, :], starts[:, None], stops[:, None])
     return np.sort(levels[window], axis=1)[:, width // 2]
-
-
-def fit_line(points: Matrix, normal_hint: Matrix, min_points: int = 3) -> tuple[Matrix, float, Matrix, float] | None:
-    """Robust straight-line fit to edge points: (unit normal, offset, inlier mask, RMS); see ``fit_lines``."""
-    return fit_lines([points], [normal_hint], min_points)[0]
 
 
 def fit_lines(

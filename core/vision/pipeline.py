@@ -15,7 +15,7 @@ import numpy as np
 
 from core.camera import CameraModel
 from core.camera_source import Frame, FrameSource
-from core.features import ImageFeatures, laser_depth
+from core.features import ImageFeatures, laser_depth, pixel_or_none
 from core.laser import LaserPointer
 from core.spatial import Matrix, rot_x, transform
 from core.vision.corners import CornerDetection, detect_corners
@@ -33,21 +33,25 @@ class VisionReport:
 
     def as_dict(self) -> dict:
         return {
-            "laser_spot": {"px": _px(self.spot.spot_px), "confidence": self.spot.confidence, "reason": self.spot.reason},
-            "corners": {"px": [_px(c) for c in self.corners.corners_px], "confidence": self.corners.confidence,
-                        "reason": self.corners.reason, "mark_px": _px(self.corners.mark_px)},
+            "laser_spot": {
+                "px": pixel_or_none(self.spot.spot_px),
+                "confidence": self.spot.confidence,
+                "reason": self.spot.reason,
+            },
+            "corners": {
+                "px": [pixel_or_none(c) for c in self.corners.corners_px],
+                "confidence": self.corners.confidence,
+                "reason": self.corners.reason,
+                "mark_px": pixel_or_none(self.corners.mark_px),
+            },
             "region_centroid": {
-                "px": _px(self.region.region.centroid_px),
+                "px": pixel_or_none(self.region.region.centroid_px),
                 "area_px2": round(float(self.region.region.area_px2), 3),
                 "touches_border": self.region.touches_border,
                 "confidence": self.region.confidence,
                 "reason": self.region.reason,
             },
         }
-
-
-def _px(point: Matrix) -> list[float] | None:
-    return None if np.isnan(point).any() else [round(float(v), 4) for v in point]
 
 
 def winding_of(corners_px: Matrix) -> int:
