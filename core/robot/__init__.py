@@ -1,0 +1,1 @@
+"""Robot backends behind one interface: the kinematic simulator and the JRC link."""
