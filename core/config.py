@@ -194,7 +194,7 @@ def _cell_model(root: _Table) -> CellModel:
     cMl = laser.pose("cMl", [30.0, 0.0, 0.0, 0.0, -10.0, 0.0])
     laser.finish()
     vacuum = root.table("vacuum")
-    eMv = vacuum.pose("eMv", [0.0, 60.0, 60.0, 0.0, 0.0, 0.0])
+    eMv = vacuum.pose("eMv", [0.0, 60.0, 150.0, 0.0, 0.0, 0.0])
     vacuum.finish()
     return CellModel(camera=camera, eMc=eMc, laser=LaserPointer(cMl), eMv=eMv)
 

@@ -23,10 +23,16 @@ from core.config import CellConfig, CellModel
 from core.features import ObjectRegion, polygon_moments
 from core.kinematics import ArmKinematics
 from core.scene import Scene
-from core.spatial import Matrix, exp_twist, inverse, pose_error
+from core.spatial import Matrix, exp_twist, inverse, pose_error, rot_z, transform
 from core.step_policy import PositionCommand, RobotCommand, VelocityCommand
 from robot_models.loader import load_arm
 
+# The vacuum cup sits on a spring-loaded level compensator: it grips when its face is
+# on the cube's top face, from VACUUM_GAP_M above it to VACUUM_STROKE_M pushed in, and
+# its axis within VACUUM_TILT_RAD of the face's normal (the bellows take up the rest).
+VACUUM_GAP_M = 0.001
+VACUUM_STROKE_M = 0.010
+VACUUM_TILT_RAD = np.deg2rad(10.0)
 # Rotation rate a MOVL uses when the rotation, not the translation, sets the duration.
 ROTATION_SPEED_RAD_S = 0.5
 # The robot controller's own IK precision: far below any arm's repeatability, and loose
@@ -126,6 +132,25 @@ class PlantState:
     q: Matrix
     eMe_settle: Matrix  # repeatability: where the true flange sits relative to fk_true(q)
     scene: Scene  # where the table, the cube and the metal part really are
+    vMo_held: Matrix | None = None  # the cube on the vacuum cup: its pose in the true cup frame V
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where a released cube came to rest against the metal part's pocket (evaluation only).
+
+    offset_m is the cube's bottom-face centre minus the pocket floor's centre in the
+    pocket frame P (x, y); yaw_rad its turn about P's z axis; inside means its whole
+    footprint lies within the pocket, so it sits on the pocket floor.
+    """
+
+    inside: bool
+    offset_m: Matrix
+    yaw_rad: float
+
+    @property
+    def error_m(self) -> float:
+        return float(np.hypot(*self.offset_m))
 
 
 @dataclass(frozen=True)
@@ -231,7 +256,73 @@ class SimulatedCell:
     def _move(self, bMe_target: Matrix, duration_s: float) -> MoveReport:
         q = self.controller_arm.ik(bMe_target, self.state.q, tolerance_m=IK_TOLERANCE_M, tolerance_rad=IK_TOLERANCE_RAD).q
         self.state = replace(self.state, time_s=self.state.time_s + duration_s, q=q, eMe_settle=self._settle())
+        self._carry_held_part()
         return MoveReport(duration_s, q.copy(), self.controller_arm.fk(q))
+
+    # -- the vacuum cup --------------------------------------------------------------
+
+    def _true_bMv(self) -> Matrix:
+        return self.ground_truth_bMe() @ self.truth.model.eMv
+
+    def _carry_held_part(self) -> None:
+        if self.state.vMo_held is not None:
+            self.place_cube(self._true_bMv() @ self.state.vMo_held)
+
+    @property
+    def holding_part(self) -> bool:
+        """The vacuum sensor: whether the cup holds the part."""
+        return self.state.vMo_held is not None
+
+    def vacuum(self, on: bool) -> bool:
+        """Switch the vacuum; returns whether the cup holds the part afterwards.
+
+        Suction grips the cube only if the TRUE cup sits on its top face (the cup's centre
+        over the face, between VACUUM_GAP_M above it and VACUUM_STROKE_M into the level
+        compensator, its axis against the face's normal within VACUUM_TILT_RAD); the
+        part then hangs on the cup's face. Releasing drops the part: it comes to rest level, on the
+        pocket floor if its footprint fits the pocket, else on whatever lies below it.
+        """
+        if on:
+            if self.state.vMo_held is None:
+                bMv = self._true_bMv()
+                cube = self.state.scene.cube
+                oMv = inverse(cube.bMo) @ bMv
+                x, y, z = oMv[:3, 3]
+                over_face = 0.0 <= x <= cube.side_m and 0.0 <= y <= cube.side_m
+                facing = np.arccos(np.clip(-oMv[2, 2], -1.0, 1.0)) <= VACUUM_TILT_RAD  # cup z into the face
+                if over_face and -VACUUM_STROKE_M <= z <= VACUUM_GAP_M and facing:
+                    oMv[2, 3] = 0.0  # the compensator extends again once the part is lifted
+                    self.state = replace(self.state, vMo_held=inverse(oMv))
+            return self.holding_part
+        if self.state.vMo_held is not None:
+            self.state = replace(self.state, vMo_held=None)
+            self.place_cube(self._resting_pose(self.state.scene.cube.bMo))
+        return False
+
+    def _resting_pose(self, bMo: Matrix) -> Matrix:
+        """Where a released cube settles: level, yaw kept, on the highest surface below it."""
+        cube = self.state.scene.cube
+        yaw = np.arctan2(bMo[1, 0], bMo[0, 0])
+        level = transform(rot_z(yaw), bMo[:3, 3])
+        footprint_b = (cube.corners_o - [0.0, 0.0, cube.side_m]) @ level[:3, :3].T + level[:3, 3]
+        placement = self._placement_of(footprint_b, yaw)
+        part = self.state.scene.metal_part
+        if placement.inside:
+            floor_z = part.bMp[2, 3]
+        elif np.all(np.abs(placement.offset_m) <= part.pocket_side_m / 2 + part.wall_m + cube.side_m):
+            floor_z = part.bMp[2, 3] + part.pocket_depth_m  # on the walls' top
+        else:
+            floor_z = self.state.scene.table_height_m
+        level[2, 3] = floor_z + cube.side_m
+        return level
+
+    def _placement_of(self, footprint_b: Matrix, yaw_b: float) -> Placement:
+        part = self.state.scene.metal_part
+        pMb = inverse(part.bMp)
+        footprint_p = footprint_b @ pMb[:3, :3].T + pMb[:3, 3]
+        inside = bool(np.all(np.abs(footprint_p[:, :2]) <= part.pocket_side_m / 2))
+        yaw_p = yaw_b - np.arctan2(part.bMp[1, 0], part.bMp[0, 0])
+        return Placement(inside, footprint_p[:, :2].mean(axis=0), float(np.angle(np.exp(1j * yaw_p))))
 
     def _settle(self) -> Matrix:
         """A fresh repeatability error: a small random rigid motion of the flange."""
@@ -254,6 +345,7 @@ class SimulatedCell:
         if not self.controller_arm.within_limits(q):
             raise ValueError(f"joints {np.rad2deg(q).round(2).tolist()} deg are outside the joint limits")
         self.state = replace(self.state, q=q.copy(), eMe_settle=self._settle())
+        self._carry_held_part()
         return MoveReport(0.0, q.copy(), self.controller_arm.fk(q))
 
     def place_camera(self, cMo: Matrix) -> None:
@@ -273,6 +365,12 @@ class SimulatedCell:
     def ground_truth_bMe(self) -> Matrix:
         """The true flange pose."""
         return self.truth.arm.fk(self.state.q) @ self.state.eMe_settle
+
+    def ground_truth_placement(self) -> Placement:
+        """Where the cube lies relative to the metal part's pocket."""
+        cube = self.state.scene.cube
+        bottom_b = (cube.corners_o - [0.0, 0.0, cube.side_m]) @ cube.bMo[:3, :3].T + cube.bMo[:3, 3]
+        return self._placement_of(bottom_b, float(np.arctan2(cube.bMo[1, 0], cube.bMo[0, 0])))
 
     def ground_truth_cMo(self) -> Matrix:
         """The true pose of the cube frame O in the true camera frame."""

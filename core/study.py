@@ -22,16 +22,15 @@ from core.controllers.ibvs import ClassicIbvs
 from core.controllers.laser_ibvs import LaserIbvs
 from core.controllers.pbvs import Pbvs
 from core.features import DesiredImage
-from core.pose_estimation import PoseEstimationError, pose_from_planar_points
 from core.recording import RunRecorder
 from core.render import RenderSettings
-from core.scene import Cube
 from core.servo_loop import Cycle, LoopLimits, Perception, ProjectedPerception, ServoOutcome, run_servo
 from core.sim_camera import SimulatedCamera
 from core.simulator import SimulatedCell
 from core.spatial import Matrix, inverse, pose_error
 from core.step_policy import IntegratedVelocity
 from core.tasks import ServoTask
+from core.teaching import desired_from_features
 from core.vision.pipeline import CameraPerception, ImageFeatureExtractor, front_winding
 
 METHODS = ("laser", "ibvs", "pbvs", "2.5d")
@@ -92,16 +91,7 @@ def teach(cell: SimulatedCell, cdMo_true: Matrix, model: CellModel, perception: 
     """Teach the desired image at the true pose cdMo_true (Fig. C-2), with the nominal model."""
     perception = perception or ProjectedPerception(model.camera, model.laser)
     cell.place_camera(cdMo_true)
-    features = perception.perceive(cell.measure())
-    if not (features.all_corners_visible and features.laser_visible):
-        raise ValueError("the desired view must show the four corners and the laser spot")
-    cube = Cube(np.eye(4), cell.state.scene.cube.side_m)
-    try:
-        cdMo = pose_from_planar_points(features.corners_px, cube.corners_o, model.camera)
-    except PoseEstimationError as exc:
-        raise ValueError(f"cannot estimate the taught pose: {exc}") from exc
-    corner_depths = (cube.corners_o @ cdMo[:3, :3].T + cdMo[:3, 3])[:, 2]
-    return DesiredImage(features.corners_px, features.laser_spot_px, features.laser_depth_m, cdMo, corner_depths)
+    return desired_from_features(perception.perceive(cell.measure()), model.camera, cell.state.scene.cube.side_m)
 
 
 @dataclass(frozen=True)
