@@ -14,6 +14,7 @@ import numpy as np
 from core.config import CellConfig, ConfigError, load_cell
 from core.kinematics import ArmKinematics, KinematicsError
 from core.spatial import pose_from_matrix, pose_to_mm_deg
+from core.storage import StoreError, default_data_dir
 from robot_models.loader import load_arm
 
 
@@ -237,6 +238,25 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run(args: argparse.Namespace) -> int:
+    from core.cell_controller import CellController, CommandRefused, run_job_once
+    from core.rig import simulated_rig
+    from core.storage import Store
+
+    store = Store(args.data or default_data_dir())
+    controller = CellController(simulated_rig(load_cell(args.cell), args.seed), store, seed=args.seed or 0)
+    try:
+        summary = run_job_once(controller, args.job)
+    except CommandRefused as exc:
+        print(f"vservo run: error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        controller.close()
+        store.close()
+    _print(summary, args.json)
+    return 0 if summary["outcome"] == "placed" else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="vservo",
@@ -311,6 +331,16 @@ def build_parser() -> argparse.ArgumentParser:
     replay_command.add_argument("--json", action="store_true", help="one JSON object")
     replay_command.set_defaults(run=_cmd_replay)
 
+    run = commands.add_parser(
+        "run", help="one headless assembly of a taught job on the simulated cell (exit 0 when placed)"
+    )
+    run.add_argument("--job", required=True, help="job name (the shipped 'demo' is always there)")
+    run.add_argument("--data", metavar="DIR", help="data folder with the jobs and runs (default $VSERVO_DATA or "
+                     "~/.local/share/vservo)")
+    run.add_argument("--seed", type=int, default=None, help="seed of the simulated cell and of the part's arrival")
+    run.add_argument("--json", action="store_true", help="one JSON object")
+    run.set_defaults(run=_cmd_run)
+
     bench = commands.add_parser("bench", help="measure speed and accuracy on this machine")
     bench.add_argument("what", choices=("vision",), help="vision: render, detection and loop times, detection accuracy")
     bench.add_argument("--seed", type=int, default=0)
@@ -323,7 +353,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (ConfigError, KinematicsError, ValueError, OSError) as exc:
+    except (ConfigError, KinematicsError, ValueError, OSError, StoreError) as exc:
         print(f"vservo {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

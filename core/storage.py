@@ -14,6 +14,7 @@ name until a job of that name is saved.
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 import threading
 import time
@@ -87,6 +88,14 @@ class RunRecord:
     duration_s: float | None
     stages: list[dict]
     recording: str | None
+
+
+def default_data_dir() -> Path:
+    """$VSERVO_DATA, else ~/.local/share/vservo (the XDG data folder)."""
+    if os.environ.get("VSERVO_DATA"):
+        return Path(os.environ["VSERVO_DATA"])
+    base = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
+    return Path(base) / "vservo"
 
 
 def shipped_job_path(name: str) -> Path:

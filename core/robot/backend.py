@@ -23,6 +23,15 @@ from core.spatial import Matrix
 from core.step_policy import PositionCommand
 
 
+def apply_increment(bMe_increment: Matrix, bMe: Matrix) -> Matrix:
+    """The flange pose after a base-frame increment (IMOV): translation added, rotation
+    composed on the left, about the flange's own origin."""
+    target = np.eye(4)
+    target[:3, :3] = bMe_increment[:3, :3] @ bMe[:3, :3]
+    target[:3, 3] = bMe[:3, 3] + bMe_increment[:3, 3]
+    return target
+
+
 class RobotError(Exception):
     """The robot refused or failed a request; the message says what and why."""
 
@@ -118,11 +127,7 @@ class SimulatedBackend:
         self.cell.execute(PositionCommand(bMe_target, speed_m_s, 0.0))
 
     def move_by(self, bMe_increment: Matrix, speed_m_s: float) -> None:
-        bMe = self.read_pose()
-        target = np.eye(4)
-        target[:3, :3] = bMe_increment[:3, :3] @ bMe[:3, :3]
-        target[:3, 3] = bMe[:3, 3] + bMe_increment[:3, 3]
-        self.move_to(target, speed_m_s)
+        self.move_to(apply_increment(np.asarray(bMe_increment, dtype=float), self.read_pose()), speed_m_s)
 
     def wait_motion(self, timeout_s: float | None = None) -> bool:
         self._require_connection()
@@ -140,4 +145,5 @@ class SimulatedBackend:
             raise RobotNotReady(f"move refused: {why}")
 
 
-__all__ = ["RobotBackend", "RobotError", "RobotNotReady", "RobotStatus", "SimulatedBackend", "UnreachableTarget"]
+__all__ = ["apply_increment", "RobotBackend", "RobotError", "RobotNotReady", "RobotStatus", "SimulatedBackend",
+           "UnreachableTarget"]
