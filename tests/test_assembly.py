@@ -1,0 +1,133 @@
+"""One-click assembly on the simulated cell, through the controller's state machine."""
+
+from __future__ import annotations
+
+import json
+import threading
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from core.assembly import Phase
+from core.cell_controller import CellController, CommandRefused
+from core.cli import main
+from core.config import load_cell
+from core.rig import simulated_rig
+from core.storage import Store
+
+
+@pytest.fixture
+def controller(tmp_path):
+    store = Store(tmp_path / "data")
+    controller = CellController(simulated_rig(load_cell(), seed=3), store, seed=3)
+    yield controller
+    controller.close()
+    store.close()
+
+
+def test_demo_job_places_the_part(controller):
+    controller.present_part()
+    run_id = controller.start("demo")
+    controller.wait()
+    outcome = controller.last_outcome
+    assert outcome.outcome == "placed", outcome.reason
+    assert outcome.final_error_px < 3.0
+    assert outcome.placement_error_mm < 1.0  # the pocket leaves 1 mm each side
+    assert not controller.rig.gripper.holding()
+    record = controller.store.run(run_id)
+    assert record.outcome == "placed" and record.stages == outcome.stages
+    assert controller.state.phase == Phase.DONE.value
+
+
+def test_a_part_out_of_reach_of_the_cup_is_a_fault_with_the_robot_held(controller):
+    job = controller.store.load_job("demo")
+    # A pick transform that stops 30 mm short of the part: the vacuum sensor must say so.
+    short = job.eMe_pick.copy()
+    short[2, 3] -= 0.03
+    controller.store.save_job(replace(job, name="short", eMe_pick=short))
+    controller.present_part()
+    controller.start("short")
+    controller.wait()
+    assert controller.last_outcome.outcome == "fault"
+    assert "vacuum" in controller.last_outcome.reason
+    assert controller.rig.robot.status().held
+    with pytest.raises(CommandRefused, match="held"):
+        controller.jog([0.0, 0.0, 0.01])
+    controller.reset()
+    controller.jog([0.0, 0.0, 0.01])
+
+
+def test_estop_stops_the_arm_within_one_cycle_and_refuses_moves_until_reset(controller):
+    cell = controller.rig.cell
+    period = controller.rig.config.motion.sampling_period_s
+    servoing = threading.Event()
+
+    def watch(state):
+        if state.phase == Phase.SERVOING.value and state.iteration >= 20:
+            servoing.set()
+
+    controller.state_subscribers.append(watch)
+    controller.present_part()
+    run_id = controller.start("demo")
+    assert servoing.wait(60.0)
+    controller.estop()
+    time_at_estop = cell.state.time_s
+    controller.wait()
+    # Each servo step is one move of one sampling period: at most the step under way ends.
+    assert cell.state.time_s - time_at_estop <= period + 1e-9
+    assert controller.last_outcome.outcome == "estopped"
+    assert controller.state.phase == Phase.ESTOPPED.value
+    assert controller.store.run(run_id).outcome == "estopped"
+    q = cell.state.q.copy()
+    for command in (lambda: controller.jog([0.01, 0.0, 0.0]), lambda: controller.start("demo")):
+        with pytest.raises(CommandRefused, match="e-stop"):
+            command()
+    assert np.array_equal(cell.state.q, q)
+    controller.reset()
+    assert controller.state.phase == Phase.IDLE.value
+    controller.jog([0.0, 0.0, 0.005])
+    assert not np.array_equal(cell.state.q, q)
+
+
+def test_teach_a_job_then_assemble_it(controller):
+    demo = controller.store.load_job("demo")
+    controller.begin_teach()
+    with pytest.raises(CommandRefused, match="desired image"):
+        controller.set_pick_pose()
+    controller.move_to(demo.taught_bMe)
+    desired = controller.capture_desired()
+    np.testing.assert_allclose(desired.corners_px, demo.desired.corners_px, atol=0.05)
+    controller.move_to(demo.taught_bMe @ demo.eMe_pick)
+    controller.set_pick_pose()
+    controller.move_to(demo.bMe_place)
+    controller.set_place_pose()
+    with pytest.raises(CommandRefused, match="start pose"):
+        controller.save_job("bolt")
+    controller.move_to(demo.start_bMe)
+    controller.set_start_pose()
+    controller.save_job("bolt")
+    assert "bolt" in [entry.name for entry in controller.store.list_jobs()]
+    assert controller.store.job_image("bolt").shape == (480, 640)
+    controller.present_part()
+    controller.start("bolt")
+    controller.wait()
+    assert controller.last_outcome.outcome == "placed", controller.last_outcome.reason
+
+
+def test_capture_without_the_part_in_view_is_refused(controller):
+    controller.begin_teach()
+    controller.jog([0.0, 0.15, 0.0])  # look at the bare table
+    with pytest.raises(CommandRefused, match="four corners"):
+        controller.capture_desired()
+    assert controller.state.teach_missing[0] == "the desired image"
+
+
+def test_vservo_run_prints_one_json_object(tmp_path, capsys):
+    code = main(["run", "--job", "demo", "--data", str(tmp_path), "--seed", "5", "--json"])
+    summary = json.loads(capsys.readouterr().out)
+    assert code == 0
+    assert summary["outcome"] == "placed"
+    assert set(summary) >= {"outcome", "final_error_px", "placement_error_mm", "duration_s", "stages"}
+    assert main(["run", "--job", "no-such-job", "--data", str(tmp_path)]) == 2
+    assert "no job named 'no-such-job'" in capsys.readouterr().err

@@ -1,0 +1,100 @@
+"""Job files and the SQLite store: broken or foreign input gets a clear message, nothing is lost."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from core.jobs import JobError, job_from_dict, read_job_file, write_job_file
+from core.storage import DEMO_JOB, Store, StoreError, shipped_job_path
+
+
+@pytest.fixture
+def demo():
+    return read_job_file(shipped_job_path(DEMO_JOB))
+
+
+def test_a_job_survives_the_file_round_trip(tmp_path, demo):
+    write_job_file(demo, tmp_path / "j.json")
+    again = read_job_file(tmp_path / "j.json")
+    assert again.as_dict() == demo.as_dict()
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda d: d.update(format="something-else"), "not a vservo job file"),
+        (lambda d: d.update(version=99), "version 99"),
+        (lambda d: d.pop("bMe_place"), "bMe_place: missing"),
+        (lambda d: d.update(method="magic"), "method: 'magic' is not one of"),
+        (lambda d: d.update(threshold_px=-1), "threshold_px: -1 must be positive"),
+        (lambda d: d["desired"].update(depth_m=float("nan")), "depth_m: nan is not a finite number"),
+        (lambda d: d["desired"].update(corners_px=[[1, 2]]), "corners_px: shape (1, 2), expected (4, 2)"),
+        (lambda d: d.update(start_bMe=(2 * np.eye(4)).tolist()), "start_bMe: not a rigid transform"),
+        (lambda d: d.update(name="../etc"), "job name '../etc'"),
+    ],
+)
+def test_a_broken_job_is_refused_naming_the_field(demo, change, message):
+    data = json.loads(json.dumps(demo.as_dict()))
+    change(data)
+    with pytest.raises(JobError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        job_from_dict(data, "job.json")
+
+
+def test_unreadable_job_files(tmp_path):
+    with pytest.raises(JobError, match="no such job file"):
+        read_job_file(tmp_path / "missing.json")
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(JobError, match="bad.json: not valid JSON"):
+        read_job_file(tmp_path / "bad.json")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    with pytest.raises(JobError, match="not a job"):
+        read_job_file(tmp_path / "list.json")
+
+
+def test_store_keeps_jobs_images_and_runs(tmp_path, demo):
+    store = Store(tmp_path)
+    assert [e.name for e in store.list_jobs()] == [DEMO_JOB]  # the shipped one, before any is saved
+    image = np.full((480, 640), 77, np.uint8)
+    store.save_job(replace(demo, name="a"), image)
+    store.save_job(replace(demo, name="a", threshold_px=2.0), image + 1)  # replaced, old image removed
+    assert store.load_job("a").threshold_px == 2.0
+    assert int(store.job_image("a")[0, 0]) == 78
+    assert len(list((tmp_path / "images").iterdir())) == 1
+    run = store.start_run("a", "sim")
+    assert store.run(run).outcome is None
+    store.finish_run(run, "placed", "ok", 1.5, 0.2, 3.0, [{"stage": "3", "iterations": 4}], None)
+    store.close()
+    again = Store(tmp_path)
+    record = again.run(run)
+    assert (record.outcome, record.final_error_px, record.stages) == ("placed", 1.5, [{"stage": "3", "iterations": 4}])
+    again.close()
+
+
+def test_a_corrupt_record_is_reported_and_the_others_still_load(tmp_path, demo):
+    store = Store(tmp_path)
+    store.save_job(replace(demo, name="good"))
+    store.save_job(replace(demo, name="bad"))
+    store.close()
+    with sqlite3.connect(tmp_path / "vservo.sqlite") as db:
+        db.execute("UPDATE jobs SET body = '{\"format\": \"vservo-job\", \"version\": 1}' WHERE name = 'bad'")
+    store = Store(tmp_path)
+    entries = {e.name: e for e in store.list_jobs()}
+    assert entries["good"].problem is None
+    assert "missing" in entries["bad"].problem
+    with pytest.raises(JobError, match="job 'bad'"):
+        store.load_job("bad")
+    assert store.load_job("good").name == "good"
+    store.close()
+
+
+def test_a_store_from_a_newer_vservo_is_refused(tmp_path):
+    Store(tmp_path).close()
+    with sqlite3.connect(tmp_path / "vservo.sqlite") as db:
+        db.execute("UPDATE meta SET value = '7' WHERE key = 'schema'")
+    with pytest.raises(StoreError, match="schema version 7"):
+        Store(tmp_path)
