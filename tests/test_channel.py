@@ -1,0 +1,80 @@
+"""The controller's channel: only a holder of the key gets in; commands, state and frames flow."""
+
+from __future__ import annotations
+
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+from core.cell_controller import CellController
+from core.channel import ChannelError, ControllerClient, ControllerServer, new_key
+from core.config import load_cell
+from core.rig import simulated_rig
+from core.storage import Store
+
+
+@pytest.fixture
+def served(tmp_path):
+    store = Store(tmp_path)
+    controller = CellController(simulated_rig(load_cell(), seed=2), store, seed=2)
+    key = new_key()
+    server = ControllerServer(controller, key)
+    yield controller, server, key
+    server.close()
+    controller.close()
+    store.close()
+
+
+def test_a_client_without_the_key_is_refused(served):
+    controller, server, _ = served
+    with pytest.raises(ChannelError, match="cannot connect"):
+        ControllerClient(server.address, b"wrong key")
+    assert server.subscribers == []
+
+
+def test_commands_state_and_frames_flow(served):
+    controller, server, key = served
+    frames: list[tuple[dict, bytes]] = []
+    got_frame = threading.Event()
+
+    def on_frame(meta, jpeg):
+        frames.append((meta, jpeg))
+        got_frame.set()
+
+    client = ControllerClient(server.address, key, on_frame=on_frame)
+    try:
+        assert client.state["phase"] == "idle"
+        assert got_frame.wait(10.0)  # the live view starts with a subscriber
+        meta, jpeg = frames[-1]
+        image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
+        assert image.shape == (480, 640)
+        assert len(meta["corners_px"]) == 4
+
+        z = controller.rig.robot.read_pose()[2, 3]
+        assert client.call("jog", translation_m=[0, 0, 0.01]).ok
+        assert controller.rig.robot.read_pose()[2, 3] == pytest.approx(z + 0.01, abs=1e-6)
+        refused = client.call("jog", translation_m=[0, float("nan"), 0])
+        assert not refused.ok and "finite" in refused.error
+        unknown = client.call("fly")
+        assert not unknown.ok and "unknown command 'fly'" in unknown.error
+        assert [job["name"] for job in client.call("list_jobs").result] == ["demo"]
+
+        assert client.call("estop").ok
+        assert controller.rig.robot.status().held
+        assert "e-stop" in client.call("jog", translation_m=[0, 0, 0.01]).error
+        assert client.call("reset").ok
+    finally:
+        client.close()
+
+
+def test_the_app_going_away_leaves_the_controller_serving(served):
+    controller, server, key = served
+    client = ControllerClient(server.address, key)
+    client.close()
+    again = ControllerClient(server.address, key)
+    try:
+        assert again.call("list_runs").ok
+    finally:
+        again.close()
