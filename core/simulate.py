@@ -11,7 +11,7 @@ from core.config import parse_cell, read_cell_data
 from core.kinematics import ArmKinematics
 from core.spatial import matrix_from_pose
 from core.study import RunResult, RunSettings, run_task
-from core.tasks import TASKS, ServoTask, find_placement, robustness_cell
+from core.tasks import ServoTask, find_placement, robustness_cell, servo_task
 from robot_models.loader import load_arm
 
 
@@ -35,7 +35,7 @@ def simulate(
         data, source = robustness_cell(data), f"{source} with the errors of Table 5-3"
     config = parse_cell(data, source)
 
-    task = TASKS[task_number or 2]
+    task = servo_task(task_number or 2, robust)
     if initial is not None or desired is not None:
         task = _scene_task(task, initial, desired, config)
     settings = RunSettings(method=method, gain=gain, dt_s=dt_s, max_iterations=max_iterations, features=features,

@@ -15,8 +15,8 @@ DESIRED_cMo = matrix_from_pose(Pose6(0.011, -0.01, 0.162, np.pi, 0.0, -np.pi))
 DESIRED_SPOT = np.array([327.2, 240.0])
 
 
-def project(cMo, points_o=CORNERS_O):
-    return CAMERA.project(points_o @ cMo[:3, :3].T + cMo[:3, 3])
+def project(cMo, points_o=CORNERS_O, camera=CAMERA):
+    return camera.project(points_o @ cMo[:3, :3].T + cMo[:3, 3])
 
 
 def desired_image(cMo=DESIRED_cMo):

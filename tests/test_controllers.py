@@ -1,9 +1,12 @@
 """Control laws: interaction matrices against finite differences, the half turn that makes
 IBVS retreat, and every switch of the IBVS with laser."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from core.camera import CameraModel, Intrinsics
 from core.controllers.base import Failure
 from core.controllers.hybrid import Hybrid25D, translation_interaction
 from core.controllers.ibvs import ClassicIbvs
@@ -206,6 +209,22 @@ def test_a_small_step_reduces_the_feature_error(controller):
                           desired, stage)
     after = project(moved(cMo, out.cVc, 0.1))
     assert np.linalg.norm(after - desired.corners_px) < 0.95 * np.linalg.norm(project(cMo) - desired.corners_px)
+
+
+@pytest.mark.parametrize("swap", [False, True])
+def test_stage_3_tolerates_the_intrinsics_errors_of_table_5_3(swap):
+    """IBVS's robustness to calibration near the goal: with the features seen through one of
+    Table 5-3's cameras and the law built on the other, a step still moves the corners closer."""
+    cameras = (CAMERA, CameraModel(Intrinsics.from_sensor(7.2e-3, (7.4e-6, 7.4e-6), (384.0, 288.0), (640, 480))))
+    seeing, believed = cameras[::-1] if swap else cameras
+    desired = desired_image()
+    desired = replace(desired, corners_px=project(DESIRED_cMo, camera=seeing))
+    cMo = matrix_from_pose([0.015, -0.005, 0.175, np.pi - 0.1, 0.05, -np.pi + 0.05])
+    out = LaserIbvs(believed, cTe=np.zeros(3)).step(features(project(cMo, camera=seeing)), desired, STAGE_3)
+    before = project(cMo, camera=seeing) - desired.corners_px
+    after = project(moved(cMo, out.cVc, 0.1), camera=seeing) - desired.corners_px
+    # A tenth of the correction with the right model; the wrong one shortens the step.
+    assert np.linalg.norm(after) < 0.97 * np.linalg.norm(before)
 
 
 def test_pbvs_law_is_a_straight_line_of_the_camera_centre():

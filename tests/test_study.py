@@ -15,11 +15,12 @@ from core.controllers.base import ControlOutput, Failure
 from core.montecarlo import DEPTH_RANGE_M, MAX_ROTATION_RAD, MAX_TRANSLATION_M, draw_initial_cMo, run_montecarlo
 from core.report import reproduce
 from core.servo_loop import LoopLimits, run_servo
+from core.simulate import simulate
 from core.simulator import SimulatedCell, visible_region
 from core.spatial import inverse, pose_error
 from core.step_policy import IntegratedVelocity
 from core.study import RunSettings, run_task, teach
-from core.tasks import TASKS, THESIS_PATH_LENGTH_M
+from core.tasks import ROBUSTNESS_TASK, TASKS, THESIS_PATH_LENGTH_M
 
 
 @pytest.fixture(scope="module")
@@ -136,6 +137,23 @@ def test_a_short_occlusion_of_the_spot_does_not_stop_the_run(runs):
     """On task 2 the spot hides behind the cube's edge as it climbs onto it; the run goes on."""
     spots = runs[2, "laser"].trace.laser_px
     assert runs[2, "laser"].outcome.converged and not np.isnan(spots).any()
+
+
+def test_the_robustness_test_converges_with_the_spot_off_its_row(runs):
+    """Table 5-3: task 2 converges with the miscalibrated controller, on a longer path (section
+    5.2.2), and the laser spot leaves its image row as the thesis sees in Fig. 5-5 (a)."""
+    robust = simulate(task_number=2, method="laser", robust=True)
+    ideal = runs[2, "laser"]
+    assert robust.outcome.converged, robust.outcome.reason
+    assert robust.outcome.final_error_px <= 1.0
+    assert robust.final_translation_m < 5e-3 and robust.final_rotation_rad < 0.03
+    assert [s["stage"] for s in robust.outcome.stages] == ["1A", "2", "3"]
+    assert ideal.path_length_m < robust.path_length_m < 1.25 * ideal.path_length_m
+    assert np.ptp(ideal.trace.laser_px[:, 1]) < 0.5
+    assert np.ptp(robust.trace.laser_px[:, 1]) > 20.0
+    # The same relative motion as task 2; only the cube's place on the table differs.
+    assert np.array_equal(ROBUSTNESS_TASK.initial_cMo, TASKS[2].initial_cMo)
+    assert np.array_equal(ROBUSTNESS_TASK.desired_cMo, TASKS[2].desired_cMo)
 
 
 def simulate_cli(*args):
