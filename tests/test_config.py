@@ -35,7 +35,7 @@ def test_without_overrides_the_truth_equals_the_nominal_cell():
 
 
 def test_truth_overrides_change_the_truth_only():
-    """Table 5-3's robustness cell: the applied values are nominal, the actual ones true."""
+    """Truth overrides (the tables of Table 5-3's robustness cell) change the truth only."""
     data = default_data()
     data["camera"].update(focal_length_mm=7.2, principal_point_px=[384.0, 288.0])
     data["laser"]["cMl"] = [30.0, 10.0, 10.0, 0.0, -12.0, 2.0]
