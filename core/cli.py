@@ -257,6 +257,40 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0 if summary["outcome"] == "placed" else 1
 
 
+def _cmd_controller(args: argparse.Namespace) -> int:
+    import os
+    import signal
+    import threading
+
+    from core.cell_controller import CellController
+    from core.channel import KEY_ENVIRONMENT, ControllerServer
+    from core.rig import simulated_rig
+    from core.storage import Store
+
+    key = os.environ.get(KEY_ENVIRONMENT, "")
+    try:
+        authkey = bytes.fromhex(key)
+    except ValueError:
+        authkey = b""
+    if len(authkey) < 16:
+        print(f"vservo controller: error: set {KEY_ENVIRONMENT} to the channel key (32+ hex digits); "
+              "`vservo serve` does this for you", file=sys.stderr)
+        return 2
+    store = Store(args.data or default_data_dir())
+    controller = CellController(simulated_rig(load_cell(args.cell), args.seed), store, seed=args.seed or 0,
+                                cycle_period_s=args.cycle_period)
+    server = ControllerServer(controller, authkey, port=args.port)
+    stop = threading.Event()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda *_: stop.set())
+    print(json.dumps({"controller": {"host": server.address[0], "port": server.address[1], "backend": "sim"}}), flush=True)
+    stop.wait()
+    server.close()
+    controller.close()  # holds the robot if a run is under way
+    store.close()
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="vservo",
@@ -340,6 +374,16 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=int, default=None, help="seed of the simulated cell and of the part's arrival")
     run.add_argument("--json", action="store_true", help="one JSON object")
     run.set_defaults(run=_cmd_run)
+
+    controller = commands.add_parser(
+        "controller", help="the controller process: owns the cell, serves the app over an authenticated local channel"
+    )
+    controller.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (default: any free one)")
+    controller.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
+    controller.add_argument("--seed", type=int, default=None, help="seed of the simulated cell")
+    controller.add_argument("--cycle-period", type=float, default=0.05, metavar="S",
+                            help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
+    controller.set_defaults(run=_cmd_controller)
 
     bench = commands.add_parser("bench", help="measure speed and accuracy on this machine")
     bench.add_argument("what", choices=("vision",), help="vision: render, detection and loop times, detection accuracy")

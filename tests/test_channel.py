@@ -78,3 +78,28 @@ def test_the_app_going_away_leaves_the_controller_serving(served):
         assert again.call("list_runs").ok
     finally:
         again.close()
+
+
+def test_the_controller_runs_as_its_own_process(tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from core.channel import KEY_ENVIRONMENT
+
+    key = new_key()
+    env = {**os.environ, KEY_ENVIRONMENT: key.hex()}
+    process = subprocess.Popen([sys.executable, "-m", "core.cli", "controller", "--data", str(tmp_path)],
+                               stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        address = json.loads(process.stdout.readline())["controller"]
+        client = ControllerClient((address["host"], address["port"]), key)
+        assert client.call("list_jobs").result[0]["name"] == "demo"
+        client.close()
+    finally:
+        process.terminate()
+        assert process.wait(30) == 0  # a clean stop on SIGTERM
+    refused = subprocess.run([sys.executable, "-m", "core.cli", "controller"], capture_output=True, text=True,
+                             env={k: v for k, v in os.environ.items() if k != KEY_ENVIRONMENT})
+    assert refused.returncode == 2 and KEY_ENVIRONMENT in refused.stderr
