@@ -130,7 +130,11 @@ class RobotPlant:
             speed = max(pose_error(bMe, target)[0] / command.dt_s, 1e-4)
         else:
             speed = command.speed_m_s
-        self.robot.move_to(target, speed)
+        self.move(target, speed)
+
+    def move(self, bMe_target: Matrix, speed_m_s: float) -> None:
+        """One linear move, waited for; a move the controller stopped raises RobotError."""
+        self.robot.move_to(bMe_target, speed_m_s)
         if not self.robot.wait_motion():
             raise RobotError(f"the move did not finish: {self.robot.status().detail or 'stopped by the controller'}")
 
@@ -183,9 +187,7 @@ def run_assembly(
         )
 
     def move(target: Matrix, speed: float = speed_m_s) -> None:
-        robot.move_to(target, speed)
-        if not robot.wait_motion():
-            raise RobotError(f"the move did not finish: {robot.status().detail or 'stopped by the controller'}")
+        plant.move(target, speed)
 
     try:
         on_event(PhaseChange(Phase.SERVOING, "moving to the start pose"))

@@ -149,8 +149,9 @@ class CellController:
         for subscriber in list(self.frame_subscribers):
             subscriber(view)
 
-    def _robot_readout(self) -> dict:
-        bMe = self.rig.robot.read_pose()
+    def _robot_readout(self, bMe: Matrix | None = None) -> dict:
+        """Flange pose (read from the robot unless given), joints and vacuum sensor for the state."""
+        bMe = self.rig.robot.read_pose() if bMe is None else bMe
         q = self.rig.cell.state.q.tolist() if self.rig.cell is not None else []
         return {"bMe": bMe.tolist(), "q": q, "holding_part": self.rig.gripper.holding()}
 
@@ -353,7 +354,7 @@ class CellController:
             self._update(stage=cycle.output.stage, iteration=cycle.iteration + 1,
                          error_px=float(cycle.output.error_px) if np.isfinite(cycle.output.error_px) else None,
                          cVc=_finite_list(cycle.output.cVc), detail=cycle.output.note or self._state.detail,
-                         **self._robot_readout())
+                         **self._robot_readout(cycle.measurement.bMe))
             if frame is not None:
                 self._publish_frame(FrameView(frame, cycle.features.corners_px, cycle.features.laser_spot_px,
                                               job.desired, np.array(self._trail)))
@@ -379,9 +380,7 @@ class CellController:
         self.store.finish_run(run_id, outcome.outcome, outcome.reason, outcome.final_error_px,
                               outcome.placement_error_mm, outcome.duration_s, outcome.stages,
                               str(folder) if recorder is not None else None)
-        phase = {"estopped": Phase.ESTOPPED, "fault": Phase.FAULT}.get(outcome.outcome, Phase.DONE)
-        if self._estop.is_set():
-            phase = Phase.ESTOPPED
+        phase = Phase.ESTOPPED if self._estop.is_set() else Phase.FAULT if outcome.outcome == "fault" else Phase.DONE
         self._update(phase=phase.value, detail=outcome.reason, last_outcome=outcome.summary(), **self._robot_readout())
         self.last_outcome = outcome
 

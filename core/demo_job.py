@@ -20,14 +20,16 @@ import numpy as np
 from core.config import CellConfig, load_cell
 from core.jobs import Job, write_job_file
 from core.rig import simulated_rig
+from core.robot.backend import apply_increment
 from core.spatial import Pose6, inverse, matrix_from_pose, rot_x, transform
 from core.teaching import desired_from_features
 
 # The camera 162 mm above the part's top face, its corners around the laser spot (the
 # desired view of Table 5-2's second set).
 DESIRED_cMo = matrix_from_pose(Pose6(0.011, -0.01, 0.162, np.pi, 0.0, -np.pi))
-# Where assembly starts: 20 mm aside and turned 25 deg about the vertical (the UPJ's
-# tool-down workspace is a thin shell: higher start poses are out of its reach).
+# Where assembly starts, as a base-frame increment of the desired view: 20 mm aside and
+# turned 25 deg about the vertical (the UPJ's tool-down workspace is a thin shell:
+# higher start poses are out of its reach).
 START_OFFSET = transform(t=(0.02, 0.0, 0.0)) @ matrix_from_pose(Pose6(0.0, 0.0, 0.0, np.deg2rad(25.0), 0.0, 0.0))
 # The cup is taught 3 mm into its level compensator, as an operator jogs until it presses.
 PICK_PRESS_M = 0.003
@@ -55,8 +57,7 @@ def teach_demo_job(config: CellConfig) -> tuple[Job, np.ndarray]:
     bMo_placed = scene.metal_part.bMp @ transform(t=(-side / 2, -side / 2, side))
     bMe_place = bMo_placed @ inverse(scene.cube.bMo) @ bMe_pick
 
-    start_bMe = transform(t=START_OFFSET[:3, 3]) @ bMe_view
-    start_bMe[:3, :3] = START_OFFSET[:3, :3] @ bMe_view[:3, :3]
+    start_bMe = apply_increment(START_OFFSET, bMe_view)
     job = Job(
         name="demo",
         description="the 20 mm cube into the metal part's pocket on the shipped simulated cell",

@@ -302,10 +302,8 @@ class SimulatedCell:
     def _resting_pose(self, bMo: Matrix) -> Matrix:
         """Where a released cube settles: level, yaw kept, on the highest surface below it."""
         cube = self.state.scene.cube
-        yaw = np.arctan2(bMo[1, 0], bMo[0, 0])
-        level = transform(rot_z(yaw), bMo[:3, 3])
-        footprint_b = (cube.corners_o - [0.0, 0.0, cube.side_m]) @ level[:3, :3].T + level[:3, 3]
-        placement = self._placement_of(footprint_b, yaw)
+        level = transform(rot_z(np.arctan2(bMo[1, 0], bMo[0, 0])), bMo[:3, 3])
+        placement = self._placement_of(level)
         part = self.state.scene.metal_part
         if placement.inside:
             floor_z = part.bMp[2, 3]
@@ -316,12 +314,13 @@ class SimulatedCell:
         level[2, 3] = floor_z + cube.side_m
         return level
 
-    def _placement_of(self, footprint_b: Matrix, yaw_b: float) -> Placement:
-        part = self.state.scene.metal_part
-        pMb = inverse(part.bMp)
-        footprint_p = footprint_b @ pMb[:3, :3].T + pMb[:3, 3]
+    def _placement_of(self, bMo: Matrix) -> Placement:
+        """The cube's bottom face, were the cube at bMo, against the pocket."""
+        cube, part = self.state.scene.cube, self.state.scene.metal_part
+        pMo = inverse(part.bMp) @ bMo
+        footprint_p = (cube.corners_o - [0.0, 0.0, cube.side_m]) @ pMo[:3, :3].T + pMo[:3, 3]
         inside = bool(np.all(np.abs(footprint_p[:, :2]) <= part.pocket_side_m / 2))
-        yaw_p = yaw_b - np.arctan2(part.bMp[1, 0], part.bMp[0, 0])
+        yaw_p = np.arctan2(pMo[1, 0], pMo[0, 0])
         return Placement(inside, footprint_p[:, :2].mean(axis=0), float(np.angle(np.exp(1j * yaw_p))))
 
     def _settle(self) -> Matrix:
@@ -368,9 +367,7 @@ class SimulatedCell:
 
     def ground_truth_placement(self) -> Placement:
         """Where the cube lies relative to the metal part's pocket."""
-        cube = self.state.scene.cube
-        bottom_b = (cube.corners_o - [0.0, 0.0, cube.side_m]) @ cube.bMo[:3, :3].T + cube.bMo[:3, 3]
-        return self._placement_of(bottom_b, float(np.arctan2(cube.bMo[1, 0], cube.bMo[0, 0])))
+        return self._placement_of(self.state.scene.cube.bMo)
 
     def ground_truth_cMo(self) -> Matrix:
         """The true pose of the cube frame O in the true camera frame."""
