@@ -140,20 +140,26 @@ class Checkerboard:
 
     def back_project(self, camera: CameraModel, bMc: Matrix, pixels_px: Matrix) -> Matrix:
         """World (x, y) (N, 2) where the rays through pixels (N, 2) meet the board, for a
-        camera model at bMc: the pinhole-with-distortion inverse of ``predict_px``."""
-        wMc = inverse(self.bMw) @ np.asarray(bMc, dtype=float)
-        xn = camera.pixel_to_normalized(pixels_px)
-        rays_w = np.column_stack((xn, np.ones(len(xn)))) @ wMc[:3, :3].T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            reach = -wMc[2, 3] / rays_w[:, 2]
-        hits = wMc[:3, 3] + rays_w * np.where(reach > 0.0, reach, np.nan)[:, None]
-        return hits[:, :2]
+        camera model at bMc: the inverse of ``predict_px``."""
+        return table_points(camera, inverse(self.bMw) @ np.asarray(bMc, dtype=float), pixels_px)
 
     def predict_px(self, camera: CameraModel, bMc: Matrix, ij: Matrix) -> Matrix:
         """Pixels of lattice corners ij (N, 2) seen by ``camera`` from bMc."""
         cMw = inverse(inverse(self.bMw) @ np.asarray(bMc, dtype=float))
         points_w = np.column_stack((self.corner_w(ij), np.zeros(len(ij))))
         return camera.project(points_w @ cMw[:3, :3].T + cMw[:3, 3])
+
+
+def table_points(camera: CameraModel, wMc: Matrix, pixels_px: Matrix) -> Matrix:
+    """(x, y) (N, 2) in W where the rays through pixels (N, 2) of a camera at wMc meet the
+    plane z_W = 0; NaN where a ray does not reach it."""
+    wMc = np.asarray(wMc, dtype=float)
+    xn = camera.pixel_to_normalized(pixels_px)
+    rays_w = np.column_stack((xn, np.ones(len(xn)))) @ wMc[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = -wMc[2, 3] / rays_w[:, 2]
+    hits = wMc[:3, 3] + rays_w * np.where(reach > 0.0, reach, np.nan)[:, None]
+    return hits[:, :2]
 
 
 @dataclass(frozen=True)

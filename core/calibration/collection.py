@@ -158,8 +158,11 @@ class Collector:
             return False
         return True
 
-    def grid_targets(self) -> list[Matrix]:
-        return [self.camera_target(x, y) for x, y in self.workspace.grid()]
+    def grid_targets(self) -> tuple[list[Matrix], int]:
+        """The grid's viewpoints the arm reaches, and how many of the grid it does not."""
+        targets = [self.camera_target(x, y) for x, y in self.workspace.grid()]
+        reached = [bMe for bMe in targets if self.reachable(bMe)]
+        return reached, len(targets) - len(reached)
 
     def heldout_targets(self, count: int, rng: np.random.Generator) -> list[Matrix]:
         """Random reachable viewpoints in the workspace: a fit has seen none of them."""
@@ -279,12 +282,13 @@ class Collector:
                 "pixel_noise_px": 0.0}
 
 
-def add_pixel_noise(dataset: CalibrationDataset, noise_px: float, seed: int) -> CalibrationDataset:
-    """The dataset with zero-mean Gaussian noise of ``noise_px`` (px) on every corner."""
+def add_pixel_noise(dataset: CalibrationDataset, noise_px: float, seed: int, stream: int = 0) -> CalibrationDataset:
+    """The dataset with zero-mean Gaussian noise of ``noise_px`` (px) on every corner,
+    drawn from the generator (seed, stream): one stream per dataset of a collection."""
     if not (np.isfinite(noise_px) and noise_px >= 0.0):
         raise ValueError(f"pixel noise must be finite and >= 0, got {noise_px!r}")
     if noise_px == 0.0:
         return dataset.with_pixels(dataset.pixels_px.copy(), pixel_noise_px=0.0)
-    rng = np.random.default_rng([seed, 7])
+    rng = np.random.default_rng([seed, 7, stream])
     return dataset.with_pixels(dataset.pixels_px + rng.normal(0.0, noise_px, dataset.pixels_px.shape),
                                pixel_noise_px=float(noise_px))

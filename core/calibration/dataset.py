@@ -30,6 +30,14 @@ MIN_CORNERS = 150
 bRe_TOOL_DOWN = rot_x(np.pi)
 
 
+# The NN's input sets (core.calibration.mlp), all derived from a dataset's rows.
+INPUT_SETS: dict[str, tuple[str, ...]] = {
+    "planar": ("u", "v", "Tx", "Ty"),
+    "height": ("u", "v", "Tx", "Ty", "Tz"),
+    "pose": ("u", "v", "Tx", "Ty", "Tz", "rx", "ry", "rz"),
+}
+
+
 class DatasetError(CalibrationFileError):
     """A dataset that cannot be used; the message names it and the fault."""
 
@@ -86,10 +94,9 @@ class CalibrationDataset:
         """Per corner, the reported end-effector position (T_x, T_y, T_z) in m (eq. 2-12)."""
         return self.bMe[self.view, :3, 3]
 
-    def end_effector_tilt(self) -> Matrix:
-        """Per corner, the reported end effector's rotation away from tool-down, as theta*u (rad)."""
-        tilts = np.array([theta_u(bRe_TOOL_DOWN.T @ R) for R in self.bMe[:, :3, :3]])
-        return tilts[self.view]
+    def network_inputs(self, input_set: str) -> Matrix:
+        """The NN's raw inputs (N, k) for every corner (see ``network_inputs``)."""
+        return network_inputs(input_set, self.pixels_px, self.bMe[self.view])
 
     def subset(self, rows: np.ndarray) -> CalibrationDataset:
         """The corners ``rows`` (an index or mask array), with every viewpoint kept."""
@@ -118,3 +125,17 @@ class CalibrationDataset:
             raise DatasetError(f"{path}: missing array {missing[0]}")
         return cls(arrays["pixels_px"], arrays["world_m"], arrays["view"], arrays["bMe"], metadata).validate(
             str(path), min_corners)
+
+
+def network_inputs(input_set: str, pixels_px: Matrix, bMe: Matrix) -> Matrix:
+    """The raw NN inputs (N, k) of ``input_set`` from pixels (N, 2) and reported poses (N, 4, 4):
+    (u, v) in px, (T_x, T_y[, T_z]) in mm, and for ``pose`` the rotation vector (rad) of the
+    end effector away from tool-down. The scale does not matter after normalisation."""
+    if input_set not in INPUT_SETS:
+        raise ValueError(f"unknown input set {input_set!r}: choose one of {', '.join(INPUT_SETS)}")
+    columns = [np.asarray(pixels_px, dtype=float), 1000.0 * bMe[:, :2, 3]]
+    if input_set in ("height", "pose"):
+        columns.append(1000.0 * bMe[:, 2:3, 3])
+    if input_set == "pose":
+        columns.append(np.array([theta_u(bRe_TOOL_DOWN.T @ R) for R in bMe[:, :3, :3]]))
+    return np.column_stack(columns)
