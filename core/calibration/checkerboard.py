@@ -48,6 +48,8 @@ _MIN_PATTERN = (5, 4)
 _NAMING_TOLERANCE = 0.5
 _NAMING_AMBIGUITY = 0.2
 _NAMING_STEP = 0.25
+# Detector searches tried per image before a view is refused (see find_corners).
+DETECTION_ATTEMPTS = 4
 
 
 class BoardNotFound(ValueError):
@@ -172,6 +174,19 @@ class BoardView:
     naming_residual_squares: float
 
 
+def detect_board(board: Checkerboard, image: np.ndarray, lattice_of: Callable[[Matrix], Matrix],
+                 attempts: int = DETECTION_ATTEMPTS) -> BoardView:
+    """Find and name the board's corners in an image (``find_corners``, ``name_corners``),
+    trying the detector's search up to ``attempts`` times before refusing the view."""
+    for attempt in range(attempts):
+        try:
+            return name_corners(board, image, find_corners(image, attempt), lattice_of)
+        except BoardNotFound:
+            if attempt == attempts - 1:
+                raise
+    raise ValueError("attempts must be at least 1")
+
+
 def find_corners(image: np.ndarray, attempt: int = 0) -> Matrix:
     """OpenCV's sector-based checkerboard detection: the ordered grid of inner corners it
     sees, (rows, cols, 2) sub-pixel positions; ``CALIB_CB_LARGER`` lets the grid run to
@@ -191,35 +206,21 @@ def find_corners(image: np.ndarray, attempt: int = 0) -> Matrix:
     return corners.reshape(rows, cols, 2).astype(np.float64)
 
 
-# The detector's (row, col) axes map to the lattice's (i, j) by one of these signed
-# permutations (the four turns of the grid and their mirror images).
-_ORIENTATIONS = tuple(
-    np.array(m) for m in (
-        [[1, 0], [0, 1]], [[-1, 0], [0, 1]], [[1, 0], [0, -1]], [[-1, 0], [0, -1]],
-        [[0, 1], [1, 0]], [[0, -1], [1, 0]], [[0, 1], [-1, 0]], [[0, -1], [-1, 0]],
-    )
-)
-
-
-def _dark_cells(image: np.ndarray, grid_px: Matrix) -> Matrix:
-    """Whether each cell of the detected grid (rows-1, cols-1) is a dark square: the
-    image at the mean of the cell's four corners, against the grid's mid grey."""
-    centres = 0.25 * (grid_px[:-1, :-1] + grid_px[1:, :-1] + grid_px[:-1, 1:] + grid_px[1:, 1:])
-    u = np.clip(np.round(centres[..., 0]).astype(int), 0, image.shape[1] - 1)
-    v = np.clip(np.round(centres[..., 1]).astype(int), 0, image.shape[0] - 1)
-    grey = image[v, u].astype(float)
-    return grey < 0.5 * (grey.min() + grey.max())
-
-
 def name_corners(board: Checkerboard, image: np.ndarray, grid_px: Matrix, lattice_of: Callable[[Matrix], Matrix]) -> BoardView:
     """Give each detected corner its lattice index (module docstring).
 
     ``grid_px`` is the detector's grid (rows, cols, 2); ``lattice_of(pixels)`` maps pixels
     to fractional lattice indices by the NOMINAL model (reported pose, nominal camera and
-    hand-eye), only to choose whole numbers. For each of the grid's orientations the
-    offset is the whole-number shift, consistent with the colours of the squares seen,
-    nearest to the model; the best candidate must fit within half a square and clearly
-    better than the next.
+    hand-eye), only to choose whole numbers:
+
+    1. the grid's step in the lattice along its rows and columns, M (lattice = M rc + d):
+       the model's whole-number slope (the detector may step over every other row of a
+       strongly distorted board: a coarser lattice of true corners, still usable);
+    2. each corner's parity, from the colour of the square diagonally beyond it: the
+       lattice square (i, j) at corner (i, j) is black when i + j is even;
+    3. the offset d: of the whole-number shifts consistent with the parities, the one
+       nearest to the model. It must fit within half a square, and clearly better than
+       the next.
     """
     rows, cols = grid_px.shape[:2]
     rc = np.stack(np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij"), axis=-1).reshape(-1, 2)
@@ -227,21 +228,32 @@ def name_corners(board: Checkerboard, image: np.ndarray, grid_px: Matrix, lattic
     modelled = lattice_of(pixels)
     if not np.all(np.isfinite(modelled)):
         raise BoardNotFound("the nominal model cannot map the corners found onto the board")
-    dark = _dark_cells(image, grid_px)
-    cells = np.stack(np.meshgrid(np.arange(rows - 1), np.arange(cols - 1), indexing="ij"), axis=-1)
+    affine = np.column_stack((rc, np.ones(len(rc))))
+    M = np.round(np.linalg.lstsq(affine, modelled, rcond=None)[0][:2].T).astype(int)
+    if round(abs(np.linalg.det(M))) not in (1, 2, 4):
+        raise BoardNotFound(f"the detector's grid steps {M.tolist()} through the lattice: not a grid of its corners")
+    # The nominal model's error varies smoothly across the image (lens distortion, a
+    # tilt): between neighbours it hardly changes, unless the grid steps unevenly.
+    offsets = (modelled - rc @ M.T).reshape(rows, cols, 2)
+    steps = np.concatenate((np.linalg.norm(np.diff(offsets, axis=0), axis=2).ravel(),
+                            np.linalg.norm(np.diff(offsets, axis=1), axis=2).ravel()))
+    if steps.size and steps.max() > _NAMING_STEP:
+        raise BoardNotFound("the detector's grid is not a lattice (it skips squares unevenly)")
+    px_per_step = np.linalg.lstsq(affine, pixels, rcond=None)[0][:2].T
+    diagonal = px_per_step @ np.linalg.solve(M, np.ones(2))
+    probe = np.round(pixels + 0.5 * diagonal).astype(int)
+    inside = (probe[:, 0] >= 0) & (probe[:, 0] < image.shape[1]) & (probe[:, 1] >= 0) & (probe[:, 1] < image.shape[0])
+    level = 0.5 * (np.percentile(image, 5) + np.percentile(image, 95))
+    dark = image[probe[inside, 1], probe[inside, 0]] < level
+    base = rc @ M.T
+    shift = np.floor(np.median(modelled - base, axis=0)).astype(int)
     candidates: list[tuple[float, Matrix]] = []
-    for M in _ORIENTATIONS:
-        base = rc @ M.T
-        # Lattice square of each grid cell, before the offset: the lower corner of its indices.
-        cell_ij = np.minimum(cells @ M.T, (cells + 1) @ M.T)
-        shift = np.median(modelled - base, axis=0)
-        for di in range(int(np.floor(shift[0])) - 1, int(np.floor(shift[0])) + 3):
-            for dj in range(int(np.floor(shift[1])) - 1, int(np.floor(shift[1])) + 3):
-                black = (cell_ij[..., 0] + cell_ij[..., 1] + di + dj) % 2 == 0
-                if np.mean(black == dark) < 0.9:
-                    continue
-                ij = base + np.array([di, dj])
-                candidates.append((float(np.median(np.linalg.norm(modelled - ij, axis=1))), ij))
+    for di in range(shift[0] - 1, shift[0] + 3):
+        for dj in range(shift[1] - 1, shift[1] + 3):
+            ij = base + np.array([di, dj])
+            if np.mean(((ij[inside, 0] + ij[inside, 1]) % 2 == 0) == dark) < 0.9:
+                continue
+            candidates.append((float(np.median(np.linalg.norm(modelled - ij, axis=1))), ij))
     if not candidates:
         raise BoardNotFound("the squares seen do not alternate as a checkerboard's do")
     candidates.sort(key=lambda c: c[0])
@@ -251,13 +263,6 @@ def name_corners(board: Checkerboard, image: np.ndarray, grid_px: Matrix, lattic
                             "the nearest naming: the model is too far off to name them")
     if len(candidates) > 1 and candidates[1][0] - best_residual < _NAMING_AMBIGUITY:
         raise BoardNotFound("two namings of the corners fit the nominal model about equally well")
-    # The nominal model's error varies smoothly across the image (lens distortion, a
-    # tilt): between neighbours it hardly changes, unless the detector's grid skipped a square.
-    offsets = (modelled - best_ij).reshape(rows, cols, 2)
-    steps = np.concatenate((np.linalg.norm(np.diff(offsets, axis=0), axis=2).ravel(),
-                            np.linalg.norm(np.diff(offsets, axis=1), axis=2).ravel()))
-    if steps.size and steps.max() > _NAMING_STEP:
-        raise BoardNotFound("the detector's grid is not a lattice (it skips squares between neighbours)")
     i_min, i_max, j_min, j_max = board.corner_range
     if not (np.all(best_ij[:, 0] >= i_min) and np.all(best_ij[:, 0] <= i_max)
             and np.all(best_ij[:, 1] >= j_min) and np.all(best_ij[:, 1] <= j_max)):

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from core.calibration.checkerboard import BoardNotFound, Checkerboard, find_corners, name_corners
+from core.calibration.checkerboard import BoardNotFound, Checkerboard, detect_board
 from core.calibration.dataset import CalibrationDataset, bRe_TOOL_DOWN
 from core.camera import CameraModel, Distortion, Intrinsics
 from core.config import CellConfig, CellModel
@@ -48,8 +48,6 @@ from core.step_policy import PositionCommand
 
 TRUTHS = ("ideal", "realistic", "cell")
 MOVE_SPEED_M_S = 0.1
-# Detections tried per image before a view is refused (see find_corners).
-DETECTION_ATTEMPTS = 4
 
 # The realistic truth (module docstring).
 REALISTIC_CAMERA = CameraModel(
@@ -233,15 +231,8 @@ class Collector:
         def lattice_of(pixels: Matrix) -> Matrix:
             return self.board.back_project(nominal.camera, bMc_nominal, pixels) / self.board.square_m
 
-        for attempt in range(DETECTION_ATTEMPTS):
-            try:
-                view = name_corners(self.board, image, find_corners(image, attempt), lattice_of)
-            except BoardNotFound:
-                if attempt == DETECTION_ATTEMPTS - 1:
-                    raise
-            else:
-                return view.corners_px, view.corners_w, bMe
-        raise AssertionError("unreachable")
+        view = detect_board(self.board, image, lattice_of)
+        return view.corners_px, view.corners_w, bMe
 
     def collect(self, targets: Iterable[Matrix],
                 on_view: Callable[[str], None] | None = None) -> tuple[CalibrationDataset, CollectionCounts]:
