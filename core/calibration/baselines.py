@@ -13,7 +13,7 @@ NN does, so one PBVS law and one evaluation serve all.
   hand-eye transform is estimated.
 - ``HandEyeAXXB``: a full camera calibration (OpenCV, k1 k2 p1 p2 k3) on views taken
   with wrist rotations, each view's board pose, and the hand-eye transform eMc from
-  AX = XB by ``cv2.calibrateHandEye`` (Tsai-Lenz); the board's pose in B is the mean of
+  AX = XB (Park and Martin's closed form, ``solve_axxb``); the board's pose in B is the mean of
   bMe eMc cMw over the views. A pixel's world point is its ray from bMe eMc cut with
   the board plane. The analogue of the thesis's "Motai" method (a hand-eye calibration
   that solves AX = XB with a distortion model). Planar moves alone are degenerate for
@@ -39,7 +39,7 @@ from core.calibration.checkerboard import table_points
 from core.calibration.dataset import CalibrationDataset
 from core.calibration.storage import CalibrationFileError, read_archive, write_archive
 from core.camera import CameraModel, Distortion, Intrinsics
-from core.spatial import Matrix, inverse, transform
+from core.spatial import Matrix, inverse, theta_u, transform
 
 KIND = "vservo classical calibration"
 
@@ -90,6 +90,30 @@ def _mean_pose(poses: list[Matrix]) -> Matrix:
     return transform(R, np.mean([M[:3, 3] for M in poses], axis=0))
 
 
+def solve_axxb(bMe: list[Matrix], cMw: list[Matrix]) -> Matrix:
+    """eMc from AX = XB over every pair of views (Park and Martin 1994, closed form).
+
+    A = eiMej = bMe_i^-1 bMe_j is the flange's motion, B = ciMcj = cMw_i cMw_j^-1 the
+    camera's, and X = eMc. The rotation vectors satisfy alpha = R_X beta: R_X is the
+    orthogonal Procrustes fit of the betas onto the alphas; then
+    (R_A - I) t_X = R_X t_B - t_A, stacked, by least squares. (This is OpenCV's
+    CALIB_HAND_EYE_PARK; the Python wheel of OpenCV 5.0 no longer exports
+    cv2.calibrateHandEye.) Needs rotations about at least two different axes.
+    """
+    pairs = [(i, j) for i in range(len(bMe)) for j in range(i + 1, len(bMe))]
+    A = [inverse(bMe[i]) @ bMe[j] for i, j in pairs]
+    B = [cMw[i] @ inverse(cMw[j]) for i, j in pairs]
+    alpha = np.array([theta_u(M[:3, :3]) for M in A])
+    beta = np.array([theta_u(M[:3, :3]) for M in B])
+    if np.linalg.matrix_rank(alpha, tol=1e-3) < 2:
+        raise ValueError("the views' wrist rotations are all about one axis: AX = XB cannot find eMc")
+    U, _, Vt = np.linalg.svd(beta.T @ alpha)
+    R = Vt.T @ np.diag([1.0, 1.0, np.linalg.det(Vt.T @ U.T)]) @ U.T
+    lhs = np.concatenate([M[:3, :3] - np.eye(3) for M in A])
+    rhs = np.concatenate([R @ Mb[:3, 3] - Ma[:3, 3] for Ma, Mb in zip(A, B)])
+    return transform(R, np.linalg.lstsq(lhs, rhs, rcond=None)[0])
+
+
 @dataclass(frozen=True)
 class FreeHandEye:
     """Tsai-model camera calibration at one pose A plus end-effector offsets (module docstring)."""
@@ -132,9 +156,7 @@ class HandEyeAXXB:
     def fit(cls, rotated: CalibrationDataset, nominal: CameraModel) -> HandEyeAXXB:
         camera, cMw, _ = calibrate_camera(rotated, nominal)
         bMe = [rotated.bMe[k] for k in range(rotated.views)]
-        R, t = cv2.calibrateHandEye([M[:3, :3] for M in bMe], [M[:3, 3] for M in bMe], [M[:3, :3] for M in cMw],
-                                    [M[:3, 3] for M in cMw], method=cv2.CALIB_HAND_EYE_TSAI)
-        eMc = transform(R, np.ravel(t))
+        eMc = solve_axxb(bMe, cMw)
         bMw = _mean_pose([bMe[k] @ eMc @ cMw[k] for k in range(len(bMe))])
         return cls(camera, eMc, bMw)
 
