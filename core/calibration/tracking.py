@@ -150,8 +150,8 @@ class Tracker:
 
 def random_targets(tracker: Tracker, count: int, seed: int, x_range_m: tuple[float, float],
                    y_range_m: tuple[float, float], reach_m: tuple[float, float] = (0.035, 0.025)) -> tuple[Matrix, Matrix]:
-    """Random targets in the workspace and, for each, a random start viewpoint within
-    ``reach_m`` of it (so the target is in view) that the arm reaches, and the target too."""
+    """Random targets in the workspace and, for each, a random start viewpoint in the
+    workspace within ``reach_m`` of it (so the target is in view); the arm reaches both."""
     from core.kinematics import UnreachableTarget
 
     rng = np.random.default_rng([seed, 13])
@@ -162,6 +162,8 @@ def random_targets(tracker: Tracker, count: int, seed: int, x_range_m: tuple[flo
             break
         target = np.array([rng.uniform(*x_range_m), rng.uniform(*y_range_m)])
         start = target + rng.uniform(-1.0, 1.0, 2) * np.asarray(reach_m)
+        if not (x_range_m[0] <= start[0] <= x_range_m[1] and y_range_m[0] <= start[1] <= y_range_m[1]):
+            continue
         try:
             for xy in (target, start):
                 arm.ik(tracker.flange_over(xy), tracker.cell.state.q, restarts=2, tolerance_m=1e-7, tolerance_rad=1e-7)
