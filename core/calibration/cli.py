@@ -74,7 +74,8 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     defaults = Workspace()
     workspace = Workspace(args.x_range_mm or defaults.x_range_m, args.y_range_mm or defaults.y_range_m,
                           args.step_mm / 1000.0, args.height_mm / 1000.0)
-    plan = CollectPlan(workspace, args.test_views, args.rotated_views, args.varying_views, args.varying_test_views)
+    plan = CollectPlan(workspace, not args.no_planar, args.test_views, args.rotated_views, args.varying_views,
+                       args.varying_test_views)
     _emit(collect(_config(args), Path(args.dir), args.truth, args.noise_px, args.seed, plan), args.json)
     return 0
 
@@ -88,8 +89,8 @@ def _settings(args: argparse.Namespace) -> Any:
 def _cmd_train(args: argparse.Namespace) -> int:
     from core.calibration.workflow import train
 
-    _emit(train(_config(args), Path(args.dir), args.inputs, args.samples, args.validation, _settings(args), args.seed),
-          args.json)
+    _emit(train(_config(args), Path(args.dir), args.inputs, args.samples, args.validation, _settings(args), args.seed,
+                args.hidden), args.json)
     return 0
 
 
@@ -160,6 +161,7 @@ def add_calibrate_command(commands: argparse._SubParsersAction) -> None:
     collect.add_argument("--varying-views", type=_number(int, 0, False), default=0,
                          help="viewpoints at varying height, tilt and yaw for the 6-DOF variant (0: none)")
     collect.add_argument("--varying-test-views", type=_number(int, 0, True), default=60)
+    collect.add_argument("--no-planar", action="store_true", help="skip the grid and the held-out views (planar.npz, test.npz)")
     collect.set_defaults(run=_cmd_collect)
 
     def lm_options(parser: argparse.ArgumentParser) -> None:
@@ -174,6 +176,7 @@ def add_calibrate_command(commands: argparse._SubParsersAction) -> None:
     lm_options(train)
     train.add_argument("--validation", type=_number(int, 0, True), default=2000, help="validation corners (default 2000)")
     train.add_argument("--seed", type=int, default=0, help="seed of the sample draw and initial weights (default 0)")
+    train.add_argument("--hidden", type=_number(int, 0, True), default=20, help="hidden units (default 20, as the thesis)")
     train.set_defaults(run=_cmd_train)
 
     evaluate = step("evaluate", "world-coordinate errors of every calibration on held-out viewpoints")

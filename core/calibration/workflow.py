@@ -35,7 +35,7 @@ from core.calibration.baselines import (
 from core.calibration.collection import Collector, Workspace, add_pixel_noise, cell_with_truth
 from core.calibration.dataset import INPUT_SETS, CalibrationDataset, DatasetError
 from core.calibration.levenberg_marquardt import LMSettings
-from core.calibration.mlp import NNCalibration, train_nn
+from core.calibration.mlp import HIDDEN_UNITS, NNCalibration, train_nn
 from core.calibration.tracking import (
     Tracker,
     TrackingSettings,
@@ -61,9 +61,11 @@ DEFAULT_NOISE_PX = {"ideal": 0.0, "realistic": 0.25}
 
 @dataclass(frozen=True)
 class CollectPlan:
-    """What to collect: the workspace grid, held-out, rotated and varying viewpoints."""
+    """What to collect: the workspace grid and held-out viewpoints (``planar``), rotated
+    and varying viewpoints (none when their count is 0)."""
 
     workspace: Workspace = Workspace()
+    planar: bool = True
     test_views: int = 40
     rotated_views: int = 30
     varying_views: int = 0
@@ -81,7 +83,9 @@ def collect(config: CellConfig, folder: Path, truth: str, noise_px: float | None
     collector = Collector(config, truth, seed, plan.workspace)
     rng = np.random.default_rng([seed, 3])
     grid, unreachable = collector.grid_targets()
-    sets: list[tuple[str, list]] = [("planar", grid), ("test", collector.heldout_targets(plan.test_views, rng))]
+    sets: list[tuple[str, list]] = []
+    if plan.planar:
+        sets += [("planar", grid), ("test", collector.heldout_targets(plan.test_views, rng))]
     if plan.rotated_views:
         centre = tuple(np.mean([M[:2, 3] for M in grid], axis=0)) if grid else (0.0, 0.0)
         sets.append(("rotated", collector.rotated_targets(plan.rotated_views, rng, centre)))
@@ -119,17 +123,18 @@ def _split(dataset: CalibrationDataset, samples: int, validation: int, seed: int
 
 
 def train(config: CellConfig, folder: Path, inputs: str = "planar", samples: int = 16000, validation: int = 2000,
-          settings: LMSettings = LMSettings(), seed: int = 0) -> dict[str, Any]:
+          settings: LMSettings = LMSettings(), seed: int = 0, hidden: int = HIDDEN_UNITS) -> dict[str, Any]:
     """Train the NN on ``samples`` corners (validation on others) and, for planar inputs,
     fit the classical calibrations; every result is saved in ``folder``."""
     data = load_dataset(folder, "planar" if inputs == "planar" else "varying_train")
     fit, check = _split(data, samples, validation, seed)
     progress = Progress(settings.epochs, f"train nn ({inputs})")
-    model = train_nn(fit, inputs, validation=check, settings=settings, seed=seed,
+    model = train_nn(fit, inputs, validation=check, hidden=hidden, settings=settings, seed=seed,
                      on_epoch=lambda epoch, mse: progress.advance(f"mse {mse:.3g}"))
     progress.close()
     model.save(_path(folder, NN_FILES[inputs]))
     summary: dict[str, Any] = {"nn": {"file": str(_path(folder, NN_FILES[inputs])), "inputs": list(INPUT_SETS[inputs]),
+                                      "hidden": hidden,
                                       **{k: v for k, v in model.training.items() if k != "dataset"}}}
     if inputs != "planar":
         return summary
