@@ -38,6 +38,7 @@ from core.calibration.baselines import PlanarCalibration
 from core.calibration.collection import MOVE_SPEED_M_S, cell_with_truth
 from core.calibration.dataset import bRe_TOOL_DOWN
 from core.config import CellConfig
+from core.kinematics import UnreachableTarget
 from core.simulator import SimulatedCell
 from core.spatial import Matrix, inverse, transform
 from core.step_policy import PositionCommand, VelocityCommand
@@ -152,8 +153,6 @@ def random_targets(tracker: Tracker, count: int, seed: int, x_range_m: tuple[flo
                    y_range_m: tuple[float, float], reach_m: tuple[float, float] = (0.035, 0.025)) -> tuple[Matrix, Matrix]:
     """Random targets in the workspace and, for each, a random start viewpoint in the
     workspace within ``reach_m`` of it (so the target is in view); the arm reaches both."""
-    from core.kinematics import UnreachableTarget
-
     rng = np.random.default_rng([seed, 13])
     arm = tracker.cell.controller_arm
     targets, starts = [], []
