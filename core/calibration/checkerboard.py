@@ -12,15 +12,14 @@ at 300 mm), as a board under a moving camera must be.
 Naming the corners. A partial view of a lattice says nothing of which corner is which,
 so the board's own pattern has to. OpenCV's sector-based detector
 (``findChessboardCornersSB`` with ``CALIB_CB_LARGER``) returns the ordered grid of inner
-corners it sees and, per corner, the colour of the square at its upper left: the
-lattice parity. What remains is an offset of the grid by an even number of squares in
-each direction, one of the grid's four orientations and a mirror image; they are fixed
-by where the robot controller's reported pose and the NOMINAL camera model predict the
-lattice to appear. The prediction only has to be right to within a square (10 mm):
-it picks whole numbers, never a coordinate. Every world coordinate comes from the
-board's lattice, none from the simulator's truth. A view whose best naming leaves
-corners more than half a square from their prediction, or that fits two namings
-almost equally well, is refused (``BoardNotFound``), as an engineer would discard it.
+corners it sees; the colour of the square diagonally beyond each corner gives the parity
+of its lattice index; what remains (the grid's orientation and a whole-number offset) is
+fixed by where the robot controller's reported pose and the NOMINAL camera model put the
+corners. The model only has to be right to within a square (10 mm): it picks whole
+numbers, never a coordinate. Every world coordinate comes from the board's lattice, none
+from the simulator's truth. A view whose best naming leaves corners more than half a
+square from the model, that two namings fit about equally, or whose grid the detector
+linked unevenly, is refused (``BoardNotFound``), as an engineer would discard it.
 
 Rendering uses the exact-area rasteriser of the synthetic camera (core.render): each
 black square's edges are subdivided and pushed through the lens distortion, so the
@@ -61,7 +60,8 @@ class Checkerboard:
     """A checkerboard on the table: square side, lattice extent and where W lies in B.
 
     ``corner_range`` bounds the inner-corner indices (i_min, i_max, j_min, j_max) the
-    board has; ``table_height_m`` is the table surface's height in B (W's origin).
+    board has; ``table_height_m`` is the table surface's height in B (W's origin). The
+    grey levels and the optical blur (px) are what the rendered image shows.
     """
 
     square_m: float
@@ -171,7 +171,6 @@ class BoardView:
     corners_px: Matrix
     lattice_ij: Matrix
     corners_w: Matrix
-    naming_residual_squares: float
 
 
 def detect_board(board: Checkerboard, image: np.ndarray, lattice_of: Callable[[Matrix], Matrix],
@@ -267,4 +266,4 @@ def name_corners(board: Checkerboard, image: np.ndarray, grid_px: Matrix, lattic
     if not (np.all(best_ij[:, 0] >= i_min) and np.all(best_ij[:, 0] <= i_max)
             and np.all(best_ij[:, 1] >= j_min) and np.all(best_ij[:, 1] <= j_max)):
         raise BoardNotFound("the corners found run past the board's edge")
-    return BoardView(pixels.copy(), best_ij.astype(float), board.corner_w(best_ij), best_residual)
+    return BoardView(pixels.copy(), best_ij.astype(float), board.corner_w(best_ij))
