@@ -190,3 +190,16 @@ def test_a_file_that_is_not_a_dataset_is_refused(tmp_path):
         CalibrationDataset.load(path)
     with pytest.raises(DatasetError, match="no such file"):
         CalibrationDataset.load(tmp_path / "missing.npz")
+
+
+def test_the_6dof_inputs_are_height_and_the_rotation_away_from_tool_down():
+    from core.calibration.dataset import network_inputs
+    from core.spatial import exp_twist
+
+    tool_down = transform(rot_x(np.pi), (-0.45, 0.01, 0.125))
+    tilted = tool_down @ exp_twist([0, 0, 0, 0.03, -0.02, 0.1])
+    inputs = network_inputs("pose", np.array([[320.0, 240.0], [10.0, 20.0]]), np.array([tool_down, tilted]))
+    assert np.allclose(inputs[:, :5], [[320, 240, -450, 10, 125], [10, 20, -450, 10, 125]])
+    assert np.allclose(inputs[0, 5:], 0.0, atol=1e-12)
+    assert np.allclose(inputs[1, 5:], [0.03, -0.02, 0.1])
+    assert network_inputs("planar", inputs[:, :2], np.array([tool_down, tilted])).shape == (2, 4)

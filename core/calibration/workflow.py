@@ -111,7 +111,7 @@ def load_dataset(folder: Path, name: str) -> CalibrationDataset:
     path = _path(folder, name)
     if not path.is_file():
         raise DatasetError(f"{path}: no such file; run vservo calibrate collect first"
-                           + (" with --varying" if name.startswith("varying") else ""))
+                           + (" with --varying-views N" if name.startswith("varying") else ""))
     return CalibrationDataset.load(path)
 
 
