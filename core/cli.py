@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from core.calibration.cli import add_calibrate_command
 from core.config import CellConfig, ConfigError, load_cell
 from core.kinematics import ArmKinematics, KinematicsError
 from core.spatial import pose_from_matrix, pose_to_mm_deg
@@ -232,8 +233,10 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     from core.bench import bench_vision
+    from core.calibration.bench import bench_calibration
 
-    result = bench_vision(load_cell(args.cell), seed=args.seed)
+    bench = bench_calibration if args.what == "calibration" else bench_vision
+    result = bench(load_cell(args.cell), seed=args.seed)
     _print(result, args.json)
     return 0
 
@@ -386,10 +389,14 @@ def build_parser() -> argparse.ArgumentParser:
     controller.set_defaults(run=_cmd_controller)
 
     bench = commands.add_parser("bench", help="measure speed and accuracy on this machine")
-    bench.add_argument("what", choices=("vision",), help="vision: render, detection and loop times, detection accuracy")
+    bench.add_argument("what", choices=("vision", "calibration"),
+                       help="vision: render, detection and loop times, detection accuracy; "
+                       "calibration: Levenberg-Marquardt training time on 16,000 samples")
     bench.add_argument("--seed", type=int, default=0)
     bench.add_argument("--json", action="store_true", help="one JSON object")
     bench.set_defaults(run=_cmd_bench)
+
+    add_calibrate_command(commands)
     return parser
 
 
