@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 
 from core.spatial import Matrix
+from core.vision.bands import banded_lines
 from core.vision.edges import Strips, edge_points_many, fit_lines, frozen_array, image_problem, intersect, sample_strips
 from core.vision.spot import SpotDetection
 
@@ -57,6 +58,8 @@ MARK_RADIUS_FRACTION = 0.125
 _MAX_MOVE_PX = 4.0
 #: A side's fit may turn its line by this little (cos of ~5 degrees), or it is not trusted.
 _STEADY_COS = 0.996
+#: Nor is a fit whose points span less than this share of the side.
+_LEAST_SPAN = 0.4
 #: Pixels each side of a side's line read when looking for a narrow side face beyond it.
 _BAND_REACH = 5
 #: Least slant (px per px) of the model's edges, so that the fit has a gradient everywhere.
@@ -126,15 +129,18 @@ def _detect(image: np.ndarray, spot: SpotDetection | None, previous_px: np.ndarr
         return _no_corners("no bright top face: no grey level stands out above the background")
     face_level, below_level, threshold = levels
 
+    # The spot passes any threshold: where it lies next to the face it bulges the
+    # outline, which the side lines must not follow.
+    spot_out: list[tuple[Matrix, float]] = []
+    if spot is not None and spot.found and np.all(np.isfinite(spot.spot_px)):
+        spot_radius = max(5.0, math.sqrt(max(spot.area_px, 0.0) / math.pi) + 4.5)
+        spot_out.append((np.asarray(spot.spot_px, dtype=np.float64), spot_radius))
     quad, outline, problem = _rough_quadrilateral(img, threshold)
     if quad is None or outline is None:
         return _no_corners(problem)
 
     mark_px, mark_radius = _find_mark(img, quad, face_level, below_level)
-    keep_out: list[tuple[Matrix, float]] = []
-    if spot is not None and spot.found and np.all(np.isfinite(spot.spot_px)):
-        spot_radius = max(5.0, math.sqrt(max(spot.area_px, 0.0) / math.pi) + 4.5)
-        keep_out.append((np.asarray(spot.spot_px, dtype=np.float64), spot_radius))
+    keep_out = list(spot_out)
     if np.all(np.isfinite(mark_px)):
         keep_out.append((mark_px, mark_radius + 1.5))
 
@@ -142,10 +148,10 @@ def _detect(image: np.ndarray, spot: SpotDetection | None, previous_px: np.ndarr
     # show it) puts the outline on its outer edge: then the region is taken again with
     # a threshold just under the face's level.
     face_floor = face_level - _FACE_MARGIN * (face_level - below_level)
-    refined = _refine(img, quad, outline, keep_out, face_floor)
+    refined = _refine(img, quad, outline, keep_out, spot_out, face_floor)
     if refined == _DIM_SIDE:
         quad, outline, _ = _rough_quadrilateral(img, face_floor)
-        refined = None if quad is None or outline is None else _refine(img, quad, outline, keep_out, -np.inf)
+        refined = None if quad is None or outline is None else _refine(img, quad, outline, keep_out, spot_out, -np.inf)
     if refined is None or refined == _DIM_SIDE:
         return _no_corners("top face sides could not be fitted (too little clean edge)", mark_px)
     corners, side_quality = refined
@@ -275,7 +281,12 @@ def _find_mark(img: np.ndarray, quad: Matrix, face_level: float, below_level: fl
 
 
 def _refine(
-    img: np.ndarray, quad: Matrix, outline: Matrix, keep_out: list[tuple[Matrix, float]], face_floor: float
+    img: np.ndarray,
+    quad: Matrix,
+    outline: Matrix,
+    keep_out: list[tuple[Matrix, float]],
+    spot_out: list[tuple[Matrix, float]],
+    face_floor: float,
 ) -> tuple[Matrix, float] | str | None:
     """Corners (4, 2) from the four fitted sides, and a fit quality in [0, 1], or None.
 
@@ -287,11 +298,11 @@ def _refine(
     ``_DIM_SIDE`` when just inside an outline side the image is darker than
     ``face_floor`` (the outline runs along a side face, not along the top face).
     """
-    lines = _outline_lines(quad, outline)
+    lines = _outline_lines(quad, outline, spot_out)
     if lines is None:
         return None
     corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
-    if not np.all(np.isfinite(corners)) or np.abs(corners - quad).max() > _MAX_MOVE_PX:
+    if _strayed(corners, quad, spot_out):
         return None
     quality = 0.0
     # Wide strips across the sides, read once: for the blur here, for narrow side faces
@@ -321,17 +332,27 @@ def _refine(
             # The outline can be a pixel off an edge along a row or a column, beyond
             # these strips' reach: +-2 px strips for those sides.
             wider = edge_points_many(img, [segments[i] for i in lost], 1.5, 1, keep_out, 4.5)
-            for i, fit in zip(lost, fit_lines(wider, [segments[i][0] for i in lost], min_points=6, rounds=2), strict=True):
-                fits[i] = fit
+            refits = fit_lines(wider, [segments[i][0] for i in lost], min_points=6, rounds=2)
+            for i, points, fit in zip(lost, wider, refits, strict=True):
+                sides[i], fits[i] = points, fit
         new_lines, qualities = [], []
-        for (normal, offset, _, _), fit in zip(segments, fits, strict=True):
+        recentred = False
+        for (normal, offset, start, stop), points, fit in zip(segments, sides, fits, strict=True):
             if fit is None or float(fit[0] @ normal) < _STEADY_COS:
                 # Too few clean strips, or the line turned (a narrow side face right
-                # along the side): keep the line; the three-level fit may correct it.
+                # along the side): keep the line; the band fit may correct it.
                 new_lines.append((normal, offset))
                 qualities.append(0.0)
                 continue
             line_normal, line_offset, inliers, rms = fit
+            if not _well_spread(points[inliers], start, stop):
+                # The points bunch up: strips off the edge (then re-centred on the
+                # points, keeping the direction, to try again) or a narrow side face
+                # that only a few strips see past (kept for the band fit).
+                new_lines.append((normal, float(normal @ points[inliers].mean(axis=0)) if attempt == 0 else offset))
+                qualities.append(0.0)
+                recentred = attempt == 0
+                continue
             new_lines.append((line_normal, line_offset))
             support = min(inliers.sum() / 10.0, 1.0) * (0.5 + 0.5 * inliers.mean())
             qualities.append(support / (1.0 + (rms / 0.2) ** 2))
@@ -341,19 +362,38 @@ def _refine(
         moved = max(abs(float(new[0] @ corners[i]) - new[1]) for i, new in enumerate(new_lines))
         lines = new_lines
         corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
-        if not np.all(np.isfinite(corners)) or np.abs(corners - quad).max() > _MAX_MOVE_PX:
+        if _strayed(corners, quad, spot_out):
             return None
-        if attempt == 0 and moved < 0.5:
+        if attempt == 0 and moved < 0.5 and not recentred:
             break  # the strips were centred well enough
     # A side face narrower than the strips would pull a side outwards.
     if wide is not None:
-        for i, banded in enumerate(_banded_lines(wide, lines, blur)):
+        for i, banded in enumerate(banded_lines(wide, lines, blur)):
             if banded is not None:
-                lines[i] = banded
+                lines[i] = banded.line
     corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
-    if not np.all(np.isfinite(corners)) or np.abs(corners - quad).max() > _MAX_MOVE_PX:
+    if _strayed(corners, quad, spot_out):
         return None
     return corners, quality
+
+
+def _well_spread(points: Matrix, start: Matrix, stop: Matrix) -> bool:
+    """Whether edge points cover enough of the side from ``start`` to ``stop`` to fix its line."""
+    direction = stop - start
+    along = (points - start) @ direction / float(direction @ direction)
+    return bool(along.size and np.ptp(along) >= _LEAST_SPAN)
+
+
+def _strayed(corners: Matrix, quad: Matrix, spot_out: list[tuple[Matrix, float]]) -> bool:
+    """Whether a corner is not finite or lies farther from the outline's quadrilateral
+    than a side fit can move it; a corner under the spot's disc (missing from the
+    outline) may move as far again as the disc's radius."""
+    if not np.all(np.isfinite(corners)):
+        return True
+    allowance = np.full(len(quad), _MAX_MOVE_PX)
+    for centre, radius in spot_out:
+        allowance[np.linalg.norm(quad - centre, axis=1) < radius + _MAX_MOVE_PX] += radius
+    return bool(np.any(np.abs(corners - quad).max(axis=1) > allowance))
 
 
 def _dim_inside(strips: Strips, count: int) -> float:
@@ -409,213 +449,39 @@ def _edge_blur(strips: Strips, lines: list[tuple[Matrix, float]]) -> float:
     return sigma if sigma > 0.45 else 0.0
 
 
-def _outline_lines(quad: Matrix, outline: Matrix) -> list[tuple[Matrix, float]] | None:
+def _outline_lines(quad: Matrix, outline: Matrix, spot_out: list[tuple[Matrix, float]]) -> list[tuple[Matrix, float]] | None:
     """A line per side (inward unit normal, offset) through the outline's points along it.
 
     The outline runs through the centres of the region's boundary pixels, on average
     half a pixel inside the threshold's crossing: the lines are moved out by that much.
+    Outline points within the discs of ``spot_out`` are left out: the laser spot next
+    to the face passes the threshold and bulges the outline, and can pull a corner of
+    the quadrilateral off the face. The points are therefore taken twice: near the
+    quadrilateral's sides, then near the sides of the first lines' quadrilateral.
     """
-    ends = np.roll(quad, -1, axis=0)
-    lengths = np.linalg.norm(ends - quad, axis=1)
-    directions = (ends - quad) / lengths[:, None]
-    normals = np.column_stack([-directions[:, 1], directions[:, 0]])
-    normals *= np.where(((quad.mean(axis=0) - quad) * normals).sum(axis=1) < 0.0, -1.0, 1.0)[:, None]
-    relative = outline[:, None, :] - quad[None, :, :]  # (M, 4, 2)
-    along = (relative * directions[None]).sum(axis=2)
-    across = (relative * normals[None]).sum(axis=2)
-    margin = 2.0 + 0.1 * lengths
-    near = (np.abs(across) < 2.0) & (along > margin) & (along < lengths - margin)
-    point_sets = [outline[near[:, i]] for i in range(4)]
-    lines = []
-    for fit, hint in zip(fit_lines(point_sets, list(normals), min_points=4, rounds=1), normals, strict=True):
-        if fit is None:
+    corners = quad
+    lines: list[tuple[Matrix, float]] = []
+    for attempt in range(2):
+        ends = np.roll(corners, -1, axis=0)
+        lengths = np.linalg.norm(ends - corners, axis=1)
+        directions = (ends - corners) / lengths[:, None]
+        normals = np.column_stack([-directions[:, 1], directions[:, 0]])
+        normals *= np.where(((corners.mean(axis=0) - corners) * normals).sum(axis=1) < 0.0, -1.0, 1.0)[:, None]
+        relative = outline[:, None, :] - corners[None, :, :]  # (M, 4, 2)
+        along = (relative * directions[None]).sum(axis=2)
+        across = (relative * normals[None]).sum(axis=2)
+        margin = 2.0 + 0.1 * lengths
+        near = (np.abs(across) < 2.0) & (along > margin) & (along < lengths - margin)
+        for centre, radius in spot_out:
+            near &= (np.sum((outline - centre) ** 2, axis=1) > radius * radius)[:, None]
+        fits = fit_lines([outline[near[:, i]] for i in range(4)], list(normals), min_points=4, rounds=1)
+        if any(fit is None for fit in fits):
             return None
-        lines.append((fit[0], fit[1] - 0.5))
+        lines = [(fit[0], fit[1] - 0.5) for fit in fits]  # type: ignore[index]
+        corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
+        if attempt == 0 and not np.all(np.isfinite(corners)):
+            return lines
     return lines
-
-
-def _banded_lines(strips: Strips, lines: list[tuple[Matrix, float]], blur: float = 0.0) -> list[tuple[Matrix, float] | None]:
-    """Each side's line when a side face narrower than ~4 px runs along it, else None.
-
-    Such a band (grey level between the face's and the table's) sits inside the narrow
-    strips and biases the partial-area position outwards by its width times its
-    relative level. Here the strips are wider (the table beyond the band in view) and
-    the three-level profile - face, band, table - is fitted as box-filtered steps along
-    the whole side: the face edge (offset and slope), the band's width (linear along
-    the side) and its level, with the image's ``blur``. Only done where the band shows:
-    pixels clearly above the table level beyond the face edge as seen from the bright
-    side. A band under ~1 px (more under blur) cannot be told from the edge itself and
-    still biases the side by up to its width times its relative level.
-    """
-    count = len(lines)
-    result: list[tuple[Matrix, float] | None] = [None] * count
-    seg = strips.segment
-    bounds = np.searchsorted(seg, np.arange(count + 1))
-    # Every side at once: bright end last, levels scaled 0 (table) .. 1 (face).
-    values = np.where(strips.bright_high[:, None], strips.values, strips.values[:, ::-1])
-    sign = np.where(strips.bright_high, 1.0, -1.0)
-    present = np.flatnonzero(bounds[1:] > bounds[:-1])
-    sums = np.add.reduceat(values[:, [0, -1]], bounds[present], axis=0)
-    levels = np.full((count, 2), np.nan)
-    levels[present] = sums / (bounds[present + 1] - bounds[present])[:, None]
-    dark, bright = levels[seg, 0], levels[seg, 1]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        scaled = (values[:, 1:-1] - dark[:, None]) / (bright - dark)[:, None]  # pixels -4 .. 4 across
-    across = (sign * strips.base)[:, None] + np.arange(-_BAND_REACH + 1, _BAND_REACH)[None, :]  # bright-positive
-    normals = np.array([normal for normal, _ in lines])
-    steep_s = np.abs(normals[:, 0]) > np.abs(normals[:, 1])
-    n_across = np.where(steep_s, normals[:, 0], normals[:, 1])
-    n_along = np.where(steep_s, normals[:, 1], normals[:, 0])
-    slope = -sign * n_along[seg] / n_across[seg]
-    # The face edge seen from the bright side: just before the first pixel (from the
-    # dark end) that is nearly as bright as the face. A band shows as pixels well above
-    # the table level further out than that.
-    rows = np.arange(len(scaled))
-    first_bright = np.argmax(scaled > 0.9, axis=1)
-    has_bright = (scaled[rows, first_bright] > 0.9) & (values[:, -1] - values[:, 0] > 20.0)
-    edge = across[rows, first_bright] - 0.5 - 1.3 * blur
-    in_band = (scaled > 0.15) & (across < (edge - 1.0 - 0.5 * np.abs(slope) - 2.5 * blur)[:, None])
-    band_pixels = in_band.sum(axis=1)
-    for index in range(count):
-        part = slice(bounds[index], bounds[index + 1])
-        good = has_bright[part]
-        if good.sum() < 8 or not bright[bounds[index]] - dark[bounds[index]] > 20.0:
-            continue
-        if np.median(band_pixels[part][good]) < 1.0:
-            continue  # no band: the narrow strips were right
-        result[index] = _banded_fit(
-            lines[index],
-            scaled[part][good],
-            across[part][good],
-            strips.along[part][good].astype(np.float64),
-            edge[part][good],
-            in_band[part][good],
-            float(sign[bounds[index]]),
-            bool(steep_s[index]),
-            blur,
-        )
-    return result
-
-
-def _banded_fit(
-    line: tuple[Matrix, float],
-    scaled: Matrix,
-    across: Matrix,
-    along: Matrix,
-    edge: Matrix,
-    in_band: np.ndarray,
-    sign: float,
-    steep: bool,
-    blur: float,
-) -> tuple[Matrix, float] | None:
-    """Levenberg-Marquardt fit of the face-band-table profile on one side's strips (see
-    ``_banded_lines``)."""
-    normal, offset = line
-    n_across, n_along = (normal[0], normal[1]) if steep else (normal[1], normal[0])
-    t = along - along.mean()
-    slope = -sign * n_along / n_across
-    c0_start = float(np.median(edge - slope * t))
-    band_pixels = in_band.sum(axis=1)
-    level_start = float(np.clip(np.median(scaled[in_band]), 0.1, 0.9))
-    params = np.array([c0_start, slope, float(np.median(band_pixels)), 0.0, level_start])
-    tt = t[:, None]
-    flat = scaled.ravel()
-    reach_t = float(np.abs(t).max()) + 1.0
-    lower = np.array([c0_start - 2.0, slope - 2.0 / reach_t, 0.0, -2.0 / reach_t, 0.02])
-    upper = np.array([c0_start + 2.0, slope + 2.0 / reach_t, 5.0, 2.0 / reach_t, 0.98])
-
-    def model(p: Matrix) -> tuple[Matrix, Matrix]:
-        c0, m, w0, w1, level = p
-        e1 = (c0 + m * t)[:, None]
-        # A little slant keeps the model smooth: with an edge on a
-        # pixel boundary, a sharp step would give no gradient at all.
-        cover, slope_d = _coverage(across[None], np.stack([e1, e1 - (w0 + w1 * t)[:, None]]), max(abs(m), _MIN_SLANT), blur)
-        residual = flat - ((1.0 - level) * cover[0] + level * cover[1]).ravel()
-        d_c0 = (1.0 - level) * slope_d[0] + level * slope_d[1]
-        d_w0 = -level * slope_d[1]
-        jac = np.stack([d_c0, d_c0 * tt, d_w0, d_w0 * tt, cover[1] - cover[0]], axis=-1).reshape(-1, 5)
-        return residual, jac
-
-    # The profile's cost has poor minima in (width, level): descend from the better of
-    # the first guess and the best of a grid of edges and widths.
-    grid_c0, grid_w = np.meshgrid(c0_start + np.array([-0.4, 0.2]), np.array([0.75, 1.5, 2.5, 3.5]))
-    grid = np.column_stack([grid_c0.ravel(), grid_w.ravel()])
-    e1 = grid[:, 0, None] + slope * t[None, :]  # (G, N)
-    slant = max(abs(slope), _MIN_SLANT)
-    cover1 = _coverage(across[None], e1[:, :, None], slant, blur)[0]
-    cover2 = _coverage(across[None], (e1 - grid[:, 1, None])[:, :, None], slant, blur)[0]
-    grid_cost = ((scaled[None] - (1.0 - params[4]) * cover1 - params[4] * cover2) ** 2).sum(axis=(1, 2))
-    best = int(np.argmin(grid_cost))
-    start_residual = model(params)[0]
-    if grid_cost[best] < float(start_residual @ start_residual):
-        params[0], params[2] = grid[best]
-    params, _ = _descend(model, params, lower, upper, reach_t)
-    c0, m, w0, w1, level = params
-    widths = w0 + w1 * t
-    if not (np.all(np.isfinite(params)) and 0.05 < level < 0.95 and widths.min() > -0.2 and widths.max() < 5.0):
-        return None
-    narrow_at = sign * (offset - n_along * along) / n_across  # the narrow strips' edge, bright-positive
-    if np.abs(c0 + m * t - narrow_at).max() > _MAX_BAND_SHIFT_PX:
-        return None  # more than a narrow side face can explain: the fit found something else
-    # Back to the image: the edge's across coordinate is sign * (c0 + m (along - mean)),
-    # so across - sign m along = sign (c0 - m mean).
-    mean_along = float(along.mean())
-    new_normal = np.array([1.0, -sign * m]) if steep else np.array([-sign * m, 1.0])
-    new_offset = sign * (c0 - m * mean_along)
-    scale = float(np.hypot(*new_normal))
-    new_normal, new_offset = new_normal / scale, new_offset / scale
-    if new_normal @ normal < 0.0:
-        new_normal, new_offset = -new_normal, -new_offset
-    return new_normal, float(new_offset)
-
-
-def _descend(model, params: Matrix, lower: Matrix, upper: Matrix, reach_t: float) -> tuple[Matrix, float]:
-    """Levenberg-Marquardt on ``model`` (params -> residual, Jacobian) within the bounds."""
-    residual, jac = model(params)
-    cost = float(residual @ residual)
-    damping = 1e-3
-    for _ in range(4):
-        normal_eq = jac.T @ jac
-        step = np.linalg.solve(normal_eq + damping * np.diag(np.diag(normal_eq) + 1e-9), jac.T @ residual)
-        trial = np.clip(params + step, lower, upper)
-        residual_t, jac_t = model(trial)
-        cost_t = float(residual_t @ residual_t)
-        if cost_t < cost:
-            moved = abs(trial[0] - params[0]) + abs(trial[1] - params[1]) * reach_t
-            params, residual, jac, cost = trial, residual_t, jac_t, cost_t
-            damping = max(damping / 4.0, 1e-7)
-            if moved < 2e-3:  # the edge has settled (the band may not)
-                break
-        else:
-            damping *= 8.0
-    return params, cost
-
-
-def _coverage(across: Matrix, edge: Matrix, slant: float, blur: float = 0.0) -> tuple[Matrix, Matrix]:
-    """Share of each pixel beyond an edge crossing it with ``slant`` px per px along the
-    strip, seen through a Gaussian ``blur``, and its derivative with respect to the
-    edge's position. Without blur exact; with it the pixel, slant and blur kernels
-    together are taken as one Gaussian (of their summed variances)."""
-    c = across + 0.5 - edge
-    if blur >= 0.25:
-        spread = math.sqrt((1.0 + slant * slant) / 12.0 + blur * blur)
-        z = (c - 0.5) / spread
-        return 0.5 * (1.0 + _erf(z / math.sqrt(2.0))), -np.exp(-0.5 * z * z) / (spread * math.sqrt(2.0 * math.pi))
-    hi, lo = c + 0.5 * slant, c - 0.5 * slant
-
-    def antiderivative(z: Matrix) -> Matrix:
-        return np.where(z < 0.0, 0.0, np.where(z < 1.0, 0.5 * z * z, z - 0.5))
-
-    cover = (antiderivative(hi) - antiderivative(lo)) / slant
-    return cover, -(np.clip(hi, 0.0, 1.0) - np.clip(lo, 0.0, 1.0)) / slant
-
-
-def _erf(x: Matrix) -> Matrix:
-    """The error function (Abramowitz and Stegun 7.1.26, error below 1.5e-7)."""
-    a = np.abs(x)
-    t = 1.0 / (1.0 + 0.3275911 * a)
-    poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))))
-    return np.sign(x) * (1.0 - poly * np.exp(-a * a))
 
 
 # ---------------------------------------------------------------------------------------

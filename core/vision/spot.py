@@ -37,6 +37,7 @@ import numpy as np
 
 from core.spatial import Matrix
 from core.vision.edges import edge_points_many, fit_lines, frozen_array, image_problem
+from core.vision.least_squares import levenberg_marquardt
 
 #: Grey level from which a pixel counts as clipped by the sensor.
 CLIPPED_LEVEL = 254
@@ -412,7 +413,15 @@ def _fit_spot(
     keep = np.ones(values.size, bool)
     res = np.zeros(values.size)
     for _ in range(2):
-        params, res = _levenberg_marquardt(params, values[keep], background[keep], u[keep], v[keep], clipped[keep], lower, upper)
+        params, res = levenberg_marquardt(
+            lambda p: _residuals(p, values[keep], background[keep], u[keep], v[keep], clipped[keep]),
+            params,
+            lower,
+            upper,
+            iterations=20,
+            settled=lambda old, new: float(np.abs(new[:2] - old[:2]).max()) < 2e-3,
+            loss_scale=_CAUCHY_SCALE,
+        )
         model_res = _residuals(params, values, background, u, v, clipped)[0]
         outliers = np.abs(model_res) > 4.0 * _CAUCHY_SCALE
         if not outliers.any() or (~outliers).sum() < 8:
@@ -438,40 +447,3 @@ def _residuals(p: Matrix, values: Matrix, background: Matrix, u: Matrix, v: Matr
     jac = np.column_stack([g * du / s2, g * dv / s2, g, g * r2 / s2])
     jac[clipped & (model >= CLIPPED_LEVEL)] = 0.0
     return res, jac
-
-
-def _levenberg_marquardt(
-    params: Matrix,
-    values: Matrix,
-    background: Matrix,
-    u: Matrix,
-    v: Matrix,
-    clipped: np.ndarray,
-    lower: Matrix,
-    upper: Matrix,
-    iterations: int = 20,
-) -> tuple[Matrix, Matrix]:
-    """Minimise the Cauchy cost of the spot model's residuals within the bounds."""
-    scale2 = _CAUCHY_SCALE**2
-    damping = 1e-3
-    res, jac = _residuals(params, values, background, u, v, clipped)
-    cost = float(np.log1p(res * res / scale2).sum())
-    for _ in range(iterations):
-        weight = 1.0 / (1.0 + res * res / scale2)
-        normal = jac.T @ (weight[:, None] * jac)
-        gradient = jac.T @ (weight * res)
-        step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-9), -gradient)
-        trial = np.clip(params + step, lower, upper)
-        res_t, jac_t = _residuals(trial, values, background, u, v, clipped)
-        cost_t = float(np.log1p(res_t * res_t / scale2).sum())
-        if cost_t < cost:
-            moved = float(np.abs(trial[:2] - params[:2]).max())
-            params, res, jac, cost = trial, res_t, jac_t, cost_t
-            damping = max(damping / 3.0, 1e-7)
-            if moved < 2e-3:
-                break
-        else:
-            damping *= 4.0
-            if damping > 1e6:
-                break
-    return params, res

@@ -1,0 +1,412 @@
+"""A side face seen nearly edge-on along a side of the top face: the three-level edge.
+
+Next to a side of the cube's top face the camera often sees a side face as a narrow
+band, between the face's grey level and the table's. Partial-area edge location (see
+``core.vision.edges``) puts the edge where the strip's light says, which with a band of
+width w and relative level L is w L outside the face's true side: up to a pixel for a
+band under a pixel wide, which a strip cannot tell from the edge itself.
+
+Here the whole side is fitted at once, pixel by pixel, as box-filtered steps (exact
+area coverage, see ``coverage``) in strips across it:
+
+    I = D + (g - D) cover(f) + (B - g) cover(e)
+
+with e = c0 + m t the face's side along the strips' axis t (the line wanted), f = e - w(t)
+the band's outer boundary, g the band's grey level, and B and D the face's level and the
+level beyond the band, read at the strips' ends (running medians along the side).
+
+The band is a side face of a box, a quadrilateral on the face's side: its outer
+boundary is the bottom edge, cut near the face's corners by the vertical edges, which
+start AT those corners. So across the strips
+
+    w(t) = max(0, min(b0 + b1 t, kA (t - tA), kB (tB - t)))
+
+with tA, tB the corners' along coordinates: a sliver of constant or changing width that
+may taper to nothing at either corner (kA, kB large: no taper at that end). The taper's
+pinning to the corner is what separates a thin bright band from a wider dimmer one along
+a side nearly aligned with the pixel grid, where the pixels alone cannot.
+
+The band model is taken only when it explains the pixels significantly better than a
+single step (an F-test against the fit's own residual, which is at least the noise's), so
+a side without a band keeps its partial-area line, and noise does not invent bands.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.spatial import Matrix
+from core.vision.edges import Strips, intersect, running_median
+from core.vision.least_squares import levenberg_marquardt
+
+#: Least slant (px per px) of a modelled edge, so that its coverage has a gradient everywhere.
+MIN_SLANT = 0.01
+#: Widest band (px) the model may take (beyond the strips it has no effect).
+_MAX_WIDTH_PX = 8.0
+#: A taper this steep (px of width per px along) is none: the vertical edge leaves the
+#: corner outwards, away from the side.
+_NO_TAPER = 50.0
+#: How many times its share of the residual the band model must explain to be believed.
+_F_RATIO = 12.0
+#: Parameters of the band model beyond the single step's (c0, m): g, b0, b1, kA, kB.
+_BAND_PARAMETERS = 5
+#: Farthest (px) the band fit may move a side from the partial-area line.
+_MAX_SHIFT_PX = 2.0
+#: Least contrast (grey levels) between the face and the level beyond for a side to be fitted.
+_MIN_CONTRAST = 20.0
+#: Levenberg-Marquardt iterations of the band model.
+_ITERATIONS = 10
+#: Most strips of one side the band fit reads.
+_MAX_STRIPS = 32
+#: Starting widths (px) and relative levels of the band (its cost has poor minima in them),
+#: and where a taper starting at a corner may meet the bottom edge (share of the side).
+_START_WIDTHS = (0.4, 0.8, 1.5, 2.5, 4.0)
+_START_SHARES = (0.3, 0.45, 0.6, 0.75)
+_KINKS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+_KINK_STARTS = 8
+#: The band's level relative to the far level (0) and the face's (1).
+_SHARE_RANGE = (0.1, 0.9)
+
+
+@dataclass(frozen=True)
+class BandFit:
+    """The three-level fit of one side (see the module docstring).
+
+    line: (unit normal, offset) of the face's side in the image, oriented like the input.
+    width_px: (b0, b1, kA, kB) of the band's width along the strips' axis.
+    level: the band's grey level.
+    improvement: the F statistic of the band model against a single step.
+    """
+
+    line: tuple[Matrix, float]
+    width_px: Matrix
+    level: float
+    improvement: float
+
+
+def coverage(across: Matrix, edge: Matrix, slant: Matrix | float, blur: float = 0.0) -> tuple[Matrix, Matrix]:
+    """Share of each pixel (centre ``across``) beyond an edge crossing it at ``edge``
+    with ``slant`` px per px along the strip, seen through a Gaussian ``blur``, and its
+    derivative with respect to the edge's position. "Beyond" is towards larger across;
+    the arguments broadcast.
+
+    Without blur exact (the pixel's box cut by a straight line: the share is the mean,
+    over the pixel's extent along the strip, of the clipped distance to the edge, whose
+    antiderivative A(z) = z^2 / 2 on [0, 1] and z - 1/2 beyond gives it in closed form);
+    with it the pixel, slant and blur kernels together are taken as one Gaussian (of
+    their summed variances).
+    """
+    slant = np.maximum(np.abs(slant), MIN_SLANT)
+    c = across + 0.5 - edge
+    if blur >= 0.25:
+        spread = np.sqrt((1.0 + slant * slant) / 12.0 + blur * blur)
+        z = (c - 0.5) / spread
+        return 0.5 * (1.0 + _erf(z / math.sqrt(2.0))), -np.exp(-0.5 * z * z) / (spread * math.sqrt(2.0 * math.pi))
+    half = 0.5 * slant
+    hi, lo = np.clip(c + half, 0.0, 1.0), np.clip(c - half, 0.0, 1.0)
+    # A(hi) - A(lo): the clipped parts' areas plus the stretch wholly beyond the edge.
+    beyond = np.maximum(c - half - 1.0, 0.0) - np.maximum(c + half - 1.0, 0.0)
+    return (0.5 * (hi * hi - lo * lo) - beyond) / slant, (lo - hi) / slant
+
+
+def _erf(x: Matrix) -> Matrix:
+    """The error function (Abramowitz and Stegun 7.1.26, error below 1.5e-7)."""
+    a = np.abs(x)
+    t = 1.0 / (1.0 + 0.3275911 * a)
+    poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))))
+    return np.sign(x) * (1.0 - poly * np.exp(-a * a))
+
+
+def banded_lines(strips: Strips, lines: list[tuple[Matrix, float]], blur: float = 0.0) -> list[BandFit | None]:
+    """Each side's three-level fit when a band runs along it, else None.
+
+    ``strips`` are wide strips across the sides (``sample_strips``, one level pixel at
+    each end), ``lines`` the four sides' partial-area lines in order around the face
+    (unit normal from dark to bright, offset): side i runs from its crossing with side
+    i - 1 to its crossing with side i + 1. ``blur`` is the image's optical blur (sigma, px).
+
+    First every side at once as a single step at its line: a side whose pixels that
+    step explains to within the noise has no band worth fitting.
+    """
+    count = len(lines)
+    result: list[BandFit | None] = [None] * count
+    segment = strips.segment
+    bounds = np.searchsorted(segment, np.arange(count + 1))
+    # Every strip in the bright-positive frame: the face at the larger index.
+    values = np.where(strips.bright_high[:, None], strips.values, strips.values[:, ::-1])
+    sign = np.where(strips.bright_high, 1.0, -1.0)
+    reach = values.shape[1] // 2
+    across = (sign * strips.base)[:, None] + np.arange(-reach + 1, reach)[None, :]
+    normals = np.array([normal for normal, _ in lines])
+    offsets = np.array([offset for _, offset in lines])
+    # The strips' axes were chosen from the lines they were sampled along, which a 45
+    # degree side may see the other way round from these.
+    steep = strips.steep
+    n_across = np.where(steep, normals[segment, 0], normals[segment, 1])
+    n_along = np.where(steep, normals[segment, 1], normals[segment, 0])
+    edge = sign * (offsets[segment] - n_along * strips.along) / n_across
+    slope = n_along / n_across
+    bright = running_median(values[:, -1], segment)
+    dark = running_median(values[:, 0], segment)
+    cover = coverage(across, edge[:, None], slope[:, None], blur)[0]
+    step_residual = values[:, 1:-1] - (dark[:, None] + (bright - dark)[:, None] * cover)
+    strip_costs = (step_residual * step_residual).sum(axis=1)
+    noise = _noise_variance(values)
+    pixels = values.shape[1] - 2
+    for index in range(count):
+        part = slice(bounds[index], bounds[index + 1])
+        strips_in_side = bounds[index + 1] - bounds[index]
+        if strips_in_side < 8 or float(np.median(bright[part] - dark[part])) < _MIN_CONTRAST:
+            continue
+        if strip_costs[part].sum() <= (strips_in_side * pixels + _F_RATIO * _BAND_PARAMETERS) * noise:
+            continue
+        # Of a long side every other strip (or fewer) is plenty: the fit costs per pixel.
+        picked = np.arange(bounds[index], bounds[index + 1], -(-strips_in_side // _MAX_STRIPS))
+        first = picked[0]
+        axis = 1 if steep[first] else 0
+        ends = [intersect(lines[index - 1], lines[index])[axis], intersect(lines[index], lines[(index + 1) % count])[axis]]
+        if not np.all(np.isfinite(ends)):
+            continue
+        side = _side(values[picked], across[picked], strips.along[picked], bright[picked], dark[picked], sorted(ends), blur)
+        step = (float(edge[picked].mean()), -float(sign[first] * slope[first]))
+        fit = _fit_band(side, step, float(strip_costs[picked].sum()), noise)
+        if fit is not None:
+            result[index] = _to_image(*fit, side, bool(steep[first]), float(sign[first]), lines[index][0])
+    return result
+
+
+def _noise_variance(values: Matrix) -> float:
+    """The image's noise variance (grey levels^2), at least the 8-bit quantisation's.
+
+    From the two pixels at each strip's face end (bright-positive ``values``), 4 and 5
+    px inside the face: half the robust variance of their difference.
+    """
+    difference = values[:, -1] - values[:, -2]
+    spread = 1.4826 * float(np.median(np.abs(difference - np.median(difference))))
+    return max(0.5 * spread * spread, 1.0 / 12.0)
+
+
+@dataclass(frozen=True)
+class _Side:
+    """One side's strips in the bright-positive frame (the face at larger ``across``)."""
+
+    values: Matrix  # (n, p) grey levels of the modelled pixels
+    across: Matrix  # (n, p) their centres
+    mean_along: float  # the strips' mean along coordinate
+    t: Matrix  # (n,) along coordinate relative to ``mean_along``
+    ends: tuple[float, float]  # tA < tB, the face's corners at the side's ends, in t
+    bright: Matrix  # (n,) the face's level just inside (running median)
+    dark: Matrix  # (n,) the level beyond the band (running median)
+    blur: float
+
+
+def _side(
+    values: Matrix, across: Matrix, along: np.ndarray, bright: Matrix, dark: Matrix, ends: list[float], blur: float
+) -> _Side:
+    """One side's strips (bright-positive, level pixels at the ends) ready for the fit."""
+    mean_along = float(along.mean())
+    t = along.astype(np.float64) - mean_along
+    corners = (ends[0] - mean_along, ends[1] - mean_along)
+    return _Side(values[:, 1:-1], across.astype(np.float64), mean_along, t, corners, bright, dark, blur)
+
+
+def _fit_band(side: _Side, step: tuple[float, float], step_cost: float, noise: float) -> tuple[Matrix, float] | None:
+    """Parameters (c0, m, g, b0, b1, kA, kB) of the band model and its F statistic when it
+    is significantly better than the single step at across = c0 + m t (``step``), whose
+    cost over the side's pixels is ``step_cost``; else None."""
+    c0, m = step
+    reach_t = 0.5 * float(side.t.max() - side.t.min()) + 1.0
+    # The far level where the band is narrower than the strips (the widest bands' strips
+    # end on the band itself).
+    far, face = float(np.percentile(side.dark, 10)), float(np.median(side.bright))
+    contrast = face - far
+    lower = np.array([c0 - 2.5, m - 2.5 / reach_t, far + _SHARE_RANGE[0] * contrast, 0.0, -1.0, 0.0, 0.0])
+    upper = np.array([c0 + 2.5, m + 2.5 / reach_t, far + _SHARE_RANGE[1] * contrast, _MAX_WIDTH_PX, 1.0, _NO_TAPER, _NO_TAPER])
+    starts = _starts(side, far, contrast)
+    band = starts[_best(side, np.clip(starts, lower, upper))]
+    band, band_cost = _descend(side, np.clip(band, lower, upper), lower, upper, reach_t)
+
+    dof = max(side.values.size - len(band), 1)
+    # The residual's variance, at least the noise's: on a clean image a slight mismatch
+    # of the model would otherwise count as significant.
+    improvement = ((step_cost - band_cost) / _BAND_PARAMETERS) / max(band_cost / dof, noise)
+    if not (np.all(np.isfinite(band)) and improvement > _F_RATIO and _width(side, band[None])[0].max() > 0.05):
+        return None
+    if band[2] > upper[2] - 0.01 * contrast:
+        return None  # a band at the face's level is only the edge moved
+    if np.abs(band[0] - c0 + (band[1] - m) * side.t).max() > _MAX_SHIFT_PX:
+        return None  # more than a band can explain: the fit found something else
+    return band, float(improvement)
+
+
+def _starts(side: _Side, far: float, contrast: float) -> Matrix:
+    """Starting parameter sets (G, 7) for the band fit, from the strips' partial areas.
+
+    A strip's light puts its edge at M = e - L w (L = (g - D) / (B - D), the band's
+    relative level), so along the side M(t) is the face's line minus L w(t): a line,
+    or a line with kinks where w(t) turns into a taper that ends at a corner. Fitting
+    M(t) for each pair of kink positions (a linear least-squares problem each) finds
+    the line and L w(t); a few levels L then give the starts. Without a taper the line
+    and a constant L w cannot be told apart: the widths' grid then supplies them.
+    """
+    t, (t_a, t_b) = side.t, side.ends
+    n = len(t)
+    bright_length = ((side.values - side.dark[:, None]) / (side.bright - side.dark)[:, None]).sum(axis=1)
+    position = side.across[:, -1] + 0.5 - bright_length
+    span = t_b - t_a
+    kinks = [(None, None)] + [
+        (t_a + f * span if f else None, t_b - g * span if g else None)
+        for f in (0.0,) + _KINKS
+        for g in (0.0,) + _KINKS
+        if (f or g) and f + g < 1.0
+    ]
+    # Columns (1, t, a, b) with L w = Lb0 a + Lb1 b, continuous at the kinks (NaN: none).
+    kink_a = np.array([np.nan if a is None else a for a, _ in kinks])[:, None]
+    kink_b = np.array([np.nan if b is None else b for _, b in kinks])[:, None]
+    design = np.empty((len(kinks), n, 4))
+    design[:, :, 0], design[:, :, 1] = 1.0, t
+    with np.errstate(invalid="ignore"):
+        ramp_a = np.maximum((t - t_a) / (kink_a - t_a), 0.0)
+        ramp_b = np.maximum((t_b - t) / (t_b - kink_b), 0.0)
+        below, above = t < kink_a, t > kink_b
+    design[:, :, 2] = -np.where(below, ramp_a, np.where(above, ramp_b, 1.0))
+    design[:, :, 3] = -np.where(below, kink_a * ramp_a, np.where(above, kink_b * ramp_b, t))
+    # Along a side with one taper a band widening linearly looks just like a tilted side
+    # (only the partial areas are read here): the least widening is taken, the bottom
+    # edge of a box's side face running nearly parallel to its top edge. Without a
+    # taper nothing of the band shows, and it is left at zero.
+    ridge = np.zeros((len(kinks), 4, 4))
+    ridge[:, 3, 3] = 1e-4 * float(t @ t)
+    ridge[:, 2, 2] = 1e-8 * n  # (a kink beyond the strips leaves the band's width unseen)
+    ridge[0, 2, 2] = 1e-4 * n
+    normal = np.einsum("kni,knj->kij", design, design) + ridge
+    coef = np.linalg.solve(normal, np.einsum("kni,n->ki", design, position)[..., None])[..., 0]
+    residual = position[None, :] - np.einsum("kni,ki->kn", design, coef)
+    cost = np.einsum("kn,kn->k", residual, residual)
+    # Each kink must pay for itself (two parameters' worth of an information criterion).
+    # Partial areas alone can mistake a tilted side for a taper: the few best kink
+    # patterns all become starts, and the pixels decide.
+    used = np.array([(a is not None) + (b is not None) for a, b in kinks])
+    score = n * np.log(np.maximum(cost / n, 1e-8)) + 2.0 * np.log(n) * used
+    shares = np.array(_START_SHARES)
+    # No taper: the line is the partial area's, shifted out by w L for each width.
+    width, share = (g.ravel() for g in np.meshgrid(_START_WIDTHS, shares))
+    flat = np.zeros((len(width), 7))
+    flat[:, 0] = coef[0, 0] + share * np.minimum(width, 2.0)
+    flat[:, 1] = coef[0, 1]
+    flat[:, 2] = far + share * contrast
+    flat[:, 3] = width
+    flat[:, 5:] = _NO_TAPER
+    tapered = []
+    for best in np.argsort(score[1:])[:_KINK_STARTS] + 1:
+        (kink_a, kink_b), (e0, m, lb0, lb1) = kinks[best], coef[best]
+        starts = np.zeros((len(shares), 7))
+        starts[:, 0], starts[:, 1] = e0, m
+        starts[:, 2] = far + shares * contrast
+        starts[:, 3], starts[:, 4] = lb0 / shares, lb1 / shares
+        starts[:, 5] = _NO_TAPER if kink_a is None else (lb0 + lb1 * kink_a) / (kink_a - t_a) / shares
+        starts[:, 6] = _NO_TAPER if kink_b is None else (lb0 + lb1 * kink_b) / (t_b - kink_b) / shares
+        tapered.append(starts)
+    return np.concatenate([flat] + tapered)
+
+
+def _best(side: _Side, starts: Matrix) -> int:
+    """Index of the parameter set of least cost."""
+    residuals = _residuals(side, starts)
+    return int(np.argmin(np.einsum("gi,gi->g", residuals, residuals)))
+
+
+def _to_image(band: Matrix, improvement: float, side: _Side, steep: bool, sign: float, normal: Matrix) -> BandFit:
+    """The fitted face's side as an image line (oriented like ``normal``) and the band."""
+    c0, m = float(band[0]), float(band[1])
+    # across - m along = c0 - m mean_along in the bright-positive frame.
+    new_normal = np.array([1.0, -sign * m]) if steep else np.array([-sign * m, 1.0])
+    new_offset = sign * (c0 - m * side.mean_along)
+    scale = float(np.hypot(*new_normal))
+    new_normal, new_offset = new_normal / scale, new_offset / scale
+    if new_normal @ normal < 0.0:
+        new_normal, new_offset = -new_normal, -new_offset
+    return BandFit((new_normal, float(new_offset)), band[3:].copy(), float(band[2]), improvement)
+
+
+def _width(side: _Side, batch: Matrix) -> tuple[Matrix, Matrix, np.ndarray]:
+    """The band's width w(t) (G, n) under parameter sets (G, 7), its slope along the
+    side, and which piece shapes it (0 bottom edge, 1 and 2 the tapers, 3 none)."""
+    t_a, t_b = side.ends
+    pieces = np.stack(
+        [
+            batch[:, 3, None] + batch[:, 4, None] * side.t,
+            batch[:, 5, None] * (side.t - t_a),
+            batch[:, 6, None] * (t_b - side.t),
+        ]
+    )
+    active = np.argmin(pieces, axis=0)
+    width = np.take_along_axis(pieces, active[None], axis=0)[0]
+    slopes = np.stack([batch[:, 4], batch[:, 5], -batch[:, 6]], axis=1)  # (G, 3)
+    dw_dt = np.take_along_axis(slopes, active, axis=1)
+    active = np.where(width > 0.0, active, 3)
+    return np.maximum(width, 0.0), np.where(active < 3, dw_dt, 0.0), active
+
+
+def _geometry(side: _Side, batch: Matrix) -> tuple[Matrix, Matrix, np.ndarray]:
+    """Coverages (2, G, n, p) of the face's side (index 0) and of the band's outer
+    boundary (1) under parameter sets ``batch`` (G, 7) = (c0, m, g, b0, b1, kA, kB), their
+    derivatives with respect to the edges' positions, and the width's active piece."""
+    c0, m = batch[:, 0, None], batch[:, 1, None]  # (G, 1)
+    width, dw_dt, active = _width(side, batch)
+    edges = np.empty(width.shape + (1,), dtype=np.float64)[None].repeat(2, axis=0)  # (2, G, n, 1)
+    edges[0, ..., 0] = c0 + m * side.t
+    edges[1, ..., 0] = edges[0, ..., 0] - width
+    slants = np.empty_like(edges)
+    slants[0, ..., 0] = m
+    # The band's outer boundary slants with the side plus the width's change along it.
+    slants[1, ..., 0] = m - dw_dt
+    cover, d_cover = coverage(side.across, edges, slants, side.blur)
+    return cover, d_cover, active
+
+
+def _residuals(side: _Side, batch: Matrix) -> Matrix:
+    """Residuals (G, N) of the grey levels under G parameter sets (see ``_geometry``)."""
+    cover = _geometry(side, batch)[0]
+    dark, bright, g = side.dark[:, None], side.bright[:, None], batch[:, 2, None, None]
+    return (side.values - (dark + (g - dark) * cover[1] + (bright - g) * cover[0])).reshape(len(batch), -1)
+
+
+def _residuals_and_jacobian(side: _Side, params: Matrix) -> tuple[Matrix, Matrix]:
+    """Residuals (N,) of the grey levels under ``params`` and their Jacobian (N, 7)."""
+    cover, d_cover, active = _geometry(side, params[None, :])
+    cover_e, cover_f, d_e, d_f = cover[0, 0], cover[1, 0], d_cover[0, 0], d_cover[1, 0]
+    dark, bright, g = side.dark[:, None], side.bright[:, None], float(params[2])
+    residual = side.values - (dark + (g - dark) * cover_f + (bright - g) * cover_e)
+    d_edge = (g - dark) * d_f + (bright - g) * d_e  # d prediction / d c0
+    t_a, t_b = side.ends
+    t, piece = side.t, active[0]
+    # d w / d (b0, b1, kA, kB): only the piece that shapes the width moves it.
+    d_width = np.zeros((len(t), 4))
+    d_width[:, 0] = piece == 0
+    d_width[:, 1] = np.where(piece == 0, t, 0.0)
+    d_width[:, 2] = np.where(piece == 1, t - t_a, 0.0)
+    d_width[:, 3] = np.where(piece == 2, t_b - t, 0.0)
+    jac = np.empty(cover_e.shape + (7,))
+    jac[..., 0] = d_edge
+    jac[..., 1] = d_edge * t[:, None]
+    jac[..., 2] = cover_f - cover_e
+    jac[..., 3:] = (-(g - dark) * d_f)[..., None] * d_width[:, None, :]
+    return residual.ravel(), -jac.reshape(-1, 7)
+
+
+def _descend(side: _Side, params: Matrix, lower: Matrix, upper: Matrix, reach_t: float) -> tuple[Matrix, float]:
+    """The band model's least squares within the bounds: (params, cost)."""
+    params, residual = levenberg_marquardt(
+        lambda p: _residuals_and_jacobian(side, p),
+        params,
+        lower,
+        upper,
+        iterations=_ITERATIONS,
+        # The face's side (the line wanted) has settled, whatever the band still does.
+        settled=lambda old, new: abs(new[0] - old[0]) + abs(new[1] - old[1]) * reach_t < 1e-3,
+    )
+    return params, float(residual @ residual)
