@@ -43,7 +43,16 @@ import numpy as np
 
 from core.spatial import Matrix
 from core.vision.bands import banded_lines
-from core.vision.edges import Strips, edge_points_many, fit_lines, frozen_array, image_problem, intersect, sample_strips
+from core.vision.edges import (
+    Strips,
+    edge_points_many,
+    fit_lines,
+    frozen_array,
+    image_problem,
+    intersect,
+    sample_strips,
+    segment_medians,
+)
 from core.vision.spot import SpotDetection
 
 #: Smallest top face, in pixels of area, worth measuring.
@@ -377,6 +386,14 @@ def _refine(
     return corners, quality
 
 
+def _distance_to_outline(point: Matrix, polygon: Matrix) -> float:
+    """Distance from ``point`` to the closed polygon's sides."""
+    ends = np.roll(polygon, -1, axis=0)
+    direction = ends - polygon
+    share = np.clip(((point - polygon) * direction).sum(axis=1) / (direction * direction).sum(axis=1), 0.0, 1.0)
+    return float(np.min(np.linalg.norm(polygon + share[:, None] * direction - point, axis=1)))
+
+
 def _well_spread(points: Matrix, start: Matrix, stop: Matrix) -> bool:
     """Whether edge points cover enough of the side from ``start`` to ``stop`` to fix its line."""
     direction = stop - start
@@ -399,10 +416,8 @@ def _strayed(corners: Matrix, quad: Matrix, spot_out: list[tuple[Matrix, float]]
 def _dim_inside(strips: Strips, count: int) -> float:
     """The lowest, over the sides, of the median grey level 2 px inside the face."""
     values = np.where(strips.bright_high[:, None], strips.values, strips.values[:, ::-1])
-    inside = values[:, _BAND_REACH + 2]
-    bounds = np.searchsorted(strips.segment, np.arange(count + 1))
-    levels = [float(np.median(inside[bounds[i] : bounds[i + 1]])) for i in range(count) if bounds[i + 1] > bounds[i]]
-    return min(levels) if levels else np.inf
+    levels = segment_medians(values[:, _BAND_REACH + 2], strips.segment, count)
+    return float(np.nanmin(levels)) if np.any(np.isfinite(levels)) else np.inf
 
 
 def _edge_blur(strips: Strips, lines: list[tuple[Matrix, float]]) -> float:
@@ -456,12 +471,13 @@ def _outline_lines(quad: Matrix, outline: Matrix, spot_out: list[tuple[Matrix, f
     half a pixel inside the threshold's crossing: the lines are moved out by that much.
     Outline points within the discs of ``spot_out`` are left out: the laser spot next
     to the face passes the threshold and bulges the outline, and can pull a corner of
-    the quadrilateral off the face. The points are therefore taken twice: near the
-    quadrilateral's sides, then near the sides of the first lines' quadrilateral.
+    the quadrilateral off the face: when the first lines' corners are far from the
+    quadrilateral's, the points are taken again near the first lines.
     """
     corners = quad
     lines: list[tuple[Matrix, float]] = []
-    for attempt in range(2):
+    spot_near = any(_distance_to_outline(centre, quad) < radius + 2.0 for centre, radius in spot_out)
+    for _ in range(2):
         ends = np.roll(corners, -1, axis=0)
         lengths = np.linalg.norm(ends - corners, axis=1)
         directions = (ends - corners) / lengths[:, None]
@@ -477,10 +493,10 @@ def _outline_lines(quad: Matrix, outline: Matrix, spot_out: list[tuple[Matrix, f
         fits = fit_lines([outline[near[:, i]] for i in range(4)], list(normals), min_points=4, rounds=1)
         if any(fit is None for fit in fits):
             return None
-        lines = [(fit[0], fit[1] - 0.5) for fit in fits]  # type: ignore[index]
+        lines = [(fit[0], fit[1] - 0.5) for fit in fits if fit is not None]
         corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
-        if attempt == 0 and not np.all(np.isfinite(corners)):
-            return lines
+        if not (np.all(np.isfinite(corners)) and spot_near):
+            break
     return lines
 
 

@@ -111,15 +111,26 @@ def _detect(image: np.ndarray, threshold: float, min_area_px2: float) -> RegionD
 
 
 def _spot_zone(roi: np.ndarray) -> np.ndarray:
-    """1 within the reach of small clipped blobs (the laser spot and its halo), else 0."""
+    """1 within the reach of small clipped blobs (the laser spot and its halo), else 0.
+
+    Only the rectangle holding the clipped pixels (grown by the halo) is labelled: the
+    spot is a few pixels in a large region.
+    """
     zone = np.zeros(roi.shape, np.uint8)
     if cv2.minMaxLoc(roi)[1] < SATURATED_LEVEL:
         return zone
     saturated = (roi >= SATURATED_LEVEL).view(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(saturated, connectivity=8)
+    x, y, w, h = cv2.boundingRect(saturated)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(saturated[y : y + h, x : x + w], connectivity=8)
     small = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] <= MAX_SPOT_AREA_PX) + 1
     if small.size == 0:
         return zone
-    zone[np.isin(labels, small)] = 1
+    keep = np.zeros(count, np.uint8)
+    keep[small] = 1
+    height, width = roi.shape
+    x0, y0 = max(x - SPOT_HALO_PX, 0), max(y - SPOT_HALO_PX, 0)
+    x1, y1 = min(x + w + SPOT_HALO_PX, width), min(y + h + SPOT_HALO_PX, height)
+    zone[y : y + h, x : x + w] = keep[labels]
     size = 2 * SPOT_HALO_PX + 1
-    return cv2.dilate(zone, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+    zone[y0:y1, x0:x1] = cv2.dilate(zone[y0:y1, x0:x1], cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+    return zone
