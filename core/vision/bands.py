@@ -58,14 +58,21 @@ _MAX_SHIFT_PX = 2.0
 #: Least contrast (grey levels) between the face and the level beyond for a side to be fitted.
 _MIN_CONTRAST = 20.0
 #: Levenberg-Marquardt iterations of the band model.
-_ITERATIONS = 10
+_ITERATIONS = 8
 #: Most strips of one side the band fit reads.
-_MAX_STRIPS = 32
+_MAX_STRIPS = 16
 #: Starting widths (px) and relative levels of the band (its cost has poor minima in them),
 #: and where a taper starting at a corner may meet the bottom edge (share of the side).
-_START_WIDTHS = (0.4, 0.8, 1.5, 2.5, 4.0)
-_START_SHARES = (0.3, 0.45, 0.6, 0.75)
-_KINKS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+_START_WIDTHS = (0.5, 1.0, 2.0, 3.5)
+_START_SHARES = (0.35, 0.55, 0.75)
+_KINKS = (0.0, 0.15, 0.3, 0.45, 0.6, 0.75, 0.9)  # 0: none
+#: (share from corner A, share from corner B) of the kink patterns, NaN for no taper at
+#: that end; the first is no taper at all.
+_KINK_PAIRS = np.array(
+    [(np.nan, np.nan)]
+    + [(a or np.nan, b or np.nan) for a in _KINKS for b in _KINKS if (a or b) and a + b < 1.0]
+)
+_KINKS_USED = np.isfinite(_KINK_PAIRS).sum(axis=1)
 _KINK_STARTS = 8
 #: The band's level relative to the far level (0) and the face's (1).
 _SHARE_RANGE = (0.1, 0.9)
@@ -100,16 +107,18 @@ def coverage(across: Matrix, edge: Matrix, slant: Matrix | float, blur: float = 
     their summed variances).
     """
     slant = np.maximum(np.abs(slant), MIN_SLANT)
-    c = across + 0.5 - edge
+    c = across + (0.5 - edge)
     if blur >= 0.25:
         spread = np.sqrt((1.0 + slant * slant) / 12.0 + blur * blur)
         z = (c - 0.5) / spread
         return 0.5 * (1.0 + _erf(z / math.sqrt(2.0))), -np.exp(-0.5 * z * z) / (spread * math.sqrt(2.0 * math.pi))
     half = 0.5 * slant
-    hi, lo = np.clip(c + half, 0.0, 1.0), np.clip(c - half, 0.0, 1.0)
-    # A(hi) - A(lo): the clipped parts' areas plus the stretch wholly beyond the edge.
-    beyond = np.maximum(c - half - 1.0, 0.0) - np.maximum(c + half - 1.0, 0.0)
-    return (0.5 * (hi * hi - lo * lo) - beyond) / slant, (lo - hi) / slant
+    # A(z) = z^2 / 2 on [0, 1], z - 1/2 beyond, 0 below: with z+ = max(z, 0) and
+    # h = min(z+, 1), A = h (h / 2 - 1) + z+. (Plain ufuncs: this runs in fits' inner loops.)
+    high, low = np.maximum(c + half, 0.0), np.maximum(c - half, 0.0)
+    inside_high, inside_low = np.minimum(high, 1.0), np.minimum(low, 1.0)
+    area = inside_high * (0.5 * inside_high - 1.0) + high - inside_low * (0.5 * inside_low - 1.0) - low
+    return area / slant, (inside_low - inside_high) / slant
 
 
 def _erf(x: Matrix) -> Matrix:
@@ -149,8 +158,7 @@ def banded_lines(strips: Strips, lines: list[tuple[Matrix, float]], blur: float 
     n_along = np.where(steep, normals[segment, 1], normals[segment, 0])
     edge = sign * (offsets[segment] - n_along * strips.along) / n_across
     slope = n_along / n_across
-    bright = running_median(values[:, -1], segment)
-    dark = running_median(values[:, 0], segment)
+    dark, bright = running_median(values[:, [0, -1]], segment).T
     cover = coverage(across, edge[:, None], slope[:, None], blur)[0]
     step_residual = values[:, 1:-1] - (dark[:, None] + (bright - dark)[:, None] * cover)
     strip_costs = (step_residual * step_residual).sum(axis=1)
@@ -185,8 +193,9 @@ def _noise_variance(values: Matrix) -> float:
     From the two pixels at each strip's face end (bright-positive ``values``), 4 and 5
     px inside the face: half the robust variance of their difference.
     """
-    difference = values[:, -1] - values[:, -2]
-    spread = 1.4826 * float(np.median(np.abs(difference - np.median(difference))))
+    difference = np.sort(values[:, -1] - values[:, -2])
+    middle = len(difference) // 2
+    spread = 1.4826 * float(np.sort(np.abs(difference - difference[middle]))[middle])
     return max(0.5 * spread * spread, 1.0 / 12.0)
 
 
@@ -257,17 +266,11 @@ def _starts(side: _Side, far: float, contrast: float) -> Matrix:
     n = len(t)
     bright_length = ((side.values - side.dark[:, None]) / (side.bright - side.dark)[:, None]).sum(axis=1)
     position = side.across[:, -1] + 0.5 - bright_length
-    span = t_b - t_a
-    kinks = [(None, None)] + [
-        (t_a + f * span if f else None, t_b - g * span if g else None)
-        for f in (0.0,) + _KINKS
-        for g in (0.0,) + _KINKS
-        if (f or g) and f + g < 1.0
-    ]
-    # Columns (1, t, a, b) with L w = Lb0 a + Lb1 b, continuous at the kinks (NaN: none).
-    kink_a = np.array([np.nan if a is None else a for a, _ in kinks])[:, None]
-    kink_b = np.array([np.nan if b is None else b for _, b in kinks])[:, None]
-    design = np.empty((len(kinks), n, 4))
+    # Kinks at shares of the side from either corner (NaN: no taper at that end).
+    kink_a = (t_a + _KINK_PAIRS[:, 0] * (t_b - t_a))[:, None]
+    kink_b = (t_b - _KINK_PAIRS[:, 1] * (t_b - t_a))[:, None]
+    # Columns (1, t, a, b) with L w = Lb0 a + Lb1 b, continuous at the kinks.
+    design = np.empty((len(_KINK_PAIRS), n, 4))
     design[:, :, 0], design[:, :, 1] = 1.0, t
     with np.errstate(invalid="ignore"):
         ramp_a = np.maximum((t - t_a) / (kink_a - t_a), 0.0)
@@ -279,7 +282,7 @@ def _starts(side: _Side, far: float, contrast: float) -> Matrix:
     # (only the partial areas are read here): the least widening is taken, the bottom
     # edge of a box's side face running nearly parallel to its top edge. Without a
     # taper nothing of the band shows, and it is left at zero.
-    ridge = np.zeros((len(kinks), 4, 4))
+    ridge = np.zeros((len(_KINK_PAIRS), 4, 4))
     ridge[:, 3, 3] = 1e-4 * float(t @ t)
     ridge[:, 2, 2] = 1e-8 * n  # (a kink beyond the strips leaves the band's width unseen)
     ridge[0, 2, 2] = 1e-4 * n
@@ -290,28 +293,25 @@ def _starts(side: _Side, far: float, contrast: float) -> Matrix:
     # Each kink must pay for itself (two parameters' worth of an information criterion).
     # Partial areas alone can mistake a tilted side for a taper: the few best kink
     # patterns all become starts, and the pixels decide.
-    used = np.array([(a is not None) + (b is not None) for a, b in kinks])
-    score = n * np.log(np.maximum(cost / n, 1e-8)) + 2.0 * np.log(n) * used
-    shares = np.array(_START_SHARES)
+    score = n * np.log(np.maximum(cost / n, 1e-8)) + 2.0 * np.log(n) * _KINKS_USED
     # No taper: the line is the partial area's, shifted out by w L for each width.
-    width, share = (g.ravel() for g in np.meshgrid(_START_WIDTHS, shares))
+    width, share = (g.ravel() for g in np.meshgrid(_START_WIDTHS, _START_SHARES))
     flat = np.zeros((len(width), 7))
     flat[:, 0] = coef[0, 0] + share * np.minimum(width, 2.0)
     flat[:, 1] = coef[0, 1]
     flat[:, 2] = far + share * contrast
     flat[:, 3] = width
     flat[:, 5:] = _NO_TAPER
-    tapered = []
-    for best in np.argsort(score[1:])[:_KINK_STARTS] + 1:
-        (kink_a, kink_b), (e0, m, lb0, lb1) = kinks[best], coef[best]
-        starts = np.zeros((len(shares), 7))
-        starts[:, 0], starts[:, 1] = e0, m
-        starts[:, 2] = far + shares * contrast
-        starts[:, 3], starts[:, 4] = lb0 / shares, lb1 / shares
-        starts[:, 5] = _NO_TAPER if kink_a is None else (lb0 + lb1 * kink_a) / (kink_a - t_a) / shares
-        starts[:, 6] = _NO_TAPER if kink_b is None else (lb0 + lb1 * kink_b) / (t_b - kink_b) / shares
-        tapered.append(starts)
-    return np.concatenate([flat] + tapered)
+    # Tapers: each of the best kink patterns at each of a few levels.
+    picked = np.argsort(score[1:])[:_KINK_STARTS] + 1
+    share = np.tile(np.array(_START_SHARES), len(picked))[:, None]
+    e0, m, lb0, lb1 = (np.repeat(coef[picked, i], len(_START_SHARES))[:, None] for i in range(4))
+    kink_a, kink_b = (np.repeat(k[picked, 0], len(_START_SHARES))[:, None] for k in (kink_a, kink_b))
+    with np.errstate(invalid="ignore"):
+        k_a = np.where(np.isnan(kink_a), _NO_TAPER, (lb0 + lb1 * kink_a) / (kink_a - t_a) / share)
+        k_b = np.where(np.isnan(kink_b), _NO_TAPER, (lb0 + lb1 * kink_b) / (t_b - kink_b) / share)
+    tapered = np.concatenate([e0, m, far + share * contrast, lb0 / share, lb1 / share, k_a, k_b], axis=1)
+    return np.concatenate([flat, tapered])
 
 
 def _best(side: _Side, starts: Matrix) -> int:
@@ -376,25 +376,43 @@ def _residuals(side: _Side, batch: Matrix) -> Matrix:
 
 
 def _residuals_and_jacobian(side: _Side, params: Matrix) -> tuple[Matrix, Matrix]:
-    """Residuals (N,) of the grey levels under ``params`` and their Jacobian (N, 7)."""
-    cover, d_cover, active = _geometry(side, params[None, :])
-    cover_e, cover_f, d_e, d_f = cover[0, 0], cover[1, 0], d_cover[0, 0], d_cover[1, 0]
-    dark, bright, g = side.dark[:, None], side.bright[:, None], float(params[2])
-    residual = side.values - (dark + (g - dark) * cover_f + (bright - g) * cover_e)
-    d_edge = (g - dark) * d_f + (bright - g) * d_e  # d prediction / d c0
+    """Residuals (N,) of the grey levels under ``params`` and their Jacobian (N, 7).
+
+    The same model as ``_residuals`` for one parameter set, written for few array
+    operations: it runs in the fit's inner loop.
+    """
+    c0, m, g, b0, b1, k_a, k_b = params
     t_a, t_b = side.ends
-    t, piece = side.t, active[0]
+    t = side.t
+    bottom, taper_a, taper_b = b0 + b1 * t, k_a * (t - t_a), k_b * (t_b - t)
+    width = np.minimum(np.minimum(bottom, taper_a), taper_b)
+    # Which piece shapes the width (none where it is clipped at zero).
+    on_bottom = (width == bottom) & (width > 0.0)
+    on_a = (width == taper_a) & ~on_bottom & (width > 0.0)
+    on_b = (width > 0.0) & ~on_bottom & ~on_a
+    dw_dt = on_bottom * b1 + on_a * k_a - on_b * k_b
+    edges, slants = np.empty((2, len(t), 1)), np.empty((2, len(t), 1))
+    edges[0, :, 0] = c0 + m * t
+    edges[1, :, 0] = edges[0, :, 0] - np.maximum(width, 0.0)
+    slants[0] = m
+    slants[1, :, 0] = m - dw_dt
+    (cover_e, cover_f), (d_e, d_f) = coverage(side.across, edges, slants, side.blur)
+    dark, bright = side.dark[:, None], side.bright[:, None]
+    band_step = cover_f - cover_e
+    residual = side.values - (dark + (g - dark) * cover_f + (bright - g) * cover_e)
+    d_far = (g - dark) * d_f
+    d_edge = d_far + (bright - g) * d_e  # d prediction / d c0
     # d w / d (b0, b1, kA, kB): only the piece that shapes the width moves it.
-    d_width = np.zeros((len(t), 4))
-    d_width[:, 0] = piece == 0
-    d_width[:, 1] = np.where(piece == 0, t, 0.0)
-    d_width[:, 2] = np.where(piece == 1, t - t_a, 0.0)
-    d_width[:, 3] = np.where(piece == 2, t_b - t, 0.0)
+    d_width = np.empty((len(t), 1, 4))
+    d_width[:, 0, 0] = on_bottom
+    d_width[:, 0, 1] = on_bottom * t
+    d_width[:, 0, 2] = on_a * (t - t_a)
+    d_width[:, 0, 3] = on_b * (t_b - t)
     jac = np.empty(cover_e.shape + (7,))
     jac[..., 0] = d_edge
     jac[..., 1] = d_edge * t[:, None]
-    jac[..., 2] = cover_f - cover_e
-    jac[..., 3:] = (-(g - dark) * d_f)[..., None] * d_width[:, None, :]
+    jac[..., 2] = band_step
+    jac[..., 3:] = d_far[..., None] * -d_width
     return residual.ravel(), -jac.reshape(-1, 7)
 
 
@@ -407,6 +425,6 @@ def _descend(side: _Side, params: Matrix, lower: Matrix, upper: Matrix, reach_t:
         upper,
         iterations=_ITERATIONS,
         # The face's side (the line wanted) has settled, whatever the band still does.
-        settled=lambda old, new: abs(new[0] - old[0]) + abs(new[1] - old[1]) * reach_t < 1e-3,
+        settled=lambda old, new: abs(new[0] - old[0]) + abs(new[1] - old[1]) * reach_t < 2e-3,
     )
     return params, float(residual @ residual)

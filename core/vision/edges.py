@@ -176,12 +176,13 @@ def edge_points_many(
 
 
 def running_median(levels: Matrix, segment: np.ndarray, width: int = 5) -> Matrix:
-    """Running median of ``width`` successive strips of the same segment (sorted by segment).
+    """Running median of ``width`` successive strips of the same segment (sorted by
+    segment), of each column of ``levels`` (N,) or (N, k).
 
     A median keeps the step where the far side of an edge changes (a side face ending
     at a junction) and follows uneven lighting, while it quietens the noise.
     """
-    index = np.arange(levels.size)
+    index = np.arange(len(levels))
     starts = np.searchsorted(segment, segment, side="left")
     stops = np.searchsorted(segment, segment, side="right") - 1
     window = np.clip(index[:, None] + (np.arange(width) - width // 2)[None, :], starts[:, None], stops[:, None])
