@@ -34,7 +34,7 @@ a side without a band keeps its partial-area line, and noise does not invent ban
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -63,8 +63,9 @@ _ITERATIONS = 8
 _MAX_STRIPS = 16
 #: Starting widths (px) and relative levels of the band (its cost has poor minima in them),
 #: and where a taper starting at a corner may meet the bottom edge (share of the side).
-_START_WIDTHS = (0.5, 1.0, 2.0, 3.5)
-_START_SHARES = (0.35, 0.55, 0.75)
+_START_SHARES = np.array([0.35, 0.55, 0.75])
+_FLAT_WIDTHS = np.repeat([0.5, 1.0, 2.0, 3.5], len(_START_SHARES))
+_FLAT_SHARES = np.tile(_START_SHARES, 4)
 _KINKS = (0.0, 0.15, 0.3, 0.45, 0.6, 0.75, 0.9)  # 0: none
 #: (share from corner A, share from corner B) of the kink patterns, NaN for no taper at
 #: that end; the first is no taper at all.
@@ -129,16 +130,18 @@ def _erf(x: Matrix) -> Matrix:
     return np.sign(x) * (1.0 - poly * np.exp(-a * a))
 
 
-def banded_lines(strips: Strips, lines: list[tuple[Matrix, float]], blur: float = 0.0) -> list[BandFit | None]:
+def banded_lines(strips: Strips, lines: list[tuple[Matrix, float]]) -> list[BandFit | None]:
     """Each side's three-level fit when a band runs along it, else None.
 
     ``strips`` are wide strips across the sides (``sample_strips``, one level pixel at
     each end), ``lines`` the four sides' partial-area lines in order around the face
     (unit normal from dark to bright, offset): side i runs from its crossing with side
-    i - 1 to its crossing with side i + 1. ``blur`` is the image's optical blur (sigma, px).
+    i - 1 to its crossing with side i + 1.
 
     First every side at once as a single step at its line: a side whose pixels that
-    step explains to within the noise has no band worth fitting.
+    step explains to within the noise has no band worth fitting. The step is first
+    taken sharp; only if a side then looks banded is the image's blur measured (a
+    blurred image makes every side look so) and the test repeated with it.
     """
     count = len(lines)
     result: list[BandFit | None] = [None] * count
@@ -159,21 +162,29 @@ def banded_lines(strips: Strips, lines: list[tuple[Matrix, float]], blur: float 
     edge = sign * (offsets[segment] - n_along * strips.along) / n_across
     slope = n_along / n_across
     dark, bright = running_median(values[:, [0, -1]], segment).T
-    cover = coverage(across, edge[:, None], slope[:, None], blur)[0]
-    step_residual = values[:, 1:-1] - (dark[:, None] + (bright - dark)[:, None] * cover)
-    strip_costs = (step_residual * step_residual).sum(axis=1)
     noise = _noise_variance(values)
     pixels = values.shape[1] - 2
     contrasts = segment_medians(bright - dark, segment, count)
-    for index in range(count):
-        part = slice(bounds[index], bounds[index + 1])
-        strips_in_side = bounds[index + 1] - bounds[index]
-        if strips_in_side < 8 or contrasts[index] < _MIN_CONTRAST:
-            continue
-        if strip_costs[part].sum() <= (strips_in_side * pixels + _F_RATIO * _BAND_PARAMETERS) * noise:
-            continue
+    sizes = np.diff(bounds)
+    usable = (sizes >= 8) & (contrasts >= _MIN_CONTRAST)
+
+    def step_costs(blur: float) -> tuple[Matrix, np.ndarray]:
+        """Each strip's cost as a single step, and the sides that it leaves banded."""
+        cover = coverage(across, edge[:, None], slope[:, None], blur)[0]
+        residual = values[:, 1:-1] - (dark[:, None] + (bright - dark)[:, None] * cover)
+        costs = (residual * residual).sum(axis=1)
+        side_costs = np.add.reduceat(costs, np.minimum(bounds[:-1], len(costs) - 1)) * (sizes > 0)
+        return costs, usable & (side_costs > (sizes * pixels + _F_RATIO * _BAND_PARAMETERS) * noise)
+
+    blur = 0.0
+    strip_costs, banded = step_costs(blur)
+    if banded.any():
+        blur = _edge_blur(strips, lines)
+        if blur > 0.0:
+            strip_costs, banded = step_costs(blur)
+    for index in np.flatnonzero(banded):
         # Of a long side every other strip (or fewer) is plenty: the fit costs per pixel.
-        picked = np.arange(bounds[index], bounds[index + 1], -(-strips_in_side // _MAX_STRIPS))
+        picked = np.arange(bounds[index], bounds[index + 1], -(-sizes[index] // _MAX_STRIPS))
         first = picked[0]
         axis = 1 if steep[first] else 0
         ends = [intersect(lines[index - 1], lines[index])[axis], intersect(lines[index], lines[(index + 1) % count])[axis]]
@@ -185,6 +196,49 @@ def banded_lines(strips: Strips, lines: list[tuple[Matrix, float]], blur: float 
         if fit is not None:
             result[index] = _to_image(*fit, side, bool(steep[first]), float(sign[first]), lines[index][0])
     return result
+
+
+def _edge_blur(strips: Strips, lines: list[tuple[Matrix, float]]) -> float:
+    """The optical blur of the image (sigma of a Gaussian, px), from the top face's sides.
+
+    Across a straight edge the grey levels' differences spread with variance 1/6 (the
+    pixel's box, twice: the edge's coverage and the differencing) plus slant^2 / 12
+    plus sigma^2. The moments are summed over each side's strips before they are
+    divided (the noise then averages out), within 3.5 px of the line. The second
+    cleanest side decides (a side face along a side widens its profile); estimates
+    under 0.45 px are within the noise and read as no blur.
+    """
+    values = strips.values[:, 1:-1]  # 4 px each side
+    sign = np.where(strips.bright_high, 1.0, -1.0)
+    normals = np.array([normal for normal, _ in lines])[strips.segment]
+    offsets = np.array([offset for _, offset in lines])[strips.segment]
+    n_across = np.where(strips.steep, normals[:, 0], normals[:, 1])
+    n_along = np.where(strips.steep, normals[:, 1], normals[:, 0])
+    line_at = (offsets - n_along * strips.along) / n_across  # across coordinate of the line
+    # Differences between neighbours, at the midpoints, in the bright-positive frame.
+    steps = sign[:, None] * np.diff(values, axis=1)
+    position = sign[:, None] * (strips.base[:, None] + np.arange(-4, 4)[None, :] + 0.5 - line_at[:, None])
+    contrast = sign * (values[:, -1] - values[:, 0])
+    usable = contrast > 20.0
+    bounds = np.searchsorted(strips.segment, np.arange(len(lines) + 1))
+    slant = n_along / n_across
+    per_side = []
+    for i in range(len(lines)):
+        rows = slice(bounds[i], bounds[i + 1])
+        ok = usable[rows]
+        if ok.sum() < 6:
+            continue
+        d = steps[rows][ok] / contrast[rows][ok, None]
+        x = position[rows][ok]
+        m0, m1, m2 = d.sum(), (d * x).sum(), (d * x * x).sum()
+        if m0 <= 0.0:
+            continue
+        per_side.append(m2 / m0 - (m1 / m0) ** 2 - 1.0 / 6.0 - float(slant[rows][0]) ** 2 / 12.0)
+    if not per_side:
+        return 0.0
+    variance = sorted(per_side)[min(1, len(per_side) - 1)]
+    sigma = math.sqrt(variance) if variance > 0.0 else 0.0
+    return sigma if sigma > 0.45 else 0.0
 
 
 def _noise_variance(values: Matrix) -> float:
@@ -231,19 +285,20 @@ def _fit_band(side: _Side, step: tuple[float, float], step_cost: float, noise: f
     reach_t = 0.5 * float(side.t.max() - side.t.min()) + 1.0
     # The far level where the band is narrower than the strips (the widest bands' strips
     # end on the band itself).
-    far, face = float(np.percentile(side.dark, 10)), float(np.median(side.bright))
+    dark, bright = np.sort(side.dark), np.sort(side.bright)
+    far, face = float(dark[len(dark) // 10]), float(bright[len(bright) // 2])
     contrast = face - far
     lower = np.array([c0 - 2.5, m - 2.5 / reach_t, far + _SHARE_RANGE[0] * contrast, 0.0, -1.0, 0.0, 0.0])
     upper = np.array([c0 + 2.5, m + 2.5 / reach_t, far + _SHARE_RANGE[1] * contrast, _MAX_WIDTH_PX, 1.0, _NO_TAPER, _NO_TAPER])
     starts = _starts(side, far, contrast)
-    band = starts[_best(side, np.clip(starts, lower, upper))]
-    band, band_cost = _descend(side, np.clip(band, lower, upper), lower, upper, reach_t)
+    starts = np.minimum(np.maximum(starts, lower), upper)
+    band, band_cost = _descend(side, starts[_best(side, starts)], lower, upper, reach_t)
 
     dof = max(side.values.size - len(band), 1)
     # The residual's variance, at least the noise's: on a clean image a slight mismatch
     # of the model would otherwise count as significant.
     improvement = ((step_cost - band_cost) / _BAND_PARAMETERS) / max(band_cost / dof, noise)
-    if not (np.all(np.isfinite(band)) and improvement > _F_RATIO and _width(side, band[None])[0].max() > 0.05):
+    if not (np.isfinite(band).all() and improvement > _F_RATIO and _width(side, band[None])[0].max() > 0.05):
         return None
     if band[2] > upper[2] - 0.01 * contrast:
         return None  # a band at the face's level is only the edge moved
@@ -270,14 +325,13 @@ def _starts(side: _Side, far: float, contrast: float) -> Matrix:
     kink_a = (t_a + _KINK_PAIRS[:, 0] * (t_b - t_a))[:, None]
     kink_b = (t_b - _KINK_PAIRS[:, 1] * (t_b - t_a))[:, None]
     # Columns (1, t, a, b) with L w = Lb0 a + Lb1 b, continuous at the kinks.
+    ramp_a = np.maximum((t - t_a) / (kink_a - t_a), 0.0)
+    ramp_b = np.maximum((t_b - t) / (t_b - kink_b), 0.0)
+    below, above = t < kink_a, t > kink_b
     design = np.empty((len(_KINK_PAIRS), n, 4))
     design[:, :, 0], design[:, :, 1] = 1.0, t
-    with np.errstate(invalid="ignore"):
-        ramp_a = np.maximum((t - t_a) / (kink_a - t_a), 0.0)
-        ramp_b = np.maximum((t_b - t) / (t_b - kink_b), 0.0)
-        below, above = t < kink_a, t > kink_b
-    design[:, :, 2] = -np.where(below, ramp_a, np.where(above, ramp_b, 1.0))
-    design[:, :, 3] = -np.where(below, kink_a * ramp_a, np.where(above, kink_b * ramp_b, t))
+    design[:, :, 2] = np.where(below, -ramp_a, np.where(above, -ramp_b, -1.0))
+    design[:, :, 3] = np.where(below, -kink_a * ramp_a, np.where(above, -kink_b * ramp_b, -t))
     # Along a side with one taper a band widening linearly looks just like a tilted side
     # (only the partial areas are read here): the least widening is taken, the bottom
     # edge of a box's side face running nearly parallel to its top edge. Without a
@@ -286,40 +340,40 @@ def _starts(side: _Side, far: float, contrast: float) -> Matrix:
     ridge[:, 3, 3] = 1e-4 * float(t @ t)
     ridge[:, 2, 2] = 1e-8 * n  # (a kink beyond the strips leaves the band's width unseen)
     ridge[0, 2, 2] = 1e-4 * n
-    normal = np.einsum("kni,knj->kij", design, design) + ridge
-    coef = np.linalg.solve(normal, np.einsum("kni,n->ki", design, position)[..., None])[..., 0]
-    residual = position[None, :] - np.einsum("kni,ki->kn", design, coef)
-    cost = np.einsum("kn,kn->k", residual, residual)
+    transposed = design.transpose(0, 2, 1)
+    coef = np.linalg.solve(transposed @ design + ridge, transposed @ position[:, None])  # (K, 4, 1)
+    residual = position[:, None] - design @ coef
+    cost = (residual * residual).sum(axis=(1, 2))
+    coef = coef[:, :, 0]
     # Each kink must pay for itself (two parameters' worth of an information criterion).
     # Partial areas alone can mistake a tilted side for a taper: the few best kink
     # patterns all become starts, and the pixels decide.
     score = n * np.log(np.maximum(cost / n, 1e-8)) + 2.0 * np.log(n) * _KINKS_USED
     # No taper: the line is the partial area's, shifted out by w L for each width.
-    width, share = (g.ravel() for g in np.meshgrid(_START_WIDTHS, _START_SHARES))
-    flat = np.zeros((len(width), 7))
-    flat[:, 0] = coef[0, 0] + share * np.minimum(width, 2.0)
+    flat = np.zeros((len(_FLAT_WIDTHS), 7))
+    flat[:, 0] = coef[0, 0] + _FLAT_SHARES * np.minimum(_FLAT_WIDTHS, 2.0)
     flat[:, 1] = coef[0, 1]
-    flat[:, 2] = far + share * contrast
-    flat[:, 3] = width
+    flat[:, 2] = far + _FLAT_SHARES * contrast
+    flat[:, 3] = _FLAT_WIDTHS
     flat[:, 5:] = _NO_TAPER
     # Tapers: each of the best kink patterns at each of a few levels.
-    picked = np.argsort(score[1:])[:_KINK_STARTS] + 1
-    share = np.tile(np.array(_START_SHARES), len(picked))[:, None]
-    e0, m, lb0, lb1 = (np.repeat(coef[picked, i], len(_START_SHARES))[:, None] for i in range(4))
-    kink_a, kink_b = (np.repeat(k[picked, 0], len(_START_SHARES))[:, None] for k in (kink_a, kink_b))
-    with np.errstate(invalid="ignore"):
-        k_a = np.where(np.isnan(kink_a), _NO_TAPER, (lb0 + lb1 * kink_a) / (kink_a - t_a) / share)
-        k_b = np.where(np.isnan(kink_b), _NO_TAPER, (lb0 + lb1 * kink_b) / (t_b - kink_b) / share)
-    tapered = np.concatenate([e0, m, far + share * contrast, lb0 / share, lb1 / share, k_a, k_b], axis=1)
+    picked = np.repeat(np.argsort(score[1:])[:_KINK_STARTS] + 1, len(_START_SHARES))
+    share = np.tile(_START_SHARES, _KINK_STARTS)[: len(picked)]
+    e0, m, lb0, lb1 = coef[picked].T
+    kink_a, kink_b = kink_a[picked, 0], kink_b[picked, 0]
+    tapered = np.empty((len(picked), 7))
+    tapered[:, 0], tapered[:, 1] = e0, m
+    tapered[:, 2] = far + share * contrast
+    tapered[:, 3], tapered[:, 4] = lb0 / share, lb1 / share
+    tapered[:, 5] = np.where(np.isnan(kink_a), _NO_TAPER, (lb0 + lb1 * kink_a) / (kink_a - t_a) / share)
+    tapered[:, 6] = np.where(np.isnan(kink_b), _NO_TAPER, (lb0 + lb1 * kink_b) / (t_b - kink_b) / share)
     return np.concatenate([flat, tapered])
 
 
 def _best(side: _Side, starts: Matrix) -> int:
     """Index of the parameter set of least cost (on every other strip: it only ranks)."""
-    every_other = slice(None, None, 2)
-    sparse = replace(
-        side, values=side.values[every_other], across=side.across[every_other], t=side.t[every_other],
-        bright=side.bright[every_other], dark=side.dark[every_other],
+    sparse = _Side(
+        side.values[::2], side.across[::2], side.mean_along, side.t[::2], side.ends, side.bright[::2], side.dark[::2], side.blur
     )
     residuals = _residuals(sparse, starts)
     return int(np.argmin(np.einsum("gi,gi->g", residuals, residuals)))

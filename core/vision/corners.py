@@ -62,6 +62,8 @@ SATURATED_LEVEL = 250
 #: The orientation mark's radius as a fraction of the face side (core.scene.Cube: side / 8).
 MARK_RADIUS_FRACTION = 0.125
 
+#: Margin (px) of the full-resolution window around the region found on every other pixel.
+_WINDOW_MARGIN_PX = 4
 #: Farthest (px) a refined corner may lie from the threshold outline's polygon: beyond,
 #: a side fit has gone astray and no corners are better than wrong ones.
 _MAX_MOVE_PX = 4.0
@@ -210,24 +212,44 @@ def _face_levels(img: np.ndarray) -> tuple[float, float, float] | None:
 
 def _rough_quadrilateral(img: np.ndarray, threshold: float) -> tuple[Matrix | None, Matrix | None, str]:
     """The largest bright region's quadrilateral (4, 2) in contour order and its outline
-    (boundary pixels, (M, 2)), or None, None and why."""
-    _, binary = cv2.threshold(img, threshold, 255, cv2.THRESH_BINARY)
-    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    (boundary pixels, (M, 2)), or None, None and why.
+
+    The region is found on every other pixel first, then outlined at full resolution in
+    a window around it: thresholding and tracing the whole frame costs several times
+    more, most of it in touching a frame-sized array.
+    """
+    height, width = img.shape
+    _, coarse = cv2.threshold(np.ascontiguousarray(img[::2, ::2]), threshold, 255, cv2.THRESH_BINARY)
+    contours, _ = cv2.findContours(coarse, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     if not contours:
         return None, None, "no bright top face above the threshold"
-    areas = [cv2.contourArea(c) for c in contours]
-    best = int(np.argmax(areas))
-    contour = contours[best]
-    if areas[best] < MIN_FACE_AREA_PX:
-        return None, None, f"no bright top face: largest bright region is {areas[best]:.0f} px^2"
-    height, width = img.shape
+    x, y, w, h = cv2.boundingRect(max(contours, key=cv2.contourArea))
+    x0, y0 = max(2 * x - _WINDOW_MARGIN_PX, 0), max(2 * y - _WINDOW_MARGIN_PX, 0)
+    x1, y1 = min(2 * (x + w) + _WINDOW_MARGIN_PX, width), min(2 * (y + h) + _WINDOW_MARGIN_PX, height)
+    _, binary = cv2.threshold(img[y0:y1, x0:x1], threshold, 255, cv2.THRESH_BINARY)
+    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE, offset=(x0, y0))
+    contour = max(contours, key=cv2.contourArea) if contours else None
+    if contour is not None:
+        x, y, w, h = cv2.boundingRect(contour)
+        inside = (x > x0 or x0 == 0) and (y > y0 or y0 == 0) and (x + w < x1 or x1 == width) and (y + h < y1 or y1 == height)
+        if not inside:
+            # The region reaches out of the window (thinner than a sampled pixel
+            # somewhere): outline it on the whole frame.
+            _, binary = cv2.threshold(img, threshold, 255, cv2.THRESH_BINARY)
+            contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+            contour = max(contours, key=cv2.contourArea)
+    if contour is None:
+        return None, None, "no bright top face above the threshold"
+    area = cv2.contourArea(contour)
+    if area < MIN_FACE_AREA_PX:
+        return None, None, f"no bright top face: largest bright region is {area:.0f} px^2"
     x, y, w, h = cv2.boundingRect(contour)
     if x <= 0 or y <= 0 or x + w >= width or y + h >= height:
         return None, None, "object cut by the image border"
     hull = cv2.convexHull(contour)
     hull_area = cv2.contourArea(hull)
-    if areas[best] < 0.85 * hull_area:
-        return None, None, f"bright region is not convex (fills {areas[best] / hull_area:.0%} of its hull)"
+    if area < 0.85 * hull_area:
+        return None, None, f"bright region is not convex (fills {area / hull_area:.0%} of its hull)"
     perimeter = cv2.arcLength(hull, True)
     for fraction in (0.02, 0.03, 0.045, 0.06, 0.08, 0.1, 0.015, 0.01):
         approx = cv2.approxPolyDP(hull, fraction * perimeter, True)
@@ -325,7 +347,6 @@ def _refine(
     )
     if wide is not None and _dim_inside(wide, len(lines)) < face_floor:
         return _DIM_SIDE
-    blur = _edge_blur(wide, lines) if wide is not None else 0.0
     # Narrow strips: +-1 px holds a box-filtered edge with a slant of up to 1 px per px,
     # and they stay on a side face a few pixels wide. Under blur the ramp spills beyond
     # them, symmetrically about a centred edge; wider strips would swallow side faces.
@@ -377,7 +398,7 @@ def _refine(
             break  # the strips were centred well enough
     # A side face narrower than the strips would pull a side outwards.
     if wide is not None:
-        for i, banded in enumerate(banded_lines(wide, lines, blur)):
+        for i, banded in enumerate(banded_lines(wide, lines)):
             if banded is not None:
                 lines[i] = banded.line
     corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
@@ -420,50 +441,6 @@ def _dim_inside(strips: Strips, count: int) -> float:
     return float(np.nanmin(levels)) if np.any(np.isfinite(levels)) else np.inf
 
 
-def _edge_blur(strips: Strips, lines: list[tuple[Matrix, float]]) -> float:
-    """The optical blur of the image (sigma of a Gaussian, px), from the top face's sides.
-
-    Across a straight edge the grey levels' differences spread with variance 1/6 (the
-    pixel's box, twice: the edge's coverage and the differencing) plus slant^2 / 12
-    plus sigma^2. The moments are summed over each side's strips before they are
-    divided (the noise then averages out), within 3.5 px of the line. The second
-    cleanest side decides (a side face along a side widens its profile); estimates
-    under 0.45 px are within the noise and read as no blur.
-    """
-    values = strips.values[:, 1:-1]  # 4 px each side
-    sign = np.where(strips.bright_high, 1.0, -1.0)
-    normals = np.array([normal for normal, _ in lines])
-    offsets = np.array([offset for _, offset in lines])
-    steep_s = np.abs(normals[:, 0]) > np.abs(normals[:, 1])
-    n_across = np.where(steep_s, normals[:, 0], normals[:, 1])[strips.segment]
-    n_along = np.where(steep_s, normals[:, 1], normals[:, 0])[strips.segment]
-    line_at = (offsets[strips.segment] - n_along * strips.along) / n_across  # across coordinate of the line
-    # Differences between neighbours, at the midpoints, in the bright-positive frame.
-    steps = sign[:, None] * np.diff(values, axis=1)
-    position = sign[:, None] * (strips.base[:, None] + np.arange(-4, 4)[None, :] + 0.5 - line_at[:, None])
-    contrast = sign * (values[:, -1] - values[:, 0])
-    usable = contrast > 20.0
-    bounds = np.searchsorted(strips.segment, np.arange(len(lines) + 1))
-    slant = n_along / n_across
-    per_side = []
-    for i in range(len(lines)):
-        rows = slice(bounds[i], bounds[i + 1])
-        ok = usable[rows]
-        if ok.sum() < 6:
-            continue
-        d = steps[rows][ok] / contrast[rows][ok, None]
-        x = position[rows][ok]
-        m0, m1, m2 = d.sum(), (d * x).sum(), (d * x * x).sum()
-        if m0 <= 0.0:
-            continue
-        per_side.append(m2 / m0 - (m1 / m0) ** 2 - 1.0 / 6.0 - float(slant[rows][0]) ** 2 / 12.0)
-    if not per_side:
-        return 0.0
-    variance = sorted(per_side)[min(1, len(per_side) - 1)]
-    sigma = math.sqrt(variance) if variance > 0.0 else 0.0
-    return sigma if sigma > 0.45 else 0.0
-
-
 def _outline_lines(quad: Matrix, outline: Matrix, spot_out: list[tuple[Matrix, float]]) -> list[tuple[Matrix, float]] | None:
     """A line per side (inward unit normal, offset) through the outline's points along it.
 
@@ -471,21 +448,20 @@ def _outline_lines(quad: Matrix, outline: Matrix, spot_out: list[tuple[Matrix, f
     half a pixel inside the threshold's crossing: the lines are moved out by that much.
     Outline points within the discs of ``spot_out`` are left out: the laser spot next
     to the face passes the threshold and bulges the outline, and can pull a corner of
-    the quadrilateral off the face: when the first lines' corners are far from the
-    quadrilateral's, the points are taken again near the first lines.
+    the quadrilateral off the face: with the spot next to the outline, the points are
+    taken again near the first lines.
     """
     corners = quad
     lines: list[tuple[Matrix, float]] = []
     spot_near = any(_distance_to_outline(centre, quad) < radius + 2.0 for centre, radius in spot_out)
     for _ in range(2):
-        ends = np.roll(corners, -1, axis=0)
-        lengths = np.linalg.norm(ends - corners, axis=1)
-        directions = (ends - corners) / lengths[:, None]
-        normals = np.column_stack([-directions[:, 1], directions[:, 0]])
+        edges = corners[[1, 2, 3, 0]] - corners
+        lengths = np.sqrt((edges * edges).sum(axis=1))
+        directions = edges / lengths[:, None]
+        normals = directions[:, ::-1] * np.array([-1.0, 1.0])
         normals *= np.where(((corners.mean(axis=0) - corners) * normals).sum(axis=1) < 0.0, -1.0, 1.0)[:, None]
-        relative = outline[:, None, :] - corners[None, :, :]  # (M, 4, 2)
-        along = (relative * directions[None]).sum(axis=2)
-        across = (relative * normals[None]).sum(axis=2)
+        along = outline @ directions.T - (corners * directions).sum(axis=1)  # (M, 4)
+        across = outline @ normals.T - (corners * normals).sum(axis=1)
         margin = 2.0 + 0.1 * lengths
         near = (np.abs(across) < 2.0) & (along > margin) & (along < lengths - margin)
         for centre, radius in spot_out:
