@@ -34,7 +34,7 @@ a side without a band keeps its partial-area line, and noise does not invent ban
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -265,6 +265,20 @@ class _Side:
     bright: Matrix  # (n,) the face's level just inside (running median)
     dark: Matrix  # (n,) the level beyond the band (running median)
     blur: float
+    # Derived arrays the fit's inner loop would otherwise rebuild at every step.
+    t_column: Matrix = field(init=False)
+    dark_column: Matrix = field(init=False)
+    bright_column: Matrix = field(init=False)
+    strip_index: np.ndarray = field(init=False)
+    width_basis: Matrix = field(init=False)  # (n, 4): 1, t, t - tA, tB - t
+
+    def __post_init__(self) -> None:
+        t_a, t_b = self.ends
+        object.__setattr__(self, "t_column", self.t[:, None])
+        object.__setattr__(self, "dark_column", self.dark[:, None])
+        object.__setattr__(self, "bright_column", self.bright[:, None])
+        object.__setattr__(self, "strip_index", np.arange(len(self.t)))
+        object.__setattr__(self, "width_basis", np.column_stack([np.ones_like(self.t), self.t, self.t - t_a, t_b - self.t]))
 
 
 def _side(
@@ -429,44 +443,42 @@ def _residuals(side: _Side, batch: Matrix) -> Matrix:
     return (side.values - (dark + (g - dark) * cover[1] + (bright - g) * cover[0])).reshape(len(batch), -1)
 
 
+#: Which of d w / d (b0, b1, kA, kB) each piece of the width (bottom edge, taper A,
+#: taper B, none) has: 1 or t, (t - tA), (tB - t) by ``_Side.width_basis``.
+_PIECE_DERIVATIVES = np.array([[1.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 0.0]])
+
+
 def _residuals_and_jacobian(side: _Side, params: Matrix) -> tuple[Matrix, Matrix]:
     """Residuals (N,) of the grey levels under ``params`` and their Jacobian (N, 7).
 
     The same model as ``_residuals`` for one parameter set, written for few array
     operations: it runs in the fit's inner loop.
     """
-    c0, m, g, b0, b1, k_a, k_b = params
-    t_a, t_b = side.ends
-    t = side.t
-    bottom, taper_a, taper_b = b0 + b1 * t, k_a * (t - t_a), k_b * (t_b - t)
-    width = np.minimum(np.minimum(bottom, taper_a), taper_b)
-    # Which piece shapes the width (none where it is clipped at zero).
-    on_bottom = (width == bottom) & (width > 0.0)
-    on_a = (width == taper_a) & ~on_bottom & (width > 0.0)
-    on_b = (width > 0.0) & ~on_bottom & ~on_a
-    dw_dt = on_bottom * b1 + on_a * k_a - on_b * k_b
-    edges, slants = np.empty((2, len(t), 1)), np.empty((2, len(t), 1))
-    edges[0, :, 0] = c0 + m * t
+    c0, m, g, b0, b1, k_a, k_b = params.tolist()
+    n = len(side.t)
+    pieces = np.empty((3, n))
+    pieces[0] = b0 + b1 * side.t
+    pieces[1] = k_a * side.width_basis[:, 2]
+    pieces[2] = k_b * side.width_basis[:, 3]
+    piece = pieces.argmin(axis=0)
+    width = pieces[piece, side.strip_index]
+    piece[width <= 0.0] = 3  # clipped at zero: no piece moves it
+    edges, slants = np.empty((2, n, 1)), np.empty((2, n, 1))
+    edges[0, :, 0] = c0 + m * side.t
     edges[1, :, 0] = edges[0, :, 0] - np.maximum(width, 0.0)
     slants[0] = m
-    slants[1, :, 0] = m - dw_dt
+    # The band's outer boundary slants with the side plus the width's change along it.
+    slants[1, :, 0] = m - np.array([b1, k_a, -k_b, 0.0])[piece]
     (cover_e, cover_f), (d_e, d_f) = coverage(side.across, edges, slants, side.blur)
-    dark, bright = side.dark[:, None], side.bright[:, None]
-    band_step = cover_f - cover_e
-    residual = side.values - (dark + (g - dark) * cover_f + (bright - g) * cover_e)
-    d_far = (g - dark) * d_f
-    d_edge = d_far + (bright - g) * d_e  # d prediction / d c0
-    # d w / d (b0, b1, kA, kB): only the piece that shapes the width moves it.
-    d_width = np.empty((len(t), 1, 4))
-    d_width[:, 0, 0] = on_bottom
-    d_width[:, 0, 1] = on_bottom * t
-    d_width[:, 0, 2] = on_a * (t - t_a)
-    d_width[:, 0, 3] = on_b * (t_b - t)
+    residual = side.values - (side.dark_column + (g - side.dark_column) * cover_f + (side.bright_column - g) * cover_e)
+    d_far = (g - side.dark_column) * d_f
+    d_edge = d_far + (side.bright_column - g) * d_e  # d prediction / d c0
     jac = np.empty(cover_e.shape + (7,))
     jac[..., 0] = d_edge
-    jac[..., 1] = d_edge * t[:, None]
-    jac[..., 2] = band_step
-    jac[..., 3:] = d_far[..., None] * -d_width
+    jac[..., 1] = d_edge * side.t_column
+    jac[..., 2] = cover_f - cover_e
+    # d w / d (b0, b1, kA, kB): only the piece that shapes the width moves it.
+    jac[..., 3:] = -d_far[..., None] * (side.width_basis * _PIECE_DERIVATIVES[piece])[:, None, :]
     return residual.ravel(), -jac.reshape(-1, 7)
 
 

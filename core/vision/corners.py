@@ -332,8 +332,9 @@ def _refine(
     lines = _outline_lines(quad, outline, spot_out)
     if lines is None:
         return None
+    allowance = _move_allowance(quad, spot_out)
     corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
-    if _strayed(corners, quad, spot_out):
+    if _strayed(corners, quad, allowance):
         return None
     quality = 0.0
     # Wide strips across the sides, read once: for the blur here, for narrow side faces
@@ -392,9 +393,9 @@ def _refine(
         moved = max(abs(float(new[0] @ corners[i]) - new[1]) for i, new in enumerate(new_lines))
         lines = new_lines
         corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
-        if _strayed(corners, quad, spot_out):
+        if _strayed(corners, quad, allowance):
             return None
-        if attempt == 0 and moved < 0.5 and not recentred:
+        if attempt == 0 and moved < 0.75 and not recentred:
             break  # the strips were centred well enough
     # A side face narrower than the strips would pull a side outwards.
     if wide is not None:
@@ -402,7 +403,7 @@ def _refine(
             if banded is not None:
                 lines[i] = banded.line
     corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
-    if _strayed(corners, quad, spot_out):
+    if _strayed(corners, quad, allowance):
         return None
     return corners, quality
 
@@ -422,16 +423,20 @@ def _well_spread(points: Matrix, start: Matrix, stop: Matrix) -> bool:
     return bool(along.size and np.ptp(along) >= _LEAST_SPAN)
 
 
-def _strayed(corners: Matrix, quad: Matrix, spot_out: list[tuple[Matrix, float]]) -> bool:
-    """Whether a corner is not finite or lies farther from the outline's quadrilateral
-    than a side fit can move it; a corner under the spot's disc (missing from the
-    outline) may move as far again as the disc's radius."""
-    if not np.all(np.isfinite(corners)):
-        return True
+def _move_allowance(quad: Matrix, spot_out: list[tuple[Matrix, float]]) -> Matrix:
+    """How far (px) each corner may move from the outline's quadrilateral: as far as a
+    side fit can move it, and for a corner under the spot's disc (missing from the
+    outline) as far again as the disc's radius."""
     allowance = np.full(len(quad), _MAX_MOVE_PX)
     for centre, radius in spot_out:
-        allowance[np.linalg.norm(quad - centre, axis=1) < radius + _MAX_MOVE_PX] += radius
-    return bool(np.any(np.abs(corners - quad).max(axis=1) > allowance))
+        offset = quad - centre
+        allowance[(offset * offset).sum(axis=1) < (radius + _MAX_MOVE_PX) ** 2] += radius
+    return allowance
+
+
+def _strayed(corners: Matrix, quad: Matrix, allowance: Matrix) -> bool:
+    """Whether a corner is not finite or lies farther from the quadrilateral than allowed."""
+    return not np.isfinite(corners).all() or bool((np.abs(corners - quad).max(axis=1) > allowance).any())
 
 
 def _dim_inside(strips: Strips, count: int) -> float:
@@ -482,29 +487,28 @@ def _outline_lines(quad: Matrix, outline: Matrix, spot_out: list[tuple[Matrix, f
 
 
 def _signed_area2(points: Matrix) -> float:
-    u, v = points[:, 0], points[:, 1]
-    return float((u * np.roll(v, -1) - np.roll(u, -1) * v).sum())
+    following = points[[1, 2, 3, 0]]
+    return float((points[:, 0] * following[:, 1] - following[:, 0] * points[:, 1]).sum())
 
 
 def _order(corners: Matrix, mark_px: Matrix, previous_px: np.ndarray | None, winding: int) -> tuple[Matrix | None, str, bool]:
     """Corners in the taught order, or None and why; True when the mark fixed the order."""
     if _signed_area2(corners) * winding < 0.0:
         corners = corners[::-1].copy()
-    if np.all(np.isfinite(mark_px)):
-        distance = np.linalg.norm(corners - mark_px, axis=1)
-        nearest = int(np.argmin(distance))
-        others = np.delete(distance, nearest)
-        if distance[nearest] < 0.75 * others.min():
-            return np.roll(corners, -nearest, axis=0), "", True
+    if np.isfinite(mark_px).all():
+        offset = corners - mark_px
+        distance = np.sqrt((offset * offset).sum(axis=1))
+        nearest = int(distance.argmin())
+        if distance[nearest] < 0.75 * np.partition(distance, 1)[1]:
+            return corners[(np.arange(4) + nearest) % 4], "", True
     previous = _valid_previous(previous_px)
     if previous is None:
         return None, "cannot tell corner 0: orientation mark not seen and no previous corners", False
-    seen = np.all(np.isfinite(previous), axis=1)
-    costs = [
-        float((np.linalg.norm(np.roll(corners, -shift, axis=0)[seen] - previous[seen], axis=1) ** 2).sum()) for shift in range(4)
-    ]
-    shift = int(np.argmin(costs))
-    return np.roll(corners, -shift, axis=0), "", False
+    seen = np.isfinite(previous).all(axis=1)
+    shifted = corners[(np.arange(4)[None, :] + np.arange(4)[:, None]) % 4]  # (shift, corner, 2)
+    offset = shifted[:, seen] - previous[seen]
+    shift = int((offset * offset).sum(axis=(1, 2)).argmin())
+    return shifted[shift].copy(), "", False
 
 
 def _valid_previous(previous_px: object) -> Matrix | None:

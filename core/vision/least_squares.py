@@ -44,14 +44,17 @@ def levenberg_marquardt(
     residual, jac = model(params)
     cost = cost_of(residual)
     damping = 1e-3
+    diagonal = np.arange(len(params))
     for _ in range(iterations):
         if loss_scale is None:
             normal, gradient = jac.T @ jac, jac.T @ residual
         else:
             weight = 1.0 / (1.0 + residual * residual / loss_scale**2)
             normal, gradient = jac.T @ (weight[:, None] * jac), jac.T @ (weight * residual)
-        step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-9), -gradient)
-        trial = np.clip(params + step, lower, upper)
+        normal[diagonal, diagonal] *= 1.0 + damping
+        normal[diagonal, diagonal] += 1e-9 * damping
+        step = np.linalg.solve(normal, -gradient)
+        trial = np.minimum(np.maximum(params + step, lower), upper)
         residual_t, jac_t = model(trial)
         cost_t = cost_of(residual_t)
         if cost_t < cost:
