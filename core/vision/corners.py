@@ -62,6 +62,9 @@ SATURATED_LEVEL = 250
 #: The orientation mark's radius as a fraction of the face side (core.scene.Cube: side / 8).
 MARK_RADIUS_FRACTION = 0.125
 
+#: Smoothing of the grey-level histogram (a Gaussian of sigma 2 levels).
+_LEVEL_KERNEL = np.exp(-0.5 * (np.arange(-6, 7) / 2.0) ** 2)
+_LEVEL_KERNEL /= _LEVEL_KERNEL.sum()
 #: Margin (px) of the full-resolution window around the region found on every other pixel.
 _WINDOW_MARGIN_PX = 4
 #: Farthest (px) a refined corner may lie from the threshold outline's polygon: beyond,
@@ -187,17 +190,14 @@ def _face_levels(img: np.ndarray) -> tuple[float, float, float] | None:
     pixels aside); the next darker level is the next such peak below it (a side face
     or the table). Peaks are read on a smoothed histogram of every other pixel.
     """
-    sample = img[::2, ::2]
-    hist = cv2.calcHist([sample], [0], None, [256], [0, 256]).ravel()
+    hist = cv2.calcHist([np.ascontiguousarray(img[::2, ::2])], [0], None, [256], [0, 256]).ravel()
     hist[SATURATED_LEVEL:] = 0.0
-    kernel = np.exp(-0.5 * (np.arange(-6, 7) / 2.0) ** 2)
-    smooth = np.convolve(hist, kernel / kernel.sum(), mode="same")
+    smooth = np.convolve(hist, _LEVEL_KERNEL, mode="same")
     mass = np.convolve(hist, np.ones(13), mode="same")  # pixels within +-6 levels
     min_mass = MIN_FACE_AREA_PX / 4.0  # a surface of the smallest face at least; a quarter of the pixels are sampled
-    is_peak = (smooth >= np.roll(smooth, 1)) & (smooth > np.roll(smooth, -1)) & (mass >= min_mass)
-    is_peak[:1] = False
-    is_peak[-1:] = False
-    peaks = np.flatnonzero(is_peak)[::-1]  # brightest first
+    inner = smooth[1:-1]
+    is_peak = (inner >= smooth[:-2]) & (inner > smooth[2:]) & (mass[1:-1] >= min_mass)
+    peaks = np.flatnonzero(is_peak)[::-1] + 1  # brightest first
     if peaks.size < 2:
         return None
     face = int(peaks[0])
@@ -408,6 +408,34 @@ def _refine(
     return corners, quality
 
 
+def _least_squares_lines(points: Matrix, members: np.ndarray, hints: Matrix) -> list[tuple[Matrix, float]] | None:
+    """One least-squares line per column of ``members`` (M, K) through its points, as
+    (unit normal oriented like ``hints`` (K, 2), offset moved half a pixel against the
+    normal: the outline's pixel centres lie that far inside the threshold's crossing);
+    None if a line has fewer than four points. The residuals are taken across each
+    line's main direction, as in ``fit_lines``; all lines from one matrix product.
+    """
+    weights = members.astype(np.float64)
+    u, v = points[:, 0], points[:, 1]
+    sums = weights.T @ np.column_stack([np.ones(len(points)), u, v, u * u, v * v, u * v])  # (K, 6)
+    count = sums[:, 0]
+    if count.min() < 4:
+        return None
+    steep = np.abs(hints[:, 0]) > np.abs(hints[:, 1])  # then u = slope v + intercept
+    s_a, s_b = np.where(steep, sums[:, 2], sums[:, 1]), np.where(steep, sums[:, 1], sums[:, 2])
+    s_aa = np.where(steep, sums[:, 4], sums[:, 3])
+    det = count * s_aa - s_a * s_a
+    if det.min() <= 1e-12:
+        return None
+    slope = (count * sums[:, 5] - s_a * s_b) / det
+    intercept = (s_b - slope * s_a) / count
+    ones = np.ones_like(slope)
+    normals = np.where(steep[:, None], np.column_stack([ones, -slope]), np.column_stack([-slope, ones]))
+    scale = np.sqrt(1.0 + slope * slope)
+    flip = np.where((normals * hints).sum(axis=1) < 0.0, -1.0, 1.0) / scale
+    return [(normals[i] * flip[i], float(intercept[i] * flip[i]) - 0.5) for i in range(len(hints))]
+
+
 def _distance_to_outline(point: Matrix, polygon: Matrix) -> float:
     """Distance from ``point`` to the closed polygon's sides."""
     ends = np.roll(polygon, -1, axis=0)
@@ -470,11 +498,11 @@ def _outline_lines(quad: Matrix, outline: Matrix, spot_out: list[tuple[Matrix, f
         margin = 2.0 + 0.1 * lengths
         near = (np.abs(across) < 2.0) & (along > margin) & (along < lengths - margin)
         for centre, radius in spot_out:
-            near &= (np.sum((outline - centre) ** 2, axis=1) > radius * radius)[:, None]
-        fits = fit_lines([outline[near[:, i]] for i in range(4)], list(normals), min_points=4, rounds=1)
-        if any(fit is None for fit in fits):
+            offset = outline - centre
+            near &= ((offset * offset).sum(axis=1) > radius * radius)[:, None]
+        lines = _least_squares_lines(outline, near, normals)
+        if lines is None:
             return None
-        lines = [(fit[0], fit[1] - 0.5) for fit in fits if fit is not None]
         corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
         if not (np.all(np.isfinite(corners)) and spot_near):
             break
