@@ -70,8 +70,7 @@ _KINKS = (0.0, 0.15, 0.3, 0.45, 0.6, 0.75, 0.9)  # 0: none
 #: (share from corner A, share from corner B) of the kink patterns, NaN for no taper at
 #: that end; the first is no taper at all.
 _KINK_PAIRS = np.array(
-    [(np.nan, np.nan)]
-    + [(a or np.nan, b or np.nan) for a in _KINKS for b in _KINKS if (a or b) and a + b < 1.0]
+    [(np.nan, np.nan)] + [(a or np.nan, b or np.nan) for a in _KINKS for b in _KINKS if (a or b) and a + b < 1.0]
 )
 _KINKS_USED = np.isfinite(_KINK_PAIRS).sum(axis=1)
 _KINK_STARTS = 8

@@ -45,6 +45,7 @@ from core.spatial import Matrix
 from core.vision.bands import banded_lines
 from core.vision.edges import (
     Strips,
+    bright_contours,
     edge_points_many,
     fit_lines,
     frozen_array,
@@ -65,8 +66,6 @@ MARK_RADIUS_FRACTION = 0.125
 #: Smoothing of the grey-level histogram (a Gaussian of sigma 2 levels).
 _LEVEL_KERNEL = np.exp(-0.5 * (np.arange(-6, 7) / 2.0) ** 2)
 _LEVEL_KERNEL /= _LEVEL_KERNEL.sum()
-#: Margin (px) of the full-resolution window around the region found on every other pixel.
-_WINDOW_MARGIN_PX = 4
 #: Farthest (px) a refined corner may lie from the threshold outline's polygon: beyond,
 #: a side fit has gone astray and no corners are better than wrong ones.
 _MAX_MOVE_PX = 4.0
@@ -212,34 +211,13 @@ def _face_levels(img: np.ndarray) -> tuple[float, float, float] | None:
 
 def _rough_quadrilateral(img: np.ndarray, threshold: float) -> tuple[Matrix | None, Matrix | None, str]:
     """The largest bright region's quadrilateral (4, 2) in contour order and its outline
-    (boundary pixels, (M, 2)), or None, None and why.
-
-    The region is found on every other pixel first, then outlined at full resolution in
-    a window around it: thresholding and tracing the whole frame costs several times
-    more, most of it in touching a frame-sized array.
-    """
+    (boundary pixels, (M, 2)), or None, None and why."""
     height, width = img.shape
-    _, coarse = cv2.threshold(np.ascontiguousarray(img[::2, ::2]), threshold, 255, cv2.THRESH_BINARY)
-    contours, _ = cv2.findContours(coarse, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    # (the threshold passes pixels above it, as cv2.THRESH_BINARY does)
+    contours = bright_contours(img, math.floor(threshold) + 1, cv2.CHAIN_APPROX_NONE)
     if not contours:
         return None, None, "no bright top face above the threshold"
-    x, y, w, h = cv2.boundingRect(max(contours, key=cv2.contourArea))
-    x0, y0 = max(2 * x - _WINDOW_MARGIN_PX, 0), max(2 * y - _WINDOW_MARGIN_PX, 0)
-    x1, y1 = min(2 * (x + w) + _WINDOW_MARGIN_PX, width), min(2 * (y + h) + _WINDOW_MARGIN_PX, height)
-    _, binary = cv2.threshold(img[y0:y1, x0:x1], threshold, 255, cv2.THRESH_BINARY)
-    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE, offset=(x0, y0))
-    contour = max(contours, key=cv2.contourArea) if contours else None
-    if contour is not None:
-        x, y, w, h = cv2.boundingRect(contour)
-        inside = (x > x0 or x0 == 0) and (y > y0 or y0 == 0) and (x + w < x1 or x1 == width) and (y + h < y1 or y1 == height)
-        if not inside:
-            # The region reaches out of the window (thinner than a sampled pixel
-            # somewhere): outline it on the whole frame.
-            _, binary = cv2.threshold(img, threshold, 255, cv2.THRESH_BINARY)
-            contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-            contour = max(contours, key=cv2.contourArea)
-    if contour is None:
-        return None, None, "no bright top face above the threshold"
+    contour = max(contours, key=cv2.contourArea)
     area = cv2.contourArea(contour)
     if area < MIN_FACE_AREA_PX:
         return None, None, f"no bright top face: largest bright region is {area:.0f} px^2"

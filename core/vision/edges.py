@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from core.spatial import Matrix
@@ -25,6 +26,39 @@ def image_problem(image: object) -> str:
     if min(image.shape) < MIN_IMAGE_SIDE:
         return f"image too small: {image.shape}, need at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE}"
     return ""
+
+
+#: Margin (px) of the full-resolution window around a region found on every other pixel.
+_WINDOW_MARGIN_PX = 4
+
+
+def bright_contours(img: np.ndarray, threshold: float, approximation: int, whole_frame: bool = False) -> list[np.ndarray]:
+    """Outer contours (full-frame coordinates) of the pixels >= ``threshold``, at least
+    of the largest region and of whatever else lies near it.
+
+    The largest region is found on every other pixel first and traced at full
+    resolution in a window around it: thresholding and tracing the whole frame costs
+    several times more, most of it in touching a fresh frame-sized array. When the
+    largest traced contour reaches the window's edge (the region is thinner than a
+    sampled pixel somewhere) the whole frame is traced. ``approximation`` is OpenCV's
+    contour approximation method; ``whole_frame`` skips the window. Empty when no pixel
+    passes.
+    """
+    height, width = img.shape
+    coarse = None if whole_frame else (np.ascontiguousarray(img[::2, ::2]) >= threshold).view(np.uint8)
+    found = () if whole_frame else cv2.findContours(coarse, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)[0]
+    if found:
+        x, y, w, h = cv2.boundingRect(max(found, key=cv2.contourArea))
+        x0, y0 = max(2 * x - _WINDOW_MARGIN_PX, 0), max(2 * y - _WINDOW_MARGIN_PX, 0)
+        x1, y1 = min(2 * (x + w) + _WINDOW_MARGIN_PX, width), min(2 * (y + h) + _WINDOW_MARGIN_PX, height)
+        window = (img[y0:y1, x0:x1] >= threshold).view(np.uint8)
+        contours, _ = cv2.findContours(window, cv2.RETR_EXTERNAL, approximation, offset=(x0, y0))
+        if contours:
+            x, y, w, h = cv2.boundingRect(max(contours, key=cv2.contourArea))
+            if (x > x0 or x0 == 0) and (y > y0 or y0 == 0) and (x + w < x1 or x1 == width) and (y + h < y1 or y1 == height):
+                return list(contours)
+    contours, _ = cv2.findContours((img >= threshold).view(np.uint8), cv2.RETR_EXTERNAL, approximation)
+    return list(contours)
 
 
 def frozen_array(values: object, shape: tuple[int, ...]) -> Matrix:
