@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.spatial import Matrix
-from core.vision.edges import Strips, intersect, running_median, segment_medians
+from core.vision.edges import Strips, polygon_corners, running_median, segment_medians
 from core.vision.least_squares import levenberg_marquardt
 
 #: Least slant (px per px) of a modelled edge, so that its coverage has a gradient everywhere.
@@ -181,12 +181,13 @@ def banded_lines(strips: Strips, lines: list[tuple[Matrix, float]]) -> list[Band
         blur = _edge_blur(strips, lines)
         if blur > 0.0:
             strip_costs, banded = step_costs(blur)
+    corners = polygon_corners(lines)
     for index in np.flatnonzero(banded):
         # Of a long side every other strip (or fewer) is plenty: the fit costs per pixel.
         picked = np.arange(bounds[index], bounds[index + 1], -(-sizes[index] // _MAX_STRIPS))
         first = picked[0]
         axis = 1 if steep[first] else 0
-        ends = [intersect(lines[index - 1], lines[index])[axis], intersect(lines[index], lines[(index + 1) % count])[axis]]
+        ends = [corners[index, axis], corners[(index + 1) % count, axis]]
         if not np.all(np.isfinite(ends)):
             continue
         side = _side(values[picked], across[picked], strips.along[picked], bright[picked], dark[picked], sorted(ends), blur)

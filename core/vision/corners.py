@@ -50,7 +50,7 @@ from core.vision.edges import (
     fit_lines,
     frozen_array,
     image_problem,
-    intersect,
+    polygon_corners,
     sample_strips,
     segment_medians,
 )
@@ -311,7 +311,7 @@ def _refine(
     if lines is None:
         return None
     allowance = _move_allowance(quad, spot_out)
-    corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
+    corners = polygon_corners(lines)
     if _strayed(corners, quad, allowance):
         return None
     quality = 0.0
@@ -370,7 +370,7 @@ def _refine(
         quality = float(min(qualities))
         moved = max(abs(float(new[0] @ corners[i]) - new[1]) for i, new in enumerate(new_lines))
         lines = new_lines
-        corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
+        corners = polygon_corners(lines)
         if _strayed(corners, quad, allowance):
             return None
         if attempt == 0 and moved < 0.75 and not recentred:
@@ -380,7 +380,7 @@ def _refine(
         for i, banded in enumerate(banded_lines(wide, lines)):
             if banded is not None:
                 lines[i] = banded.line
-    corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
+    corners = polygon_corners(lines)
     if _strayed(corners, quad, allowance):
         return None
     return corners, quality
@@ -481,7 +481,7 @@ def _outline_lines(quad: Matrix, outline: Matrix, spot_out: list[tuple[Matrix, f
         lines = _least_squares_lines(outline, near, normals)
         if lines is None:
             return None
-        corners = np.array([intersect(lines[i - 1], lines[i]) for i in range(4)])
+        corners = polygon_corners(lines)
         if not (np.all(np.isfinite(corners)) and spot_near):
             break
     return lines

@@ -299,11 +299,15 @@ def fit_lines(
     return results
 
 
-def intersect(line_a: tuple[Matrix, float], line_b: tuple[Matrix, float]) -> Matrix:
-    """Crossing point of two lines n . x = d; NaN when they are parallel."""
-    (a0, a1), da = line_a[0], line_a[1]
-    (b0, b1), db = line_b[0], line_b[1]
-    det = float(a0 * b1 - a1 * b0)
-    if abs(det) < 1e-9:
-        return np.full(2, np.nan)
-    return np.array([(da * b1 - a1 * db) / det, (a0 * db - da * b0) / det])
+def polygon_corners(lines: list[tuple[Matrix, float]]) -> Matrix:
+    """Corners (K, 2) of a polygon given by its K sides as lines n . x = d in order:
+    corner i is where side i - 1 meets side i; NaN where they are parallel."""
+    normals = np.array([normal for normal, _ in lines])
+    offsets = np.array([offset for _, offset in lines])
+    previous = np.arange(-1, len(lines) - 1)
+    before, offsets_before = normals[previous], offsets[previous]
+    det = before[:, 0] * normals[:, 1] - before[:, 1] * normals[:, 0]
+    det = np.where(np.abs(det) < 1e-9, np.nan, det)
+    u = (offsets_before * normals[:, 1] - before[:, 1] * offsets) / det
+    v = (before[:, 0] * offsets - offsets_before * normals[:, 0]) / det
+    return np.column_stack([u, v])
