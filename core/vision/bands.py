@@ -491,6 +491,6 @@ def _descend(side: _Side, params: Matrix, lower: Matrix, upper: Matrix, reach_t:
         upper,
         iterations=_ITERATIONS,
         # The face's side (the line wanted) has settled, whatever the band still does.
-        settled=lambda old, new: abs(new[0] - old[0]) + abs(new[1] - old[1]) * reach_t < 2e-3,
+        settled=lambda old, new: abs(new[0] - old[0]) + abs(new[1] - old[1]) * reach_t < 5e-3,
     )
     return params, float(residual @ residual)
