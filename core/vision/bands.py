@@ -51,6 +51,9 @@ _MAX_WIDTH_PX = 8.0
 _NO_TAPER = 50.0
 #: How many times its share of the residual the band model must explain to be believed.
 _F_RATIO = 12.0
+#: How many times the noise's share of a side's pixels its cost as a single step must
+#: exceed before a band is looked for.
+_GATE_RATIO = 3.0
 #: Parameters of the band model beyond the single step's (c0, m): g, b0, b1, kA, kB.
 _BAND_PARAMETERS = 5
 #: Farthest (px) the band fit may move a side from the partial-area line.
@@ -173,7 +176,11 @@ def banded_lines(strips: Strips, lines: list[tuple[Matrix, float]]) -> list[Band
         residual = values[:, 1:-1] - (dark[:, None] + (bright - dark)[:, None] * cover)
         costs = (residual * residual).sum(axis=1)
         side_costs = np.add.reduceat(costs, np.minimum(bounds[:-1], len(costs) - 1)) * (sizes > 0)
-        return costs, usable & (side_costs > (sizes * pixels + _F_RATIO * _BAND_PARAMETERS) * noise)
+        # Well over what noise leaves of a step's pixels (with its levels and line read
+        # from the same noisy pixels, a band-free side's cost runs to about twice the
+        # noise's share) and than a band would have to explain to be believed.
+        expected = _GATE_RATIO * sizes * pixels + _F_RATIO * _BAND_PARAMETERS
+        return costs, usable & (side_costs > expected * noise)
 
     blur = 0.0
     strip_costs, banded = step_costs(blur)
@@ -245,12 +252,14 @@ def _noise_variance(values: Matrix) -> float:
     """The image's noise variance (grey levels^2), at least the 8-bit quantisation's.
 
     From the two pixels at each strip's face end (bright-positive ``values``), 4 and 5
-    px inside the face: half the robust variance of their difference.
+    px inside the face: half the mean square of their difference, leaving out the few
+    far beyond the bulk (a strip that reaches the mark, say).
     """
-    difference = np.sort(values[:, -1] - values[:, -2])
+    difference = values[:, -1] - values[:, -2]
     middle = len(difference) // 2
-    spread = 1.4826 * float(np.sort(np.abs(difference - difference[middle]))[middle])
-    return max(0.5 * spread * spread, 1.0 / 12.0)
+    spread = 1.4826 * float(np.sort(np.abs(difference - np.sort(difference)[middle]))[middle])
+    bulk = difference[np.abs(difference) <= max(3.0, 4.0 * spread)]
+    return max(0.5 * float(bulk @ bulk) / max(len(bulk), 1), 1.0 / 12.0)
 
 
 @dataclass(frozen=True)
