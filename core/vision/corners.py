@@ -6,18 +6,23 @@ level and the next darker one (a side face or the table, read off the histogram)
 largest convex quadrilateral; touching the image border, it is refused. Its corners are
 then refined from the straight sides:
 
+- lines through the threshold outline's points start each side, leaving out the laser
+  spot's disc (it passes any threshold, and next to the face it bulges the outline);
 - each side's edge is located strip by strip across it by the partial-area effect
-  (``core.vision.edge_points_many``: exact for box-filtered edges, nearly so under a
-  mild symmetric blur), in narrow strips that stay on a side face a few pixels wide,
-  away from the corners, the laser spot and the orientation mark;
-- a side face narrower than that (a cube seen nearly from above) is fitted as a
-  three-level profile, face - side face - table, along the side, with the image's blur
-  read off the sides;
+  (``core.vision.edges.edge_points_many``: exact for box-filtered edges, nearly so under
+  a mild symmetric blur), in narrow strips that stay on a side face a few pixels wide,
+  away from the corners, the laser spot and the orientation mark; a line is fitted to
+  each side robustly; a fit that turns its line or whose points bunch on part of the
+  side is not trusted;
+- a side face narrower than that, down to a sliver under a pixel seen almost edge-on,
+  biases the partial-area line outwards by its width times its relative level: where
+  the pixels along a side do not fit a single step, the side is fitted as a three-level
+  edge, face - side face - table, whose side face is a box's (``core.vision.bands``);
 - a side face so thin that the histogram does not show it can be taken for top face by
   the threshold; the outline then runs along its outer edge, which the grey level just
   inside betrays, and the region is taken again with a threshold near the face's level;
-- a line is fitted to each side robustly and adjacent lines cross at the corners. A
-  spot sitting on a corner therefore leaves the corner where the sides say it is.
+- adjacent lines cross at the corners. A spot sitting on a corner therefore leaves the
+  corner where the sides say it is.
 
 Order: corner 0 is the corner nearest the orientation mark (the dark disc on the top
 face, found inside the quadrilateral, its centre by darkness-weighted centroid); the
@@ -25,10 +30,12 @@ others follow around the face with the requested winding. Without the mark, the 
 frame's ordered corners fix the order (the cyclic shift nearest to them).
 
 Known limits: the sides are straight lines, so lens distortion (curved edges) biases the
-corners unless the image is undistorted first; a side face under ~1 px wide cannot be
-told from the edge's own blur and moves its side out by up to its width times its
-relative grey level; under optical blur (sigma 0.5 - 0.8 px) side faces up to a few
-pixels wide melt into the edge and bias their side by a few tenths of a pixel.
+corners unless the image is undistorted first; a side face along a side nearly aligned
+with the pixel grid can leave two explanations of its pixels (a thin bright sliver or a
+wider dimmer one) that only its taper to a corner tells apart, and a fit may settle on
+the wrong one (a few tenths of a pixel); under optical blur the band's edges melt into
+one ramp and the three-level fit is an approximation (a Gaussian for pixel, slant and
+blur together).
 
 Pixel convention (OpenCV): the pixel at row r, column c has its centre at (u, v) = (c, r).
 """
@@ -300,12 +307,12 @@ def _refine(
     """Corners (4, 2) from the four fitted sides, and a fit quality in [0, 1], or None.
 
     Start: lines through the threshold outline's points along each side (a few tenths
-    of a pixel off). Then partial-area strips around them, as narrow as the image's
-    blur allows (narrow enough to stay on a side face a few pixels wide), a second time
-    if a line moved much, and the three-level fit where a narrower side face runs along
-    a side. None when a side cannot be fitted or a corner strays from the outline;
-    ``_DIM_SIDE`` when just inside an outline side the image is darker than
-    ``face_floor`` (the outline runs along a side face, not along the top face).
+    of a pixel off). Then partial-area strips around them, narrow enough to stay on a
+    side face a few pixels wide, a second time if a line moved much, and the
+    three-level fit where a narrower side face runs along a side. None when a side
+    cannot be fitted or a corner strays from the outline; ``_DIM_SIDE`` when just inside
+    an outline side the image is darker than ``face_floor`` (the outline runs along a
+    side face, not along the top face).
     """
     lines = _outline_lines(quad, outline, spot_out)
     if lines is None:
@@ -315,8 +322,9 @@ def _refine(
     if _strayed(corners, quad, allowance):
         return None
     quality = 0.0
-    # Wide strips across the sides, read once: for the blur here, for narrow side faces
-    # at the end (their pixels do not move with the lines' last hundredths).
+    # Wide strips across the sides, read once: for a dim outline side here, for side
+    # faces along the sides at the end (their pixels do not move with the lines' last
+    # hundredths).
     wide = sample_strips(
         img,
         [(normal, offset, corners[i], corners[(i + 1) % 4]) for i, (normal, offset) in enumerate(lines)],
