@@ -57,7 +57,7 @@ _GATE_RATIO = 3.0
 #: Parameters of the band model beyond the single step's (c0, m): g, b0, b1, kA, kB.
 _BAND_PARAMETERS = 5
 #: Farthest (px) the band fit may move a side from the partial-area line.
-_MAX_SHIFT_PX = 2.0
+_MAX_SHIFT_PX = 3.5
 #: Least contrast (grey levels) between the face and the level beyond for a side to be fitted.
 _MIN_CONTRAST = 20.0
 #: Levenberg-Marquardt iterations of the band model.
@@ -66,9 +66,9 @@ _ITERATIONS = 8
 _MAX_STRIPS = 16
 #: Starting widths (px) and relative levels of the band (its cost has poor minima in them),
 #: and where a taper starting at a corner may meet the bottom edge (share of the side).
-_START_SHARES = np.array([0.35, 0.55, 0.75])
-_FLAT_WIDTHS = np.repeat([0.5, 1.0, 2.0, 3.5], len(_START_SHARES))
-_FLAT_SHARES = np.tile(_START_SHARES, 4)
+_START_SHARES = np.array([0.3, 0.4, 0.5, 0.6, 0.7, 0.8])
+_FLAT_WIDTHS = np.repeat([0.5, 1.0, 2.0, 3.5], 3)
+_FLAT_SHARES = np.tile([0.35, 0.55, 0.75], 4)
 _KINKS = (0.0, 0.15, 0.3, 0.45, 0.6, 0.75, 0.9)  # 0: none
 #: (share from corner A, share from corner B) of the kink patterns, NaN for no taper at
 #: that end; the first is no taper at all.
@@ -311,8 +311,9 @@ def _fit_band(side: _Side, step: tuple[float, float], step_cost: float, noise: f
     dark, bright = np.sort(side.dark), np.sort(side.bright)
     far, face = float(dark[len(dark) // 10]), float(bright[len(bright) // 2])
     contrast = face - far
-    lower = np.array([c0 - 2.5, m - 2.5 / reach_t, far + _SHARE_RANGE[0] * contrast, 0.0, -1.0, 0.0, 0.0])
-    upper = np.array([c0 + 2.5, m + 2.5 / reach_t, far + _SHARE_RANGE[1] * contrast, _MAX_WIDTH_PX, 1.0, _NO_TAPER, _NO_TAPER])
+    turn = 2.5 / reach_t
+    lower = np.array([c0 - _MAX_SHIFT_PX, m - turn, far + _SHARE_RANGE[0] * contrast, 0.0, -1.0, 0.0, 0.0])
+    upper = np.array([c0 + _MAX_SHIFT_PX, m + turn, far + _SHARE_RANGE[1] * contrast, _MAX_WIDTH_PX, 1.0, _NO_TAPER, _NO_TAPER])
     starts = _starts(side, far, contrast)
     starts = np.minimum(np.maximum(starts, lower), upper)
     band, band_cost = _descend(side, starts[_best(side, starts)], lower, upper, reach_t)

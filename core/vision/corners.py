@@ -155,7 +155,7 @@ def _detect(image: np.ndarray, spot: SpotDetection | None, previous_px: np.ndarr
     if spot is not None and spot.found and np.all(np.isfinite(spot.spot_px)):
         spot_radius = max(5.0, math.sqrt(max(spot.area_px, 0.0) / math.pi) + 4.5)
         spot_out.append((np.asarray(spot.spot_px, dtype=np.float64), spot_radius))
-    quad, outline, problem = _rough_quadrilateral(img, threshold)
+    quad, outline, problem = _rough_quadrilateral(img, threshold, spot_out)
     if quad is None or outline is None:
         return _no_corners(problem)
 
@@ -170,7 +170,7 @@ def _detect(image: np.ndarray, spot: SpotDetection | None, previous_px: np.ndarr
     face_floor = face_level - _FACE_MARGIN * (face_level - below_level)
     refined = _refine(img, quad, outline, keep_out, spot_out, face_floor)
     if refined == _DIM_SIDE:
-        quad, outline, _ = _rough_quadrilateral(img, face_floor)
+        quad, outline, _ = _rough_quadrilateral(img, face_floor, spot_out)
         refined = None if quad is None or outline is None else _refine(img, quad, outline, keep_out, spot_out, -np.inf)
     if refined is None or refined == _DIM_SIDE:
         return _no_corners("top face sides could not be fitted (too little clean edge)", mark_px)
@@ -216,9 +216,13 @@ def _face_levels(img: np.ndarray) -> tuple[float, float, float] | None:
     return None
 
 
-def _rough_quadrilateral(img: np.ndarray, threshold: float) -> tuple[Matrix | None, Matrix | None, str]:
+def _rough_quadrilateral(
+    img: np.ndarray, threshold: float, spot_out: list[tuple[Matrix, float]]
+) -> tuple[Matrix | None, Matrix | None, str]:
     """The largest bright region's quadrilateral (4, 2) in contour order and its outline
-    (boundary pixels, (M, 2)), or None, None and why."""
+    (boundary pixels, (M, 2)), or None, None and why. The region's convexity is judged
+    without the outline's points in the discs of ``spot_out``: the laser spot next to
+    the face passes the threshold and stretches the region's hull towards it."""
     height, width = img.shape
     # (the threshold passes pixels above it, as cv2.THRESH_BINARY does)
     contours = bright_contours(img, math.floor(threshold) + 1, cv2.CHAIN_APPROX_NONE)
@@ -233,8 +237,16 @@ def _rough_quadrilateral(img: np.ndarray, threshold: float) -> tuple[Matrix | No
         return None, None, "object cut by the image border"
     hull = cv2.convexHull(contour)
     hull_area = cv2.contourArea(hull)
-    if area < 0.85 * hull_area:
-        return None, None, f"bright region is not convex (fills {area / hull_area:.0%} of its hull)"
+    # Convex but for the spot: its bulge, next to the face, stretches the hull.
+    points = contour.reshape(-1, 2)
+    for centre, radius in spot_out:
+        offset = points - centre
+        outside = (offset * offset).sum(axis=1) > radius * radius
+        if outside.sum() >= 0.5 * len(points):
+            points = points[outside]
+    face_hull_area = cv2.contourArea(cv2.convexHull(points)) if len(points) < len(contour) else hull_area
+    if area < 0.85 * face_hull_area:
+        return None, None, f"bright region is not convex (fills {area / face_hull_area:.0%} of its hull)"
     perimeter = cv2.arcLength(hull, True)
     for fraction in (0.02, 0.03, 0.045, 0.06, 0.08, 0.1, 0.015, 0.01):
         approx = cv2.approxPolyDP(hull, fraction * perimeter, True)

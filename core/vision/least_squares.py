@@ -1,9 +1,10 @@
 """Bounded Levenberg-Marquardt, shared by the detectors' model fits (spot, side bands).
 
 The fits are small (a handful of parameters, a few hundred pixels) and their models
-cheap, so a plain damped Gauss-Newton with box bounds (steps clipped into the box) is
-all they need; an optional robust loss reweights the residuals each iteration
-(iteratively reweighted least squares).
+cheap, so a plain damped Gauss-Newton with box bounds is all they need: parameters held
+on a bound by the step are left out of it, the others' step is clipped into the box. An
+optional robust loss reweights the residuals each iteration (iteratively reweighted
+least squares).
 """
 
 from __future__ import annotations
@@ -54,6 +55,14 @@ def levenberg_marquardt(
         normal[diagonal, diagonal] *= 1.0 + damping
         normal[diagonal, diagonal] += 1e-9 * damping
         step = np.linalg.solve(normal, -gradient)
+        # Parameters on a bound that the step pushes further out stay there, and the
+        # others take the best step without them (a clipped joint step is not that).
+        blocked = ((params <= lower) & (step < 0.0)) | ((params >= upper) & (step > 0.0))
+        if blocked.any():
+            free = ~blocked
+            step = np.zeros_like(step)
+            if free.any():
+                step[free] = np.linalg.solve(normal[np.ix_(free, free)], -gradient[free])
         trial = np.minimum(np.maximum(params + step, lower), upper)
         residual_t, jac_t = model(trial)
         cost_t = cost_of(residual_t)
