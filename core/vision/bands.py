@@ -227,23 +227,21 @@ def _edge_blur(strips: Strips, lines: list[tuple[Matrix, float]]) -> float:
     position = sign[:, None] * (strips.base[:, None] + np.arange(-4, 4)[None, :] + 0.5 - line_at[:, None])
     contrast = sign * (values[:, -1] - values[:, 0])
     usable = contrast > 20.0
-    bounds = np.searchsorted(strips.segment, np.arange(len(lines) + 1))
-    slant = n_along / n_across
-    per_side = []
-    for i in range(len(lines)):
-        rows = slice(bounds[i], bounds[i + 1])
-        ok = usable[rows]
-        if ok.sum() < 6:
-            continue
-        d = steps[rows][ok] / contrast[rows][ok, None]
-        x = position[rows][ok]
-        m0, m1, m2 = d.sum(), (d * x).sum(), (d * x * x).sum()
-        if m0 <= 0.0:
-            continue
-        per_side.append(m2 / m0 - (m1 / m0) ** 2 - 1.0 / 6.0 - float(slant[rows][0]) ** 2 / 12.0)
-    if not per_side:
+    count = len(lines)
+    # Each side's moments of the normalised steps in one pass (bincount by side).
+    d = np.where(usable[:, None], steps / np.where(usable, contrast, 1.0)[:, None], 0.0)
+    segment = strips.segment
+    m0 = np.bincount(segment, d.sum(axis=1), count)
+    m1 = np.bincount(segment, (d * position).sum(axis=1), count)
+    m2 = np.bincount(segment, (d * position * position).sum(axis=1), count)
+    slant2 = np.bincount(segment, (n_along / n_across) ** 2 * usable, count)
+    strips_used = np.bincount(segment, usable, count)
+    ok = (strips_used >= 6) & (m0 > 0.0)
+    if not ok.any():
         return 0.0
-    variance = sorted(per_side)[min(1, len(per_side) - 1)]
+    m0, m1, m2 = m0[ok], m1[ok], m2[ok]
+    per_side = np.sort(m2 / m0 - (m1 / m0) ** 2 - 1.0 / 6.0 - slant2[ok] / strips_used[ok] / 12.0)
+    variance = float(per_side[min(1, len(per_side) - 1)])
     sigma = math.sqrt(variance) if variance > 0.0 else 0.0
     return sigma if sigma > 0.45 else 0.0
 
