@@ -61,7 +61,7 @@ _MAX_SHIFT_PX = 3.5
 #: Least contrast (grey levels) between the face and the level beyond for a side to be fitted.
 _MIN_CONTRAST = 20.0
 #: Levenberg-Marquardt iterations of the band model.
-_ITERATIONS = 8
+_ITERATIONS = 7
 #: Most strips of one side the band fit reads.
 _MAX_STRIPS = 16
 #: Starting widths (px) and relative levels of the band (its cost has poor minima in them),
