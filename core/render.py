@@ -319,6 +319,9 @@ class SceneRenderer:
         self.settings = settings
         self._last_frame: np.ndarray | None = None
         self._frustum_cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        # Frame-sized float buffers reused from frame to frame: a fresh 1 MB array costs
+        # more in page faults than the arithmetic done in it.
+        self._buffers: dict[tuple[str, tuple[int, ...]], np.ndarray] = {}
         self._lighting_cache: dict[int, np.ndarray] = {}
         az = math.radians(settings.light_azimuth_deg)
         self._light_b = np.array([math.cos(az), math.sin(az), 0.0])
@@ -361,24 +364,33 @@ class SceneRenderer:
         if spot_b is not None:
             self._draw_spot(image, np.asarray(bMc, dtype=float), np.asarray(spot_b, dtype=float), pad)
         if st.blur_sigma_px > 0.0:
-            image = cv2.GaussianBlur(image, (0, 0), st.blur_sigma_px, borderType=cv2.BORDER_REPLICATE)
+            blurred = self._buffer("blurred", image.shape)
+            image = cv2.GaussianBlur(image, (0, 0), st.blur_sigma_px, dst=blurred, borderType=cv2.BORDER_REPLICATE)
         if smear > 0.0:
             kernel = smear_kernel(smear, fault.smear_angle_rad)  # type: ignore[union-attr]
-            image = cv2.filter2D(image, -1, kernel, borderType=cv2.BORDER_REPLICATE)
+            smeared = self._buffer("smeared", image.shape)
+            image = cv2.filter2D(image, -1, kernel, dst=smeared, borderType=cv2.BORDER_REPLICATE)
         if pad:
             image = image[pad : pad + height, pad : pad + width]
         if st.noise_sigma > 0.0:
             # OpenCV's generator, seeded from rng (one draw per frame), fills the frame about
             # four times faster than numpy's; the noise is still fully determined by rng.
-            noise = np.empty((height, width), dtype=np.float32)
+            noise = self._buffer("noise", (height, width))
             cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
             cv2.randn(noise, 0.0, float(st.noise_sigma))
-            image = image + noise
+            np.add(image, noise, out=image)
         np.clip(image, 0.0, 255.0, out=image)
         image += 0.5
         frame = image.astype(np.uint8)
         self._last_frame = frame
         return frame.copy()
+
+    def _buffer(self, name: str, shape: tuple[int, ...]) -> np.ndarray:
+        """The renderer's float32 work array ``name`` of ``shape`` (its content is stale)."""
+        key = (name, shape)
+        if key not in self._buffers:
+            self._buffers[key] = np.empty(shape, dtype=np.float32)
+        return self._buffers[key]
 
     def project_b(self, bMc: Matrix, points_b: Matrix) -> np.ndarray:
         """Pixels (N, 2) of points given in B, seen from bMc (a convenience for callers)."""
@@ -438,16 +450,17 @@ class SceneRenderer:
     @staticmethod
     def _clip(poly: np.ndarray, planes: np.ndarray, offsets: np.ndarray) -> np.ndarray | None:
         """Sutherland-Hodgman clip of a 3-D polygon (n, 3) to planes . p + offset >= 0."""
+        # (ndarray methods, not np.all: this runs for every face of every frame)
         d_all = poly @ planes.T + offsets
-        if np.all(d_all >= 0.0):
+        if d_all.min() >= 0.0:
             return poly
-        if np.any(np.all(d_all < 0.0, axis=0)):
+        if (d_all.max(axis=0) < 0.0).any():
             return None
         for k in range(len(planes)):
             d = poly @ planes[k] + offsets[k]
-            if np.all(d >= 0.0):
+            if d.min() >= 0.0:
                 continue
-            if np.all(d < 0.0):
+            if d.max() < 0.0:
                 return None
             out = []
             count = len(poly)
@@ -577,7 +590,8 @@ class SceneRenderer:
         k = int(st.supersample)
         width, height = self.camera.image_size
         canvas_w, canvas_h = k * (width + 2 * pad), k * (height + 2 * pad)
-        canvas = np.full((canvas_h, canvas_w), st.background_grey, dtype=np.float32)
+        canvas = self._buffer("canvas", (canvas_h, canvas_w))
+        canvas.fill(st.background_grey)
         cMb = inverse(bMc)
         planes, offsets, inner = self._frustum(pad)
 

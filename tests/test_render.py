@@ -194,6 +194,22 @@ def test_frame_format_and_determinism():
     assert frame.dtype == np.uint8 and frame.shape == (240, 320)
 
 
+def test_frames_do_not_carry_over_between_renders():
+    # The renderer reuses its frame buffers: a frame must not depend on what was drawn
+    # before it, smeared, blurred, seen from elsewhere or held by the caller.
+    scene = make_scene()
+    here, there = view_of_top(scene, 0.25, 10.0, 45.0, 0.0), view_of_top(scene, 0.4, 30.0, 120.0, 15.0)
+    renderer = SceneRenderer(DISTORTED, RenderSettings(noise_sigma=2.0, blur_sigma_px=0.6))
+    first = renderer.render(scene, here, None, np.random.default_rng(3))
+    first.fill(0)  # the caller's copy
+    renderer.render(scene, there, scene.cube.corners_b.mean(axis=0), np.random.default_rng(4), fault=FrameFault.smear(5.0))
+    again = renderer.render(scene, here, None, np.random.default_rng(3))
+    fresh = SceneRenderer(DISTORTED, RenderSettings(noise_sigma=2.0, blur_sigma_px=0.6)).render(
+        scene, here, None, np.random.default_rng(3)
+    )
+    assert np.array_equal(again, fresh)
+
+
 def test_noise_has_the_requested_sigma():
     scene = make_scene()
     bMc = view_of_top(scene, 0.25, 0.0, 0.0, 0.0, offset=(0.06, 0.0))  # the cube off to one side

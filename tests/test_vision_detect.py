@@ -17,8 +17,10 @@ import numpy as np
 import pytest
 
 from core.features import polygon_moments
+from core.vision.bands import banded_lines, coverage
 from core.vision.corners import CornerDetection, detect_corners
-from core.vision.edges import image_problem
+from core.vision.edges import bright_contours, image_problem, sample_strips
+from core.vision.least_squares import levenberg_marquardt
 from core.vision.region import RegionDetection, detect_object_region
 from core.vision.spot import SpotDetection, detect_laser_spot
 
@@ -217,14 +219,52 @@ def test_corners_with_side_faces_in_view(view):
     assert rms(corner_errors(detect_corners(noisy), taught_order(quad))) < 0.3
 
 
-def test_side_face_thinner_than_a_pixel_biases_its_side_by_less_than_its_width():
-    """Known limit: a side face under ~1 px wide cannot be told from the edge's own blur;
-    it moves its side outwards by its width times its relative level, no more."""
+def test_side_face_thinner_than_a_pixel_is_fitted_as_a_band():
+    """A 0.94 px side face at level 115 along one side: partial-area location alone puts
+    that side 0.36 px out (its width times its relative level); the band fit puts it
+    back."""
     quad = face_quad(*POSES[2])
     down = (0.0, 2.0)  # the side with outward normal (0.88, 0.47): a 0.94 px band at level 115
     errors = corner_errors(detect_corners(render(*cube(quad, down=down))), taught_order(quad))
-    bound = 0.94 * (SIDE_SHADES[1] - TABLE) / (TOP - TABLE)  # 0.36 px along the side's normal
-    assert errors.max() < bound / math.sin(math.radians(60.0)) + 0.05  # at the corners the shift is larger by 1/sin(angle)
+    assert errors.max() < 0.05
+
+
+def tapered_band(quad, side, width, kink, level=150.0):
+    """A side face seen almost edge-on along side ``side`` of ``quad`` (corner side to
+    side + 1), as a box shows one: ``width`` px wide along the bottom edge, tapering to
+    nothing at the side's second corner along the vertical edge, which meets the bottom
+    edge at ``kink`` (share of the side from the first corner)."""
+    a, b = quad[side], quad[(side + 1) % 4]
+    along = (b - a) / np.linalg.norm(b - a)
+    outward = np.array([along[1], -along[0]])
+    if outward @ (a - quad.mean(axis=0)) < 0:
+        outward = -outward
+    return np.array([a, b, a + kink * (b - a) + width * outward, a + width * outward - 0.3 * along]), level
+
+
+@pytest.mark.parametrize("pose", [1, 2, 4, 5], ids=[POSE_IDS[i] for i in (1, 2, 4, 5)])
+@pytest.mark.parametrize("side", range(4))
+def test_a_sliver_of_side_face_tapering_to_a_corner(pose, side):
+    # The views along the bench's servo: a 0.8 px side face along one side that tapers
+    # to a corner; without the band fit that side is 0.5 px out at one end.
+    quad = face_quad(*POSES[pose])
+    layers, discs = cube(quad)
+    layers = [tapered_band(quad, side, 0.8, 0.55), *layers]
+    img = render(layers, discs)
+    assert corner_errors(detect_corners(img, detect_laser_spot(img)), taught_order(quad)).max() < 0.1
+    noisy = render(layers, discs, noise=3.0, seed=side)
+    assert rms(corner_errors(detect_corners(noisy, detect_laser_spot(noisy)), taught_order(quad))) < 0.3
+
+
+def test_a_wide_side_face_tapering_to_a_corner_under_noise():
+    # 2.5 px wide, its taper crosses the narrow strips' reach: the partial-area line is
+    # up to 3 px out at one end.
+    quad = face_quad(*POSES[5])
+    layers, discs = cube(quad)
+    layers = [tapered_band(quad, 0, 2.5, 0.6), *layers]
+    for noise in (0.0, 3.0):
+        img = render(layers, discs, noise=noise, seed=5)
+        assert rms(corner_errors(detect_corners(img, detect_laser_spot(img)), taught_order(quad))) < 0.3, noise
 
 
 def test_corners_under_uneven_light_and_noise():
@@ -338,6 +378,20 @@ def test_spot_on_a_corner_leaves_the_corners_exact():
             detection = detect_corners(img, spot)
             assert rms(corner_errors(detection, taught_order(quad))) < 0.1
             assert np.linalg.norm(detection.corners_px - centre, axis=1).min() < 0.1
+
+
+@pytest.mark.parametrize("pose", POSES, ids=POSE_IDS)
+def test_spot_just_outside_a_corner_of_a_small_face(pose):
+    # On the table 3 px beside a corner of a 30 px face the spot passes the face's
+    # threshold and joins its region: it stretches the region's hull (no longer convex
+    # by area) and bulges the outline (pulling a corner of the rough quadrilateral off).
+    quad = face_quad(pose[0], 30.0, *pose[2:])
+    for corner in range(4):
+        outward = quad[corner] - quad.mean(axis=0)
+        centre = quad[corner] + 3.0 * outward / np.linalg.norm(outward)
+        img = render(*cube(quad), spots=[centre], spot_peak=800.0)
+        detection = detect_corners(img, detect_laser_spot(img))
+        assert corner_errors(detection, taught_order(quad)).max() < 0.1, corner
 
 
 def test_spot_on_a_corner_under_noise():
@@ -525,3 +579,70 @@ def test_detectors_leave_the_image_alone_and_results_frozen():
     with pytest.raises(AttributeError):
         spot.found = False  # type: ignore[misc]
     np.testing.assert_array_equal(detect_corners(img, spot).corners_px, corners.corners_px)  # deterministic
+
+
+# ---------------------------------------------------------------------------------------
+# The pieces: exact coverage, the band test, bounded least squares, windowed contours
+# ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("slant", [0.0, 0.3, -0.7, 1.0])
+def test_coverage_is_the_share_of_the_pixel_beyond_the_edge(slant):
+    # Against a fine sampling of each pixel: the edge crosses the strip at ``edge`` on the
+    # pixel's centre line and leans ``slant`` px across per px along.
+    edge, across = 0.37, np.arange(-3.0, 4.0)
+    share, d_edge = coverage(across, edge, slant)
+    fine = (np.arange(400) + 0.5) / 400 - 0.5
+    sampled = [np.mean(x + fine[None, :] > edge + max(abs(slant), 0.01) * fine[:, None]) for x in across]
+    np.testing.assert_allclose(share, sampled, atol=3e-3)
+    np.testing.assert_allclose(d_edge, (coverage(across, edge + 1e-6, slant)[0] - share) / 1e-6, atol=1e-3)
+
+
+def test_noise_does_not_invent_side_faces():
+    # A plain top face under noise sigma 3: no side fails the single-step test so badly
+    # that a band is believed.
+    quad = face_quad(*POSES[2])
+    for seed in range(4):
+        img = render(*cube(quad, mark=False), noise=3.0, seed=seed)
+        lines = []
+        for i in range(4):
+            a, b = quad[i], quad[(i + 1) % 4]
+            normal = np.array([a[1] - b[1], b[0] - a[0]]) / np.linalg.norm(b - a)
+            normal = normal if normal @ (quad.mean(axis=0) - a) > 0 else -normal
+            lines.append((normal, float(normal @ a)))
+        segments = [(n, d, quad[i], quad[(i + 1) % 4]) for i, (n, d) in enumerate(lines)]
+        strips = sample_strips(img, segments, 5, (), 7.0)
+        assert banded_lines(strips, lines) == [None] * 4, seed
+
+
+def test_bounded_levenberg_marquardt_reaches_the_minimum_within_the_box():
+    # y = a exp(-b x): unbounded it finds (2, 0.5); with b held to [0, 0.3] it stops on the
+    # bound with a the best fit for that b.
+    x = np.linspace(0.0, 4.0, 30)
+    y = 2.0 * np.exp(-0.5 * x)
+
+    def model(p):
+        e = np.exp(-p[1] * x)
+        return p[0] * e - y, np.column_stack([e, -p[0] * x * e])
+
+    def fit(start, b_max):
+        settled = lambda old, new: bool(np.abs(new - old).max() < 1e-12)  # noqa: E731
+        return levenberg_marquardt(model, np.array(start), np.zeros(2), np.array([10.0, b_max]), 50, settled)[0]
+
+    np.testing.assert_allclose(fit([1.0, 1.0], 10.0), [2.0, 0.5], atol=1e-6)
+    e = np.exp(-0.3 * x)
+    np.testing.assert_allclose(fit([1.0, 0.1], 0.3), [(e @ y) / (e @ e), 0.3], atol=1e-6)
+
+
+def test_windowed_contours_match_the_whole_frame():
+    # The region found on every other pixel and traced in a window around it is the one
+    # the whole frame shows, also when part of it is thinner than a sampled pixel (a
+    # one-pixel line from its corner, which the sampling misses).
+    quad = face_quad(*POSES[3])
+    img = render(*cube(quad))
+    thin = img.copy()
+    thin[int(quad[0, 1]), int(quad[0, 0]) : int(quad[0, 0]) + 60] = 255
+    for frame in (img, thin):
+        windowed = max(bright_contours(frame, 150, cv2.CHAIN_APPROX_NONE), key=cv2.contourArea)
+        whole = max(bright_contours(frame, 150, cv2.CHAIN_APPROX_NONE, whole_frame=True), key=cv2.contourArea)
+        np.testing.assert_array_equal(windowed, whole)

@@ -14,7 +14,9 @@ whatever the image:
 
 Pixel convention (OpenCV): the pixel at row r, column c has its centre at (u, v) = (c, r).
 
-``core.vision.edges`` holds what the detectors share: input checks and straight-edge
-location by the partial-area effect; ``core.vision.pipeline`` turns a frame into a
-controller's features.
+``core.vision.edges`` holds what the detectors share: input checks, bright regions'
+outlines and straight-edge location by the partial-area effect;
+``core.vision.least_squares`` the bounded model fits; ``core.vision.bands`` the
+three-level edge of a side face seen almost edge-on along a side of the top face;
+``core.vision.pipeline`` turns a frame into a controller's features.
 """

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from core.spatial import Matrix
@@ -25,6 +26,39 @@ def image_problem(image: object) -> str:
     if min(image.shape) < MIN_IMAGE_SIDE:
         return f"image too small: {image.shape}, need at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE}"
     return ""
+
+
+#: Margin (px) of the full-resolution window around a region found on every other pixel.
+_WINDOW_MARGIN_PX = 4
+
+
+def bright_contours(img: np.ndarray, threshold: float, approximation: int, whole_frame: bool = False) -> list[np.ndarray]:
+    """Outer contours (full-frame coordinates) of the pixels >= ``threshold``, at least
+    of the largest region and of whatever else lies near it.
+
+    The largest region is found on every other pixel first and traced at full
+    resolution in a window around it: thresholding and tracing the whole frame costs
+    several times more, most of it in touching a fresh frame-sized array. When the
+    largest traced contour reaches the window's edge (the region is thinner than a
+    sampled pixel somewhere) the whole frame is traced. ``approximation`` is OpenCV's
+    contour approximation method; ``whole_frame`` skips the window. Empty when no pixel
+    passes.
+    """
+    height, width = img.shape
+    coarse = None if whole_frame else (np.ascontiguousarray(img[::2, ::2]) >= threshold).view(np.uint8)
+    found = () if whole_frame else cv2.findContours(coarse, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)[0]
+    if found:
+        x, y, w, h = cv2.boundingRect(max(found, key=cv2.contourArea))
+        x0, y0 = max(2 * x - _WINDOW_MARGIN_PX, 0), max(2 * y - _WINDOW_MARGIN_PX, 0)
+        x1, y1 = min(2 * (x + w) + _WINDOW_MARGIN_PX, width), min(2 * (y + h) + _WINDOW_MARGIN_PX, height)
+        window = (img[y0:y1, x0:x1] >= threshold).view(np.uint8)
+        contours, _ = cv2.findContours(window, cv2.RETR_EXTERNAL, approximation, offset=(x0, y0))
+        if contours:
+            x, y, w, h = cv2.boundingRect(max(contours, key=cv2.contourArea))
+            if (x > x0 or x0 == 0) and (y > y0 or y0 == 0) and (x + w < x1 or x1 == width) and (y + h < y1 or y1 == height):
+                return list(contours)
+    contours, _ = cv2.findContours((img >= threshold).view(np.uint8), cv2.RETR_EXTERNAL, approximation)
+    return list(contours)
 
 
 def frozen_array(values: object, shape: tuple[int, ...]) -> Matrix:
@@ -176,16 +210,28 @@ def edge_points_many(
 
 
 def running_median(levels: Matrix, segment: np.ndarray, width: int = 5) -> Matrix:
-    """Running median of ``width`` successive strips of the same segment (sorted by segment).
+    """Running median of ``width`` successive strips of the same segment (sorted by
+    segment), of each column of ``levels`` (N,) or (N, k).
 
     A median keeps the step where the far side of an edge changes (a side face ending
     at a junction) and follows uneven lighting, while it quietens the noise.
     """
-    index = np.arange(levels.size)
+    index = np.arange(len(levels))
     starts = np.searchsorted(segment, segment, side="left")
     stops = np.searchsorted(segment, segment, side="right") - 1
     window = np.clip(index[:, None] + (np.arange(width) - width // 2)[None, :], starts[:, None], stops[:, None])
     return np.sort(levels[window], axis=1)[:, width // 2]
+
+
+def segment_medians(values: Matrix, segment: np.ndarray, count: int) -> Matrix:
+    """The median (lower middle) of ``values`` in each of ``count`` segments (``segment``
+    sorted); NaN for an empty one. One sort for all, where np.median per segment costs
+    more than the sort."""
+    order = np.lexsort((values, segment))
+    bounds = np.searchsorted(segment, np.arange(count + 1))
+    sizes = np.diff(bounds)
+    middle = np.minimum(bounds[:-1] + (np.maximum(sizes, 1) - 1) // 2, max(len(values) - 1, 0))
+    return np.where(sizes > 0, values[order][middle] if len(values) else np.nan, np.nan)
 
 
 def fit_lines(
@@ -253,11 +299,15 @@ def fit_lines(
     return results
 
 
-def intersect(line_a: tuple[Matrix, float], line_b: tuple[Matrix, float]) -> Matrix:
-    """Crossing point of two lines n . x = d; NaN when they are parallel."""
-    (a0, a1), da = line_a[0], line_a[1]
-    (b0, b1), db = line_b[0], line_b[1]
-    det = float(a0 * b1 - a1 * b0)
-    if abs(det) < 1e-9:
-        return np.full(2, np.nan)
-    return np.array([(da * b1 - a1 * db) / det, (a0 * db - da * b0) / det])
+def polygon_corners(lines: list[tuple[Matrix, float]]) -> Matrix:
+    """Corners (K, 2) of a polygon given by its K sides as lines n . x = d in order:
+    corner i is where side i - 1 meets side i; NaN where they are parallel."""
+    normals = np.array([normal for normal, _ in lines])
+    offsets = np.array([offset for _, offset in lines])
+    previous = np.arange(-1, len(lines) - 1)
+    before, offsets_before = normals[previous], offsets[previous]
+    det = before[:, 0] * normals[:, 1] - before[:, 1] * normals[:, 0]
+    det = np.where(np.abs(det) < 1e-9, np.nan, det)
+    u = (offsets_before * normals[:, 1] - before[:, 1] * offsets) / det
+    v = (before[:, 0] * offsets - offsets_before * normals[:, 0]) / det
+    return np.column_stack([u, v])

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from core.features import ObjectRegion
-from core.vision.edges import frozen_array, image_problem
+from core.vision.edges import bright_contours, frozen_array, image_problem
 
 #: Pixels at or above this level are the laser spot (or clipped), not evidence of the object.
 SATURATED_LEVEL = 250
@@ -75,25 +75,13 @@ def _detect(image: np.ndarray, threshold: float, min_area_px2: float) -> RegionD
         return _no_region(problem)
     img = np.ascontiguousarray(image)
     height, width = img.shape
-    binary = (img >= threshold).view(np.uint8)
-    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    contours = bright_contours(img, threshold, cv2.CHAIN_APPROX_SIMPLE)
     if not contours:
         return _no_region(f"no object: no pixel at or above {threshold:g}")
-
-    # Largest first (by outline area); the first with enough evidence besides the spot wins.
-    outline = np.array([cv2.contourArea(c) for c in contours])
-    chosen = None
-    for index in np.argsort(-outline, kind="stable"):
-        contour = contours[int(index)]
-        x, y, w, h = cv2.boundingRect(contour)
-        if w * h < min_area_px2:
-            break  # this and all smaller ones cannot hold min_area_px2 pixels
-        mask = np.zeros((h, w), np.uint8)
-        cv2.drawContours(mask, [contour], -1, 1, thickness=cv2.FILLED, offset=(-x, -y))
-        evidence = mask & (1 - _spot_zone(img[y : y + h, x : x + w]))
-        if cv2.countNonZero(evidence) >= min_area_px2:
-            chosen = (mask, x, y, w, h)
-            break
+    chosen = _with_evidence(img, contours, min_area_px2)
+    if chosen is None:
+        # Around the largest bright region there was only the spot: the whole frame.
+        chosen = _with_evidence(img, bright_contours(img, threshold, cv2.CHAIN_APPROX_SIMPLE, whole_frame=True), min_area_px2)
     if chosen is None:
         return _no_region(
             f"no object: no region of at least {min_area_px2:g} px^2 at or above {threshold:g} besides the laser spot"
@@ -110,16 +98,46 @@ def _detect(image: np.ndarray, threshold: float, min_area_px2: float) -> RegionD
     return RegionDetection(ObjectRegion(float(m00), frozen_array(centroid, (2,))), bool(touches), confidence, "")
 
 
+def _with_evidence(
+    img: np.ndarray, contours: list[np.ndarray], min_area_px2: float
+) -> tuple[np.ndarray, int, int, int, int] | None:
+    """The largest region (filled mask and its box x, y, w, h) with at least
+    ``min_area_px2`` pixels outside the laser spot's reach, or None."""
+    outline = np.array([cv2.contourArea(c) for c in contours])
+    for index in np.argsort(-outline, kind="stable"):
+        contour = contours[int(index)]
+        x, y, w, h = cv2.boundingRect(contour)
+        if w * h < min_area_px2:
+            break  # this and all smaller ones cannot hold min_area_px2 pixels
+        mask = np.zeros((h, w), np.uint8)
+        cv2.drawContours(mask, [contour], -1, 1, thickness=cv2.FILLED, offset=(-x, -y))
+        evidence = mask & (1 - _spot_zone(img[y : y + h, x : x + w]))
+        if cv2.countNonZero(evidence) >= min_area_px2:
+            return mask, x, y, w, h
+    return None
+
+
 def _spot_zone(roi: np.ndarray) -> np.ndarray:
-    """1 within the reach of small clipped blobs (the laser spot and its halo), else 0."""
+    """1 within the reach of small clipped blobs (the laser spot and its halo), else 0.
+
+    Only the rectangle holding the clipped pixels (grown by the halo) is labelled: the
+    spot is a few pixels in a large region.
+    """
     zone = np.zeros(roi.shape, np.uint8)
     if cv2.minMaxLoc(roi)[1] < SATURATED_LEVEL:
         return zone
     saturated = (roi >= SATURATED_LEVEL).view(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(saturated, connectivity=8)
+    x, y, w, h = cv2.boundingRect(saturated)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(saturated[y : y + h, x : x + w], connectivity=8)
     small = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] <= MAX_SPOT_AREA_PX) + 1
     if small.size == 0:
         return zone
-    zone[np.isin(labels, small)] = 1
+    keep = np.zeros(count, np.uint8)
+    keep[small] = 1
+    height, width = roi.shape
+    x0, y0 = max(x - SPOT_HALO_PX, 0), max(y - SPOT_HALO_PX, 0)
+    x1, y1 = min(x + w + SPOT_HALO_PX, width), min(y + h + SPOT_HALO_PX, height)
+    zone[y : y + h, x : x + w] = keep[labels]
     size = 2 * SPOT_HALO_PX + 1
-    return cv2.dilate(zone, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+    zone[y0:y1, x0:x1] = cv2.dilate(zone[y0:y1, x0:x1], cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+    return zone

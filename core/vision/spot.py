@@ -37,6 +37,7 @@ import numpy as np
 
 from core.spatial import Matrix
 from core.vision.edges import edge_points_many, fit_lines, frozen_array, image_problem
+from core.vision.least_squares import levenberg_marquardt
 
 #: Grey level from which a pixel counts as clipped by the sensor.
 CLIPPED_LEVEL = 254
@@ -99,12 +100,17 @@ def _detect(image: np.ndarray, threshold: float, min_area_px: int, max_area_px: 
     if problem:
         return _no_spot(problem)
     img = np.ascontiguousarray(image)
-    brightest = cv2.minMaxLoc(img)[1]
+    # The bright pixels' bounding rectangle from row and column maxima: no frame-sized
+    # mask (touching a fresh frame-sized array costs more than the test itself).
+    row_max = img.max(axis=1)
+    brightest = int(row_max.max())
     if brightest < threshold:
-        return _no_spot(f"no spot: no pixel at or above {threshold:g} (brightest {brightest:.0f})")
-    binary = (img >= threshold).view(np.uint8)
-    x0, y0, w, h = cv2.boundingRect(binary)
-    roi = binary[y0 : y0 + h, x0 : x0 + w]
+        return _no_spot(f"no spot: no pixel at or above {threshold:g} (brightest {brightest})")
+    rows = np.flatnonzero(row_max >= threshold)
+    y0, y1 = int(rows[0]), int(rows[-1]) + 1
+    columns = np.flatnonzero(img[y0:y1].max(axis=0) >= threshold)
+    x0, x1 = int(columns[0]), int(columns[-1]) + 1
+    roi = (img[y0:y1, x0:x1] >= threshold).view(np.uint8)
     # Group blobs closer than 3 px: label the dilated mask, count the undilated pixels.
     grown = cv2.dilate(roi, np.ones((5, 5), np.uint8))
     count, labels = cv2.connectedComponents(grown, connectivity=8)
@@ -412,7 +418,15 @@ def _fit_spot(
     keep = np.ones(values.size, bool)
     res = np.zeros(values.size)
     for _ in range(2):
-        params, res = _levenberg_marquardt(params, values[keep], background[keep], u[keep], v[keep], clipped[keep], lower, upper)
+        params, res = levenberg_marquardt(
+            lambda p: _residuals(p, values[keep], background[keep], u[keep], v[keep], clipped[keep]),
+            params,
+            lower,
+            upper,
+            iterations=20,
+            settled=lambda old, new: float(np.abs(new[:2] - old[:2]).max()) < 2e-3,
+            loss_scale=_CAUCHY_SCALE,
+        )
         model_res = _residuals(params, values, background, u, v, clipped)[0]
         outliers = np.abs(model_res) > 4.0 * _CAUCHY_SCALE
         if not outliers.any() or (~outliers).sum() < 8:
@@ -438,40 +452,3 @@ def _residuals(p: Matrix, values: Matrix, background: Matrix, u: Matrix, v: Matr
     jac = np.column_stack([g * du / s2, g * dv / s2, g, g * r2 / s2])
     jac[clipped & (model >= CLIPPED_LEVEL)] = 0.0
     return res, jac
-
-
-def _levenberg_marquardt(
-    params: Matrix,
-    values: Matrix,
-    background: Matrix,
-    u: Matrix,
-    v: Matrix,
-    clipped: np.ndarray,
-    lower: Matrix,
-    upper: Matrix,
-    iterations: int = 20,
-) -> tuple[Matrix, Matrix]:
-    """Minimise the Cauchy cost of the spot model's residuals within the bounds."""
-    scale2 = _CAUCHY_SCALE**2
-    damping = 1e-3
-    res, jac = _residuals(params, values, background, u, v, clipped)
-    cost = float(np.log1p(res * res / scale2).sum())
-    for _ in range(iterations):
-        weight = 1.0 / (1.0 + res * res / scale2)
-        normal = jac.T @ (weight[:, None] * jac)
-        gradient = jac.T @ (weight * res)
-        step = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-9), -gradient)
-        trial = np.clip(params + step, lower, upper)
-        res_t, jac_t = _residuals(trial, values, background, u, v, clipped)
-        cost_t = float(np.log1p(res_t * res_t / scale2).sum())
-        if cost_t < cost:
-            moved = float(np.abs(trial[:2] - params[:2]).max())
-            params, res, jac, cost = trial, res_t, jac_t, cost_t
-            damping = max(damping / 3.0, 1e-7)
-            if moved < 2e-3:
-                break
-        else:
-            damping *= 4.0
-            if damping > 1e6:
-                break
-    return params, res
