@@ -13,6 +13,7 @@ import numpy as np
 
 from core.config import CellConfig, ConfigError, load_cell
 from core.kinematics import ArmKinematics, KinematicsError
+from core.robot.backend import RobotError
 from core.spatial import pose_from_matrix, pose_to_mm_deg
 from robot_models.loader import load_arm
 
@@ -130,6 +131,16 @@ def _positive(kind: type) -> Any:
     return parse
 
 
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}")
+    return value
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from core.simulate import simulate
 
@@ -230,10 +241,53 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from core.bench import bench_vision
+    config = load_cell(args.cell)
+    if args.what == "vision":
+        from core.bench import bench_vision
 
-    result = bench_vision(load_cell(args.cell), seed=args.seed)
+        result = bench_vision(config, seed=args.seed)
+    elif args.soak:
+        from core.progress import Progress
+        from core.robot.soak import run_soak
+
+        progress = Progress(args.soak, "soak")
+        result = run_soak(config, args.soak, args.fault_rate, args.seed, args.time_scale, args.timer_a, args.timer_b,
+                          on_move=progress.advance)
+        progress.close()
+    else:
+        from core.robot.link_bench import bench_jrc
+
+        result = bench_jrc(config, samples=args.samples, seed=args.seed)
     _print(result, args.json)
+    return 0
+
+
+def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from core.robot.jrc_emulator import FaultPlan, JrcEmulator
+    from core.simulator import SimulatedCell
+
+    config = load_cell(args.cell)
+    emulator = JrcEmulator(SimulatedCell(config), config.jrc, FaultPlan(args.fault_rate, args.seed), args.time_scale,
+                           pace=args.pace)
+    if args.port:
+        emulator.start_on_port(args.port)
+    else:
+        emulator.start_on_pty()
+    line = config.jrc
+    print(emulator.device, flush=True)
+    print(f"JRC emulator on {emulator.device}: {line.baud} baud, {line.data_bits} data bits, {line.parity} parity, "
+          f"{line.stop_bits} stop bit(s); time scale {args.time_scale:g}, faults {args.fault_rate:.0%}; "
+          "Ctrl-C or SIGTERM stops it", file=sys.stderr, flush=True)
+    stopped = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stopped.set())
+    stopped.wait()
+    emulator.stop()
+    print(f"served {emulator.exchanges} exchanges, {len(emulator.executed)} moves; "
+          f"faults injected {dict(emulator.faults.injected)}", file=sys.stderr)
     return 0
 
 
@@ -312,10 +366,32 @@ def build_parser() -> argparse.ArgumentParser:
     replay_command.set_defaults(run=_cmd_replay)
 
     bench = commands.add_parser("bench", help="measure speed and accuracy on this machine")
-    bench.add_argument("what", choices=("vision",), help="vision: render, detection and loop times, detection accuracy")
+    bench.add_argument("what", choices=("vision", "jrc"),
+                       help="vision: render, detection and loop times, detection accuracy; jrc: RPOSC and MOVL round "
+                       "trips over a pty against the wire time, or with --soak the link under injected faults")
     bench.add_argument("--seed", type=int, default=0)
+    bench.add_argument("--samples", type=_positive(int), default=50, help="jrc: round trips per command (default 50)")
+    bench.add_argument("--soak", type=_positive(int), metavar="MOVES", help="jrc: soak the link with MOVES incremental moves")
+    bench.add_argument("--fault-rate", type=_fraction, default=0.05, help="soak: faults per exchange (default 0.05)")
+    bench.add_argument("--time-scale", type=_positive(float), default=50.0, help="soak: emulator speed-up (default 50)")
+    bench.add_argument("--timer-a", type=_positive(float), default=0.1, help="soak: timer A in s (default 0.1)")
+    bench.add_argument("--timer-b", type=_positive(float), default=1.0, help="soak: timer B in s (default 1)")
     bench.add_argument("--json", action="store_true", help="one JSON object")
     bench.set_defaults(run=_cmd_bench)
+
+    emulator = commands.add_parser(
+        "jrc-emulator", help="emulate a JRC controller on a pseudo-terminal (or a port), on the simulated cell",
+        description="Runs the controller side of the JRC host link on the kinematic simulator. Without --port it "
+        "creates a raw pseudo-terminal and prints its device path on the first line of standard output: point "
+        "the cell file's [jrc] port at it.",
+    )
+    emulator.add_argument("--port", metavar="DEV", help="serve on this serial port instead of a new pseudo-terminal")
+    emulator.add_argument("--fault-rate", type=_fraction, default=0.0, help="faults injected per exchange (default 0)")
+    emulator.add_argument("--seed", type=int, default=0, help="seed of the injected faults (default 0)")
+    emulator.add_argument("--time-scale", type=_positive(float), default=1.0,
+                          help="the simulated robot runs this many times faster than real time (default 1)")
+    emulator.add_argument("--pace", action="store_true", help="send and receive bytes at the baud rate")
+    emulator.set_defaults(run=_cmd_jrc_emulator)
     return parser
 
 
@@ -323,7 +399,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (ConfigError, KinematicsError, ValueError, OSError) as exc:
+    except (ConfigError, KinematicsError, RobotError, ValueError, OSError) as exc:
         print(f"vservo {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -336,7 +336,7 @@ def _safety(t: _Table) -> SafetyConfig:
         max_step_m=t.number("max_step_mm", 50.0, check=_positive, why="must be positive") / 1000.0,
         max_step_rad=math.radians(t.number("max_step_deg", 15.0, check=_positive, why="must be positive")),
         max_speed_m_s=t.number("max_speed_mm_s", 250.0, check=_positive, why="must be positive") / 1000.0,
-        joint_margin_rad=math.radians(t.number("joint_margin_deg", 2.0, check=_non_negative, why="must be >= 0")),
+        joint_margin_rad=math.radians(t.number("joint_margin_deg", 0.0, check=_non_negative, why="must be >= 0")),
         watchdog_s=t.number("watchdog_s", 5.0, check=_positive, why="must be positive"),
     )
     t.finish()

@@ -295,13 +295,23 @@ class BscStation:
         return False
 
     def receive(self, wait_s: float, what: str = "a message") -> Message:
-        """Wait up to wait_s for the other end's bid, then take its message."""
+        """Wait up to wait_s for the other end's bid, then take its message; raises
+        LinkError after ending the exchange with EOT."""
         if not self.wait_for_bid(time.monotonic() + wait_s):
+            self.abandon()
             raise LinkError(f"no ENQ for {what} within {wait_s:g} s")
         return self.receive_text()
 
     def receive_text(self) -> Message:
-        """After the other end's ENQ: answer ACK0, take blocks until EOT."""
+        """After the other end's ENQ: answer ACK0, take blocks until EOT; raises LinkError
+        after ending the exchange with EOT."""
+        try:
+            return self._receive_text()
+        except LinkError:
+            self.abandon()
+            raise
+
+    def _receive_text(self) -> Message:
         self._write(ACK0, "ack")
         last_ack = ACK0
         header: str | None = None

@@ -169,19 +169,23 @@ class JrcBackend:
         self._serial: serial.SerialBase | None = None
         self._station: BscStation | None = None
         self._lock = threading.RLock()
+        self._holds_waiting = 0  # holds from other threads (e-stop, watchdog) go before the next JWAIT
         self._posture = 0  # the RPOSC "type": the arm configuration, sent back with MOVL
         self.failed_commands = 0
         self.last_command = ""  # the text of the last command sent, for diagnostics
 
     # -- the link --------------------------------------------------------------------
 
+    def open(self) -> None:
+        """Open the port, without a word to the controller yet."""
+        with self._lock:
+            if self._serial is None:
+                self._serial = open_serial(self.line, self.port)
+                self._station = BscStation(ByteChannel(self._serial), self.line, yields=True)
+
     def connect(self) -> None:
         """Open the port and ask the controller for its status: fails clearly if nothing answers."""
-        with self._lock:
-            if self._serial is not None:
-                return
-            self._serial = open_serial(self.line, self.port)
-            self._station = BscStation(ByteChannel(self._serial), self.line, yields=True)
+        self.open()
         try:
             self.status()
         except RobotError:
@@ -215,9 +219,8 @@ class JrcBackend:
             try:
                 station.send(Message(HOST_COMMAND, text + "\r"))
                 reply = station.receive(reply_wait_s or self.line.timer_b_s, f"the reply to {name}")
-            except LinkError as exc:
+            except LinkError as exc:  # the station has ended the exchange with EOT
                 self.failed_commands += 1
-                station.abandon()
                 raise LinkError(f"{name} failed: {exc}; {self._hold_after_failure(name)}") from exc
         return self._parse(name, reply)
 
@@ -228,7 +231,6 @@ class JrcBackend:
         try:
             self._parse("HOLD", self._exchange("HOLD 1"))
         except RobotError as exc:
-            self.station.abandon()
             return f"HOLD 1 failed too ({exc}): the robot may still be moving"
         return "the robot is held (release with HOLD 0)"
 
@@ -284,7 +286,11 @@ class JrcBackend:
         self.command(f"SVON {int(on)}")
 
     def hold(self, on: bool) -> None:
-        self.command(f"HOLD {int(on)}")
+        self._holds_waiting += 1
+        try:
+            self.command(f"HOLD {int(on)}")
+        finally:
+            self._holds_waiting -= 1
 
     def reset_alarms(self) -> None:
         """RESET the alarms and CANCEL an error; servo power stays off."""
@@ -314,6 +320,8 @@ class JrcBackend:
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         slice_s = self.line.jwait_slice_s
         while True:
+            while self._holds_waiting:  # a lock is not fair: let a hold from another thread through first
+                time.sleep(0.001)
             try:
                 (done,) = self._integers(f"JWAIT {slice_s:g}", 1, reply_wait_s=self.line.timer_b_s + slice_s)
             except JrcCommandError as exc:

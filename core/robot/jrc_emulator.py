@@ -107,13 +107,23 @@ class FaultInjector:
         self._armed: str | None = None
         self._countdown = 0  # outgoing transmissions before a drop or delay hits
         self.pending_motion_fault: str | None = None
+        self._forced: list[str] = []
+
+    def inject(self, kind: str) -> None:
+        """Force a fault of ``kind`` on the next exchange (an alarm or hold: on the next motion)."""
+        if kind not in FAULT_KINDS:
+            raise ValueError(f"unknown fault kind {kind!r}: choose from {', '.join(FAULT_KINDS)}")
+        self._forced.append(kind)
 
     def begin_exchange(self) -> str | None:
         """Draw this exchange's fault; returns "timeout" when the bid is to be ignored."""
         self._armed = None
-        if self.rng.random() >= self.plan.rate:
+        if self._forced:
+            kind = self._forced.pop(0)
+        elif self.rng.random() < self.plan.rate:
+            kind = str(self.rng.choice(self.plan.kinds))
+        else:
             return None
-        kind = str(self.rng.choice(self.plan.kinds))
         if kind in MOTION_FAULTS:
             self.pending_motion_fault = kind  # strikes the next motion, whichever exchange carries it
         elif kind == "timeout":
