@@ -10,27 +10,20 @@ import numpy as np
 import pytest
 import serial
 
-from core.config import parse_cell
 from core.robot.backend import RobotError
 from core.robot.bsc import ACK0, ACK1, ENQ, EOT, ETB, ETX, NAK, SOH, STX, LinkError, Message, block_check, encode_blocks
 from core.robot.jrc import ERROR_MESSAGES, JrcBackend, JrcCommandError, JrcNotReady, describe_error, pose_from_wire, wire_pose
-from core.robot.jrc_emulator import FAULT_KINDS, FaultPlan, JrcEmulator
+from core.robot.jrc_emulator import FAULT_KINDS, FaultPlan
 from core.robot.pseudo_terminal import PseudoTerminal
 from core.robot.soak import run_soak
 from core.simulator import SimulatedCell
 from core.spatial import Pose6, matrix_from_pose, pose_error, rot_x, transform
-from tests.test_config import default_data
-
-# Timers short enough for tests, long enough for a loaded 2-core machine.
-TEST_LINE = {"timer_a_s": 0.05, "timer_b_s": 0.5, "retry_1": 3, "retry_2": 3, "jwait_slice_s": 0.2}
-TIME_SCALE = 50.0
+from tests.jrc_fixtures import TEST_LINE, TIME_SCALE, jrc_link, short_timer_cell
 
 
 @pytest.fixture(scope="module")
 def config():
-    data = default_data()
-    data["jrc"].update(TEST_LINE)
-    return parse_cell(data, "test cell")
+    return short_timer_cell()
 
 
 @pytest.fixture
@@ -39,17 +32,19 @@ def cell(config):
 
 
 @pytest.fixture
-def emulator(cell, config):
-    with JrcEmulator(cell, config.jrc, time_scale=TIME_SCALE) as emulator:
-        yield emulator
+def link(cell, config):
+    with jrc_link(cell, config) as (robot, emulator):
+        yield robot, emulator
 
 
 @pytest.fixture
-def robot(emulator, config):
-    robot = JrcBackend(config.jrc, emulator.device)
-    robot.connect()
-    yield robot
-    robot.close()
+def emulator(link):
+    return link[1]
+
+
+@pytest.fixture
+def robot(link):
+    return link[0]
 
 
 def bcc_by_hand(body: bytes) -> bytes:
@@ -123,6 +118,19 @@ class ScriptedController:
     def send(self, data: bytes) -> None:
         os.write(self.fd, data)
 
+    def end_command(self) -> None:
+        """ACK1 for the host's (single) block, then its EOT."""
+        self.send(ACK1)
+        self.expect(bytes((EOT,)))
+
+    def reply(self, block: bytes) -> None:
+        """Bid, send one reply block, take the host's ACK1 and end with EOT."""
+        self.send(bytes((ENQ,)))
+        self.expect(ACK0)
+        self.send(block)
+        self.expect(ACK1)
+        self.send(bytes((EOT,)))
+
 
 def pty_ready(fd: int, timeout_s: float) -> bool:
     import select
@@ -167,8 +175,7 @@ def test_the_host_resends_on_nak_and_refuses_a_bad_bcc(config):
         assert controller.read_block() == command
         controller.send(bytes((NAK,)))
         assert controller.read_block() == command  # sent again
-        controller.send(ACK1)
-        controller.expect(bytes((EOT,)))
+        controller.end_command()
         controller.send(bytes((ENQ,)))
         controller.expect(ACK0)
         good = reply_block(b"1.000,2.000,3.000,0.00,0.00,0.00,0,0")
@@ -191,13 +198,8 @@ def test_a_lost_ack_is_asked_for_with_enq_and_the_block_is_not_sent_twice(config
         controller.read_block()
         # No ACK1: after timer A the host asks with ENQ; ACK1 says the block arrived.
         controller.expect(bytes((ENQ,)))
-        controller.send(ACK1)
-        controller.expect(bytes((EOT,)))
-        controller.send(bytes((ENQ,)))
-        controller.expect(ACK0)
-        controller.send(reply_block(b"192,64"))
-        controller.expect(ACK1)
-        controller.send(bytes((EOT,)))
+        controller.end_command()
+        controller.reply(reply_block(b"192,64"))
         thread.join(10)
         assert not pty_ready(pty.master_fd, 0.1)  # nothing more: the command block went once
     assert result["reply"] == ("192", "64")
@@ -210,21 +212,12 @@ def test_the_host_yields_when_both_ends_bid(config):
         controller = ScriptedController(pty)
         thread, result = run_host(config.jrc, pty.device, "RSTATS")
         controller.expect(bytes((ENQ,)))
-        controller.send(bytes((ENQ,)))  # contention
-        controller.expect(ACK0)
-        controller.send(reply_block(b"stale"))
-        controller.expect(ACK1)
-        controller.send(bytes((EOT,)))
+        controller.reply(reply_block(b"stale"))  # contention: the controller bids too
         controller.expect(bytes((ENQ,)))  # the host bids again
         controller.send(ACK0)
         controller.read_block()
-        controller.send(ACK1)
-        controller.expect(bytes((EOT,)))
-        controller.send(bytes((ENQ,)))
-        controller.expect(ACK0)
-        controller.send(reply_block(b"192,64"))
-        controller.expect(ACK1)
-        controller.send(bytes((EOT,)))
+        controller.end_command()
+        controller.reply(reply_block(b"192,64"))
         thread.join(10)
     assert result["reply"] == ("192", "64")
     assert result["counters"].contentions == 1
@@ -367,12 +360,9 @@ def test_a_pendant_hold_lasts_until_the_pendant_releases_it(robot, cell, emulato
     ("bcc", "naks_sent"), ("nak", "text_resends"), ("missing_ack", "enq_retries"), ("drop", None), ("delay", None),
 ])
 def test_every_link_fault_is_recovered(cell, config, kind, counter):
-    with JrcEmulator(cell, config.jrc, FaultPlan(1.0, seed=3, kinds=(kind,)), TIME_SCALE) as emulator:
-        robot = JrcBackend(config.jrc, emulator.device)
-        robot.connect()
+    with jrc_link(cell, config, FaultPlan(1.0, seed=3, kinds=(kind,))) as (robot, emulator):
         poses = [robot.read_pose() for _ in range(12)]
         counters = robot.station.counters
-        robot.close()
     bMe = cell.controller_arm.fk(cell.state.q)
     assert all(pose_error(pose, bMe)[0] < 1e-6 for pose in poses)
     assert emulator.faults.injected[kind] >= 12

@@ -185,8 +185,8 @@ _BAD, _INTERRUPTED = "bad", "interrupted"
 class BscStation:
     """One end of the line: sends and receives messages, with the recovery above.
 
-    ``yields``: the host's role in contention. Messages the host receives while it bids
-    (a late reply of a command that failed) are kept in ``unsolicited``.
+    ``yields``: the host's role in contention. A message the host receives while it
+    bids (the late reply of a command that failed) is logged and dropped.
     """
 
     channel: ByteChannel
@@ -194,7 +194,6 @@ class BscStation:
     yields: bool
     faults: LinkFaults | None = None
     counters: LinkCounters = field(default_factory=LinkCounters)
-    unsolicited: list[Message] = field(default_factory=list)
 
     # -- sending ---------------------------------------------------------------------
 
@@ -228,7 +227,7 @@ class BscStation:
             if answer == bytes((ENQ,)):  # both ends bid: the host yields
                 self.counters.contentions += 1
                 try:
-                    self.unsolicited.append(self.receive_text())
+                    log.info("contention: took the other end's message %s first", self.receive_text())
                 except LinkError as exc:
                     log.info("contention: the other end's message was lost: %s", exc)
         raise LinkError(f"no ACK0 to ENQ after {self.line.retry_1 + 1} tries (timer A {timer_a:g} s)")
