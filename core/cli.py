@@ -54,6 +54,19 @@ def cell_info(config: CellConfig) -> dict[str, Any]:
             "alpha_deg": round(alpha, 3),
             "direction_c": _round(direction, 6),
         },
+        "link": {
+            "backend": config.robot_backend,
+            **vars(config.jrc),
+        },
+        "safety": {
+            "workspace_min_mm": _round(config.safety.workspace_min_m * 1000.0, 3),
+            "workspace_max_mm": _round(config.safety.workspace_max_m * 1000.0, 3),
+            "max_step_mm": round(config.safety.max_step_m * 1000.0, 3),
+            "max_step_deg": round(float(np.degrees(config.safety.max_step_rad)), 3),
+            "max_speed_mm_s": round(config.safety.max_speed_m_s * 1000.0, 3),
+            "joint_margin_deg": round(float(np.degrees(config.safety.joint_margin_rad)), 3),
+            "watchdog_s": config.safety.watchdog_s,
+        },
         "motion": {
             "mode": config.motion.mode,
             "divide_factor": config.motion.divide_factor,

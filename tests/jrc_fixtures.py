@@ -1,6 +1,9 @@
 """A test cell with short JRC timers, and a JRC link to an emulator of a simulated cell."""
 
+import threading
 from contextlib import contextmanager
+
+import pytest
 
 from core.config import parse_cell
 from core.robot.jrc import JrcBackend
@@ -31,3 +34,12 @@ def jrc_link(cell, config, faults=FaultPlan(), time_scale=TIME_SCALE):
             yield robot, emulator
         finally:
             robot.close()
+
+
+@pytest.fixture
+def no_leaked_threads():
+    """Fails a test that leaves an emulator, a watchdog or a host thread running."""
+    before = set(threading.enumerate())
+    yield
+    leaked = [thread.name for thread in threading.enumerate() if thread not in before and thread.is_alive()]
+    assert not leaked, f"threads left running: {leaked}"

@@ -18,7 +18,9 @@ from core.robot.pseudo_terminal import PseudoTerminal
 from core.robot.soak import run_soak
 from core.simulator import SimulatedCell
 from core.spatial import Pose6, matrix_from_pose, pose_error, rot_x, transform
-from tests.jrc_fixtures import TEST_LINE, TIME_SCALE, jrc_link, short_timer_cell
+from tests.jrc_fixtures import TEST_LINE, TIME_SCALE, jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
+
+pytestmark = pytest.mark.usefixtures("no_leaked_threads")
 
 
 @pytest.fixture(scope="module")
@@ -236,6 +238,36 @@ def test_after_its_retries_the_host_ends_with_eot_and_names_the_command(config):
     error = result["reply"]
     assert isinstance(error, LinkError)
     assert str(error).startswith("SVON failed: no ACK0 to ENQ after 4 tries") and "HOLD 1 failed too" in str(error)
+
+
+def test_a_block_refused_more_than_retry_2_times_fails_the_command(config):
+    line = config.jrc
+    with PseudoTerminal() as pty:
+        controller = ScriptedController(pty)
+        thread, result = run_host(line, pty.device, "SVON 1")
+        controller.expect(bytes((ENQ,)))
+        controller.send(ACK0)
+        for _ in range(line.retry_2 + 1):
+            controller.read_block()
+            controller.send(bytes((NAK,)))
+        controller.expect(bytes((EOT,)))
+        thread.join(10)
+    assert str(result["reply"]).startswith("SVON failed: block 1 of 1 refused 4 times (retry 2 = 3)")
+
+
+def test_a_reply_that_never_ends_fails_after_timer_b(config):
+    with PseudoTerminal() as pty:
+        controller = ScriptedController(pty)
+        thread, result = run_host(config.jrc, pty.device, "RSTATS")
+        controller.expect(bytes((ENQ,)))
+        controller.send(ACK0)
+        controller.read_block()
+        controller.end_command()
+        controller.send(bytes((ENQ,)))
+        controller.expect(ACK0)
+        controller.send(reply_block(b"192,64")[:6])  # cut short, then silence
+        thread.join(10)
+    assert str(result["reply"]).startswith("RSTATS failed: the text did not end within timer B (0.5 s)")
 
 
 # -- the controller emulator, byte by byte ---------------------------------------------

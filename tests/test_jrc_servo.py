@@ -4,11 +4,15 @@ that moves the very SimulatedCell the camera looks at."""
 
 from contextlib import ExitStack
 
+import pytest
+
 from core.robot.safety import SafetyLayer
 from core.step_policy import DividedPositionStep
 from core.study import RunSettings, run_task
 from core.tasks import TASKS
-from tests.jrc_fixtures import jrc_link, short_timer_cell
+from tests.jrc_fixtures import jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
+
+pytestmark = pytest.mark.usefixtures("no_leaked_threads")
 
 # The emulated robot runs 1000 times faster than real time; the host's sampling period
 # shrinks by as much, so one cycle is the thesis's 2 s in the emulator's time.

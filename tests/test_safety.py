@@ -12,6 +12,8 @@ import pytest
 
 from core.controllers.base import ControlOutput, Failure
 from core.robot.backend import SimulatedBackend
+from core.robot.factory import robot_from_config
+from core.robot.jrc import JrcBackend
 from core.robot.safety import (
     BeyondJointLimits,
     OutsideWorkspace,
@@ -26,7 +28,9 @@ from core.spatial import pose_error, rot_z, transform
 from core.step_policy import DividedPositionStep
 from core.study import teach
 from core.tasks import TASKS
-from tests.jrc_fixtures import jrc_link, short_timer_cell
+from tests.jrc_fixtures import jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
+
+pytestmark = pytest.mark.usefixtures("no_leaked_threads")
 
 SPEED = 0.05
 
@@ -164,3 +168,13 @@ def test_the_loop_stops_with_the_safety_layers_reason(backend_name):
         assert outcome.failure is Failure.ROBOT_STOPPED and "exceeds the maximum 0.1 mm" in outcome.reason
         assert outcome.iterations == 1 and np.array_equal(arm_pose(cell), before)
         assert not robot.watchdog.armed  # the loop armed it for the run only
+
+
+def test_the_cell_file_chooses_the_backend_behind_the_safety_layer():
+    config = short_timer_cell()
+    robot = robot_from_config(config, SimulatedCell(config))
+    assert isinstance(robot, SafetyLayer) and isinstance(robot.robot, SimulatedBackend)
+    with pytest.raises(ValueError, match="backend = 'sim' needs the simulated cell"):
+        robot_from_config(config)
+    jrc = robot_from_config(short_timer_cell(robot={"backend": "jrc"}), port="/dev/ttyUSB3")
+    assert isinstance(jrc.robot, JrcBackend) and jrc.robot.port == "/dev/ttyUSB3" and jrc.name == "jrc"

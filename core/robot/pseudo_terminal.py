@@ -47,11 +47,11 @@ class PseudoTerminal:
         self.port = FdPort(self.master_fd)
 
     def close(self) -> None:
+        """Close both ends; safe to call twice."""
         for fd in (self.master_fd, self.slave_fd):
-            try:
+            if fd >= 0:
                 os.close(fd)
-            except OSError:
-                pass  # already closed
+        self.master_fd = self.slave_fd = -1
 
     def __enter__(self) -> PseudoTerminal:
         return self
