@@ -120,6 +120,14 @@ class ScriptedController:
     def send(self, data: bytes) -> None:
         os.write(self.fd, data)
 
+    def accept_bid(self) -> None:
+        self.expect(bytes((ENQ,)))
+        self.send(ACK0)
+
+    def bid(self) -> None:
+        self.send(bytes((ENQ,)))
+        self.expect(ACK0)
+
     def end_command(self) -> None:
         """ACK1 for the host's (single) block, then its EOT."""
         self.send(ACK1)
@@ -127,8 +135,7 @@ class ScriptedController:
 
     def reply(self, block: bytes) -> None:
         """Bid, send one reply block, take the host's ACK1 and end with EOT."""
-        self.send(bytes((ENQ,)))
-        self.expect(ACK0)
+        self.bid()
         self.send(block)
         self.expect(ACK1)
         self.send(bytes((EOT,)))
@@ -170,16 +177,14 @@ def test_the_host_resends_on_nak_and_refuses_a_bad_bcc(config):
     with PseudoTerminal() as pty:
         controller = ScriptedController(pty)
         thread, result = run_host(config.jrc, pty.device, "RPOSC 0,0")
-        controller.expect(bytes((ENQ,)))
-        controller.send(ACK0)
+        controller.accept_bid()
         body = b"01,000" + bytes((STX,)) + b"RPOSC 0,0\r" + bytes((ETX,))
         command = bytes((SOH,)) + body + bcc_by_hand(body)
         assert controller.read_block() == command
         controller.send(bytes((NAK,)))
         assert controller.read_block() == command  # sent again
         controller.end_command()
-        controller.send(bytes((ENQ,)))
-        controller.expect(ACK0)
+        controller.bid()
         good = reply_block(b"1.000,2.000,3.000,0.00,0.00,0.00,0,0")
         controller.send(good[:-1] + bytes(((good[-1] + 1) % 256,)))
         controller.expect(bytes((NAK,)))
@@ -195,8 +200,7 @@ def test_a_lost_ack_is_asked_for_with_enq_and_the_block_is_not_sent_twice(config
     with PseudoTerminal() as pty:
         controller = ScriptedController(pty)
         thread, result = run_host(config.jrc, pty.device, "RSTATS")
-        controller.expect(bytes((ENQ,)))
-        controller.send(ACK0)
+        controller.accept_bid()
         controller.read_block()
         # No ACK1: after timer A the host asks with ENQ; ACK1 says the block arrived.
         controller.expect(bytes((ENQ,)))
@@ -245,8 +249,7 @@ def test_a_block_refused_more_than_retry_2_times_fails_the_command(config):
     with PseudoTerminal() as pty:
         controller = ScriptedController(pty)
         thread, result = run_host(line, pty.device, "SVON 1")
-        controller.expect(bytes((ENQ,)))
-        controller.send(ACK0)
+        controller.accept_bid()
         for _ in range(line.retry_2 + 1):
             controller.read_block()
             controller.send(bytes((NAK,)))
@@ -259,12 +262,10 @@ def test_a_reply_that_never_ends_fails_after_timer_b(config):
     with PseudoTerminal() as pty:
         controller = ScriptedController(pty)
         thread, result = run_host(config.jrc, pty.device, "RSTATS")
-        controller.expect(bytes((ENQ,)))
-        controller.send(ACK0)
+        controller.accept_bid()
         controller.read_block()
         controller.end_command()
-        controller.send(bytes((ENQ,)))
-        controller.expect(ACK0)
+        controller.bid()
         controller.send(reply_block(b"192,64")[:6])  # cut short, then silence
         thread.join(10)
     assert str(result["reply"]).startswith("RSTATS failed: the text did not end within timer B (0.5 s)")
