@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import serial
 
+from core.kinematics import UnreachableTarget
 from core.robot.backend import RobotError
 from core.robot.bsc import ACK0, ACK1, ENQ, EOT, ETB, ETX, NAK, SOH, STX, LinkError, Message, block_check, encode_blocks
 from core.robot.jrc import ERROR_MESSAGES, JrcBackend, JrcCommandError, JrcNotReady, describe_error, pose_from_wire, wire_pose
@@ -336,6 +337,8 @@ def test_refusals_carry_the_controllers_reason(robot):
         robot.command("RPOSC 0")
     with pytest.raises(RobotError, match="position_steps"):
         robot.move_timed(bMe, 0.1)
+    with pytest.raises(UnreachableTarget, match="MOVL refused by the controller: 5200 data out of range"):
+        robot.move_to(transform(t=(2.0, 0.0, 0.0)) @ bMe, 0.05)
 
 
 def test_a_hold_stops_the_motion_where_it_is(robot, cell, emulator):

@@ -171,7 +171,6 @@ class JrcBackend:
         self._lock = threading.RLock()
         self._holds_waiting = 0  # holds from other threads (e-stop, watchdog) go before the next JWAIT
         self._posture = 0  # the RPOSC "type": the arm configuration, sent back with MOVL
-        self.failed_commands = 0
         self.last_command = ""  # the text of the last command sent, for diagnostics
 
     # -- the link --------------------------------------------------------------------
@@ -220,7 +219,6 @@ class JrcBackend:
                 station.send(Message(HOST_COMMAND, text + "\r"))
                 reply = station.receive(reply_wait_s or self.line.timer_b_s, f"the reply to {name}")
             except LinkError as exc:  # the station has ended the exchange with EOT
-                self.failed_commands += 1
                 raise LinkError(f"{name} failed: {exc}; {self._hold_after_failure(name)}") from exc
         return self._parse(name, reply)
 
