@@ -405,6 +405,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="the simulated robot runs this many times faster than real time (default 1)")
     emulator.add_argument("--pace", action="store_true", help="send and receive bytes at the baud rate")
     emulator.set_defaults(run=_cmd_jrc_emulator)
+
+    for command in commands.choices.values():  # --cell after the command too: vservo jrc-emulator --cell my.toml
+        command.add_argument("--cell", metavar="FILE", default=argparse.SUPPRESS, help="cell configuration (TOML)")
     return parser
 
 

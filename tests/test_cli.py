@@ -146,3 +146,9 @@ def test_the_jrc_commands_refuse_bad_arguments_in_one_line():
     port = run("jrc-emulator", "--port", "/dev/nonexistent-jrc")
     assert port.returncode == 2 and len(port.stderr.strip().splitlines()) == 1
     assert port.stderr.startswith("vservo jrc-emulator: error: cannot open the serial port /dev/nonexistent-jrc")
+
+
+def test_the_cell_option_goes_before_or_after_the_command():
+    for args in (("--cell", "/nowhere/cell.toml", "info"), ("info", "--cell", "/nowhere/cell.toml")):
+        result = run(*args)
+        assert result.returncode == 2 and "cell file not found: /nowhere/cell.toml" in result.stderr

@@ -12,9 +12,25 @@ import serial
 
 from core.kinematics import UnreachableTarget
 from core.robot.backend import RobotError
-from core.robot.bsc import ACK0, ACK1, ENQ, EOT, ETB, ETX, NAK, SOH, STX, LinkError, Message, block_check, encode_blocks
+from core.robot.bsc import (
+    ACK0,
+    ACK1,
+    ENQ,
+    EOT,
+    ETB,
+    ETX,
+    NAK,
+    SOH,
+    STX,
+    BscStation,
+    ByteChannel,
+    LinkError,
+    Message,
+    block_check,
+    encode_blocks,
+)
 from core.robot.jrc import ERROR_MESSAGES, JrcBackend, JrcCommandError, JrcNotReady, describe_error, pose_from_wire, wire_pose
-from core.robot.jrc_emulator import FAULT_KINDS, FaultPlan
+from core.robot.jrc_emulator import FAULT_KINDS, FaultPlan, JrcEmulator
 from core.robot.pseudo_terminal import PseudoTerminal
 from core.robot.soak import run_soak
 from core.simulator import SimulatedCell
@@ -296,6 +312,20 @@ def test_the_emulator_answers_one_transaction_as_the_protocol_draws_it(emulator,
     bMe = cell.controller_arm.fk(cell.state.q)
     assert np.allclose(values[:3], bMe[:3, 3] * 1000.0, atol=0.0005)
     assert len(values) == 8
+
+
+def test_the_emulator_serves_a_serial_port_it_is_given(cell, config):
+    """On a port opened with pyserial (the slave of a pty); the host here is the master end."""
+    with PseudoTerminal() as pty:
+        emulator = JrcEmulator(cell, config.jrc, time_scale=TIME_SCALE)
+        emulator.start_on_port(pty.device)
+        try:
+            host = BscStation(ByteChannel(pty.port), config.jrc, yields=True)
+            host.send(Message("01,000", "RSTATS\r"))
+            reply = host.receive(config.jrc.timer_b_s)
+        finally:
+            emulator.stop()
+    assert reply == Message("90,001", "192,0\r")  # play and remote; no hold, alarm or servo power
 
 
 # -- host commands against the emulator ------------------------------------------------
