@@ -6,8 +6,8 @@ taught threshold (3 px), move the fixed taught transform eMe_pick so the vacuum 
 meets the part, suction on (the vacuum sensor must confirm the grip), lift, move over
 the taught place pose, lower into the metal part, release, retreat.
 
-Every motion goes through a RobotBackend, so the same sequence drives the simulator
-and the JRC. The run reports its phase changes and servo cycles to ``on_event``; it
+Every motion goes through the safety layer to a RobotBackend, so the same sequence
+drives the simulator and the JRC. The run reports its phase changes and servo cycles to ``on_event``; it
 never decides on its own to move after a fault: any refusal or failure ends it with the
 robot held. An e-stop holds the robot from outside (the controller process does it at
 once); the next move is then refused and the run ends as "estopped".
@@ -29,10 +29,11 @@ from core.jobs import Job
 from core.kinematics import UnreachableTarget
 from core.robot.backend import RobotBackend, RobotError
 from core.robot.gripper import VacuumGripper
+from core.robot.safety import SafetyLayer
 from core.servo_loop import Cycle, LoopLimits, Perception, run_servo
 from core.simulator import Measurement
-from core.spatial import Matrix, pose_error
-from core.step_policy import RobotCommand, StepPolicy, VelocityCommand
+from core.spatial import Matrix
+from core.step_policy import StepPolicy
 from core.study import RunSettings, build_controller
 
 log = logging.getLogger("vservo.assembly")
@@ -106,37 +107,18 @@ class PlacementReport:
     error_mm: float
 
 
-class RobotPlant:
-    """The servo loop's plant on a RobotBackend: the flange pose read from the robot
-    controller, each step sent as one linear move and waited for.
+@dataclass(frozen=True)
+class FlangeReadout:
+    """The servo loop's measurement on a cell whose features come from camera frames:
+    the flange pose as the robot controller reports it, nothing projected."""
 
-    The camera side is the loop's Perception (frames); this plant measures nothing else.
-    """
-
-    def __init__(self, robot: RobotBackend, dof: int) -> None:
-        self.robot = robot
-        self.dof = dof
-        self.start = time.monotonic()
+    robot: RobotBackend
+    dof: int
 
     def measure(self, look: bool = False) -> Measurement:
         unseen = np.full(2, np.nan)
-        return Measurement(time.monotonic() - self.start, np.full(self.dof, np.nan), self.robot.read_pose(),
+        return Measurement(self.robot.clock_s(), np.full(self.dof, np.nan), self.robot.read_pose(),
                            np.full((4, 2), np.nan), unseen, ObjectRegion(0.0, unseen), np.full(4, np.nan), unseen)
-
-    def execute(self, command: RobotCommand) -> None:
-        bMe = self.robot.read_pose()
-        target = command.target(bMe)
-        if isinstance(command, VelocityCommand):  # the step's speed, so it lasts one period
-            speed = max(pose_error(bMe, target)[0] / command.dt_s, 1e-4)
-        else:
-            speed = command.speed_m_s
-        self.move(target, speed)
-
-    def move(self, bMe_target: Matrix, speed_m_s: float) -> None:
-        """One linear move, waited for; a move the controller stopped raises RobotError."""
-        self.robot.move_to(bMe_target, speed_m_s)
-        if not self.robot.wait_motion():
-            raise RobotError(f"the move did not finish: {self.robot.status().detail or 'stopped by the controller'}")
 
 
 def lifted(bMe: Matrix, height_m: float) -> Matrix:
@@ -148,7 +130,7 @@ def lifted(bMe: Matrix, height_m: float) -> Matrix:
 
 def run_assembly(
     job: Job,
-    robot: RobotBackend,
+    robot: SafetyLayer,
     gripper: VacuumGripper,
     perception: Perception,
     model: CellModel,
@@ -161,9 +143,12 @@ def run_assembly(
     measure_placement: Callable[[], PlacementReport | None] = lambda: None,
     estopped: Callable[[], bool] = lambda: False,
 ) -> AssemblyOutcome:
-    """Run the job once; the robot must be connected with servo power on."""
+    """Run the job once; the robot must be connected with servo power on.
+
+    Taught moves (start, pick, place) go out as linear moves cut into safety-sized steps
+    (SafetyLayer.move_linear); the servo's steps as the step policy makes them.
+    """
     started = time.monotonic()
-    plant = RobotPlant(robot, dof)
     servo = None
 
     def end(outcome: str, reason: str, placement: PlacementReport | None = None) -> AssemblyOutcome:
@@ -187,16 +172,18 @@ def run_assembly(
         )
 
     def move(target: Matrix, speed: float = speed_m_s) -> None:
-        plant.move(target, speed)
+        robot.move_linear(target, speed)
 
     try:
         on_event(PhaseChange(Phase.SERVOING, "moving to the start pose"))
         move(job.start_bMe)
         on_event(PhaseChange(Phase.SERVOING, f"servoing with the {job.method} method"))
         controller = build_controller(model, RunSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
-        servo = run_servo(plant, controller, job.desired, model, policy, limits,
-                          on_cycle=lambda cycle: on_event(ServoCycle(cycle)), perception=perception)
+        servo = run_servo(FlangeReadout(robot, dof), controller, job.desired, model, policy, limits,
+                          on_cycle=lambda cycle: on_event(ServoCycle(cycle)), perception=perception, robot=robot)
         if not servo.converged:
+            if estopped():
+                return end("estopped", "e-stop pressed")
             return end("fault", f"servo failed: {servo.failure.value if servo.failure else ''} ({servo.reason})")
 
         on_event(PhaseChange(Phase.PICKING, f"servo converged, feature error {servo.final_error_px:.2f} px"))

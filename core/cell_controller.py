@@ -202,7 +202,7 @@ class CellController:
             # In the base frame: translation added, rotation about the flange's own origin.
             increment = exp_twist(np.concatenate([np.zeros(3), step[3:]]))
             increment[:3, 3] = step[:3]
-            target = bMe @ exp_twist(step) if frame == "tool" else apply_increment(increment, bMe)
+            target = bMe @ exp_twist(step) if frame == "tool" else apply_increment(bMe, increment)
             self.move_to(target)
 
     def move_to(self, bMe_target: Matrix) -> None:
@@ -211,8 +211,7 @@ class CellController:
             self._require(Phase.IDLE, Phase.TEACHING, Phase.DONE, Phase.FAULT)
             self._enable_motion()
             try:
-                self.rig.robot.move_to(np.asarray(bMe_target, float), JOG_SPEED_M_S)
-                self.rig.robot.wait_motion()
+                self.rig.robot.move_linear(np.asarray(bMe_target, float), JOG_SPEED_M_S)
             except (RobotError, UnreachableTarget) as exc:
                 raise CommandRefused(f"move refused: {exc}") from exc
             self._update(**self._robot_readout())
@@ -390,7 +389,7 @@ class CellController:
         """Hold the robot now and refuse every move until reset (never waits for a lock)."""
         self._estop.set()
         try:
-            self.rig.robot.hold(True)
+            self.rig.robot.emergency_stop("operator e-stop")
             detail = "e-stop: robot held"
         except RobotError as exc:
             detail = f"e-stop: hold could not be sent ({exc}); use the pendant's e-stop"
@@ -405,6 +404,7 @@ class CellController:
             if Phase(self._state.phase) not in (Phase.ESTOPPED, Phase.FAULT, Phase.DONE):
                 raise CommandRefused(f"nothing to reset while {self._state.phase}")
             try:
+                self.rig.robot.reset_emergency_stop()
                 self.rig.robot.reset_alarms()
                 self.rig.robot.hold(False)
             except RobotError as exc:

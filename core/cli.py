@@ -12,8 +12,9 @@ from typing import Any
 import numpy as np
 
 from core.calibration.cli import add_calibrate_command
-from core.config import CellConfig, ConfigError, load_cell
+from core.config import ROBOT_BACKENDS, CellConfig, ConfigError, load_cell
 from core.kinematics import ArmKinematics, KinematicsError
+from core.robot.backend import RobotError
 from core.spatial import pose_from_matrix, pose_to_mm_deg
 from core.storage import StoreError, default_data_dir
 from robot_models.loader import load_arm
@@ -54,6 +55,19 @@ def cell_info(config: CellConfig) -> dict[str, Any]:
             "baseline_mm": round(float(np.linalg.norm(origin)) * 1000.0, 3),
             "alpha_deg": round(alpha, 3),
             "direction_c": _round(direction, 6),
+        },
+        "link": {
+            "backend": config.robot_backend,
+            **vars(config.jrc),
+        },
+        "safety": {
+            "workspace_min_mm": _round(config.safety.workspace_min_m * 1000.0, 3),
+            "workspace_max_mm": _round(config.safety.workspace_max_m * 1000.0, 3),
+            "max_step_mm": round(config.safety.max_step_m * 1000.0, 3),
+            "max_step_deg": round(float(np.degrees(config.safety.max_step_rad)), 3),
+            "max_speed_mm_s": round(config.safety.max_speed_m_s * 1000.0, 3),
+            "joint_margin_deg": round(float(np.degrees(config.safety.joint_margin_rad)), 3),
+            "watchdog_s": config.safety.watchdog_s,
         },
         "motion": {
             "mode": config.motion.mode,
@@ -130,6 +144,16 @@ def _positive(kind: type) -> Any:
         return value
 
     return parse
+
+
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number from 0 to 1, got {text!r}")
+    return value
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -232,11 +256,27 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from core.bench import bench_vision
-    from core.calibration.bench import bench_calibration
+    config = load_cell(args.cell)
+    if args.what == "vision":
+        from core.bench import bench_vision
 
-    bench = bench_calibration if args.what == "calibration" else bench_vision
-    result = bench(load_cell(args.cell), seed=args.seed)
+        result = bench_vision(config, seed=args.seed)
+    elif args.what == "calibration":
+        from core.calibration.bench import bench_calibration
+
+        result = bench_calibration(config, seed=args.seed)
+    elif args.soak:
+        from core.progress import Progress
+        from core.robot.soak import run_soak
+
+        progress = Progress(args.soak, "soak")
+        result = run_soak(config, args.soak, args.fault_rate, args.seed, args.time_scale, args.timer_a, args.timer_b,
+                          on_move=progress.advance)
+        progress.close()
+    else:
+        from core.robot.link_bench import bench_jrc
+
+        result = bench_jrc(config, samples=args.samples, seed=args.seed)
     _print(result, args.json)
     return 0
 
@@ -247,7 +287,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from core.storage import Store
 
     store = Store(args.data or default_data_dir())
-    controller = CellController(simulated_rig(load_cell(args.cell), args.seed), store, seed=args.seed or 0)
+    controller = CellController(simulated_rig(load_cell(args.cell), args.seed, args.backend), store, seed=args.seed or 0)
     try:
         summary = run_job_once(controller, args.job)
     except CommandRefused as exc:
@@ -280,18 +320,52 @@ def _cmd_controller(args: argparse.Namespace) -> int:
               "`vservo serve` does this for you", file=sys.stderr)
         return 2
     store = Store(args.data or default_data_dir())
-    controller = CellController(simulated_rig(load_cell(args.cell), args.seed), store, seed=args.seed or 0,
-                                cycle_period_s=args.cycle_period)
+    controller = CellController(simulated_rig(load_cell(args.cell), args.seed, args.backend), store,
+                                seed=args.seed or 0, cycle_period_s=args.cycle_period)
     server = ControllerServer(controller, authkey, port=args.port)
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
-    print(json.dumps({"controller": {"host": server.address[0], "port": server.address[1], "backend": "sim"}}), flush=True)
+    print(json.dumps({"controller": {"host": server.address[0], "port": server.address[1],
+                                     "backend": controller.rig.robot.name}}), flush=True)
     stop.wait()
     server.close()
     controller.close()  # holds the robot if a run is under way
     store.close()
     return 0
+
+
+def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from core.robot.jrc_emulator import FaultPlan, JrcEmulator
+    from core.simulator import SimulatedCell
+
+    config = load_cell(args.cell)
+    emulator = JrcEmulator(SimulatedCell(config), config.jrc, FaultPlan(args.fault_rate, args.seed), args.time_scale,
+                           pace=args.pace)
+    if args.port:
+        emulator.start_on_port(args.port)
+    else:
+        emulator.start_on_pty()
+    line = config.jrc
+    print(emulator.device, flush=True)
+    print(f"JRC emulator on {emulator.device}: {line.baud} baud, {line.data_bits} data bits, {line.parity} parity, "
+          f"{line.stop_bits} stop bit(s); time scale {args.time_scale:g}, faults {args.fault_rate:.0%}; "
+          "Ctrl-C or SIGTERM stops it", file=sys.stderr, flush=True)
+    stopped = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stopped.set())
+    stopped.wait()
+    emulator.stop()
+    print(f"served {emulator.exchanges} exchanges, {len(emulator.executed)} moves; "
+          f"faults injected {dict(emulator.faults.injected)}", file=sys.stderr)
+    return 0
+
+
+BACKEND_HELP = ("the robot: sim drives the simulator directly, jrc through the JRC link to an emulated controller "
+                "on a pseudo-terminal (default: the cell file's [robot] backend)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -375,6 +449,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--data", metavar="DIR", help="data folder with the jobs and runs (default $VSERVO_DATA or "
                      "~/.local/share/vservo)")
     run.add_argument("--seed", type=int, default=None, help="seed of the simulated cell and of the part's arrival")
+    run.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
     run.add_argument("--json", action="store_true", help="one JSON object")
     run.set_defaults(run=_cmd_run)
 
@@ -384,19 +459,44 @@ def build_parser() -> argparse.ArgumentParser:
     controller.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (default: any free one)")
     controller.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
     controller.add_argument("--seed", type=int, default=None, help="seed of the simulated cell")
+    controller.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
     controller.add_argument("--cycle-period", type=float, default=0.05, metavar="S",
                             help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
     controller.set_defaults(run=_cmd_controller)
 
     bench = commands.add_parser("bench", help="measure speed and accuracy on this machine")
-    bench.add_argument("what", choices=("vision", "calibration"),
+    bench.add_argument("what", choices=("vision", "calibration", "jrc"),
                        help="vision: render, detection and loop times, detection accuracy; "
-                       "calibration: Levenberg-Marquardt training time on 16,000 samples")
+                       "calibration: Levenberg-Marquardt training time on 16,000 samples; jrc: RPOSC and MOVL round "
+                       "trips over a pty against the wire time, or with --soak the link under injected faults")
     bench.add_argument("--seed", type=int, default=0)
+    bench.add_argument("--samples", type=_positive(int), default=50, help="jrc: round trips per command (default 50)")
+    bench.add_argument("--soak", type=_positive(int), metavar="MOVES", help="jrc: soak the link with MOVES incremental moves")
+    bench.add_argument("--fault-rate", type=_fraction, default=0.05, help="soak: faults per exchange (default 0.05)")
+    bench.add_argument("--time-scale", type=_positive(float), default=50.0, help="soak: emulator speed-up (default 50)")
+    bench.add_argument("--timer-a", type=_positive(float), default=0.1, help="soak: timer A in s (default 0.1)")
+    bench.add_argument("--timer-b", type=_positive(float), default=1.0, help="soak: timer B in s (default 1)")
     bench.add_argument("--json", action="store_true", help="one JSON object")
     bench.set_defaults(run=_cmd_bench)
 
     add_calibrate_command(commands)
+
+    emulator = commands.add_parser(
+        "jrc-emulator", help="emulate a JRC controller on a pseudo-terminal (or a port), on the simulated cell",
+        description="Runs the controller side of the JRC host link on the kinematic simulator. Without --port it "
+        "creates a raw pseudo-terminal and prints its device path on the first line of standard output: point "
+        "the cell file's [jrc] port at it.",
+    )
+    emulator.add_argument("--port", metavar="DEV", help="serve on this serial port instead of a new pseudo-terminal")
+    emulator.add_argument("--fault-rate", type=_fraction, default=0.0, help="faults injected per exchange (default 0)")
+    emulator.add_argument("--seed", type=int, default=0, help="seed of the injected faults (default 0)")
+    emulator.add_argument("--time-scale", type=_positive(float), default=1.0,
+                          help="the simulated robot runs this many times faster than real time (default 1)")
+    emulator.add_argument("--pace", action="store_true", help="send and receive bytes at the baud rate")
+    emulator.set_defaults(run=_cmd_jrc_emulator)
+
+    for command in commands.choices.values():  # --cell after the command too: vservo jrc-emulator --cell my.toml
+        command.add_argument("--cell", metavar="FILE", default=argparse.SUPPRESS, help="cell configuration (TOML)")
     return parser
 
 
@@ -404,7 +504,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (ConfigError, KinematicsError, ValueError, OSError, StoreError) as exc:
+    except (ConfigError, KinematicsError, RobotError, ValueError, OSError, StoreError) as exc:
         print(f"vservo {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -1,7 +1,8 @@
 """The cell configuration file (TOML): the nominal cell, its layout, and the simulated truth.
 
 One file describes a cell. Its nominal sections (robot, camera, hand_eye, laser,
-vacuum, motion) are what controllers and calibrations may use; ``[simulation]``
+vacuum, motion) are what controllers and calibrations may use; ``[jrc]`` holds the
+serial line to a JRC controller and ``[safety]`` the limits on every move; ``[simulation]``
 describes the plant the simulator plays: its seed and noise, ``[simulation.scene]``
 (where the table, cube and metal part really are) and ``[simulation.truth.*]`` tables
 that override nominal values with what the cell really is (the robustness test of
@@ -37,6 +38,8 @@ class ConfigError(ValueError):
     """A cell configuration that cannot be used; the message names the key and value."""
 
 
+ROBOT_BACKENDS = ("sim", "jrc")  # the kinematic simulator, the JRC link
+
 @dataclass(frozen=True)
 class CellModel:
     """The parameters calibration estimates and the truth may contradict."""
@@ -63,6 +66,62 @@ class MotionConfig:
 
 
 @dataclass(frozen=True)
+class JrcLineConfig:
+    """The RS-232 host link to a JRC controller (JRC-PROTOCOL.md, parameters RS030..RS038).
+
+    The defaults are the controller's factory values; check them on the pendant before
+    first use. timer_a_s: how long a sender waits for the answer to a control character
+    or a block (RS034); timer_b_s: how long a receiver waits for a text to end, and the
+    host for a command's reply (RS035); retry_1: repeats of a control character left
+    unanswered (RS036); retry_2: repeats of a text the receiver refused with NAK (RS037).
+    jwait_slice_s: a wait for the end of a motion is split into JWAITs this long, so a
+    hold from the host (e-stop, watchdog) reaches the controller within one slice.
+    """
+
+    port: str
+    baud: int
+    parity: str  # "even", "odd" or "none"
+    data_bits: int
+    stop_bits: int
+    rtscts: bool
+    timer_a_s: float
+    timer_b_s: float
+    retry_1: int
+    retry_2: int
+    jwait_slice_s: float
+
+    @property
+    def bits_per_character(self) -> int:
+        """Start bit, data bits, parity bit, stop bits: what one byte costs on the wire."""
+        return 1 + self.data_bits + (self.parity != "none") + self.stop_bits
+
+    def wire_time_s(self, n_bytes: int) -> float:
+        """How long n_bytes take on the line at the configured baud rate."""
+        return n_bytes * self.bits_per_character / self.baud
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """The limits the safety layer (core/robot/safety.py) puts on every move.
+
+    workspace_min_m / workspace_max_m: a box in the robot base frame that the flange and
+    every tool frame (camera, laser, vacuum cup) must stay in; max_step_m / max_step_rad:
+    the largest translation and rotation of one move; max_speed_m_s: the fastest linear
+    speed a move may ask for; joint_margin_rad: how close to a joint limit the IK solution
+    of a target may come; watchdog_s: how long the camera or the robot link may stay
+    quiet during a servo before the robot is held.
+    """
+
+    workspace_min_m: Matrix
+    workspace_max_m: Matrix
+    max_step_m: float
+    max_step_rad: float
+    max_speed_m_s: float
+    joint_margin_rad: float
+    watchdog_s: float
+
+
+@dataclass(frozen=True)
 class SimulationConfig:
     """The plant: the true cell and the noise a real one has."""
 
@@ -84,6 +143,9 @@ class CellConfig:
     nominal: CellModel
     motion: MotionConfig
     simulation: SimulationConfig
+    robot_backend: str  # "sim" (the kinematic simulator) or "jrc" (the serial link)
+    jrc: JrcLineConfig
+    safety: SafetyConfig
 
 
 class _Table:
@@ -121,6 +183,18 @@ class _Table:
         value = self._raw(key, default)
         if isinstance(value, bool) or not isinstance(value, int):
             raise self.fail(key, value, "must be an integer")
+        return value
+
+    def text(self, key: str, default: str | None = None) -> str:
+        value = self._raw(key, default)
+        if not isinstance(value, str) or not value:
+            raise self.fail(key, value, "must be a non-empty string")
+        return value
+
+    def flag(self, key: str, default: bool) -> bool:
+        value = self._raw(key, default)
+        if not isinstance(value, bool):
+            raise self.fail(key, value, "must be true or false")
         return value
 
     def choice(self, key: str, options: Sequence[str], default: str | None = None) -> str:
@@ -220,6 +294,57 @@ def _motion(t: _Table) -> MotionConfig:
     return motion
 
 
+# The baud rates of RS033 (150 .. 19200).
+BAUD_RATES = (150, 300, 600, 1200, 2400, 4800, 9600, 19200)
+
+
+def _integer_in(t: _Table, key: str, default: int, options: Sequence[int]) -> int:
+    value = t.integer(key, default)
+    if value not in options:
+        raise t.fail(key, value, f"must be one of {', '.join(map(str, options))}")
+    return value
+
+
+def _jrc(t: _Table) -> JrcLineConfig:
+    retries = {}
+    for key, default in (("retry_1", 10), ("retry_2", 3)):
+        retries[key] = t.integer(key, default)
+        if retries[key] < 0:
+            raise t.fail(key, retries[key], "must be >= 0")
+    line = JrcLineConfig(
+        port=t.text("port", "/dev/ttyS0"),
+        baud=_integer_in(t, "baud", 9600, BAUD_RATES),
+        parity=t.choice("parity", ("even", "odd", "none"), "even"),
+        data_bits=_integer_in(t, "data_bits", 8, (7, 8)),
+        stop_bits=_integer_in(t, "stop_bits", 1, (1, 2)),
+        rtscts=t.flag("rtscts", True),
+        timer_a_s=t.number("timer_a_s", 3.0, check=_positive, why="must be positive"),
+        timer_b_s=t.number("timer_b_s", 20.0, check=_positive, why="must be positive"),
+        jwait_slice_s=t.number("jwait_slice_s", 0.5, check=_positive, why="must be positive"),
+        **retries,
+    )
+    t.finish()
+    return line
+
+
+def _safety(t: _Table) -> SafetyConfig:
+    low = t.vector("workspace_min_mm", 3, [-650.0, -400.0, -170.0])
+    high = t.vector("workspace_max_mm", 3, [-150.0, 400.0, 450.0])
+    if np.any(low >= high):
+        raise t.fail("workspace_max_mm", high.tolist(), f"must exceed workspace_min_mm {low.tolist()} on every axis")
+    safety = SafetyConfig(
+        workspace_min_m=low / 1000.0,
+        workspace_max_m=high / 1000.0,
+        max_step_m=t.number("max_step_mm", 50.0, check=_positive, why="must be positive") / 1000.0,
+        max_step_rad=math.radians(t.number("max_step_deg", 15.0, check=_positive, why="must be positive")),
+        max_speed_m_s=t.number("max_speed_mm_s", 250.0, check=_positive, why="must be positive") / 1000.0,
+        joint_margin_rad=math.radians(t.number("joint_margin_deg", 0.0, check=_non_negative, why="must be >= 0")),
+        watchdog_s=t.number("watchdog_s", 5.0, check=_positive, why="must be positive"),
+    )
+    t.finish()
+    return safety
+
+
 _MODEL_TABLES = ("camera", "hand_eye", "laser", "vacuum")
 
 
@@ -266,6 +391,7 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>") -> CellConfig:
     robot = root.table("robot")
     arm = robot.choice("arm", ARM_NAMES, "upj")
     home_q = np.deg2rad(robot.vector("home_joints_deg", None, None))
+    backend = robot.choice("backend", ROBOT_BACKENDS, "sim")
     robot.finish()
 
     nominal = _cell_model(root)
@@ -274,8 +400,10 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>") -> CellConfig:
     truth = _cell_model(_Table(_truth_tables(data, truth_data, source), "", f"{source} [simulation.truth]"))
     motion = _motion(root.table("motion"))
     simulation = _simulation(root.table("simulation"), truth)
+    jrc = _jrc(root.table("jrc"))
+    safety = _safety(root.table("safety"))
     root.finish()
-    return CellConfig(source, arm, home_q, nominal, motion, simulation)
+    return CellConfig(source, arm, home_q, nominal, motion, simulation, backend, jrc, safety)
 
 
 def read_cell_data(path: str | Path | None = None) -> tuple[dict[str, Any], str]:

@@ -57,7 +57,7 @@ def teach_demo_job(config: CellConfig) -> tuple[Job, np.ndarray]:
     bMo_placed = scene.metal_part.bMp @ transform(t=(-side / 2, -side / 2, side))
     bMe_place = bMo_placed @ inverse(scene.cube.bMo) @ bMe_pick
 
-    start_bMe = apply_increment(START_OFFSET, bMe_view)
+    start_bMe = apply_increment(bMe_view, START_OFFSET)
     job = Job(
         name="demo",
         description="the 20 mm cube into the metal part's pocket on the shipped simulated cell",

@@ -1,8 +1,9 @@
 """The cell's devices as the controller process owns them: robot, vacuum, camera, vision.
 
-``simulated_rig`` assembles them on the simulated cell: the kinematic simulator as the
-robot backend, its vacuum cup, the synthetic camera and the detectors on the NOMINAL
-camera and laser. The simulator's truth is reached only through ``measure_placement``
+``simulated_rig`` assembles them on the simulated cell: the robot behind the safety
+layer (the kinematic simulator itself, or the JRC link over a pseudo-terminal to the
+controller emulator moving that same simulator), its vacuum cup, the synthetic camera
+and the detectors on the NOMINAL camera and laser. The simulator's truth is reached only through ``measure_placement``
 (the gauge that says where a released part ended) and ``present_part`` (a new part
 arriving on the table), the two things a test cell provides that no controller reads.
 """
@@ -10,27 +11,30 @@ arriving on the table), the two things a test cell provides that no controller r
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from core.assembly import PlacementReport
 from core.camera_source import FrameSource
-from core.config import CellConfig
-from core.robot.backend import RobotBackend, SimulatedBackend
+from core.config import ROBOT_BACKENDS, CellConfig
+from core.robot.backend import SimulatedBackend
 from core.robot.gripper import SimulatedVacuum, VacuumGripper
+from core.robot.jrc import JrcBackend
+from core.robot.jrc_emulator import JrcEmulator
+from core.robot.safety import SafetyLayer
 from core.scene import Cube
 from core.sim_camera import SimulatedCamera
 from core.simulator import SimulatedCell
 from core.spatial import inverse, rot_z, transform
-from core.step_policy import StepPolicy, step_policy_from_config
+from core.step_policy import DividedPositionStep, StepPolicy, step_policy_from_config
 from core.vision.pipeline import CameraPerception, ImageFeatureExtractor, front_winding
 
 
 @dataclass
 class Rig:
     config: CellConfig
-    robot: RobotBackend
+    robot: SafetyLayer
     gripper: VacuumGripper
     camera: FrameSource
     extractor: ImageFeatureExtractor
@@ -39,6 +43,7 @@ class Rig:
     measure_placement: Callable[[], PlacementReport | None]
     present_part: Callable[[np.random.Generator], None] | None = None
     cell: SimulatedCell | None = None  # the plant, for the 3D view and evaluation; None on a real cell
+    emulator: JrcEmulator | None = None  # the JRC emulator the robot link talks to, if any
 
     def perception(self) -> CameraPerception:
         """A fresh tracker on the rig's camera (nothing carried over from an earlier run)."""
@@ -47,6 +52,8 @@ class Rig:
     def close(self) -> None:
         self.camera.close()
         self.robot.close()
+        if self.emulator is not None:
+            self.emulator.stop()
 
 
 # How far a new part may lie from where the job was taught: the servo's job is to
@@ -54,8 +61,19 @@ class Rig:
 PART_OFFSET_M = 0.015
 PART_YAW_RAD = np.deg2rad(20.0)
 
+# The emulated JRC moves this many times faster than a real one, and the host's sampling
+# period shrinks as much: a 2 s step of the thesis's cell takes 50 ms on screen.
+JRC_TIME_SCALE = 40.0
 
-def simulated_rig(config: CellConfig, seed: int | None = None) -> Rig:
+
+def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | None = None,
+                  jrc_time_scale: float = JRC_TIME_SCALE) -> Rig:
+    """The simulated cell's devices; ``backend`` (default: the cell file's [robot]
+    backend) "sim" drives the simulator directly, "jrc" through the JRC link and an
+    emulated controller on a pseudo-terminal."""
+    backend = backend or config.robot_backend
+    if backend not in ROBOT_BACKENDS:
+        raise ValueError(f"robot backend {backend!r}: choose one of {', '.join(ROBOT_BACKENDS)}")
     cell = SimulatedCell(config, seed)
     model = config.nominal
     taught_bMo = config.simulation.scene.cube.bMo
@@ -74,7 +92,16 @@ def simulated_rig(config: CellConfig, seed: int | None = None) -> Rig:
         cell.vacuum(False)
         cell.place_cube(bMo)
 
-    robot = SimulatedBackend(cell)
+    policy = step_policy_from_config(config.motion)
+    emulator = None
+    if backend == "sim":
+        robot = SafetyLayer.from_config(SimulatedBackend(cell), config)
+    else:
+        if not isinstance(policy, DividedPositionStep):
+            raise ValueError(f"{config.source}: the JRC takes position steps; set [motion] mode = \"position_steps\"")
+        emulator = JrcEmulator(cell, config.jrc, time_scale=jrc_time_scale)
+        robot = SafetyLayer.from_config(JrcBackend(config.jrc, emulator.start_on_pty()), config)
+        policy = replace(policy, sampling_period_s=policy.sampling_period_s / jrc_time_scale)
     extractor = ImageFeatureExtractor(model.camera, model.laser, front_winding(Cube(np.eye(4)).corners_o))
     return Rig(
         config=config,
@@ -82,9 +109,10 @@ def simulated_rig(config: CellConfig, seed: int | None = None) -> Rig:
         gripper=SimulatedVacuum(cell),
         camera=SimulatedCamera(cell),
         extractor=extractor,
-        policy=step_policy_from_config(config.motion),
+        policy=policy,
         dof=cell.controller_arm.dof,
         measure_placement=measure_placement,
         present_part=present_part,
         cell=cell,
+        emulator=emulator,
     )

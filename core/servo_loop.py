@@ -2,11 +2,14 @@
 
 One cycle (ARCHITECTURE.md): the cell's measurement becomes image features (laser depth
 from the NOMINAL laser and camera), the controller turns them into a camera twist cVc,
-the nominal eVc carries it to the flange, the step policy makes it a robot command and
-the robot executes it. The loop watches what a cell operator would: a shrinking image
-(the camera retreating), an error that stops falling (a local minimum), a robot that
-cannot reach the target, and the iteration budget. It stops the robot (no further
-command) on the first failure and names the cause.
+the nominal eVc carries it to the flange, the step policy makes it a robot command from
+the flange pose the robot reports, and the robot backend (the simulator, or the JRC
+link, usually behind the safety layer) carries it out. The loop watches what a cell
+operator would: a shrinking image (the camera retreating), an error that stops falling
+(a local minimum), a robot that cannot reach the target or refuses or stops a move, and
+the iteration budget. It stops the robot (no further command) on the first failure and
+names the cause. Behind a safety layer it arms the watchdog for the run and feeds it
+every camera frame.
 """
 
 from __future__ import annotations
@@ -25,7 +28,9 @@ from core.controllers.base import Controller, ControlOutput, Failure
 from core.features import DesiredImage, ImageFeatures, features_from_measurement, polygon_moments
 from core.kinematics import UnreachableTarget
 from core.laser import LaserPointer
-from core.simulator import Measurement, SimulatedCell
+from core.robot.backend import RobotBackend, RobotError, SimulatedBackend, carry_out
+from core.robot.safety import SafetyLayer, Watchdog
+from core.simulator import Measurement
 from core.spatial import Matrix, twist_transform
 from core.step_policy import StepPolicy
 
@@ -88,6 +93,13 @@ class ServoOutcome:
         return runs
 
 
+class MeasurementSource(Protocol):
+    """What the loop samples each cycle: the simulator, or a real cell's robot readout
+    (whose features then come from camera frames, see Perception)."""
+
+    def measure(self, look: bool = True) -> Measurement: ...
+
+
 class Perception(Protocol):
     """Where the loop's features come from: the measurement's projections or a camera.
 
@@ -127,7 +139,7 @@ def corner_area_px2(corners_px: Matrix) -> float:
 
 
 def run_servo(
-    cell: SimulatedCell,
+    cell: MeasurementSource,
     controller: Controller,
     desired: DesiredImage,
     model: CellModel,
@@ -135,12 +147,30 @@ def run_servo(
     limits: LoopLimits = LoopLimits(),
     on_cycle: Callable[[Cycle], None] | None = None,
     perception: Perception | None = None,
+    robot: RobotBackend | None = None,
 ) -> ServoOutcome:
-    """Servo ``cell`` to the desired image with ``controller``; ``model`` is the nominal cell.
+    """Servo to the desired image with ``controller``; ``model`` is the nominal cell.
 
-    Features come from ``perception``, by default the simulator's projected points.
+    ``cell`` is the camera side: its measurements feed ``perception``, by default the
+    simulator's projected points. ``robot`` carries out the moves, by default the
+    simulator itself (an enabled SimulatedBackend of ``cell``, which must then be a
+    SimulatedCell); it must be connected with servo power on. Behind a SafetyLayer the watchdog is armed for the run.
     """
     perception = perception or ProjectedPerception(model.camera, model.laser)
+    robot = robot or SimulatedBackend.enabled(cell)
+    watchdog = robot.watchdog if isinstance(robot, SafetyLayer) else None
+    if watchdog is not None:
+        watchdog.arm()
+    try:
+        return _servo(cell, controller, desired, model, policy, limits, on_cycle, perception, robot, watchdog)
+    finally:
+        if watchdog is not None:
+            watchdog.disarm()
+
+
+def _servo(cell: MeasurementSource, controller: Controller, desired: DesiredImage, model: CellModel, policy: StepPolicy,
+           limits: LoopLimits, on_cycle: Callable[[Cycle], None] | None, perception: Perception, robot: RobotBackend,
+           watchdog: Watchdog | None) -> ServoOutcome:
     eVc = twist_transform(model.eMc)
     desired_area = corner_area_px2(desired.corners_px)
     first_area = float("nan")
@@ -158,6 +188,8 @@ def run_servo(
     for iteration in range(limits.max_iterations):
         measurement = cell.measure(look=perception.uses_projection)
         seen = perception.perceive(measurement)
+        if watchdog is not None:
+            watchdog.feed("camera")
         if seen.laser_visible:
             last_spot, spot_hidden_for = seen, 0
         else:
@@ -194,7 +226,10 @@ def run_servo(
             )
 
         try:
-            cell.execute(policy.command(measurement.bMe, eVc @ output.cVc))
+            bMe = robot.read_pose()
+            carry_out(robot, policy.command(bMe, eVc @ output.cVc), bMe)
         except UnreachableTarget as exc:
             return finish(False, Failure.UNREACHABLE, str(exc))
+        except RobotError as exc:
+            return finish(False, Failure.ROBOT_STOPPED, str(exc))
     return finish(False, Failure.ITERATION_LIMIT, f"{limits.max_iterations} cycles")

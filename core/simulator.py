@@ -246,18 +246,40 @@ class SimulatedCell:
         """Carry out one command (see core.step_policy); raises UnreachableTarget unmoved."""
         bMe = self.controller_arm.fk(self.state.q)
         if isinstance(command, VelocityCommand):
-            return self._move(command.target(bMe), command.dt_s)
+            return self.move(command.target(bMe), command.dt_s)
         if isinstance(command, PositionCommand):
-            translation, rotation = pose_error(bMe, command.bMe_target)
-            travel = max(translation / command.speed_m_s, rotation / ROTATION_SPEED_RAD_S)
-            return self._move(command.bMe_target, max(travel, command.period_s))
+            return self.move(command.bMe_target, max(self.travel_time_s(command.bMe_target, command.speed_m_s),
+                                                     command.period_s))
         raise TypeError(f"not a robot command: {command!r}")
 
-    def _move(self, bMe_target: Matrix, duration_s: float) -> MoveReport:
-        q = self.controller_arm.ik(bMe_target, self.state.q, tolerance_m=IK_TOLERANCE_M, tolerance_rad=IK_TOLERANCE_RAD).q
-        self.state = replace(self.state, time_s=self.state.time_s + duration_s, q=q, eMe_settle=self._settle())
+    def travel_time_s(self, bMe_target: Matrix, speed_m_s: float) -> float:
+        """How long a linear move from here to bMe_target takes at speed_m_s (or at the
+        controller's rotation rate, when the rotation takes longer)."""
+        translation, rotation = pose_error(self.controller_arm.fk(self.state.q), bMe_target)
+        return max(translation / speed_m_s, rotation / ROTATION_SPEED_RAD_S)
+
+    def controller_ik(self, bMe_target: Matrix) -> Matrix:
+        """The joints the robot controller computes for a flange target, from where the arm
+        is, with its nominal model; raises UnreachableTarget."""
+        return self.controller_arm.ik(bMe_target, self.state.q, tolerance_m=IK_TOLERANCE_M,
+                                      tolerance_rad=IK_TOLERANCE_RAD).q
+
+    def move(self, bMe_target: Matrix, duration_s: float) -> MoveReport:
+        """The arm moves to the controller's joints for bMe_target in duration_s and settles."""
+        return self.move_joints(self.controller_ik(bMe_target), duration_s)
+
+    def move_joints(self, q: Matrix, duration_s: float, settle: bool = True) -> MoveReport:
+        """The arm reaches joints q after duration_s; ``settle=False`` passes through q
+        (a point along a move in progress), without a repeatability error."""
+        q = np.array(q, dtype=float)
+        eMe_settle = self._settle() if settle else np.eye(4)
+        self.state = replace(self.state, time_s=self.state.time_s + duration_s, q=q, eMe_settle=eMe_settle)
         self._carry_held_part()
         return MoveReport(duration_s, q.copy(), self.controller_arm.fk(q))
+
+    def pass_time(self, seconds: float) -> None:
+        """Time passes with the arm standing still (a host's sampling period, a pause)."""
+        self.state = replace(self.state, time_s=self.state.time_s + max(seconds, 0.0))
 
     # -- the vacuum cup --------------------------------------------------------------
 

@@ -194,6 +194,15 @@ def rotation_angle(R: ArrayLike) -> float:
     return float(np.linalg.norm(theta_u(R)))
 
 
+def interpolate(aMb: ArrayLike, aMc: ArrayLike, fraction: float) -> Matrix:
+    """The pose ``fraction`` of the way from aMb to aMc on the straight line: the origin
+    moved linearly, the orientation turned about the fixed axis of bRc (theta-u)."""
+    aMb, aMc = np.asarray(aMb, dtype=float), np.asarray(aMc, dtype=float)
+    bRc = aMb[:3, :3].T @ aMc[:3, :3]
+    R = aMb[:3, :3] @ exp_twist(np.concatenate([np.zeros(3), fraction * theta_u(bRc)]))[:3, :3]
+    return transform(R, (1.0 - fraction) * aMb[:3, 3] + fraction * aMc[:3, 3])
+
+
 def pose_error(aMb: ArrayLike, aMc: ArrayLike) -> tuple[float, float]:
     """(translation in m, rotation in rad) between two poses of the same frame."""
     aMb, aMc = np.asarray(aMb, dtype=float), np.asarray(aMc, dtype=float)

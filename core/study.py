@@ -24,11 +24,12 @@ from core.controllers.pbvs import Pbvs
 from core.features import DesiredImage
 from core.recording import RunRecorder
 from core.render import RenderSettings
+from core.robot.backend import RobotBackend
 from core.servo_loop import Cycle, LoopLimits, Perception, ProjectedPerception, ServoOutcome, run_servo
 from core.sim_camera import SimulatedCamera
 from core.simulator import SimulatedCell
 from core.spatial import Matrix, inverse, pose_error
-from core.step_policy import IntegratedVelocity
+from core.step_policy import IntegratedVelocity, StepPolicy
 from core.tasks import ServoTask
 from core.teaching import desired_from_features
 from core.vision.pipeline import CameraPerception, ImageFeatureExtractor, front_winding
@@ -173,10 +174,16 @@ def camera_pose_error(cMo: Matrix, cdMo: Matrix) -> tuple[float, float]:
 
 
 def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: int | None = None,
-             on_cycle: Callable[[Cycle], None] | None = None) -> RunResult:
+             on_cycle: Callable[[Cycle], None] | None = None,
+             robot: Callable[[SimulatedCell], RobotBackend] | None = None,
+             policy: StepPolicy | None = None) -> RunResult:
     """Teach ``task``'s desired image, start at its initial pose and servo with ``settings``.
 
     ``on_cycle`` sees every cycle as the loop does (for benchmarks and recordings).
+    ``robot(cell)`` returns the connected, enabled robot that moves the simulated cell
+    (say the JRC link to an emulator of it, behind the safety layer); by default the loop
+    drives the simulator directly. ``policy`` replaces the study's velocity steps of
+    ``settings.dt_s`` (the JRC takes position steps).
     """
     cell = SimulatedCell(config, seed)
     scene = config.simulation.scene
@@ -209,10 +216,11 @@ def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: i
         build_controller(model, settings),
         desired,
         model,
-        IntegratedVelocity(settings.dt_s),
+        policy or IntegratedVelocity(settings.dt_s),
         LoopLimits(max_iterations=settings.max_iterations),
         on_cycle=record,
         perception=perception,
+        robot=robot(cell) if robot is not None else None,
     )
     path.append(cell.ground_truth_bMe()[:3, 3])
     if recorder is not None:

@@ -40,6 +40,25 @@ def test_demo_job_places_the_part(controller):
     assert controller.state.phase == Phase.DONE.value
 
 
+def test_the_demo_job_places_the_part_through_the_jrc_link(tmp_path):
+    """The same assembly, every move a BSC exchange over a pty with the emulated JRC."""
+    store = Store(tmp_path / "data")
+    rig = simulated_rig(load_cell(), seed=3, backend="jrc", jrc_time_scale=1000.0)
+    controller = CellController(rig, store, seed=3)
+    try:
+        controller.present_part()
+        controller.start("demo")
+        controller.wait()
+        outcome = controller.last_outcome
+        assert outcome.outcome == "placed", outcome.reason
+        assert outcome.placement_error_mm < 1.0
+        moves = rig.emulator.executed
+        assert len(moves) > outcome.iterations and all(m.startswith("MOVL") for m in moves)
+    finally:
+        controller.close()
+        store.close()
+
+
 def test_a_part_out_of_reach_of_the_cup_is_a_fault_with_the_robot_held(controller):
     job = controller.store.load_job("demo")
     # A pick transform that stops 30 mm short of the part: the vacuum sensor must say so.

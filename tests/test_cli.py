@@ -9,8 +9,14 @@ import numpy as np
 import pytest
 
 from core.cli import main
+from core.config import load_cell
+from core.kinematics import ArmKinematics
+from core.robot.jrc import JrcBackend
 from core.simulator import IK_TOLERANCE_M
+from core.spatial import pose_error
+from robot_models.loader import load_arm
 from robot_models.upj_dh import UPJ_DH
+from tests.jrc_fixtures import short_timer_cell
 
 
 def run(*args: str) -> subprocess.CompletedProcess:
@@ -94,3 +100,55 @@ def test_the_demo_steps_through_the_cells_motion_mode(tmp_path, capsys):
     assert steps["what"].startswith("5 velocity steps of 0.05 s")
     assert steps["elapsed_s"] == pytest.approx(5 * 0.05)
     assert steps["deviation_from_last_target_mm"] == pytest.approx(0.0, abs=IK_TOLERANCE_M * 1000.0)
+
+
+def test_the_jrc_emulator_serves_a_pty_until_it_is_stopped():
+    process = subprocess.Popen([sys.executable, "-m", "core.cli", "jrc-emulator"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    try:
+        device = process.stdout.readline().strip()
+        assert device.startswith("/dev/")
+        robot = JrcBackend(short_timer_cell().jrc, device)
+        robot.connect()
+        bMe = robot.read_pose()
+        robot.close()
+    finally:
+        process.terminate()
+        _, stderr = process.communicate(timeout=30)
+    config = load_cell()
+    home = ArmKinematics(load_arm(config.arm), config.nominal.mount).fk(config.home_q)
+    translation, rotation = pose_error(bMe, home)
+    assert translation < 1e-6 and rotation < np.radians(0.006)
+    assert process.returncode == 0 and "served 2 exchanges, 0 moves" in stderr
+
+
+def test_bench_jrc_sets_round_trips_against_the_wire_time(capsys):
+    assert main(["bench", "jrc", "--samples", "3", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["line"].startswith("9600 8E1")
+    for mode in ("pty", "paced_at_baud"):
+        for command in ("RPOSC", "MOVL"):
+            trips = result[mode][command]
+            assert trips["n"] == 3 and trips["bytes"] > 20
+            assert trips["wire_ms"] == pytest.approx(trips["bytes"] * 11 / 9600 * 1000, abs=1e-3)
+
+
+def test_bench_jrc_soak_reports_its_figures(capsys):
+    assert main(["bench", "jrc", "--soak", "10", "--fault-rate", "0", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["moves"] == 10 and result["faults_injected_total"] == 0
+    assert result["commands_accepted_twice"] == 0 and result["final_pose_error_mm"] < 0.01
+
+
+def test_the_jrc_commands_refuse_bad_arguments_in_one_line():
+    rate = run("jrc-emulator", "--fault-rate", "2")
+    assert rate.returncode == 2 and "expected a number from 0 to 1, got '2'" in rate.stderr
+    port = run("jrc-emulator", "--port", "/dev/nonexistent-jrc")
+    assert port.returncode == 2 and len(port.stderr.strip().splitlines()) == 1
+    assert port.stderr.startswith("vservo jrc-emulator: error: cannot open the serial port /dev/nonexistent-jrc")
+
+
+def test_the_cell_option_goes_before_or_after_the_command():
+    for args in (("--cell", "/nowhere/cell.toml", "info"), ("info", "--cell", "/nowhere/cell.toml")):
+        result = run(*args)
+        assert result.returncode == 2 and "cell file not found: /nowhere/cell.toml" in result.stderr

@@ -27,6 +27,18 @@ def test_default_cell_holds_the_thesis_values():
     assert cell.simulation.scene.cube.side_m == pytest.approx(0.020)
 
 
+def test_default_cell_holds_the_controllers_factory_line_settings_and_safety_limits():
+    cell = load_cell()
+    line = cell.jrc
+    assert cell.robot_backend == "sim"
+    assert (line.baud, line.parity, line.data_bits, line.stop_bits, line.rtscts) == (9600, "even", 8, 1, True)
+    assert (line.timer_a_s, line.timer_b_s, line.retry_1, line.retry_2) == (3.0, 20.0, 10, 3)
+    # 8E1: start, 8 data, parity, stop = 11 bits a byte, about 870 bytes/s at 9600 baud.
+    assert line.bits_per_character == 11 and line.wire_time_s(870) == pytest.approx(0.997, abs=1e-3)
+    assert cell.safety.max_step_m == pytest.approx(0.05) and cell.safety.max_speed_m_s == pytest.approx(0.25)
+    assert np.all(cell.safety.workspace_min_m < cell.safety.workspace_max_m)
+
+
 def test_without_overrides_the_truth_equals_the_nominal_cell():
     cell = load_cell()
     assert cell.simulation.truth.camera == cell.nominal.camera
@@ -82,6 +94,20 @@ def test_truth_overrides_change_the_truth_only():
          ["[simulation.truth]", "camera.focal_length_mm", "positive"]),
         (lambda d: d["simulation"].update(truth={"lens": {}}), ["unknown key simulation.truth.lens"]),
         (lambda d: d.update(camera=3), ["camera must be a table"]),
+        (lambda d: d["robot"].update(backend="kuka-rsi"), ["robot.backend", "'kuka-rsi'", "sim, jrc"]),
+        (lambda d: d["jrc"].update(baud=9601), ["jrc.baud", "9601", "150, 300, 600, 1200, 2400, 4800, 9600, 19200"]),
+        (lambda d: d["jrc"].update(parity="mark"), ["jrc.parity", "'mark'", "even, odd, none"]),
+        (lambda d: d["jrc"].update(data_bits=9), ["jrc.data_bits", "9", "7, 8"]),
+        (lambda d: d["jrc"].update(stop_bits=1.5), ["jrc.stop_bits", "1.5", "integer"]),
+        (lambda d: d["jrc"].update(rtscts="yes"), ["jrc.rtscts", "'yes'", "true or false"]),
+        (lambda d: d["jrc"].update(port=""), ["jrc.port", "non-empty string"]),
+        (lambda d: d["jrc"].update(timer_a_s=0), ["jrc.timer_a_s", "positive"]),
+        (lambda d: d["jrc"].update(retry_2=-1), ["jrc.retry_2", "-1", ">= 0"]),
+        (lambda d: d["jrc"].update(retries=3), ["unknown key jrc.retries"]),
+        (lambda d: d["safety"].update(workspace_max_mm=[-700.0, 400.0, 450.0]),
+         ["safety.workspace_max_mm", "[-700.0, 400.0, 450.0]", "must exceed workspace_min_mm"]),
+        (lambda d: d["safety"].update(max_step_mm=float("inf")), ["safety.max_step_mm", "finite"]),
+        (lambda d: d["safety"].update(watchdog_s=-2.0), ["safety.watchdog_s", "-2.0", "positive"]),
     ],
 )
 def test_a_bad_value_is_reported_with_its_key_and_value(edit, names):

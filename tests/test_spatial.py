@@ -15,12 +15,14 @@ import pytest
 from core.spatial import (
     Pose6,
     exp_twist,
+    interpolate,
     inverse,
     matrix_from_pose,
     pose_error,
     pose_from_matrix,
     pose_from_mm_deg,
     pose_to_mm_deg,
+    rot_z,
     rotation_angle,
     rotation_from_rpy,
     theta_u,
@@ -441,3 +443,12 @@ def test_pose_error_large_differences(rng):
         assert translation == pytest.approx(float(np.linalg.norm(aMb[:3, 3] - aMc[:3, 3])), rel=1e-14)
         expected = float(np.linalg.norm(cv2.Rodrigues(aMb[:3, :3].T @ aMc[:3, :3])[0]))
         assert rotation == pytest.approx(expected, abs=1e-9)
+
+
+def test_interpolate_moves_on_the_straight_line_and_turns_about_one_axis(rng):
+    aMb = matrix_from_pose(rng.uniform(-1, 1, 6))
+    aMc = aMb @ transform(rot_z(0.8), (0.3, -0.1, 0.2))
+    assert np.allclose(interpolate(aMb, aMc, 0.0), aMb) and np.allclose(interpolate(aMb, aMc, 1.0), aMc)
+    half = interpolate(aMb, aMc, 0.5)
+    assert np.allclose(half[:3, 3], (aMb[:3, 3] + aMc[:3, 3]) / 2)
+    assert np.allclose(aMb[:3, :3].T @ half[:3, :3], rot_z(0.4))

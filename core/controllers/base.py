@@ -33,6 +33,7 @@ class Failure(str, Enum):
     UNREACHABLE = "unreachable"
     SINGULAR_JACOBIAN = "singular_jacobian"
     ITERATION_LIMIT = "iteration_limit"
+    ROBOT_STOPPED = "robot_stopped"  # refused by the safety layer, held, in alarm, or the link failed
 
 
 @dataclass(frozen=True)

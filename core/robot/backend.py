@@ -20,16 +20,7 @@ import numpy as np
 from core.kinematics import UnreachableTarget
 from core.simulator import SimulatedCell
 from core.spatial import Matrix
-from core.step_policy import PositionCommand
-
-
-def apply_increment(bMe_increment: Matrix, bMe: Matrix) -> Matrix:
-    """The flange pose after a base-frame increment (IMOV): translation added, rotation
-    composed on the left, about the flange's own origin."""
-    target = np.eye(4)
-    target[:3, :3] = bMe_increment[:3, :3] @ bMe[:3, :3]
-    target[:3, 3] = bMe[:3, 3] + bMe_increment[:3, 3]
-    return target
+from core.step_policy import PositionCommand, RobotCommand, VelocityCommand
 
 
 class RobotError(Exception):
@@ -55,8 +46,25 @@ class RobotStatus:
         """Whether a move would be accepted now."""
         return self.servo_on and not self.held and not self.alarm
 
+    def describe(self) -> str:
+        """The state in words, for errors and the operator: 'held (pendant hold), servo on'."""
+        words = [
+            "in alarm" if self.alarm else "",
+            "held" if self.held else "",
+            "servo on" if self.servo_on else "servo off",
+            "running" if self.running else "",
+        ]
+        text = ", ".join(word for word in words if word)
+        return f"{text} ({self.detail})" if self.detail else text
+
 
 class RobotBackend(Protocol):
+    """What the loop, the safety layer and the app ask of a robot controller.
+
+    Moves only start the motion; ``wait_motion`` blocks until it ends. A backend that
+    cannot do something raises RobotError (or UnreachableTarget) saying what and why.
+    """
+
     name: str
 
     def connect(self) -> None: ...
@@ -73,12 +81,56 @@ class RobotBackend(Protocol):
         """Start a linear move by an increment in the base frame (IMOV): translation added,
         rotation composed on the left."""
         ...
+    def move_timed(self, bMe_target: Matrix, duration_s: float) -> None:
+        """Start a linear move to bMe_target that lasts duration_s: one control period of a
+        velocity-controlled robot (a twist held for duration_s). A controller that takes
+        position steps only (the JRC) refuses it with RobotError."""
+        ...
     def wait_motion(self, timeout_s: float | None = None) -> bool:
         """Block until the motion ends (JWAIT): True when it finished, False when it was
         stopped for another reason (hold, alarm, servo off)."""
         ...
     def hold(self, on: bool) -> None: ...
     def reset_alarms(self) -> None: ...
+    def clock_s(self) -> float:
+        """The robot's clock in s: the plant's simulated time, or the host's monotonic time
+        for a real controller. Only differences of it mean anything."""
+        ...
+    def dwell(self, seconds: float) -> None:
+        """Let time pass with the robot standing still (the rest of a sampling period)."""
+        ...
+
+
+class MotionStopped(RobotError):
+    """A motion ended before its target: held, in alarm or without servo power."""
+
+
+def carry_out(robot: RobotBackend, command: RobotCommand, bMe: Matrix) -> None:
+    """Carry out one step policy command from the flange pose bMe and wait for its end.
+
+    A velocity step moves for its control period. A position step (the JRC style,
+    section 5.3) moves to its target, waits for the end of the motion, then for the rest
+    of the sampling period, so the next target is sent one period after this one.
+    Raises MotionStopped when the robot stops short (hold, alarm, servo off).
+    """
+    started_s = robot.clock_s()
+    if isinstance(command, VelocityCommand):
+        robot.move_timed(command.target(bMe), command.dt_s)
+        _wait_for_the_end(robot)
+    else:
+        move_and_wait(robot, command.bMe_target, command.speed_m_s)
+        robot.dwell(command.period_s - (robot.clock_s() - started_s))
+
+
+def move_and_wait(robot: RobotBackend, bMe_target: Matrix, speed_m_s: float) -> None:
+    """One linear move to bMe_target, waited for; raises MotionStopped if it stops short."""
+    robot.move_to(bMe_target, speed_m_s)
+    _wait_for_the_end(robot)
+
+
+def _wait_for_the_end(robot: RobotBackend) -> None:
+    if not robot.wait_motion():
+        raise MotionStopped(f"the robot stopped before the end of its move: {robot.status().describe()}")
 
 
 class SimulatedBackend:
@@ -96,6 +148,14 @@ class SimulatedBackend:
         self._servo_on = False
         self._held = False
         self._connected = False
+
+    @classmethod
+    def enabled(cls, cell: SimulatedCell) -> SimulatedBackend:
+        """A connected simulated robot with servo power on: what a simulation study drives."""
+        robot = cls(cell)
+        robot.connect()
+        robot.servo(True)
+        return robot
 
     def connect(self) -> None:
         self._connected = True
@@ -127,11 +187,21 @@ class SimulatedBackend:
         self.cell.execute(PositionCommand(bMe_target, speed_m_s, 0.0))
 
     def move_by(self, bMe_increment: Matrix, speed_m_s: float) -> None:
-        self.move_to(apply_increment(np.asarray(bMe_increment, dtype=float), self.read_pose()), speed_m_s)
+        self.move_to(apply_increment(self.read_pose(), bMe_increment), speed_m_s)
+
+    def move_timed(self, bMe_target: Matrix, duration_s: float) -> None:
+        self._require_ready()
+        self.cell.move(np.asarray(bMe_target, dtype=float), duration_s)
 
     def wait_motion(self, timeout_s: float | None = None) -> bool:
         self._require_connection()
         return self._servo_on and not self._held
+
+    def clock_s(self) -> float:
+        return self.cell.state.time_s
+
+    def dwell(self, seconds: float) -> None:
+        self.cell.pass_time(seconds)
 
     def _require_connection(self) -> None:
         if not self._connected:
@@ -145,5 +215,17 @@ class SimulatedBackend:
             raise RobotNotReady(f"move refused: {why}")
 
 
-__all__ = ["apply_increment", "RobotBackend", "RobotError", "RobotNotReady", "RobotStatus", "SimulatedBackend",
-           "UnreachableTarget"]
+def apply_increment(bMe: Matrix, bMe_increment: Matrix) -> Matrix:
+    """Where an incremental move (IMOV) lands: the increment's translation added to the
+    flange's, its rotation composed on the left (both in the base frame)."""
+    bMe_increment = np.asarray(bMe_increment, dtype=float)
+    target = np.eye(4)
+    target[:3, :3] = bMe_increment[:3, :3] @ bMe[:3, :3]
+    target[:3, 3] = bMe[:3, 3] + bMe_increment[:3, 3]
+    return target
+
+
+__all__ = [
+    "MotionStopped", "RobotBackend", "RobotError", "RobotNotReady", "RobotStatus", "SimulatedBackend", "UnreachableTarget",
+    "apply_increment", "carry_out", "move_and_wait",
+]

@@ -1,0 +1,313 @@
+"""The safety layer: every move of every backend passes its checks first.
+
+It wraps any RobotBackend and is one itself, so the loop and the app drive a guarded
+robot exactly as they would drive a bare one. Before a move reaches the controller it
+checks, in order: a latched stop (e-stop or watchdog), the requested speed, that the
+target is a finite pose, that the flange and every tool frame (camera, laser, vacuum
+cup) stay inside the workspace box, the size of the step from where the robot is, and
+that the NOMINAL arm's IK finds joints within their limits less a margin. A refused move
+raises a SafetyRefusal subclass naming the limit and the values, and nothing moves.
+
+The e-stop holds the robot at once and refuses every move, servo power on and hold
+release until it is reset. The watchdog does the same when, during a servo, the camera
+stops delivering frames or the robot link stops answering for longer than its timeout;
+the loop feeds it with every frame, and every successful call to the robot feeds the
+link side.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+
+from core.config import CellConfig, SafetyConfig
+from core.kinematics import ArmKinematics, UnreachableTarget
+from core.robot.backend import RobotBackend, RobotError, RobotStatus, apply_increment, move_and_wait
+from core.spatial import Matrix, interpolate, pose_error
+from robot_models.loader import load_arm
+
+log = logging.getLogger("vservo.safety")
+
+# The safety check asks only whether joints within the limits exist: a micrometre and a
+# microradian are far inside any arm's repeatability.
+CHECK_TOLERANCE = 1e-6
+
+
+class SafetyRefusal(RobotError):
+    """The safety layer refused a request; the message names the limit and the values."""
+
+
+class OutsideWorkspace(SafetyRefusal):
+    """The target puts the flange or a tool outside the workspace box."""
+
+
+class BeyondJointLimits(SafetyRefusal):
+    """The target needs joints beyond their limits (less the margin), or no joints reach it."""
+
+
+class StepTooLarge(SafetyRefusal):
+    """The move is larger than one step may be."""
+
+
+class TooFast(SafetyRefusal):
+    """The move asks for more than the maximum speed."""
+
+
+class SafetyStopActive(SafetyRefusal):
+    """An e-stop or a watchdog stop is latched: nothing moves until it is reset."""
+
+
+class Watchdog:
+    """Calls ``on_quiet(reason)`` once when a fed source stays quiet longer than timeout_s.
+
+    Armed for a servo run and disarmed after it; ``feed(source)`` marks a source alive.
+    A background thread checks every tenth of the timeout.
+    """
+
+    SOURCES = ("camera", "link")
+
+    def __init__(self, timeout_s: float, on_quiet: Callable[[str], None]) -> None:
+        self.timeout_s = timeout_s
+        self._on_quiet = on_quiet
+        self._last_fed = dict.fromkeys(self.SOURCES, 0.0)
+        self._disarmed = threading.Event()
+        self._disarmed.set()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def armed(self) -> bool:
+        return not self._disarmed.is_set()
+
+    def feed(self, source: str) -> None:
+        if source not in self._last_fed:
+            raise ValueError(f"unknown watchdog source {source!r}: one of {', '.join(self.SOURCES)}")
+        self._last_fed[source] = time.monotonic()
+
+    def arm(self) -> None:
+        """Start watching; every source counts as fed now."""
+        self.disarm()
+        now = time.monotonic()
+        self._last_fed = dict.fromkeys(self.SOURCES, now)
+        self._disarmed.clear()
+        self._thread = threading.Thread(target=self._watch, name="vservo-watchdog", daemon=True)
+        self._thread.start()
+
+    def disarm(self) -> None:
+        self._disarmed.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join()
+        self._thread = None
+
+    def _watch(self) -> None:
+        while not self._disarmed.wait(self.timeout_s / 10.0):
+            now = time.monotonic()
+            quiet = {source: now - fed for source, fed in self._last_fed.items() if now - fed > self.timeout_s}
+            if quiet:
+                source, silence = max(quiet.items(), key=lambda item: item[1])
+                self._disarmed.set()
+                self._on_quiet(f"watchdog: the {source} has been quiet for {silence:.1f} s "
+                               f"(limit {self.timeout_s:g} s)")
+                return
+
+
+class SafetyLayer:
+    """A RobotBackend that checks every move against ``limits`` before ``robot`` sees it.
+
+    ``arm`` is the NOMINAL arm (the model the controller uses) for the joint-limit check;
+    ``q_seed`` seeds its first IK (later ones start from the previous solution).
+    """
+
+    def __init__(self, robot: RobotBackend, limits: SafetyConfig, arm: ArmKinematics, q_seed: Matrix) -> None:
+        self.robot = robot
+        self.limits = limits
+        self.arm = arm
+        self.name = robot.name
+        self.watchdog = Watchdog(limits.watchdog_s, self._stop_from_watchdog)
+        self._q_seed = np.asarray(q_seed, dtype=float).copy()
+        self._stop_reason: str | None = None
+        self._pose: Matrix | None = None  # the pose last read, while no move has been sent since
+        self._tool_frames = {"camera": arm.mount.eMc, "laser": arm.mount.eMl, "vacuum cup": arm.mount.eMv}
+
+    @classmethod
+    def from_config(cls, robot: RobotBackend, config: CellConfig) -> SafetyLayer:
+        """The cell file's [safety] limits around ``robot``, with the cell's nominal arm."""
+        arm = ArmKinematics(load_arm(config.arm), config.nominal.mount)
+        return cls(robot, config.safety, arm, config.home_q)
+
+    # -- stops -------------------------------------------------------------------------
+
+    @property
+    def stop_reason(self) -> str | None:
+        """Why moves are refused (an e-stop or the watchdog), or None."""
+        return self._stop_reason
+
+    def emergency_stop(self, reason: str = "operator e-stop") -> None:
+        """Hold the robot now and refuse every move until reset_emergency_stop()."""
+        self._latch(f"e-stop: {reason}")
+
+    def reset_emergency_stop(self) -> None:
+        """Accept moves again. The robot stays held until hold(False)."""
+        if self._stop_reason is not None:
+            log.info("safety stop reset (was: %s)", self._stop_reason)
+        self._stop_reason = None
+
+    def _stop_from_watchdog(self, reason: str) -> None:
+        try:
+            self._latch(reason)
+        except RobotError:
+            pass  # _latch has logged it; the stop stays latched
+
+    def _latch(self, reason: str) -> None:
+        self._stop_reason = reason  # first: whatever happens to the hold, nothing moves any more
+        log.warning("safety stop: %s", reason)
+        try:
+            self.robot.hold(True)
+        except RobotError as exc:
+            log.error("safety stop: the hold did not reach the robot: %s", exc)
+            raise RobotError(f"{reason}; the hold did not reach the robot: {exc}") from exc
+
+    def _refuse_if_stopped(self, what: str) -> None:
+        if self._stop_reason is not None:
+            raise SafetyStopActive(f"{what} refused: {self._stop_reason} (reset the stop first)")
+
+    # -- checks ------------------------------------------------------------------------
+
+    def check_target(self, bMe_target: Matrix, speed_m_s: float, bMe_now: Matrix | None = None) -> Matrix:
+        """Raise a SafetyRefusal unless a linear move to bMe_target at speed_m_s is allowed;
+        returns the joints the nominal IK finds for it. ``bMe_now`` defaults to the robot's pose."""
+        self._refuse_if_stopped("move")
+        bMe_target = np.asarray(bMe_target, dtype=float)
+        limits = self.limits
+        if not (np.isfinite(speed_m_s) and speed_m_s > 0.0):
+            raise TooFast(f"move refused: speed {speed_m_s!r} m/s is not a positive number")
+        if speed_m_s > limits.max_speed_m_s:
+            raise TooFast(f"move refused: speed {speed_m_s * 1000:.1f} mm/s exceeds the maximum "
+                          f"{limits.max_speed_m_s * 1000:.1f} mm/s")
+        if bMe_target.shape != (4, 4) or not np.all(np.isfinite(bMe_target)):
+            raise OutsideWorkspace(f"move refused: the target is not a finite 4x4 pose: {bMe_target.tolist()}")
+
+        points = {"flange": bMe_target[:3, 3]}
+        points.update({name: (bMe_target @ eMx)[:3, 3] for name, eMx in self._tool_frames.items()})
+        for name, p in points.items():
+            outside = (p < limits.workspace_min_m) | (p > limits.workspace_max_m)
+            if outside.any():
+                axis = "xyz"[int(np.argmax(outside))]
+                raise OutsideWorkspace(
+                    f"move refused: the {name} would be at {np.round(p * 1000, 1).tolist()} mm, outside the "
+                    f"workspace box on {axis} ({np.round(limits.workspace_min_m * 1000, 1).tolist()} .. "
+                    f"{np.round(limits.workspace_max_m * 1000, 1).tolist()} mm)")
+
+        bMe_now = self.read_pose() if bMe_now is None else bMe_now
+        translation, rotation = pose_error(bMe_now, bMe_target)
+        if translation > limits.max_step_m:
+            raise StepTooLarge(f"move refused: a step of {translation * 1000:.1f} mm exceeds the maximum "
+                               f"{limits.max_step_m * 1000:.1f} mm")
+        if rotation > limits.max_step_rad:
+            raise StepTooLarge(f"move refused: a step of {np.degrees(rotation):.2f} deg exceeds the maximum "
+                               f"{np.degrees(limits.max_step_rad):.2f} deg")
+
+        try:
+            q = self.arm.ik(bMe_target, self._q_seed, tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE).q
+        except UnreachableTarget as exc:
+            raise BeyondJointLimits(f"move refused: no joints within the limits reach the target ({exc})") from exc
+        margins = np.minimum(q - self.arm.lower, self.arm.upper - q)
+        worst = int(np.argmin(margins))
+        if margins[worst] < limits.joint_margin_rad:
+            raise BeyondJointLimits(
+                f"move refused: joint {self.arm.joint_names[worst]} would be {np.degrees(margins[worst]):.2f} deg from "
+                f"its limit, closer than the margin {np.degrees(limits.joint_margin_rad):.2f} deg")
+        return q
+
+    # -- the RobotBackend interface ----------------------------------------------------
+
+    def _link(self, call: Callable, *args):
+        """Call the robot; a call that returns feeds the watchdog's link side."""
+        result = call(*args)
+        self.watchdog.feed("link")
+        return result
+
+    def connect(self) -> None:
+        self._link(self.robot.connect)
+
+    def close(self) -> None:
+        self.watchdog.disarm()
+        self.robot.close()
+
+    def status(self) -> RobotStatus:
+        status = self._link(self.robot.status)
+        if self._stop_reason is None:
+            return status
+        return replace(status, detail="; ".join(filter(None, (status.detail, self._stop_reason))))
+
+    def read_pose(self) -> Matrix:
+        self._pose = self._link(self.robot.read_pose)
+        return self._pose.copy()
+
+    def servo(self, on: bool) -> None:
+        if on:
+            self._refuse_if_stopped("servo power on")
+        self._link(self.robot.servo, on)
+
+    def hold(self, on: bool) -> None:
+        if not on:
+            self._refuse_if_stopped("hold release")
+        self._link(self.robot.hold, on)
+
+    def reset_alarms(self) -> None:
+        self._link(self.robot.reset_alarms)
+
+    def move_to(self, bMe_target: Matrix, speed_m_s: float) -> None:
+        self._q_seed = self.check_target(bMe_target, speed_m_s, self._current_pose())
+        self._pose = None
+        self._link(self.robot.move_to, bMe_target, speed_m_s)
+
+    def move_by(self, bMe_increment: Matrix, speed_m_s: float) -> None:
+        bMe_now = self._current_pose()
+        self._q_seed = self.check_target(apply_increment(bMe_now, bMe_increment), speed_m_s, bMe_now)
+        self._pose = None
+        self._link(self.robot.move_by, bMe_increment, speed_m_s)
+
+    def move_linear(self, bMe_target: Matrix, speed_m_s: float) -> None:
+        """A taught move of any length (to a start, pick or place pose): the straight line
+        cut into steps within max_step_m / max_step_rad. The whole path is checked
+        before the first step goes out, so a refusal (SafetyRefusal) moves nothing; then
+        each step is sent and waited for (MotionStopped if the robot stops short)."""
+        bMe_from = self._current_pose()
+        translation, rotation = pose_error(bMe_from, np.asarray(bMe_target, dtype=float))
+        # Steps of at most 90 % of the limits: the next step starts where the arm really
+        # stopped (repeatability), not exactly on the line.
+        fill = max(translation / self.limits.max_step_m, rotation / self.limits.max_step_rad) / 0.9
+        steps = max(1, int(np.ceil(fill)))
+        waypoints = [interpolate(bMe_from, bMe_target, k / steps) for k in range(1, steps + 1)]
+        for bMe_before, bMe_waypoint in zip([bMe_from, *waypoints], waypoints):  # the whole path first
+            self.check_target(bMe_waypoint, speed_m_s, bMe_before)
+        for bMe_waypoint in waypoints:
+            move_and_wait(self, bMe_waypoint, speed_m_s)
+
+    def move_timed(self, bMe_target: Matrix, duration_s: float) -> None:
+        bMe_now = self._current_pose()
+        translation, _ = pose_error(bMe_now, np.asarray(bMe_target, dtype=float))
+        if not (np.isfinite(duration_s) and duration_s > 0.0):
+            raise TooFast(f"move refused: duration {duration_s!r} s is not a positive number")
+        # A pure rotation asks no linear speed: check it at the slowest positive speed.
+        self._q_seed = self.check_target(bMe_target, max(translation / duration_s, np.finfo(float).tiny), bMe_now)
+        self._pose = None
+        self._link(self.robot.move_timed, bMe_target, duration_s)
+
+    def wait_motion(self, timeout_s: float | None = None) -> bool:
+        return self._link(self.robot.wait_motion, timeout_s)
+
+    def clock_s(self) -> float:
+        return self.robot.clock_s()
+
+    def dwell(self, seconds: float) -> None:
+        self.robot.dwell(seconds)
+
+    def _current_pose(self) -> Matrix:
+        """The pose last read if no move was sent since (the loop has just read it), else a fresh one."""
+        return self._pose if self._pose is not None else self.read_pose()

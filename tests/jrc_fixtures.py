@@ -1,0 +1,45 @@
+"""A test cell with short JRC timers, and a JRC link to an emulator of a simulated cell."""
+
+import threading
+from contextlib import contextmanager
+
+import pytest
+
+from core.config import parse_cell
+from core.robot.jrc import JrcBackend
+from core.robot.jrc_emulator import FaultPlan, JrcEmulator
+from tests.test_config import default_data
+
+# Timers short enough for tests, long enough for a loaded 2-core machine.
+TEST_LINE = {"timer_a_s": 0.05, "timer_b_s": 0.5, "retry_1": 3, "retry_2": 3, "jwait_slice_s": 0.2}
+TIME_SCALE = 50.0
+
+
+def short_timer_cell(**sections):
+    """The shipped cell with the test timers, and any table's keys replaced: safety={...}."""
+    data = default_data()
+    data["jrc"].update(TEST_LINE)
+    for name, keys in sections.items():
+        data[name].update(keys)
+    return parse_cell(data, "test cell")
+
+
+@contextmanager
+def jrc_link(cell, config, faults=FaultPlan(), time_scale=TIME_SCALE):
+    """(a connected JrcBackend, the emulator of ``cell`` it talks to over a pty)."""
+    with JrcEmulator(cell, config.jrc, faults, time_scale) as emulator:
+        robot = JrcBackend(config.jrc, emulator.device)
+        robot.connect()
+        try:
+            yield robot, emulator
+        finally:
+            robot.close()
+
+
+@pytest.fixture
+def no_leaked_threads():
+    """Fails a test that leaves an emulator, a watchdog or a host thread running."""
+    before = set(threading.enumerate())
+    yield
+    leaked = [thread.name for thread in threading.enumerate() if thread not in before and thread.is_alive()]
+    assert not leaked, f"threads left running: {leaked}"
