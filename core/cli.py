@@ -495,9 +495,17 @@ def build_parser() -> argparse.ArgumentParser:
     emulator.add_argument("--pace", action="store_true", help="send and receive bytes at the baud rate")
     emulator.set_defaults(run=_cmd_jrc_emulator)
 
-    for command in commands.choices.values():  # --cell after the command too: vservo jrc-emulator --cell my.toml
-        command.add_argument("--cell", metavar="FILE", default=argparse.SUPPRESS, help="cell configuration (TOML)")
+    _accept_cell_after_commands(parser)
     return parser
+
+
+def _accept_cell_after_commands(parser: argparse.ArgumentParser) -> None:
+    """--cell after any (sub)command too: vservo jrc-emulator --cell my.toml, vservo calibrate train --cell my.toml."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for command in action.choices.values():
+                command.add_argument("--cell", metavar="FILE", default=argparse.SUPPRESS, help="cell configuration (TOML)")
+                _accept_cell_after_commands(command)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -149,6 +149,7 @@ def test_the_jrc_commands_refuse_bad_arguments_in_one_line():
 
 
 def test_the_cell_option_goes_before_or_after_the_command():
-    for args in (("--cell", "/nowhere/cell.toml", "info"), ("info", "--cell", "/nowhere/cell.toml")):
+    for args in (("--cell", "/nowhere/cell.toml", "info"), ("info", "--cell", "/nowhere/cell.toml"),
+                 ("calibrate", "--cell", "/nowhere/cell.toml", "track"), ("calibrate", "track", "--cell", "/nowhere/cell.toml")):
         result = run(*args)
         assert result.returncode == 2 and "cell file not found: /nowhere/cell.toml" in result.stderr
