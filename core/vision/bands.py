@@ -56,8 +56,10 @@ _F_RATIO = 12.0
 _GATE_RATIO = 3.0
 #: Parameters of the band model beyond the single step's (c0, m): g, b0, b1, kA, kB.
 _BAND_PARAMETERS = 5
-#: Farthest (px) the band fit may move a side from the partial-area line.
+#: Farthest (px) the band fit may move a side from the partial-area line (inwards), and
+#: how far outwards it may put it (the partial-area line's own noise).
 _MAX_SHIFT_PX = 3.5
+_OUTWARD_SLACK_PX = 0.25
 #: Least contrast (grey levels) between the face and the level beyond for a side to be fitted.
 _MIN_CONTRAST = 20.0
 #: Levenberg-Marquardt iterations of the band model.
@@ -324,8 +326,13 @@ def _fit_band(side: _Side, step: tuple[float, float], step_cost: float, noise: f
         return None
     if band[2] > upper[2] - 0.01 * contrast:
         return None  # a band at the face's level is only the edge moved
-    if np.abs(band[0] - c0 + (band[1] - m) * side.t).max() > _MAX_SHIFT_PX:
-        return None  # more than a band can explain: the fit found something else
+    shift = band[0] - c0 + (band[1] - m) * side.t  # towards the face
+    if shift.max() > _MAX_SHIFT_PX or shift.min() < -_OUTWARD_SLACK_PX:
+        # More than a band can explain, or the side moved outwards where a band (lighter
+        # than the far level) can only have pulled the partial-area line out: the fit
+        # found something else, a local minimum beside a band wider than the strips
+        # that measured the line (which then already saw the face's own edge).
+        return None
     return band, float(improvement)
 
 
