@@ -10,16 +10,19 @@ import pytest
 
 from core.camera_source import Frame
 from core.config import load_cell
+from core.controllers.base import Failure
 from core.features import ImageFeatures
 from core.render import FrameFault, RenderSettings
 from core.replay import replay
 from core.scene import Cube
+from core.servo_loop import LoopLimits, run_servo
 from core.sim_camera import SimulatedCamera
 from core.simulator import SimulatedCell
 from core.spatial import inverse
-from core.study import RunSettings, run_task
+from core.step_policy import IntegratedVelocity
+from core.study import RunSettings, build_controller, perception_for, run_task, teach
 from core.tasks import TASKS
-from core.vision.pipeline import ImageFeatureExtractor, front_winding, winding_of
+from core.vision.pipeline import CameraPerception, ImageFeatureExtractor, front_winding, winding_of
 
 
 @pytest.fixture(scope="module")
@@ -81,6 +84,70 @@ def test_a_dropped_frame_stops_the_laser_method_with_features_lost(cell_config):
     camera = SimulatedCamera(cell)
     features, _ = extractor(cell_config).extract(camera.read(fault=FrameFault.dropped()).image)
     assert not features.laser_visible and not features.region.seen
+
+
+class DroppingCamera(SimulatedCamera):
+    """The simulated camera, with the frames whose numbers are in ``dropped`` lost
+    (black, as a camera link hands out a dropped frame): the detectors find nothing."""
+
+    def __init__(self, cell: SimulatedCell, dropped: range) -> None:
+        super().__init__(cell)
+        self.dropped = dropped
+        self.reads = 0
+
+    def read(self, fault: FrameFault | None = None) -> Frame:
+        drop = self.reads in self.dropped
+        self.reads += 1
+        return super().read(FrameFault.dropped() if drop else fault)
+
+
+def servo_through_dropped_frames(config, dropped: range, limits: LoopLimits = LoopLimits()):
+    """Task 2's laser servo on rendered frames, some of them dropped: (outcome, cell)."""
+    cell = SimulatedCell(config)
+    scene = config.simulation.scene
+    cell.place_cube(TASKS[2].placement.bMo(scene.table_height_m, scene.cube.side_m))
+    model = config.nominal
+    settings = RunSettings(method="laser", features="rendered")
+    desired = teach(cell, TASKS[2].desired_cMo, model, perception_for(cell, model, settings))
+    cell.place_camera(TASKS[2].initial_cMo)
+    perception = CameraPerception(DroppingCamera(cell, dropped), extractor(config))
+    outcome = run_servo(cell, build_controller(model, settings), desired, model, IntegratedVelocity(settings.dt_s),
+                        limits, perception=perception)
+    return outcome, cell
+
+
+DROP_AT = 40  # a cycle of stage 2, where the corners are needed
+
+
+def test_the_loop_holds_the_robot_through_two_lost_frames(cell_config):
+    outcome, _ = servo_through_dropped_frames(cell_config, range(DROP_AT, DROP_AT + 2))
+    assert outcome.converged, outcome.reason
+    held = outcome.cycles[DROP_AT : DROP_AT + 2]
+    assert all(not cycle.features.all_corners_visible for cycle in held)
+    assert all(cycle.output.note.startswith("holding") and not cycle.output.cVc.any() for cycle in held)
+    # No command during the held cycles: the next cycle's readout is where the first held one was.
+    for cycle in (*held[1:], outcome.cycles[DROP_AT + 2]):
+        np.testing.assert_array_equal(cycle.measurement.q, held[0].measurement.q)
+        assert cycle.measurement.time_s == held[0].measurement.time_s
+    assert outcome.cycles[DROP_AT + 2].features.all_corners_visible
+
+
+def test_the_loop_stops_with_features_lost_after_the_held_frames(cell_config):
+    hold = LoopLimits().lost_hold_cycles
+    outcome, cell = servo_through_dropped_frames(cell_config, range(DROP_AT, DROP_AT + hold + 1))
+    assert outcome.failure is Failure.FEATURES_LOST and "corners" in outcome.reason
+    assert outcome.iterations == DROP_AT + hold + 1
+    lost = outcome.cycles[DROP_AT:]
+    assert outcome.cycles[DROP_AT - 1].output.stage == lost[0].output.stage
+    for cycle in lost:
+        np.testing.assert_array_equal(cycle.measurement.q, lost[0].measurement.q)
+        assert not cycle.output.cVc.any()
+    np.testing.assert_array_equal(cell.measure(look=False).q, lost[0].measurement.q)  # nothing after the last
+
+
+def test_without_a_hold_the_first_lost_frame_stops_the_loop(cell_config):
+    outcome, _ = servo_through_dropped_frames(cell_config, range(DROP_AT, DROP_AT + 1), LoopLimits(lost_hold_cycles=0))
+    assert outcome.failure is Failure.FEATURES_LOST and outcome.iterations == DROP_AT + 1
 
 
 @pytest.fixture(scope="module")
