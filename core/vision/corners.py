@@ -354,7 +354,11 @@ def _refine(
         segments = [(normal, offset, corners[i], corners[(i + 1) % 4]) for i, (normal, offset) in enumerate(lines)]
         sides = edge_points_many(img, segments, 1.0, 1, keep_out, 4.0)
         fits = fit_lines(sides, [seg[0] for seg in segments], min_points=6, rounds=3 if attempt else 2)
-        lost = [i for i, fit in enumerate(fits) if fit is None or not _well_spread(sides[i][fit[2]], *segments[i][2:])]
+        spread = [
+            fit is not None and _well_spread(points[fit[2]], *segment[2:])
+            for segment, points, fit in zip(segments, sides, fits, strict=True)
+        ]
+        lost = [i for i, well in enumerate(spread) if not well]
         if lost:
             # The outline can be a pixel off an edge along a row or a column, beyond
             # these strips' reach: along a side within a degree or so of the pixel grid
@@ -365,11 +369,13 @@ def _refine(
             wider = edge_points_many(img, [segments[i] for i in lost], 1.5, 1, keep_out, 4.5)
             refits = fit_lines(wider, [segments[i][0] for i in lost], min_points=6, rounds=2)
             for i, points, fit in zip(lost, wider, refits, strict=True):
-                if fits[i] is None or (fit is not None and _well_spread(points[fit[2]], *segments[i][2:])):
+                if fit is not None and _well_spread(points[fit[2]], *segments[i][2:]):
+                    sides[i], fits[i], spread[i] = points, fit, True
+                elif fits[i] is None:
                     sides[i], fits[i] = points, fit
         new_lines, qualities = [], []
         recentred = False
-        for (normal, offset, start, stop), points, fit in zip(segments, sides, fits, strict=True):
+        for (normal, offset, _, _), points, fit, well in zip(segments, sides, fits, spread, strict=True):
             if fit is None or float(fit[0] @ normal) < _STEADY_COS:
                 # Too few clean strips, or the line turned (a narrow side face right
                 # along the side): keep the line; the band fit may correct it.
@@ -377,7 +383,7 @@ def _refine(
                 qualities.append(0.0)
                 continue
             line_normal, line_offset, inliers, rms = fit
-            if not _well_spread(points[inliers], start, stop):
+            if not well:
                 # The points bunch up: strips off the edge (then re-centred on the
                 # points, keeping the direction, to try again) or a narrow side face
                 # that only a few strips see past (kept for the band fit).
