@@ -10,8 +10,7 @@ wall clock. The 1-minute load average before and after says how loaded the machi
 A cycle is the look-and-move loop's own work from one cycle to the next (the issue's
 definition): the frame handed over, detection, control law, the loop's checks and the
 command to the simulated robot; the simulated camera renders that frame in the meantime,
-timed apart and reported with it in ``cycle_with_render``. The process runs with the
-live loop's allocator setting (``core.allocator``), as every ``vservo`` command does.
+timed apart and reported with it in ``cycle_with_render``.
 
 Accuracy compares detections with the TRUE projections of the simulated cell, which
 only an evaluation may read. A frame where the corner detector reports failure (with
@@ -27,7 +26,6 @@ from typing import Any
 
 import numpy as np
 
-from core.allocator import keep_freed_memory
 from core.camera_source import Frame
 from core.config import CellConfig
 from core.render import FrameFault, RenderSettings, SceneRenderer
@@ -104,7 +102,6 @@ def _detect(image: np.ndarray, winding: int):
 
 def bench_vision(config: CellConfig, seed: int = 0, cycles: int = 3, repeats: int = 3) -> dict[str, Any]:
     """Render and detection times, whole-cycle times, and detection accuracy vs the truth."""
-    freed_memory_kept = keep_freed_memory()
     load_before = os.getloadavg()[0]
     rng = np.random.default_rng(seed)
     cell = SimulatedCell(config, seed)
@@ -205,7 +202,6 @@ def bench_vision(config: CellConfig, seed: int = 0, cycles: int = 3, repeats: in
         },
         "views": "the arm's poses along task 2's laser servo",
         "repeats": repeats,
-        "allocator_keeps_freed_memory": freed_memory_kept,
         "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         "cpu_count": os.cpu_count(),
     }

@@ -11,7 +11,6 @@ from typing import Any
 
 import numpy as np
 
-from core.allocator import keep_freed_memory
 from core.calibration.cli import add_calibrate_command
 from core.config import CellConfig, ConfigError, load_cell
 from core.kinematics import ArmKinematics, KinematicsError
@@ -403,7 +402,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    keep_freed_memory()  # every command may run the live loop (core/allocator.py)
     try:
         return args.run(args)
     except (ConfigError, KinematicsError, ValueError, OSError, StoreError) as exc:
