@@ -96,6 +96,7 @@ class ArmKinematics:
         self.upper = model.upperPositionLimit.copy()
         self.joint_names = tuple(model.names[1:])
         self.frame_names = ("flange", *self.TOOL_FRAMES)
+        self._shoulders: dict[int, tuple[np.ndarray, np.ndarray, float, float, float]] = {}
 
     def with_mount(self, mount: ToolMount) -> ArmKinematics:
         """The same arm carrying another tool mount."""
@@ -235,30 +236,36 @@ class ArmKinematics:
         """
         if self.dof < 2:
             return
-        frame = self.model.frames[frame_id]
-        reach = np.linalg.norm(frame.placement.translation) + sum(
-            np.linalg.norm(self.model.jointPlacements[j].translation) for j in range(3, frame.parentJoint + 1)
-        )
-        q0 = pin.neutral(self.model)
-        pin.forwardKinematics(self.model, self.data, q0)
-        pin.computeJointJacobians(self.model, self.data, q0)
-        # Joint 1's twist at unit speed, (v, w) at the base origin: its axis passes
-        # through the point w x v (w a unit vector).
-        v, w = np.split(pin.getJointJacobian(self.model, self.data, 1, pin.WORLD)[:, 0], 2)
-        axis_point = np.cross(w, v)
-
-        def axial_radial(p: np.ndarray) -> tuple[float, float]:
-            p = p - axis_point
-            return float(p @ w), float(np.linalg.norm(p - (p @ w) * w))
-
-        shoulder_height, shoulder_radius = axial_radial(self.data.oMi[2].translation)
-        target_height, target_radius = axial_radial(bMt.translation)
+        axis_point, w, shoulder_height, shoulder_radius, reach = self._shoulder(frame_id)
+        p = bMt.translation - axis_point
+        target_height, target_radius = float(p @ w), float(np.linalg.norm(p - (p @ w) * w))
         distance = np.hypot(target_height - shoulder_height, target_radius - shoulder_radius)
         if distance > reach:
             raise UnreachableTarget(
                 f"target is {distance:.3f} m from the shoulder ({self.joint_names[1]} origin), "
                 f"beyond the reach {reach:.3f} m of the links after it"
             )
+
+    def _shoulder(self, frame_id: int) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+        """A point on joint 1's axis, its unit direction w, the shoulder's height along
+        and radius about that axis, and the reach from the shoulder to ``frame_id``: fixed
+        by the model, so computed once per frame (every IK checks them)."""
+        if frame_id not in self._shoulders:
+            frame = self.model.frames[frame_id]
+            reach = np.linalg.norm(frame.placement.translation) + sum(
+                np.linalg.norm(self.model.jointPlacements[j].translation) for j in range(3, frame.parentJoint + 1)
+            )
+            q0 = pin.neutral(self.model)
+            pin.forwardKinematics(self.model, self.data, q0)
+            pin.computeJointJacobians(self.model, self.data, q0)
+            # Joint 1's twist at unit speed, (v, w) at the base origin: its axis passes
+            # through the point w x v (w a unit vector).
+            v, w = np.split(pin.getJointJacobian(self.model, self.data, 1, pin.WORLD)[:, 0], 2)
+            axis_point = np.cross(w, v)
+            shoulder = self.data.oMi[2].translation - axis_point
+            radius = float(np.linalg.norm(shoulder - (shoulder @ w) * w))
+            self._shoulders[frame_id] = (axis_point, w.copy(), float(shoulder @ w), radius, float(reach))
+        return self._shoulders[frame_id]
 
     def _frame_id(self, frame: str) -> int:
         if frame not in self.frame_names:

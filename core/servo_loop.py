@@ -47,6 +47,9 @@ class LoopLimits:
       fraction over this many cycles is stuck in a local minimum.
     spot_hold_cycles: for how many cycles a laser spot that vanished (hidden behind the
       part's edge as it climbs onto it) is taken to be where it was last seen.
+    lost_hold_cycles: for how many consecutive cycles the loop holds the robot (zero
+      twist, no command) while the controller finds its features lost (a frame or two
+      in which a detector misses them) before it stops with the features lost.
     """
 
     max_iterations: int = 3000
@@ -54,6 +57,7 @@ class LoopLimits:
     progress_window: int = 150
     progress_fraction: float = 0.01
     spot_hold_cycles: int = 10
+    lost_hold_cycles: int = 3
 
 
 @dataclass(frozen=True)
@@ -178,6 +182,7 @@ def _servo(cell: MeasurementSource, controller: Controller, desired: DesiredImag
     stage: str | None = None
     last_spot: ImageFeatures | None = None  # the last frame that saw the laser spot
     spot_hidden_for = 0
+    lost_for = 0  # consecutive cycles held with the features lost
     recent_errors: deque[float] = deque(maxlen=limits.progress_window + 1)  # of the current stage
 
     def finish(converged: bool, failure: Failure | None, reason: str) -> ServoOutcome:
@@ -196,12 +201,18 @@ def _servo(cell: MeasurementSource, controller: Controller, desired: DesiredImag
             spot_hidden_for += 1
         features = hold_spot(seen, last_spot if spot_hidden_for <= limits.spot_hold_cycles else None)
         output = controller.step(features, desired, stage)
+        lost_for = lost_for + 1 if output.failure is Failure.FEATURES_LOST else 0
+        hold = 0 < lost_for <= limits.lost_hold_cycles
+        if hold:
+            output = replace(output, failure=None, note=f"holding, {output.note} ({lost_for} of {limits.lost_hold_cycles})")
         cycle = Cycle(iteration, measurement, features, output)
         cycles.append(cycle)
         if on_cycle is not None:
             on_cycle(cycle)
         if output.note:
             log.info("cycle %d: %s", iteration, output.note)
+        if hold:
+            continue  # no command: the next frame may see the features again
         if output.failure is not None:
             return finish(False, output.failure, output.note)
         if output.converged:

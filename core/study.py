@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from core.camera_source import FrameSource
 from core.config import CellConfig, CellModel
 from core.controllers.base import Controller
 from core.controllers.hybrid import Hybrid25D
@@ -78,13 +79,15 @@ def build_controller(model: CellModel, settings: RunSettings) -> Controller:
     raise ValueError(f"unknown method {settings.method!r}: choose one of {', '.join(METHODS)}")
 
 
-def perception_for(cell: SimulatedCell, model: CellModel, settings: RunSettings) -> Perception:
-    """The features the run's controller sees: projected points, or detections in rendered frames."""
+def perception_for(cell: SimulatedCell, model: CellModel, settings: RunSettings, camera: FrameSource | None = None
+                   ) -> Perception:
+    """The features the run's controller sees: projected points, or detections in rendered
+    frames (of ``camera``, by default the cell's simulated camera with ``settings.render``)."""
     if settings.features == "projected":
         return ProjectedPerception(model.camera, model.laser)
     if settings.features == "rendered":
         extractor = ImageFeatureExtractor(model.camera, model.laser, front_winding(cell.state.scene.cube.corners_o))
-        return CameraPerception(SimulatedCamera(cell, settings.render), extractor)
+        return CameraPerception(camera or SimulatedCamera(cell, settings.render), extractor)
     raise ValueError(f"unknown features {settings.features!r}: choose projected or rendered")
 
 
@@ -176,14 +179,17 @@ def camera_pose_error(cMo: Matrix, cdMo: Matrix) -> tuple[float, float]:
 def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: int | None = None,
              on_cycle: Callable[[Cycle], None] | None = None,
              robot: Callable[[SimulatedCell], RobotBackend] | None = None,
-             policy: StepPolicy | None = None) -> RunResult:
+             policy: StepPolicy | None = None,
+             camera: Callable[[SimulatedCell], FrameSource] | None = None) -> RunResult:
     """Teach ``task``'s desired image, start at its initial pose and servo with ``settings``.
 
     ``on_cycle`` sees every cycle as the loop does (for benchmarks and recordings).
     ``robot(cell)`` returns the connected, enabled robot that moves the simulated cell
     (say the JRC link to an emulator of it, behind the safety layer); by default the loop
     drives the simulator directly. ``policy`` replaces the study's velocity steps of
-    ``settings.dt_s`` (the JRC takes position steps).
+    ``settings.dt_s`` (the JRC takes position steps). ``camera`` makes the servo's frame
+    source on the cell for rendered features (a camera that drops frames, one that times
+    them).
     """
     cell = SimulatedCell(config, seed)
     scene = config.simulation.scene
@@ -191,7 +197,8 @@ def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: i
     model = config.nominal
     desired = teach(cell, task.desired_cMo, model, perception_for(cell, model, settings))
     cell.place_camera(task.initial_cMo)
-    perception = perception_for(cell, model, settings)  # a fresh tracker: nothing carried over from teaching
+    # A fresh tracker: nothing carried over from teaching.
+    perception = perception_for(cell, model, settings, camera(cell) if camera else None)
 
     recorder = None
     if settings.record_to is not None:

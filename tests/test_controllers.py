@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from core.camera import CameraModel, Intrinsics
-from core.controllers.base import Failure
+from core.controllers.base import Failure, SingularJacobian, checked_pinv
 from core.controllers.hybrid import Hybrid25D, translation_interaction
 from core.controllers.ibvs import ClassicIbvs
 from core.controllers.laser_ibvs import (
@@ -235,3 +235,11 @@ def test_pbvs_law_is_a_straight_line_of_the_camera_centre():
     # v is along -(c*Rc)^T c*t_c: the centre heads straight for the desired centre.
     direction = -cdMc[:3, :3].T @ cdMc[:3, 3]
     assert np.allclose(np.cross(out.cVc[:3], direction), 0.0, atol=1e-6)
+
+
+def test_checked_pinv_is_the_pseudo_inverse_or_says_singular():
+    J = np.random.default_rng(3).normal(size=(8, 6))
+    np.testing.assert_allclose(checked_pinv(J), np.linalg.pinv(J), atol=1e-12)
+    for bad in (np.full((8, 6), np.nan), np.zeros((8, 6)), np.outer(np.arange(8.0), np.ones(6))):
+        with pytest.raises(SingularJacobian):
+            checked_pinv(bad)

@@ -11,6 +11,7 @@ moments are known exactly and the tolerances below are the detectors' own.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -278,6 +279,63 @@ def test_small_face_far_away():
     quad = face_quad((250.5, 300.2), 28.0, 40.0, (0.004, 0.0))
     img = render(*cube(quad), noise=3.0, seed=3)
     assert rms(corner_errors(detect_corners(img), taught_order(quad))) < 0.3
+
+
+# ---------------------------------------------------------------------------------------
+# Corners: sides along the pixel grid
+# ---------------------------------------------------------------------------------------
+
+GRID_YAWS = [0.0, 0.5, -0.5, 1.0, -1.0, 45.0, 90.0]
+GRID_CENTRES = [(320.0, 240.0), (300.5, 251.5), (341.25, 228.75), (287.7, 213.2)]
+
+
+@pytest.mark.parametrize("centre", GRID_CENTRES, ids=["whole", "half", "quarter", "any"])
+@pytest.mark.parametrize("yaw", GRID_YAWS)
+def test_corners_of_a_face_turned_little_from_the_pixel_grid(yaw, centre):
+    # Within a degree of the grid a 100 px side's outline is a staircase of one step
+    # or none, its line up to a pixel off at one end (at whole and half pixels a line
+    # exactly along a row or column).
+    quad = face_quad(centre, 100.0, yaw)
+    img = render(*cube(quad), spots=[(centre[0] + 3.3, centre[1] + 2.1)])
+    detection = detect_corners(img, detect_laser_spot(img))
+    assert rms(corner_errors(detection, taught_order(quad))) < 0.1
+
+
+# Views near the pixel grid where the outline's lines left the narrow edge strips on
+# part of three sides (their points bunched): the corners were lost ("top face sides
+# could not be fitted"). (yaw, centre, side, image of the vertical edge, laser spot)
+BUNCHED_VIEWS = [
+    (0.5, (242.32958900867612, 170.10460595846317), 86.35874187528938, (-3.6399, 2.1202), [(245.867, 151.8429)]),
+    (-0.5, (281.01547425901595, 201.35254984212486), 99.84169173678121, (-2.7630, 1.2134), []),
+    # A 3.9 px side face along the top side: the narrow strips measure the face's own
+    # edge; a band fit that moved it outwards (1.4 px) was a local minimum.
+    (-1.0, (363.1275532699288, 231.1863304123225), 43.48925516081296, (2.5693, -3.9065), [(372.1743, 214.0107)]),
+]
+
+
+@pytest.mark.parametrize("view", BUNCHED_VIEWS, ids=["yaw0.5", "yaw-0.5", "yaw-1-wide-band"])
+def test_corners_when_the_outline_leaves_the_edge_strips(view):
+    yaw, centre, side, down, spots = view
+    quad = face_quad(centre, side, yaw)
+    img = render(*cube(quad, down=down), spots=spots)
+    detection = detect_corners(img, detect_laser_spot(img))
+    assert rms(corner_errors(detection, taught_order(quad))) < 0.1
+
+
+def test_corners_in_the_demo_frame_that_lost_them():
+    """A frame of the demo assembly (the part where it was taught, a 1.5 - 2 px side face
+    along the left side, 0.8 deg off the grid) in which the corners were once lost."""
+    img = cv2.imread(str(Path(__file__).parent / "data" / "lost_corners_clean_frame.png"), cv2.IMREAD_UNCHANGED)
+    detection = detect_corners(img, detect_laser_spot(img))
+    assert detection.found, detection.reason
+    # Independently: the face's outline at half its contrast, a quadrilateral.
+    contours, _ = cv2.findContours((img > 130).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    outline = max(contours, key=cv2.contourArea)
+    rough = cv2.approxPolyDP(outline, 3.0, True).reshape(-1, 2).astype(float)
+    assert len(rough) == 4
+    nearest = np.linalg.norm(detection.corners_px[:, None, :] - rough[None, :, :], axis=2).min(axis=1)
+    assert np.all(nearest < 1.5)
+    assert np.linalg.norm(detection.corners_px[0] - detection.mark_px) < 30.0
 
 
 # ---------------------------------------------------------------------------------------

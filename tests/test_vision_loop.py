@@ -10,10 +10,12 @@ import pytest
 
 from core.camera_source import Frame
 from core.config import load_cell
+from core.controllers.base import Failure
 from core.features import ImageFeatures
 from core.render import FrameFault, RenderSettings
 from core.replay import replay
 from core.scene import Cube
+from core.servo_loop import LoopLimits
 from core.sim_camera import SimulatedCamera
 from core.simulator import SimulatedCell
 from core.spatial import inverse
@@ -81,6 +83,58 @@ def test_a_dropped_frame_stops_the_laser_method_with_features_lost(cell_config):
     camera = SimulatedCamera(cell)
     features, _ = extractor(cell_config).extract(camera.read(fault=FrameFault.dropped()).image)
     assert not features.laser_visible and not features.region.seen
+
+
+class DroppingCamera(SimulatedCamera):
+    """The simulated camera, with the frames whose numbers are in ``dropped`` lost
+    (black, as a camera link hands out a dropped frame): the detectors find nothing."""
+
+    def __init__(self, cell: SimulatedCell, dropped: range) -> None:
+        super().__init__(cell)
+        self.dropped = dropped
+        self.reads = 0
+
+    def read(self, fault: FrameFault | None = None) -> Frame:
+        drop = self.reads in self.dropped
+        self.reads += 1
+        return super().read(FrameFault.dropped() if drop else fault)
+
+
+def servo_through_dropped_frames(config, dropped: range):
+    """Task 2's laser servo on rendered frames, the frames numbered in ``dropped`` lost."""
+    settings = RunSettings(method="laser", features="rendered")
+    return run_task(config, TASKS[2], settings, camera=lambda cell: DroppingCamera(cell, dropped))
+
+
+DROP_AT = 40  # a cycle of stage 2, where the corners are needed
+
+
+def test_the_loop_holds_the_robot_through_two_lost_frames(cell_config):
+    outcome = servo_through_dropped_frames(cell_config, range(DROP_AT, DROP_AT + 2)).outcome
+    assert outcome.converged, outcome.reason
+    held = outcome.cycles[DROP_AT : DROP_AT + 2]
+    assert all(not cycle.features.all_corners_visible for cycle in held)
+    assert all(cycle.output.note.startswith("holding") and not cycle.output.cVc.any() for cycle in held)
+    # No command during the held cycles: the next cycle's readout is where the first held one was.
+    for cycle in (*held[1:], outcome.cycles[DROP_AT + 2]):
+        np.testing.assert_array_equal(cycle.measurement.q, held[0].measurement.q)
+        assert cycle.measurement.time_s == held[0].measurement.time_s
+    assert outcome.cycles[DROP_AT + 2].features.all_corners_visible
+
+
+def test_the_loop_stops_with_features_lost_after_the_held_frames(cell_config):
+    hold = LoopLimits().lost_hold_cycles
+    result = servo_through_dropped_frames(cell_config, range(DROP_AT, DROP_AT + hold + 1))
+    outcome = result.outcome
+    assert outcome.failure is Failure.FEATURES_LOST and "corners" in outcome.reason
+    assert outcome.iterations == DROP_AT + hold + 1
+    lost = outcome.cycles[DROP_AT:]
+    assert outcome.cycles[DROP_AT - 1].output.stage == lost[0].output.stage
+    for cycle in lost:
+        np.testing.assert_array_equal(cycle.measurement.q, lost[0].measurement.q)
+        assert not cycle.output.cVc.any()
+    # The true flange after the last cycle is where it was when the frames were lost.
+    np.testing.assert_array_equal(result.trace.bMe_position_true[-1], result.trace.bMe_position_true[DROP_AT])
 
 
 @pytest.fixture(scope="module")

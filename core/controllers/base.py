@@ -72,11 +72,17 @@ class SingularJacobian(ValueError):
 
 
 def checked_pinv(J: Matrix) -> Matrix:
-    """Moore-Penrose pseudo-inverse of J; raises SingularJacobian near a singularity."""
-    singular_values = np.linalg.svd(J, compute_uv=False)
-    if not np.all(np.isfinite(singular_values)) or singular_values[-1] < SINGULAR_RATIO * singular_values[0]:
+    """Moore-Penrose pseudo-inverse of J; raises SingularJacobian near a singularity.
+
+    One SVD serves the check and the inverse (every singular value is then well above
+    zero, so all of them are inverted).
+    """
+    if not np.all(np.isfinite(J)):
+        raise SingularJacobian("the Jacobian has non-finite entries")
+    U, singular_values, Vt = np.linalg.svd(J, full_matrices=False)
+    if not singular_values[-1] > SINGULAR_RATIO * singular_values[0]:  # (a zero J too)
         raise SingularJacobian(f"singular values {singular_values.min():.3g} .. {singular_values.max():.3g}")
-    return np.linalg.pinv(J)
+    return (Vt.T / singular_values) @ U.T
 
 
 def feature_error_px(features: ImageFeatures, desired: DesiredImage) -> float:

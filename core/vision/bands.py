@@ -56,8 +56,10 @@ _F_RATIO = 12.0
 _GATE_RATIO = 3.0
 #: Parameters of the band model beyond the single step's (c0, m): g, b0, b1, kA, kB.
 _BAND_PARAMETERS = 5
-#: Farthest (px) the band fit may move a side from the partial-area line.
+#: Farthest (px) the band fit may move a side from the partial-area line (inwards), and
+#: how far outwards it may put it (the partial-area line's own noise).
 _MAX_SHIFT_PX = 3.5
+_OUTWARD_SLACK_PX = 0.25
 #: Least contrast (grey levels) between the face and the level beyond for a side to be fitted.
 _MIN_CONTRAST = 20.0
 #: Levenberg-Marquardt iterations of the band model.
@@ -109,15 +111,20 @@ def coverage(across: Matrix, edge: Matrix, slant: Matrix | float, blur: float = 
     with it the pixel, slant and blur kernels together are taken as one Gaussian (of
     their summed variances).
     """
-    slant = np.maximum(np.abs(slant), MIN_SLANT)
     c = across + (0.5 - edge)
+    # The slant spread to the full shape once: broadcast against a short last axis (a
+    # strip's few pixels) every operation would loop over that axis alone, which costs
+    # several times the arithmetic. (Plain ufuncs: this runs in fits' inner loops.)
+    spread_slant = np.empty_like(c)
+    spread_slant[...] = np.maximum(np.abs(slant), MIN_SLANT)
+    slant = spread_slant
     if blur >= 0.25:
         spread = np.sqrt((1.0 + slant * slant) / 12.0 + blur * blur)
         z = (c - 0.5) / spread
         return 0.5 * (1.0 + _erf(z / math.sqrt(2.0))), -np.exp(-0.5 * z * z) / (spread * math.sqrt(2.0 * math.pi))
     half = 0.5 * slant
     # A(z) = z^2 / 2 on [0, 1], z - 1/2 beyond, 0 below: with z+ = max(z, 0) and
-    # h = min(z+, 1), A = h (h / 2 - 1) + z+. (Plain ufuncs: this runs in fits' inner loops.)
+    # h = min(z+, 1), A = h (h / 2 - 1) + z+.
     high, low = np.maximum(c + half, 0.0), np.maximum(c - half, 0.0)
     inside_high, inside_low = np.minimum(high, 1.0), np.minimum(low, 1.0)
     area = inside_high * (0.5 * inside_high - 1.0) + high - inside_low * (0.5 * inside_low - 1.0) - low
@@ -324,8 +331,13 @@ def _fit_band(side: _Side, step: tuple[float, float], step_cost: float, noise: f
         return None
     if band[2] > upper[2] - 0.01 * contrast:
         return None  # a band at the face's level is only the edge moved
-    if np.abs(band[0] - c0 + (band[1] - m) * side.t).max() > _MAX_SHIFT_PX:
-        return None  # more than a band can explain: the fit found something else
+    shift = band[0] - c0 + (band[1] - m) * side.t  # towards the face
+    if shift.max() > _MAX_SHIFT_PX or shift.min() < -_OUTWARD_SLACK_PX:
+        # More than a band can explain, or the side moved outwards where a band (lighter
+        # than the far level) can only have pulled the partial-area line out: the fit
+        # found something else, a local minimum beside a band wider than the strips
+        # that measured the line (which then already saw the face's own edge).
+        return None
     return band, float(improvement)
 
 

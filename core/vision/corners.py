@@ -12,8 +12,10 @@ then refined from the straight sides:
   (``core.vision.edges.edge_points_many``: exact for box-filtered edges, nearly so under
   a mild symmetric blur), in narrow strips that stay on a side face a few pixels wide,
   away from the corners, the laser spot and the orientation mark; a line is fitted to
-  each side robustly; a fit that turns its line or whose points bunch on part of the
-  side is not trusted;
+  each side robustly; along a side within a degree or so of a pixel row or column the
+  outline's line can be a pixel off at one end, and strips that see the edge on part
+  of the side only are read again twice as wide; a fit that turns its line or whose
+  points bunch on part of the side is not trusted (re-centred and tried again);
 - a side face narrower than that, down to a sliver under a pixel seen almost edge-on,
   biases the partial-area line outwards by its width times its relative level: where
   the pixels along a side do not fit a single step, the side is fitted as a three-level
@@ -82,10 +84,6 @@ _STEADY_COS = 0.996
 _LEAST_SPAN = 0.4
 #: Pixels each side of a side's line read when looking for a narrow side face beyond it.
 _BAND_REACH = 5
-#: Least slant (px per px) of the model's edges, so that the fit has a gradient everywhere.
-_MIN_SLANT = 0.1
-#: Farthest (px) the three-level fit may move a side from where the narrow strips put it.
-_MAX_BAND_SHIFT_PX = 2.0
 #: Just inside a side of the top face the image is within this share of the contrast
 #: (face against the next darker surface) of the face's level.
 _FACE_MARGIN = 0.2
@@ -356,17 +354,28 @@ def _refine(
         segments = [(normal, offset, corners[i], corners[(i + 1) % 4]) for i, (normal, offset) in enumerate(lines)]
         sides = edge_points_many(img, segments, 1.0, 1, keep_out, 4.0)
         fits = fit_lines(sides, [seg[0] for seg in segments], min_points=6, rounds=3 if attempt else 2)
-        lost = [i for i, fit in enumerate(fits) if fit is None]
+        spread = [
+            fit is not None and _well_spread(points[fit[2]], *segment[2:])
+            for segment, points, fit in zip(segments, sides, fits, strict=True)
+        ]
+        lost = [i for i, well in enumerate(spread) if not well]
         if lost:
             # The outline can be a pixel off an edge along a row or a column, beyond
-            # these strips' reach: +-2 px strips for those sides.
+            # these strips' reach: along a side within a degree or so of the pixel grid
+            # the outline is a staircase of one step or none, its line up to a pixel
+            # off at one end, and these strips find the edge on part of the side only
+            # (their points bunch) or nowhere. +-2 px strips for those sides, taken
+            # where they cover the side.
             wider = edge_points_many(img, [segments[i] for i in lost], 1.5, 1, keep_out, 4.5)
             refits = fit_lines(wider, [segments[i][0] for i in lost], min_points=6, rounds=2)
             for i, points, fit in zip(lost, wider, refits, strict=True):
-                sides[i], fits[i] = points, fit
+                if fit is not None and _well_spread(points[fit[2]], *segments[i][2:]):
+                    sides[i], fits[i], spread[i] = points, fit, True
+                elif fits[i] is None:
+                    sides[i], fits[i] = points, fit
         new_lines, qualities = [], []
         recentred = False
-        for (normal, offset, start, stop), points, fit in zip(segments, sides, fits, strict=True):
+        for (normal, offset, _, _), points, fit, well in zip(segments, sides, fits, spread, strict=True):
             if fit is None or float(fit[0] @ normal) < _STEADY_COS:
                 # Too few clean strips, or the line turned (a narrow side face right
                 # along the side): keep the line; the band fit may correct it.
@@ -374,7 +383,7 @@ def _refine(
                 qualities.append(0.0)
                 continue
             line_normal, line_offset, inliers, rms = fit
-            if not _well_spread(points[inliers], start, stop):
+            if not well:
                 # The points bunch up: strips off the edge (then re-centred on the
                 # points, keeping the direction, to try again) or a narrow side face
                 # that only a few strips see past (kept for the band fit).
@@ -385,8 +394,8 @@ def _refine(
             new_lines.append((line_normal, line_offset))
             support = min(inliers.sum() / 10.0, 1.0) * (0.5 + 0.5 * inliers.mean())
             qualities.append(support / (1.0 + (rms / 0.2) ** 2))
-        if sum(quality > 0.0 for quality in qualities) < 2:
-            return None
+        if sum(quality > 0.0 for quality in qualities) < 2 and not recentred:
+            return None  # (re-centred sides get their second pass first)
         quality = float(min(qualities))
         moved = max(abs(float(new[0] @ corners[i]) - new[1]) for i, new in enumerate(new_lines))
         lines = new_lines
