@@ -270,6 +270,9 @@ def _cmd_controller(args: argparse.Namespace) -> int:
     from core.rig import simulated_rig
     from core.storage import Store
 
+    if args.backend != "sim":
+        print("vservo controller: error: --backend jrc: the JRC backend arrives with the robot link merge", file=sys.stderr)
+        return 2
     key = os.environ.get(KEY_ENVIRONMENT, "")
     try:
         authkey = bytes.fromhex(key)
@@ -381,6 +384,8 @@ def build_parser() -> argparse.ArgumentParser:
     controller = commands.add_parser(
         "controller", help="the controller process: owns the cell, serves the app over an authenticated local channel"
     )
+    controller.add_argument("--backend", choices=("sim", "jrc"), default="sim",
+                            help="the robot: sim (the simulated cell, default) or jrc (the Motoman JRC over RS-232)")
     controller.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (default: any free one)")
     controller.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
     controller.add_argument("--seed", type=int, default=None, help="seed of the simulated cell")
