@@ -333,18 +333,19 @@ class ControllerClient:
                 self.connected = False
                 self._reply_ready.notify_all()
 
-    def call(self, name: str, timeout_s: float = 30.0, **args: Any) -> Reply:
+    def call(self, command: str, timeout_s: float = 30.0, **args: Any) -> Reply:
+        """Send ``command`` with its arguments (``save_job`` takes one called name) and wait for the reply."""
         with self._send_lock:
             self._next_id += 1
             request = self._next_id
             try:
-                self.connection.send_bytes(json.dumps({"type": "command", "id": request, "name": name,
+                self.connection.send_bytes(json.dumps({"type": "command", "id": request, "name": command,
                                                        "args": args}).encode())
             except OSError as exc:
                 raise ChannelError(f"the controller is gone: {exc}") from exc
         with self._reply_ready:
             if not self._reply_ready.wait_for(lambda: request in self._replies or not self.connected, timeout_s):
-                raise ChannelError(f"no reply to {name!r} within {timeout_s} s")
+                raise ChannelError(f"no reply to {command!r} within {timeout_s} s")
             if request not in self._replies:
                 raise ChannelError("the controller is gone")
             return self._replies.pop(request)

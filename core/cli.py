@@ -297,6 +297,31 @@ def _cmd_controller(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import logging
+    import os
+
+    from app.controller_process import ControllerStartError
+    from app.roles import TOKEN_ENVIRONMENT, new_token
+    from app.server import ServeOptions, serve
+
+    if args.backend != "sim":
+        print("vservo serve: error: --backend jrc: the JRC backend arrives with the robot link merge", file=sys.stderr)
+        return 2
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    token = args.token or os.environ.get(TOKEN_ENVIRONMENT) or new_token()
+    if not token.strip():
+        print("vservo serve: error: --token: the operator token is empty", file=sys.stderr)
+        return 2
+    options = ServeOptions(backend=args.backend, host=args.host, port=args.port, data=Path(args.data or default_data_dir()),
+                           seed=args.seed, token=token, cycle_period_s=args.cycle_period, cell=args.cell)
+    try:
+        return serve(options, load_cell(args.cell), announce=lambda line: print(line, flush=True))
+    except ControllerStartError as exc:
+        print(f"vservo serve: error: {exc}", file=sys.stderr)
+        return 2
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="vservo",
@@ -392,6 +417,24 @@ def build_parser() -> argparse.ArgumentParser:
     controller.add_argument("--cycle-period", type=float, default=0.05, metavar="S",
                             help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
     controller.set_defaults(run=_cmd_controller)
+
+    serve = commands.add_parser(
+        "serve", help="the operator application in the browser (viser), with the controller as its own process",
+        description="Serve the operator application: teach and assemble in the browser. Prints the URL and the "
+        "operator token; one browser at a time takes control with the token, every other one is a read-only "
+        "monitor. Stop with Ctrl-C: the controller holds the robot and exits.")
+    serve.add_argument("--backend", choices=("sim", "jrc"), default="sim",
+                       help="the robot: sim (the simulated cell, default) or jrc (the Motoman JRC over RS-232)")
+    serve.add_argument("--host", default="127.0.0.1",
+                       help="interface to serve on (default 127.0.0.1: this PC only; 0.0.0.0 opens it to the network)")
+    serve.add_argument("--port", type=_positive(int), default=8080, help="HTTP port (default 8080; the next free "
+                       "one if taken)")
+    serve.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
+    serve.add_argument("--seed", type=int, default=None, help="seed of the simulated cell and of the parts' arrival")
+    serve.add_argument("--token", help="operator token (default $VSERVO_OPERATOR_TOKEN, else a new random one)")
+    serve.add_argument("--cycle-period", type=float, default=0.05, metavar="S",
+                       help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
+    serve.set_defaults(run=_cmd_serve)
 
     bench = commands.add_parser("bench", help="measure speed and accuracy on this machine")
     bench.add_argument("what", choices=("vision", "calibration"),
