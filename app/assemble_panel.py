@@ -85,11 +85,7 @@ class AssemblePanel:
     def lists_changed(self, views: list[ClientView]) -> None:
         names = self.app.job_names() or ["demo"]
         for view in views:
-            dropdown = view.handles.get("assemble_job")
-            if dropdown is not None and tuple(dropdown.options) != tuple(names):
-                current = dropdown.value
-                dropdown.options = names
-                dropdown.value = current if current in names else names[0]
+            view.set_options("assemble_job", names)
 
     # -- shared displays -------------------------------------------------------------------
 

@@ -15,7 +15,6 @@ import viser
 
 from app.calibration_run import PRESETS, QUICK, CalibrationProgress, CalibrationRun, results_markdown
 from app.client_view import ClientView
-from app.roles import RoleRefused
 from app.session import SessionView
 
 if TYPE_CHECKING:
@@ -54,10 +53,7 @@ class CalibratePanel:
         pass  # the workflow reports its own progress (_on_change)
 
     def _start(self, view: ClientView, preset: str) -> None:
-        try:
-            self.app.roles.require(view.client_id, "run the calibration")
-        except RoleRefused as exc:
-            view.refused("Run calibration", exc)
+        if not view.allowed("Run calibration", self.app.roles):
             return
         with self._lock:
             if self._run is not None and self._run.running:
@@ -68,10 +64,7 @@ class CalibratePanel:
         self.results.content = ""
 
     def _stop(self, view: ClientView) -> None:
-        try:
-            self.app.roles.require(view.client_id, "stop the calibration")
-        except RoleRefused as exc:
-            view.refused("Stop calibration", exc)
+        if not view.allowed("Stop calibration", self.app.roles):
             return
         with self._lock:
             run = self._run

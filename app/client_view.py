@@ -14,7 +14,7 @@ from typing import Any
 
 import viser
 
-from app.roles import RoleRefused
+from app.roles import RoleRefused, Roles
 from core.channel import Reply
 
 
@@ -48,9 +48,29 @@ class ClientView:
         for listener in list(self._role_listeners):
             listener(is_operator)
 
+    def set_options(self, key: str, options: list[str]) -> bool:
+        """Give this browser's dropdown ``handles[key]`` new options, keeping its choice if it is
+        still offered (else the first); False if nothing changed."""
+        dropdown = self.handles.get(key)
+        if dropdown is None or tuple(dropdown.options) == tuple(options):
+            return False
+        current = dropdown.value
+        dropdown.options = options
+        dropdown.value = current if current in options else options[0]
+        return True
+
+    def allowed(self, what: str, roles: Roles) -> bool:
+        """Whether this browser holds control; if not, it is told why ``what`` was refused."""
+        try:
+            roles.require(self.client_id, what)
+        except RoleRefused as exc:
+            self.refused(what, exc)
+            return False
+        return True
+
     def notify(self, title: str, body: str, error: bool = False) -> None:
         self.client.add_notification(title, body, color="red" if error else "green",
-                                     auto_close_seconds=None if error else 4.0)
+                                     auto_close_seconds=12.0 if error else 4.0)
 
     def report(self, what: str, success: str | None = None) -> Callable[[Reply], None]:
         """A reply handler: refusals shown in red in this browser, success (if worded) in green."""

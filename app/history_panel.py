@@ -88,11 +88,7 @@ class HistoryPanel:
         self.table.content = runs_table(self.app.runs)
         labels = self._labels() or [NO_RUN]
         for view in views:
-            dropdown = view.handles.get("history_run")
-            if dropdown is not None and tuple(dropdown.options) != tuple(labels):
-                current = dropdown.value
-                dropdown.options = labels
-                dropdown.value = current if current in labels else labels[0]
+            if view.set_options("history_run", labels):
                 self._show_timeline(view)
 
     def refresh(self, view: SessionView) -> None:

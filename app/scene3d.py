@@ -130,8 +130,8 @@ class CellScene:
         self.job: _Job | None = None
         self._path_points = 0
         self.path = None
-        server.initial_camera.position = (0.35, -1.0, 0.45)
-        server.initial_camera.look_at = (-0.3, 0.0, -0.1)
+        server.initial_camera.position = (0.25, -0.95, 0.55)
+        server.initial_camera.look_at = (-0.28, 0.02, 0.05)
 
     def show_job(self, job: dict | None) -> None:
         """The metal part where ``job`` (its dict, core.jobs.Job.as_dict) places the part; None hides it."""

@@ -77,6 +77,7 @@ class OperatorApp:
         self.config, self.options = config, options
         self.commands = CommandQueue(client.call, roles)
         self._lock = threading.Lock()
+        self._building = threading.Lock()
         self.views: dict[int, ClientView] = {}
         self.jobs: list[dict] = []
         self.runs: list[dict] = []
@@ -88,10 +89,18 @@ class OperatorApp:
         server.gui.set_panel_label("vservo cell")
         server.gui.main_panel.dock_left()
         server.gui.main_panel.set_width(470)
-        estop = server.gui.add_button("E-STOP", color="red", icon=viser.Icon.HAND_STOP, order=0,
-                                      hint="Hold the robot now. Every browser may stop the cell.")
+        # The E-STOP and the status line float over the 3D view in a panel of their own, so no
+        # scrolling of the long tabs ever takes the E-STOP out of sight; at the bottom, where the
+        # notifications (top left) never cover it.
+        self.safety = server.gui.add_panel()
+        with self.safety.add_tab("Cell", viser.Icon.ALERT_TRIANGLE):
+            estop = server.gui.add_button("E-STOP", color="red", icon=viser.Icon.HAND_STOP,
+                                          hint="Hold the robot now. Every browser may stop the cell.")
+            server.gui.add_html(f"<style>button[id='{estop._impl.uuid}'] {{height: 3.2em; font-size: 1.5em; "
+                                "font-weight: 800; letter-spacing: 0.12em}</style>")  # large: viser has no button size
+            self.status = server.gui.add_markdown("")
+        self.safety.float(x=-15, y=-15, width=440, height=190)
         estop.on_click(lambda event: self.commands.estop(event.client_id, self._estop_reply(event.client_id)))
-        self.status = server.gui.add_markdown("", order=1)
         self.tabs = server.gui.add_tab_group(order=10)
         self.scene = CellScene(server, config)
         self.live = server.gui.add_panel()
@@ -174,9 +183,10 @@ class OperatorApp:
 
     def _on_connect(self, client: viser.ClientHandle) -> None:
         view = ClientView(client)
-        self._add_control_box(view)
-        for panel in self.panels:
-            panel.add_client(view)
+        with self._building:  # viser allows one `with tab:` at a time, and browsers connect in parallel
+            self._add_control_box(view)
+            for panel in self.panels:
+                panel.add_client(view)
         with self._lock:
             self.views[client.client_id] = view
         view.set_operator(self.roles.is_operator(client.client_id))

@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 MOVING_PHASES = ("servoing", "picking", "placing")
-ENDED_PHASES = ("done", "fault", "e-stopped")
 TRACE_LENGTH = 5000  # servo cycles kept per run (a run takes a few hundred)
 PATH_STEP_M = 0.0005  # a new path point once the flange moved this far
 
@@ -59,7 +58,7 @@ class SessionView:
     frame: LiveFrame | None
     trace: RunTrace
     state_number: int  # states received so far
-    runs_ended: int  # runs seen ending since the app started (the history needs a refresh)
+    runs_ended: int  # runs whose outcome was recorded since the app started (the history needs a refresh)
     controller_gone: str | None
 
 
@@ -74,6 +73,7 @@ class Session:
         self._runs_ended = 0
         self._gone: str | None = None
         self._run_id: int | None = None
+        self._ended_run: int | None = None
         self._rows: list[tuple[int, float, float, list[float]]] = []  # iteration, time, error, twist
         self._path: list[np.ndarray] = []
 
@@ -81,8 +81,7 @@ class Session:
 
     def on_state(self, state: dict) -> None:
         with self._changed:
-            previous = self._state
-            if float(state.get("time_s") or 0.0) < float(previous.get("time_s") or 0.0):
+            if float(state.get("time_s") or 0.0) < float(self._state.get("time_s") or 0.0):
                 return  # older than what is shown (the welcome's state arriving after a newer one)
             self._state = dict(state)
             self._states += 1
@@ -92,7 +91,9 @@ class Session:
             if run_id == self._run_id and phase in MOVING_PHASES:
                 self._add_cycle(state)
                 self._add_path_point(state)
-            if previous.get("phase") in MOVING_PHASES and phase in ENDED_PHASES:
+            if state.get("last_outcome") and run_id != self._ended_run:
+                # The run's outcome is on record now (the phase may have changed before: an e-stop).
+                self._ended_run = run_id
                 self._runs_ended += 1
             self._changed.notify_all()
 

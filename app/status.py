@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from app.session import RunTrace
+from core.spatial import pose_from_matrix, pose_to_mm_deg
 
 PHASE_WORDS = {
     "idle": "Idle", "teaching": "Teaching", "servoing": "Servoing", "picking": "Picking", "placing": "Placing",
@@ -35,7 +36,8 @@ def status_markdown(state: dict, operator_present: bool, controller_gone: str | 
     parts = [f"**{phase}**"]
     if state.get("job"):
         parts.append(f"job `{state['job']}`")
-    if state.get("phase") in ("servoing", "picking", "placing"):
+    if state.get("run_id") is not None and state.get("phase") not in ("idle", "teaching"):
+        parts.append(f"run {state['run_id']}")
         if state.get("stage"):
             parts.append(f"stage {state['stage']}")
         parts.append(f"cycle {state.get('iteration', 0)}")
@@ -43,7 +45,13 @@ def status_markdown(state: dict, operator_present: bool, controller_gone: str | 
     control = "an operator holds control" if operator_present else "no operator"
     robot = f"{state.get('robot', '')} on {state.get('backend', '')}".strip()
     detail = state.get("detail") or ""
-    return f"{' · '.join(parts)}  \n{detail}  \n<small>{robot} · {control}</small>"
+    return f"{' · '.join(parts)}  \n{detail}  \n<small>{robot} · {flange_text(state.get('bMe'))} · {control}</small>"
+
+
+def flange_text(bMe: object) -> str:
+    """The flange pose as the robot's pendant shows it: X Y Z in mm, phi theta psi in deg (eq. 2-13)."""
+    x, y, z, phi, theta, psi = np.round(pose_to_mm_deg(pose_from_matrix(np.asarray(bMe, float))), 2) + 0.0  # no "-0.00"
+    return f"flange X {x:.2f} Y {y:.2f} Z {z:.2f} mm, phi {phi:.2f} theta {theta:.2f} psi {psi:.2f} deg"
 
 
 def run_progress(state: dict, trace: RunTrace, threshold_px: float) -> float:

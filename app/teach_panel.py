@@ -159,11 +159,7 @@ class TeachPanel:
     def lists_changed(self, views: list[ClientView]) -> None:
         names = [NEW_JOB, *self.app.job_names()]
         for view in views:
-            dropdown = view.handles.get("teach_template")
-            if dropdown is not None and tuple(dropdown.options) != tuple(names):
-                current = dropdown.value
-                dropdown.options = names
-                dropdown.value = current if current in names else NEW_JOB
+            view.set_options("teach_template", names)
 
     def refresh(self, view: SessionView) -> None:
         self.missing.content = teach_markdown(view.state)
