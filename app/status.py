@@ -55,8 +55,8 @@ def flange_text(bMe: object) -> str:
 
 
 def run_progress(state: dict, trace: RunTrace, threshold_px: float) -> float:
-    """0..100 through the run: the servo's share follows the feature error on a log scale
-    from its first value down to the threshold; pick and place are fixed steps."""
+    """0..100 through the run: the servo's share follows the smallest feature error so far on a
+    log scale from its first value down to the threshold; pick and place are fixed steps."""
     phase = state.get("phase")
     if phase == "done":
         return 100.0
@@ -69,7 +69,8 @@ def run_progress(state: dict, trace: RunTrace, threshold_px: float) -> float:
     errors = trace.errors_px[np.isfinite(trace.errors_px)]
     if len(errors) == 0:
         return 5.0
-    first, now = max(errors[0], threshold_px * 1.01), max(errors[-1], threshold_px)
+    # The best error so far: the bar never goes back when a stage switch raises the error a little.
+    first, now = max(errors[0], threshold_px * 1.01), max(errors.min(), threshold_px)
     share = np.clip(np.log(first / now) / np.log(first / threshold_px), 0.0, 1.0)
     return float(10.0 + 60.0 * share)
 
