@@ -130,6 +130,8 @@ class CellScene:
         self.job: _Job | None = None
         self._path_points = 0
         self.path = None
+        # No shadows: an operator PC without a GPU (and headless Chromium) renders in software.
+        server.scene.configure_default_lights(cast_shadow=False)
         server.initial_camera.position = (0.25, -0.95, 0.55)
         server.initial_camera.look_at = (-0.28, 0.02, 0.05)
 

@@ -54,7 +54,7 @@ log = logging.getLogger("vservo.app")
 
 IMAGE_PERIOD_S = 1 / 30  # the live image at up to 30 frames per second
 TEXT_PERIOD_S = 0.1
-SCENE_PERIOD_S = 1 / 15
+SCENE_PERIOD_S = 0.1
 PLOT_PERIOD_S = 0.25
 
 
@@ -287,16 +287,31 @@ class OperatorApp:
         self.commands.close()
 
 
-def serve(options: ServeOptions, config: CellConfig, announce: Callable[[str], None] = print) -> int:
-    """Run the app until SIGTERM / SIGINT: start the controller, serve the page, stop the controller."""
-    stop = threading.Event()
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(signum, lambda *_: stop.set())
-    threading.excepthook = _log_thread_exception
+@dataclass
+class RunningApp:
+    """The app serving, with the controller process it started."""
+
+    app: OperatorApp
+    server: viser.ViserServer
+    channel: ControllerClient
+    controller: ControllerProcess
+    url: str
+
+    def close(self) -> int | None:
+        """Stop serving and stop the controller (SIGTERM: it holds the robot and exits); its exit code."""
+        self.app.close()
+        code = self.controller.stop()
+        self.channel.close()
+        with contextlib.redirect_stdout(io.StringIO()):  # viser says "Server stopped" on standard output
+            self.server.stop()
+        return code
+
+
+def start_app(options: ServeOptions, config: CellConfig) -> RunningApp:
+    """Start the controller process, connect to it and serve the page (returns once serving)."""
     roles = Roles(options.token)
     controller = ControllerProcess.start(backend=options.backend, data=options.data, seed=options.seed,
                                          cycle_period_s=options.cycle_period_s, cell=options.cell)
-    app = server = channel = None
     try:
         session = Session()
         channel = ControllerClient(controller.address, controller.key, on_state=session.on_state,
@@ -304,26 +319,34 @@ def serve(options: ServeOptions, config: CellConfig, announce: Callable[[str], N
         session.on_state(channel.state)  # the welcome's state (ignored if a newer one came first)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner whatever verbose says; ours is below
             server = viser.ViserServer(host=options.host, port=options.port, verbose=False)
-        app = OperatorApp(server, channel, session, roles, config, options)
-        port = server.get_port()
-        if port != options.port:
-            log.warning("port %d was taken: serving on %d", options.port, port)
-        announce(f"vservo serve: http://{options.host}:{port}  operator token: {options.token}  "
+    except BaseException:
+        controller.stop()
+        raise
+    port = server.get_port()
+    if port != options.port:
+        log.warning("port %d was taken: serving on %d", options.port, port)
+    app = OperatorApp(server, channel, session, roles, config, options)
+    return RunningApp(app, server, channel, controller, f"http://{options.host}:{port}")
+
+
+def serve(options: ServeOptions, config: CellConfig, announce: Callable[[str], None] = print) -> int:
+    """Run the app until SIGTERM / SIGINT: start the controller, serve the page, stop the controller."""
+    stop = threading.Event()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda *_: stop.set())
+    threading.excepthook = _log_thread_exception
+    running = start_app(options, config)
+    try:
+        announce(f"vservo serve: {running.url}  operator token: {options.token}  "
                  f"(backend {options.backend}, data {options.data})")
         while not stop.wait(0.5):
-            if not controller.alive:
-                why = f"the controller process exited with code {controller.process.returncode}"
-                session.on_controller_gone(why)
+            if not running.controller.alive:
+                why = f"the controller process exited with code {running.controller.process.returncode}"
+                running.app.session.on_controller_gone(why)
                 log.error("%s", why)
                 stop.wait()  # keep the page up to say so until the operator stops the app
     finally:
-        if app is not None:
-            app.close()
-        code = controller.stop()  # SIGTERM: the controller holds the robot and exits
-        if channel is not None:
-            channel.close()
-        if server is not None:
-            server.stop()
+        code = running.close()
     return 0 if code in (0, None) else 1
 
 

@@ -235,6 +235,18 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from core.bench import bench_vision
     from core.calibration.bench import bench_calibration
 
+    if args.what == "ui":
+        from app.bench_ui import bench_ui
+        from app.browser import ChromiumMissing
+
+        try:
+            result = bench_ui(load_cell(args.cell), seed=args.seed, runs=args.runs, cycle_period_s=args.cycle_period,
+                              cell=args.cell)
+        except ChromiumMissing as exc:
+            print(f"vservo bench: error: {exc}", file=sys.stderr)
+            return 2
+        _print(result, args.json)
+        return 0
     bench = bench_calibration if args.what == "calibration" else bench_vision
     result = bench(load_cell(args.cell), seed=args.seed)
     _print(result, args.json)
@@ -437,10 +449,15 @@ def build_parser() -> argparse.ArgumentParser:
     serve.set_defaults(run=_cmd_serve)
 
     bench = commands.add_parser("bench", help="measure speed and accuracy on this machine")
-    bench.add_argument("what", choices=("vision", "calibration"),
+    bench.add_argument("what", choices=("vision", "calibration", "ui"),
                        help="vision: render, detection and loop times, detection accuracy; "
-                       "calibration: Levenberg-Marquardt training time on 16,000 samples")
+                       "calibration: Levenberg-Marquardt training time on 16,000 samples; "
+                       "ui: camera frames per second in the browser and the controller's loop rate, with 1 and 5 "
+                       "headless Chromium pages connected")
     bench.add_argument("--seed", type=int, default=0)
+    bench.add_argument("--runs", type=_positive(int), default=3, help="ui: assemblies per browser count (default 3)")
+    bench.add_argument("--cycle-period", type=float, default=0.0, metavar="S",
+                       help="ui: shortest servo cycle in s (default 0: free-running)")
     bench.add_argument("--json", action="store_true", help="one JSON object")
     bench.set_defaults(run=_cmd_bench)
 
