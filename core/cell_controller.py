@@ -432,7 +432,7 @@ class CellController:
     def close(self) -> None:
         """Stop: hold the robot if a run is under way, then release the devices."""
         if self.running:
-            self.estop()
+            self.estop("e-stop: the controller process is stopping")
             self.wait(10.0)
         self.rig.close()
 
