@@ -40,8 +40,15 @@ class ClientView:
         """Call ``listener(is_operator)`` whenever this browser gains or loses control."""
         self._role_listeners.append(listener)
 
+    @property
+    def gone(self) -> bool:
+        """The browser has left: viser removed its elements (it may tell us a moment later)."""
+        return any(handle._impl.removed for handle in self._controls)
+
     def set_operator(self, is_operator: bool) -> None:
         with self._lock:
+            if self.gone:
+                return
             self.is_operator = is_operator
             for handle in self._controls:
                 _enable(handle, is_operator)

@@ -115,6 +115,15 @@ class HistoryPanel:
         except RecordingError as exc:
             view.notify("Replay", str(exc), error=True)
             return
+        try:
+            self._play(run, recording, shown, stop, status, image)
+        except RecordingError as exc:  # a frame damaged on disk
+            view.notify("Replay", str(exc), error=True)
+        except RuntimeError:  # viser removed the elements: the browser left during the replay
+            return
+
+    @staticmethod
+    def _play(run: dict, recording: Recording, shown: list, stop: threading.Event, status: Any, image: Any) -> None:
         image.visible = True
         previous_time = None
         for number, (cycle, overlay) in enumerate(shown, start=1):

@@ -232,7 +232,10 @@ class OperatorApp:
         with self._lock:
             views = dict(self.views)
         for client_id, view in views.items():
-            view.set_operator(client_id == new)
+            try:
+                view.set_operator(client_id == new)
+            except RuntimeError:  # viser: its elements were removed as it left, before we heard of it
+                log.info("browser %d left while control changed hands", client_id)
         if old is not None and old in views and new is not None:
             views[old].notify("Control taken", "Another browser entered the operator token: this one is a monitor now.",
                               error=True)

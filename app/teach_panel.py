@@ -198,4 +198,7 @@ class TeachPanel:
             handle = entry["handle"]
             if entry["dragging"] or max(pose_error(gizmo_pose(handle.position, handle.wxyz), bMe)) < GIZMO_FOLLOW:
                 continue
-            handle.wxyz, handle.position = vtf.SO3.from_matrix(bMe[:3, :3]).wxyz, bMe[:3, 3]
+            try:
+                handle.wxyz, handle.position = vtf.SO3.from_matrix(bMe[:3, :3]).wxyz, bMe[:3, 3]
+            except RuntimeError:  # viser removed it: its browser left
+                continue

@@ -174,6 +174,11 @@ def test_the_last_app_leaving_during_a_jog_holds_the_robot(slow_served):
     client.close()
     jog.join(10.0)
     assert isinstance(replies[0], ChannelError)
+    pause = threading.Event()
+    for _ in range(200):  # the controller hears of the disconnect on its own thread
+        if controller.state.phase == "e-stopped":
+            break
+        pause.wait(0.05)
     assert controller.state.phase == "e-stopped"
     assert controller.rig.robot.status().held
     assert APP_GONE in controller.state.detail
