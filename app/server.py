@@ -322,13 +322,13 @@ def start_app(options: ServeOptions, config: CellConfig) -> RunningApp:
         session.on_state(channel.state)  # the welcome's state (ignored if a newer one came first)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner whatever verbose says; ours is below
             server = viser.ViserServer(host=options.host, port=options.port, verbose=False)
+        port = server.get_port()
+        if port != options.port:
+            log.warning("port %d was taken: serving on %d", options.port, port)
+        app = OperatorApp(server, channel, session, roles, config, options)
     except BaseException:
-        controller.stop()
+        controller.stop()  # never leave the controller running without its app
         raise
-    port = server.get_port()
-    if port != options.port:
-        log.warning("port %d was taken: serving on %d", options.port, port)
-    app = OperatorApp(server, channel, session, roles, config, options)
     return RunningApp(app, server, channel, controller, f"http://{options.host}:{port}")
 
 

@@ -443,7 +443,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "one if taken)")
     serve.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
     serve.add_argument("--seed", type=int, default=None, help="seed of the simulated cell and of the parts' arrival")
-    serve.add_argument("--token", help="operator token (default $VSERVO_OPERATOR_TOKEN, else a new random one)")
+    serve.add_argument("--token", help="operator token (default $VSERVO_OPERATOR_TOKEN, else a new random one; a "
+                       "token on the command line is visible to other users in ps, the variable is not)")
     serve.add_argument("--cycle-period", type=float, default=0.05, metavar="S",
                        help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
     serve.set_defaults(run=_cmd_serve)
