@@ -35,7 +35,7 @@ from core.jobs import Job, JobError
 from core.kinematics import UnreachableTarget
 from core.recording import RunRecorder
 from core.rig import Rig
-from core.robot.backend import RobotError, apply_increment
+from core.robot.backend import MotionStopped, RobotError, apply_increment
 from core.spatial import Matrix, exp_twist
 from core.storage import Store
 from core.study import cycle_record
@@ -121,6 +121,8 @@ class CellController:
         self._state = ControllerState(backend=rig.robot.name, robot=rig.config.arm)
         self._draft: TeachDraft | None = None
         self._estop = threading.Event()
+        self._estop_reason = "e-stop pressed"
+        self._jogging = threading.Event()  # a jog or a gizmo move is under way
         self._run_thread: threading.Thread | None = None
         self._trail: list[Matrix] = []
         self._desired: DesiredImage | None = None  # drawn over the live image
@@ -171,6 +173,11 @@ class CellController:
     def running(self) -> bool:
         return self._run_thread is not None and self._run_thread.is_alive()
 
+    @property
+    def in_motion(self) -> bool:
+        """A run or a jog is moving the robot (the channel holds it if its last app goes away)."""
+        return self.running or self._jogging.is_set()
+
     def _require(self, *phases: Phase) -> None:
         if self._estop.is_set():
             raise CommandRefused("e-stop is active: reset it first")
@@ -210,10 +217,15 @@ class CellController:
         with self._lock:
             self._require(Phase.IDLE, Phase.TEACHING, Phase.DONE, Phase.FAULT)
             self._enable_motion()
+            self._jogging.set()
             try:
                 self.rig.robot.move_linear(np.asarray(bMe_target, float), JOG_SPEED_M_S)
+            except MotionStopped as exc:
+                raise CommandRefused(f"the move was stopped: {exc}") from exc
             except (RobotError, UnreachableTarget) as exc:
                 raise CommandRefused(f"move refused: {exc}") from exc
+            finally:
+                self._jogging.clear()
             self._update(**self._robot_readout())
 
     def begin_teach(self, template: str | None = None) -> None:
@@ -374,6 +386,8 @@ class CellController:
             log.exception("assembly run %d crashed", run_id)
             self.rig.robot.hold(True)
             outcome = AssemblyOutcome("fault", f"internal error: {exc!r}", float("nan"), None, 0.0, [], 0)
+        if outcome.outcome == "estopped":
+            outcome = replace(outcome, reason=self._estop_reason)
         if recorder is not None:
             recorder.close(outcome.summary())
         self.store.finish_run(run_id, outcome.outcome, outcome.reason, outcome.final_error_px,
@@ -385,14 +399,18 @@ class CellController:
 
     # -- safety ----------------------------------------------------------------------------
 
-    def estop(self) -> None:
-        """Hold the robot now and refuse every move until reset (never waits for a lock)."""
+    def estop(self, why: str = "e-stop pressed") -> None:
+        """Hold the robot now and refuse every move until reset (never waits for a lock).
+
+        ``why`` is what the state, the log and the run's record say stopped it.
+        """
+        self._estop_reason = why
         self._estop.set()
         try:
-            self.rig.robot.emergency_stop("operator e-stop")
-            detail = "e-stop: robot held"
+            self.rig.robot.emergency_stop(why)
+            detail = f"{why}: robot held"
         except RobotError as exc:
-            detail = f"e-stop: hold could not be sent ({exc}); use the pendant's e-stop"
+            detail = f"{why}: hold could not be sent ({exc}); use the pendant's e-stop"
         log.warning(detail)
         self._update(phase=Phase.ESTOPPED.value, detail=detail)
 
@@ -415,7 +433,7 @@ class CellController:
     def close(self) -> None:
         """Stop: hold the robot if a run is under way, then release the devices."""
         if self.running:
-            self.estop()
+            self.estop("e-stop: the controller process is stopping")
             self.wait(10.0)
         self.rig.close()
 

@@ -15,13 +15,20 @@ by one binary message, the JPEG. The app's side:
 
 State and frames are sent newest-first: a slow reader skips to the latest one instead
 of queueing the past, so one stalled browser never slows the controller.
+
+Commands of one app are carried out in the order sent, one at a time, except ``estop``:
+it is carried out the moment it arrives, even while a long move of that app is under
+way. When the last app disconnects (closed, crashed, cable pulled) while a run or a jog
+is moving the robot, the controller e-stops: the robot is held and the state says why.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import queue
 import secrets
+import socket
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -92,7 +99,10 @@ COMMANDS: dict[str, Callable[[CellController, dict], Any]] = {
     "reset": lambda c, a: c.reset(),
     "list_jobs": lambda c, a: _jobs(c),
     "list_runs": lambda c, a: _runs(c, int(a.get("limit", 50))),
+    "get_job": lambda c, a: c.store.load_job(str(a.get("name", ""))).as_dict(),
 }
+IMMEDIATE = "estop"  # never waits behind another command of the same app
+APP_GONE = "e-stop: the app disconnected while the robot was moving"
 
 
 def frame_message(view: FrameView) -> tuple[dict, bytes]:
@@ -180,6 +190,7 @@ class ControllerServer:
 
     def _serve(self, connection: Connection) -> None:
         subscriber = _Subscriber(connection)
+        commands: queue.Queue[dict | None] = queue.Queue()
         try:
             hello = json.loads(connection.recv_bytes())
             if hello.get("type") != "hello" or hello.get("version") != PROTOCOL_VERSION:
@@ -190,20 +201,40 @@ class ControllerServer:
             with self._lock:
                 self.subscribers.append(subscriber)
             threading.Thread(target=self._push, args=(subscriber,), name="channel-push", daemon=True).start()
+            threading.Thread(target=self._carry_out, args=(subscriber, commands), name="channel-commands",
+                             daemon=True).start()
             while True:
                 message = json.loads(connection.recv_bytes())
-                if message.get("type") == "command":
+                if message.get("type") != "command":
+                    continue
+                if message.get("name") == IMMEDIATE:
                     subscriber.send(self._execute(message))
+                else:
+                    commands.put(message)
         except (EOFError, OSError, TypeError, ValueError):
-            pass  # the app went away (or sent garbage, or the server closed): the robot is kept as it is
+            pass  # the app went away (or sent garbage, or the server closed)
         finally:
+            commands.put(None)
             with self._lock:
                 if subscriber in self.subscribers:
                     self.subscribers.remove(subscriber)
+                last_gone = not self.subscribers
             with subscriber.pending:
                 subscriber.closed = True
                 subscriber.pending.notify()
             connection.close()
+            if last_gone and not self._stopping.is_set() and self.controller.in_motion:
+                log.warning(APP_GONE)
+                self.controller.estop(APP_GONE)
+
+    def _carry_out(self, subscriber: _Subscriber, commands: queue.Queue) -> None:
+        """One app's commands, in order; replies go back as each one ends."""
+        while (message := commands.get()) is not None:
+            reply = self._execute(message)
+            try:
+                subscriber.send(reply)
+            except (OSError, EOFError):
+                return
 
     def _execute(self, message: dict) -> dict:
         name, args = message.get("name"), message.get("args") or {}
@@ -302,22 +333,30 @@ class ControllerClient:
                 self.connected = False
                 self._reply_ready.notify_all()
 
-    def call(self, name: str, timeout_s: float = 30.0, **args: Any) -> Reply:
+    def call(self, command: str, timeout_s: float = 30.0, **args: Any) -> Reply:
+        """Send ``command`` with its arguments (``save_job`` takes one called name) and wait for the reply."""
         with self._send_lock:
             self._next_id += 1
             request = self._next_id
             try:
-                self.connection.send_bytes(json.dumps({"type": "command", "id": request, "name": name,
+                self.connection.send_bytes(json.dumps({"type": "command", "id": request, "name": command,
                                                        "args": args}).encode())
             except OSError as exc:
                 raise ChannelError(f"the controller is gone: {exc}") from exc
         with self._reply_ready:
             if not self._reply_ready.wait_for(lambda: request in self._replies or not self.connected, timeout_s):
-                raise ChannelError(f"no reply to {name!r} within {timeout_s} s")
+                raise ChannelError(f"no reply to {command!r} within {timeout_s} s")
             if request not in self._replies:
                 raise ChannelError("the controller is gone")
             return self._replies.pop(request)
 
     def close(self) -> None:
+        # Shut the socket down before closing it: a close alone neither wakes our reader
+        # blocked in recv nor tells the controller we are gone (the reader holds the socket).
+        try:
+            with socket.fromfd(self.connection.fileno(), socket.AF_INET, socket.SOCK_STREAM) as duplicate:
+                duplicate.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass  # already closed or shut down by the other end
         self.connection.close()
         self._reader.join(5.0)

@@ -265,6 +265,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from core.calibration.bench import bench_calibration
 
         result = bench_calibration(config, seed=args.seed)
+    elif args.what == "ui":
+        from app.bench_ui import bench_ui
+        from app.browser import ChromiumMissing
+
+        try:
+            result = bench_ui(config, seed=args.seed, runs=args.runs, cycle_period_s=args.cycle_period, cell=args.cell)
+        except ChromiumMissing as exc:
+            print(f"vservo bench: error: {exc}", file=sys.stderr)
+            return 2
     elif args.soak:
         from core.progress import Progress
         from core.robot.soak import run_soak
@@ -362,6 +371,30 @@ def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
     print(f"served {emulator.exchanges} exchanges, {len(emulator.executed)} moves; "
           f"faults injected {dict(emulator.faults.injected)}", file=sys.stderr)
     return 0
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import logging
+    import os
+
+    from app.controller_process import ControllerStartError
+    from app.roles import TOKEN_ENVIRONMENT, new_token
+    from app.server import ServeOptions, serve
+
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    token = args.token or os.environ.get(TOKEN_ENVIRONMENT) or new_token()
+    if not token.strip():
+        print("vservo serve: error: --token: the operator token is empty", file=sys.stderr)
+        return 2
+    config = load_cell(args.cell)
+    options = ServeOptions(backend=args.backend or config.robot_backend, host=args.host, port=args.port,
+                           data=Path(args.data or default_data_dir()), seed=args.seed, token=token,
+                           cycle_period_s=args.cycle_period, cell=args.cell)
+    try:
+        return serve(options, config, announce=lambda line: print(line, flush=True))
+    except ControllerStartError as exc:
+        print(f"vservo serve: error: {exc}", file=sys.stderr)
+        return 2
 
 
 BACKEND_HELP = ("the robot: sim drives the simulator directly, jrc through the JRC link to an emulated controller "
@@ -464,11 +497,31 @@ def build_parser() -> argparse.ArgumentParser:
                             help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
     controller.set_defaults(run=_cmd_controller)
 
+    serve = commands.add_parser(
+        "serve", help="the operator application in the browser (viser), with the controller as its own process",
+        description="Serve the operator application: teach and assemble in the browser. Prints the URL and the "
+        "operator token; one browser at a time takes control with the token, every other one is a read-only "
+        "monitor. Stop with Ctrl-C: the controller holds the robot and exits.")
+    serve.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
+    serve.add_argument("--host", default="127.0.0.1",
+                       help="interface to serve on (default 127.0.0.1: this PC only; 0.0.0.0 opens it to the network)")
+    serve.add_argument("--port", type=_positive(int), default=8080, help="HTTP port (default 8080; the next free "
+                       "one if taken)")
+    serve.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
+    serve.add_argument("--seed", type=int, default=None, help="seed of the simulated cell and of the parts' arrival")
+    serve.add_argument("--token", help="operator token (default $VSERVO_OPERATOR_TOKEN, else a new random one; a "
+                       "token on the command line is visible to other users in ps, the variable is not)")
+    serve.add_argument("--cycle-period", type=float, default=0.05, metavar="S",
+                       help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
+    serve.set_defaults(run=_cmd_serve)
+
     bench = commands.add_parser("bench", help="measure speed and accuracy on this machine")
-    bench.add_argument("what", choices=("vision", "calibration", "jrc"),
+    bench.add_argument("what", choices=("vision", "calibration", "jrc", "ui"),
                        help="vision: render, detection and loop times, detection accuracy; "
                        "calibration: Levenberg-Marquardt training time on 16,000 samples; jrc: RPOSC and MOVL round "
-                       "trips over a pty against the wire time, or with --soak the link under injected faults")
+                       "trips over a pty against the wire time, or with --soak the link under injected faults; "
+                       "ui: camera frames per second in the browser and the controller's loop rate, with 1 and 5 "
+                       "headless Chromium pages connected")
     bench.add_argument("--seed", type=int, default=0)
     bench.add_argument("--samples", type=_positive(int), default=50, help="jrc: round trips per command (default 50)")
     bench.add_argument("--soak", type=_positive(int), metavar="MOVES", help="jrc: soak the link with MOVES incremental moves")
@@ -476,6 +529,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--time-scale", type=_positive(float), default=50.0, help="soak: emulator speed-up (default 50)")
     bench.add_argument("--timer-a", type=_positive(float), default=0.1, help="soak: timer A in s (default 0.1)")
     bench.add_argument("--timer-b", type=_positive(float), default=1.0, help="soak: timer B in s (default 1)")
+    bench.add_argument("--runs", type=_positive(int), default=3, help="ui: assemblies per browser count (default 3)")
+    bench.add_argument("--cycle-period", type=float, default=0.0, metavar="S",
+                       help="ui: shortest servo cycle in s (default 0: free-running)")
     bench.add_argument("--json", action="store_true", help="one JSON object")
     bench.set_defaults(run=_cmd_bench)
 

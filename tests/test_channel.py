@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 
 from core.cell_controller import CellController
-from core.channel import ChannelError, ControllerClient, ControllerServer, new_key
+from core.channel import APP_GONE, ChannelError, ControllerClient, ControllerServer, new_key
 from core.config import load_cell
 from core.rig import simulated_rig
+from core.robot.backend import SimulatedBackend
+from core.robot.safety import SafetyLayer
 from core.storage import Store
 
 
@@ -103,3 +105,113 @@ def test_the_controller_runs_as_its_own_process(tmp_path):
     refused = subprocess.run([sys.executable, "-m", "core.cli", "controller"], capture_output=True, text=True,
                              env={k: v for k, v in os.environ.items() if k != KEY_ENVIRONMENT})
     assert refused.returncode == 2 and KEY_ENVIRONMENT in refused.stderr
+
+
+class SlowMotionBackend(SimulatedBackend):
+    """The simulated robot with moves that take time, as a real arm's do: wait_motion
+    returns when the test lets the move finish, or at once when the robot is held."""
+
+    def __init__(self, cell) -> None:
+        super().__init__(cell)
+        self.moving = threading.Event()
+        self.finish = threading.Event()
+
+    def wait_motion(self, timeout_s: float | None = None) -> bool:
+        self.moving.set()
+        while not self.finish.wait(0.01):
+            if self.status().held:
+                return False
+        return super().wait_motion(timeout_s)
+
+
+@pytest.fixture
+def slow_served(tmp_path):
+    store = Store(tmp_path)
+    rig = simulated_rig(load_cell(), seed=2)
+    slow = SlowMotionBackend(rig.cell)
+    rig.robot = SafetyLayer.from_config(slow, rig.config)
+    controller = CellController(rig, store, seed=2)
+    key = new_key()
+    server = ControllerServer(controller, key)
+    yield controller, server, key
+    slow.finish.set()
+    server.close()
+    controller.close()
+    store.close()
+
+
+def _jog_in_background(client: ControllerClient) -> tuple[threading.Thread, list]:
+    replies: list = []
+
+    def jog() -> None:
+        try:
+            replies.append(client.call("jog", translation_m=[0, 0, 0.01]))
+        except ChannelError as exc:  # the app closed its end meanwhile
+            replies.append(exc)
+
+    thread = threading.Thread(target=jog)
+    thread.start()
+    return thread, replies
+
+
+def test_estop_is_carried_out_while_a_long_move_of_the_same_app_runs(slow_served):
+    controller, server, key = slow_served
+    client = ControllerClient(server.address, key)
+    try:
+        jog, replies = _jog_in_background(client)
+        assert controller.rig.robot.robot.moving.wait(10.0)
+        assert client.call("estop", timeout_s=10.0).ok  # the move was never let finish: estop did not queue behind it
+        assert controller.rig.robot.status().held
+        jog.join(10.0)
+        assert replies and not replies[0].ok and "the move was stopped" in replies[0].error
+    finally:
+        client.close()
+
+
+def test_the_last_app_leaving_during_a_jog_holds_the_robot(slow_served):
+    controller, server, key = slow_served
+    client = ControllerClient(server.address, key)
+    jog, replies = _jog_in_background(client)
+    assert controller.rig.robot.robot.moving.wait(10.0)
+    client.close()
+    jog.join(10.0)
+    assert isinstance(replies[0], ChannelError)
+    pause = threading.Event()
+    for _ in range(200):  # the controller hears of the disconnect on its own thread
+        if controller.state.phase == "e-stopped":
+            break
+        pause.wait(0.05)
+    assert controller.state.phase == "e-stopped"
+    assert controller.rig.robot.status().held
+    assert APP_GONE in controller.state.detail
+
+
+def test_the_last_app_leaving_during_a_run_holds_the_robot_and_the_run_says_why(tmp_path):
+    store = Store(tmp_path)
+    controller = CellController(simulated_rig(load_cell(), seed=2), store, seed=2, cycle_period_s=0.05)
+    key = new_key()
+    server = ControllerServer(controller, key)
+    try:
+        watcher = ControllerClient(server.address, key)
+        operator = ControllerClient(server.address, key)
+        run_id = operator.call("start", job="demo").result
+        operator.close()  # another app is still connected: the run goes on
+        assert controller.running
+        watcher.close()  # the last one: the robot is held
+        controller.wait(30.0)
+        assert controller.state.phase == "e-stopped"
+        assert controller.rig.robot.status().held
+        record = store.run(run_id)
+        assert record.outcome == "estopped" and record.reason == APP_GONE
+        assert APP_GONE in controller.state.detail
+    finally:
+        server.close()
+        controller.close()
+        store.close()
+
+
+def test_the_last_app_leaving_while_idle_changes_nothing(served):
+    controller, server, key = served
+    ControllerClient(server.address, key).close()
+    assert controller.state.phase == "idle"
+    assert not controller.rig.robot.status().held

@@ -1,0 +1,131 @@
+"""Assemble tab and the live camera panel: pick a job, one Start, watch it run.
+
+Per browser (operator only): the job, Present part (simulated cell: a new part arrives
+near where the job was taught), Start. Shared by every browser: the stage and a progress
+bar, the last outcome; in the live panel the camera image with its overlays
+(app/live_image.py) and uPlot charts of the feature error and the six camera twist
+components of the run under way.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import TYPE_CHECKING
+
+import numpy as np
+import viser
+
+from app import live_image
+from app.client_view import ClientView
+from app.session import LiveFrame, RunTrace, SessionView
+from app.status import outcome_markdown, run_progress
+
+if TYPE_CHECKING:
+    from app.server import OperatorApp
+
+TWIST_NAMES = ("vx m/s", "vy m/s", "vz m/s", "wx rad/s", "wy rad/s", "wz rad/s")
+TWIST_COLOURS = ("#d62728", "#2ca02c", "#1f77b4", "#ff7f0e", "#9467bd", "#8c564b")
+BLANK = np.zeros((480, 640, 3), np.uint8)
+
+
+def plot_data(trace: RunTrace) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+    """The charts' columns: cycle, feature error (px, log scale: only positive values); cycle and
+    the six twist components. At least two cycles, blank before the run has them: viser's uPlot
+    keeps its x range relative to the data's, which an empty or single-point series spoils."""
+    x = trace.iterations.astype(float)
+    errors = np.where(np.isfinite(trace.errors_px) & (trace.errors_px > 0), trace.errors_px, np.nan)
+    twists = trace.twists
+    if len(x) < 2:
+        x, errors, twists = np.array([0.0, 1.0]), np.full(2, np.nan), np.full((2, 6), np.nan)
+    return (x, errors), (x, *(twists[:, k] for k in range(6)))
+
+
+class AssemblePanel:
+    def __init__(self, app: OperatorApp, tab: viser.GuiTabHandle, live: viser.PanelHandle) -> None:
+        self.app, self.tab = app, tab
+        gui = app.server.gui
+        with tab:
+            self.stage = gui.add_markdown("", order=20)
+            self.progress = gui.add_progress_bar(0.0, order=21)
+            self.outcome = gui.add_markdown("", order=22)
+        with live.add_tab("Live camera", viser.Icon.CAMERA):
+            self.image = gui.add_image(BLANK, label="camera (overlays: seen, desired, laser and its target)",
+                                       format="jpeg")
+            blank_error, blank_twist = plot_data(RunTrace())
+            self.error_plot = gui.add_uplot(
+                blank_error, ({"label": "cycle"}, {"label": "feature error px", "stroke": "#d62728",
+                                                                   "width": 2}),
+                title="feature error (px)", aspect=2.2, scales={"x": {"time": False}, "y": {"distr": 3}})
+            self.twist_plot = gui.add_uplot(
+                blank_twist, ({"label": "cycle"}, *({"label": name, "stroke": colour, "width": 1.5}
+                                                          for name, colour in zip(TWIST_NAMES, TWIST_COLOURS))),
+                title="camera twist cVc", aspect=2.2, scales={"x": {"time": False}})
+        self._lock = threading.Lock()
+        self._job_shown: str | None = None
+        self._threshold_px = 3.0
+
+    # -- per browser ---------------------------------------------------------------------
+
+    def add_client(self, view: ClientView) -> None:
+        gui = view.client.gui
+        names = self.app.job_names() or ["demo"]
+        with self.tab:
+            job = view.control(gui.add_dropdown("Job", names, initial_value="demo" if "demo" in names else names[0],
+                                                order=11))
+            present = view.control(gui.add_button("Present part (simulated cell)", icon=viser.Icon.BOX, order=12,
+                                                  hint="A new part arrives near where the job was taught"))
+            start = view.control(gui.add_button("Start", icon=viser.Icon.PLAYER_PLAY, color="green", order=13))
+        present.on_click(lambda _: self.app.send(view, "Present part", "present_part", "a new part is on the table"))
+        start.on_click(lambda _: self.app.send(view, "Start", "start", job=job.value))
+        view.handles["assemble_job"] = job
+
+    def remove_client(self, client_id: int) -> None:
+        pass  # a browser's elements go with its connection
+
+    def lists_changed(self, views: list[ClientView]) -> None:
+        names = self.app.job_names() or ["demo"]
+        for view in views:
+            view.set_options("assemble_job", names)
+
+    # -- shared displays -------------------------------------------------------------------
+
+    def show_frame(self, frame: LiveFrame) -> None:
+        """The newest camera frame with its overlays, encoded once for every browser."""
+        live_image.show_jpeg(self.image, live_image.render(frame.jpeg, frame.meta))
+
+    def refresh(self, view: SessionView) -> None:
+        state = view.state
+        self._follow_job(state.get("job") or "demo")
+        phase = state.get("phase")
+        running = phase in ("servoing", "picking", "placing")
+        words = {"servoing": f"servoing, stage {state.get('stage') or '-'}", "picking": "picking the part",
+                 "placing": "placing the part in the metal part"}
+        self.stage.content = (f"**{words.get(phase, phase)}** · {state.get('detail') or ''}" if running
+                              else f"**{phase}** · {state.get('detail') or ''}")
+        self.progress.value = run_progress(state, view.trace, self._threshold_px)
+        self.progress.color = "red" if phase in ("fault", "e-stopped") else "green" if phase == "done" else None
+        self.outcome.content = outcome_markdown(state.get("last_outcome"), state.get("run_id"))
+
+    def refresh_plots(self, view: SessionView) -> None:
+        error, twist = plot_data(view.trace)
+        self.error_plot.data, self.twist_plot.data = error, twist
+
+    def _follow_job(self, name: str) -> None:
+        """The 3D scene shows the metal part of the job last started or saved (fetched off this thread)."""
+        with self._lock:
+            if name == self._job_shown:
+                return
+            self._job_shown = name
+
+        def fetch() -> None:
+            detail = self.app.job_detail(name)
+            if detail is not None:
+                self._threshold_px = float(detail["threshold_px"])
+            self.app.scene.show_job(detail)
+
+        self.app.in_background(fetch)
+
+    def forget_shown_job(self) -> None:
+        """A job was saved under the shown name: fetch it again."""
+        with self._lock:
+            self._job_shown = None

@@ -1,0 +1,99 @@
+"""One browser's own part of the page: its controls, enabled only while it holds control.
+
+Every panel registers the controls it adds for a browser here; a change of operator
+enables them in the operator's page and disables them in every other one. Disabling is
+the visible half of the roles; the other half is the server-side check in
+app/commands.py, which refuses a command from a monitor even if a click arrives.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import viser
+
+from app.roles import RoleRefused, Roles
+from core.channel import Reply
+
+
+class ClientView:
+    def __init__(self, client: viser.ClientHandle) -> None:
+        self.client = client
+        self.client_id = client.client_id
+        self.is_operator = False
+        self._controls: list[Any] = []
+        self._role_listeners: list[Callable[[bool], None]] = []
+        self._lock = threading.Lock()
+        self.handles: dict[str, Any] = {}  # panels keep this browser's displays here by name
+
+    def control(self, handle: Any) -> Any:
+        """Register a control that only the operator may use; returns it. Button groups
+        cannot be disabled in viser: a monitor's are hidden instead."""
+        with self._lock:
+            self._controls.append(handle)
+            _enable(handle, self.is_operator)
+        return handle
+
+    def on_role(self, listener: Callable[[bool], None]) -> None:
+        """Call ``listener(is_operator)`` whenever this browser gains or loses control."""
+        self._role_listeners.append(listener)
+
+    @property
+    def gone(self) -> bool:
+        """The browser has left: viser removed its elements (it may tell us a moment later)."""
+        return any(handle._impl.removed for handle in self._controls)
+
+    def set_operator(self, is_operator: bool) -> None:
+        with self._lock:
+            if self.gone:
+                return
+            self.is_operator = is_operator
+            for handle in self._controls:
+                _enable(handle, is_operator)
+        for listener in list(self._role_listeners):
+            listener(is_operator)
+
+    def set_options(self, key: str, options: list[str]) -> bool:
+        """Give this browser's dropdown ``handles[key]`` new options, keeping its choice if it is
+        still offered (else the first); False if nothing changed."""
+        dropdown = self.handles.get(key)
+        if dropdown is None or tuple(dropdown.options) == tuple(options):
+            return False
+        current = dropdown.value
+        dropdown.options = options
+        dropdown.value = current if current in options else options[0]
+        return True
+
+    def allowed(self, what: str, roles: Roles) -> bool:
+        """Whether this browser holds control; if not, it is told why ``what`` was refused."""
+        try:
+            roles.require(self.client_id, what)
+        except RoleRefused as exc:
+            self.refused(what, exc)
+            return False
+        return True
+
+    def notify(self, title: str, body: str, error: bool = False) -> None:
+        self.client.add_notification(title, body, color="red" if error else "green",
+                                     auto_close_seconds=12.0 if error else 4.0)
+
+    def report(self, what: str, success: str | None = None) -> Callable[[Reply], None]:
+        """A reply handler: refusals shown in red in this browser, success (if worded) in green."""
+        def done(reply: Reply) -> None:
+            if not reply.ok:
+                self.notify(f"{what}: refused", reply.error or "no reason given", error=True)
+            elif success:
+                self.notify(what, success)
+        return done
+
+    def refused(self, what: str, exc: RoleRefused) -> None:
+        self.notify(f"{what}: refused", str(exc), error=True)
+
+
+def _enable(handle: Any, enabled: bool) -> None:
+    if isinstance(handle, viser.GuiButtonGroupHandle):
+        handle.visible = enabled
+    else:
+        handle.disabled = not enabled

@@ -1,0 +1,81 @@
+"""The controller as its own process, started and stopped by the app.
+
+``vservo serve`` runs ``python -m core.cli controller`` with a fresh random channel key
+in its environment (never on the command line, where ``ps`` would show it), reads the
+one JSON line with the channel's address, and connects. Stopping sends SIGTERM: the
+controller holds the robot if a run is under way, closes its devices and exits.
+If the app dies instead, the controller notices its last app leaving and holds the
+robot itself (core/channel.py).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from core.channel import KEY_ENVIRONMENT, new_key
+
+START_TIMEOUT_S = 60.0  # loading the arm model and the camera takes seconds on a loaded machine
+
+
+class ControllerStartError(RuntimeError):
+    """The controller process did not come up; the message carries its last words."""
+
+
+class ControllerProcess:
+    def __init__(self, process: subprocess.Popen, address: tuple[str, int], key: bytes) -> None:
+        self.process = process
+        self.address = address
+        self.key = key
+
+    @classmethod
+    def start(cls, *, backend: str, data: Path, seed: int | None, cycle_period_s: float,
+              cell: str | None = None) -> ControllerProcess:
+        key = new_key()
+        command = [sys.executable, "-m", "core.cli", *(["--cell", cell] if cell else []), "controller",
+                   "--backend", backend, "--data", str(data), "--cycle-period", str(cycle_period_s),
+                   *(["--seed", str(seed)] if seed is not None else [])]
+        # Its log goes to our standard error, as the operator's terminal shows the app's.
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env={**os.environ, KEY_ENVIRONMENT: key.hex()})
+        line = _first_line(process, START_TIMEOUT_S)
+        try:
+            address = json.loads(line)["controller"]
+            return cls(process, (address["host"], int(address["port"])), key)
+        except (ValueError, KeyError, TypeError):
+            process.terminate()
+            process.wait(30)
+            raise ControllerStartError(f"the controller process did not start (exit code {process.returncode}; "
+                                       f"its error is above): {line.strip() or 'no address line'}") from None
+
+    @property
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def stop(self, timeout_s: float = 30.0) -> int | None:
+        """SIGTERM (the controller holds the robot and exits), SIGKILL if it does not within the timeout."""
+        if self.alive:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(10.0)
+        self.process.stdout.close()
+        return self.process.returncode
+
+
+def _first_line(process: subprocess.Popen, timeout_s: float) -> str:
+    """The controller's first stdout line; '' if it exits or stays silent past the timeout."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        ready, _, _ = select.select([process.stdout], [], [], 0.2)
+        if ready:
+            return process.stdout.readline()
+        if process.poll() is not None:
+            return ""
+    return ""

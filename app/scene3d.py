@@ -1,0 +1,172 @@
+"""The 3D view of the cell, shared by every browser: the arm, its camera and laser, the part.
+
+- the UPJ from its URDF through Pinocchio's ViserVisualizer, posed from the joints the
+  controller publishes (``state.q``);
+- the camera's view frustum and the laser beam, from the flange pose and the NOMINAL tool
+  mount of the cell file (what the controller believes, not the simulator's truth);
+- the part where the vision puts it: the pose estimated from the four detected corners
+  with the nominal camera (planar PnP), carried rigidly by the cup while it holds the part;
+- the metal part where the selected job places the part (from its place pose);
+- the flange's path in the run under way.
+
+Nothing here reads the simulated cell: the view is the controller's picture of the cell.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import viser
+import viser.transforms as vtf
+from pinocchio.visualize import ViserVisualizer
+
+from app.live_image import Overlay
+from core.camera import CameraModel
+from core.config import CellConfig
+from core.kinematics import ToolMount
+from core.pose_estimation import PoseEstimationError, pose_from_planar_points
+from core.scene import Cube, MetalPart
+from core.spatial import Matrix, inverse, rot_x, transform
+from robot_models.loader import load_arm
+
+RAY_LENGTH_M = 0.3  # the beam drawn when no part is known to end it on
+PART_RGB = (230, 160, 40)
+METAL_RGB = (150, 155, 165)
+CAMERA_RGB = (40, 90, 220)
+LASER_RGB = (240, 30, 30)
+PATH_RGB = (20, 160, 90)
+
+
+def part_pose_from_corners(corners_px: np.ndarray, bMe: Matrix, eMc: Matrix, camera: CameraModel,
+                           side_m: float) -> Matrix | None:
+    """bMo of the part from its four corners seen in one frame (None if not all are seen)."""
+    if corners_px is None or not np.all(np.isfinite(corners_px)):
+        return None
+    try:
+        cMo = pose_from_planar_points(corners_px, Cube(np.eye(4), side_m).corners_o, camera)
+    except PoseEstimationError:
+        return None
+    return bMe @ eMc @ cMo
+
+
+def placed_part_frame(bMe_place: Matrix, eMv: Matrix, side_m: float) -> Matrix:
+    """bMp, the metal part's pocket frame (centre of its floor) for a job's place pose.
+
+    At the place pose the cup is on the middle of the part's top face, pointing down
+    (Fig. C-2's teaching): the part's bottom, a side lower, is the pocket's floor.
+    """
+    bMv = bMe_place @ eMv
+    return bMv @ transform(rot_x(np.pi), (0.0, 0.0, side_m))
+
+
+def laser_ray(bMe: Matrix, eMl: Matrix, part_top_z_m: float | None) -> tuple[Matrix, Matrix]:
+    """Start and end of the beam (B): from the laser along +z of L, to the part's top plane if known."""
+    bMl = bMe @ eMl
+    origin, direction = bMl[:3, 3], bMl[:3, 2]
+    length = RAY_LENGTH_M
+    if part_top_z_m is not None and direction[2] < -1e-6:
+        length = float(np.clip((part_top_z_m - origin[2]) / direction[2], 0.0, 2.0))
+    return origin, origin + length * direction
+
+
+class PartTracker:
+    """Where the app shows the part: seen (PnP), or carried by the cup, or last known."""
+
+    def __init__(self, mount: ToolMount, camera: CameraModel) -> None:
+        self.mount, self.camera = mount, camera
+        self.bMo: Matrix | None = None
+        self._vMo: Matrix | None = None  # the part in the cup frame while it is held
+
+    def update(self, state: dict, overlay: Overlay | None, side_m: float) -> Matrix | None:
+        bMe = np.asarray(state["bMe"], float)
+        bMv = bMe @ self.mount.eMv
+        if state.get("holding_part"):
+            if self._vMo is None:
+                # Grasped: the part hangs from the cup as it was last seen, or centred under it.
+                self._vMo = inverse(bMv) @ self.bMo if self.bMo is not None else \
+                    inverse(transform(rot_x(np.pi), (side_m / 2, side_m / 2, 0.0)))
+            self.bMo = bMv @ self._vMo
+            return self.bMo
+        self._vMo = None
+        if overlay is not None:
+            seen = part_pose_from_corners(overlay.corners_px, bMe, self.mount.eMc, self.camera, side_m)
+            if seen is not None:
+                self.bMo = seen
+        return self.bMo
+
+
+def _wxyz(M: Matrix) -> np.ndarray:
+    return vtf.SO3.from_matrix(M[:3, :3]).wxyz
+
+
+@dataclass
+class _Job:
+    name: str
+    side_m: float
+    bMe_place: Matrix
+
+
+class CellScene:
+    """The shared scene (server.scene): built once, updated by the display thread."""
+
+    def __init__(self, server: viser.ViserServer, config: CellConfig) -> None:
+        self.server = server
+        self.mount = config.nominal.mount
+        self.camera = config.nominal.camera
+        arm = load_arm(config.arm)
+        self.robot = ViserVisualizer(arm.model, arm.collision_model, arm.visual_model)
+        self.robot.initViewer(viewer=server)
+        self.robot.loadViewerModel(rootNodeName="/cell/robot")
+        self.robot.display(config.home_q)
+        intrinsics = self.camera.intrinsics
+        scene = server.scene
+        self.frustum = scene.add_camera_frustum(
+            "/cell/camera", fov=2 * np.arctan2(intrinsics.height / 2, intrinsics.fy),
+            aspect=intrinsics.width / intrinsics.height, scale=0.05, thickness=0.002, color=CAMERA_RGB)
+        self.part = scene.add_box("/cell/part", PART_RGB, (0.02, 0.02, 0.02), visible=False)
+        self.metal: list = []
+        self.tracker = PartTracker(self.mount, self.camera)
+        self.job: _Job | None = None
+        self._path_points = 0
+        self.path = None
+        # No shadows: an operator PC without a GPU (and headless Chromium) renders in software.
+        server.scene.configure_default_lights(cast_shadow=False)
+        server.initial_camera.position = (0.25, -0.95, 0.55)
+        server.initial_camera.look_at = (-0.28, 0.02, 0.05)
+
+    def show_job(self, job: dict | None) -> None:
+        """The metal part where ``job`` (its dict, core.jobs.Job.as_dict) places the part; None hides it."""
+        for handle in self.metal:
+            handle.remove()
+        self.metal = []
+        if job is None:
+            self.job = None
+            return
+        self.job = _Job(job["name"], float(job["part_side_m"]), np.asarray(job["bMe_place"], float))
+        bMp = placed_part_frame(self.job.bMe_place, self.mount.eMv, self.job.side_m)
+        for index, box in enumerate(MetalPart(bMp).boxes):
+            self.metal.append(self.server.scene.add_box(
+                f"/cell/metal_part/{index}", METAL_RGB, 2 * box.half_extents, wxyz=_wxyz(box.bMx), position=box.bMx[:3, 3]))
+
+    def update(self, state: dict, overlay: Overlay | None, path_m: np.ndarray) -> None:
+        if state.get("q"):
+            self.robot.display(np.asarray(state["q"], float))
+        bMe = np.asarray(state["bMe"], float)
+        bMc = bMe @ self.mount.eMc
+        self.frustum.wxyz, self.frustum.position = _wxyz(bMc), bMc[:3, 3]
+        side = self.job.side_m if self.job else 0.020
+        bMo = self.tracker.update(state, overlay, side)
+        if bMo is not None:
+            centre = bMo @ transform(t=(side / 2, side / 2, -side / 2))
+            self.part.dimensions = (side, side, side)
+            self.part.wxyz, self.part.position, self.part.visible = _wxyz(centre), centre[:3, 3], True
+        start, end = laser_ray(bMe, self.mount.eMl, None if bMo is None else float(bMo[2, 3]))
+        self.server.scene.add_line_segments("/cell/laser", np.array([[start, end]]), LASER_RGB, thickness=0.002)
+        if len(path_m) != self._path_points:
+            self._path_points = len(path_m)
+            if len(path_m) > 1:
+                segments = np.stack([path_m[:-1], path_m[1:]], axis=1)
+                self.path = self.server.scene.add_line_segments("/cell/path", segments, PATH_RGB, thickness=0.002)
+            elif self.path is not None:
+                self.path.visible = False  # a new run: its path starts afresh

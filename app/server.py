@@ -1,0 +1,360 @@
+"""``vservo serve``: the operator application in the browser, wired to the controller process.
+
+    browser(s) <-- viser (websocket) --> OperatorApp <-- channel --> controller process
+
+The app starts the controller (app/controller_process.py), connects to it with the key,
+and serves one page to every browser:
+
+- at the top, for everyone: the E-STOP, the cell's status line; per browser: Reset and
+  the control box (operator token, Take control / Release);
+- tabs Assemble, Teach, History, Calibrate (shared displays, per-browser controls that
+  only the operator's page enables);
+- the live camera panel (image with overlays, feature error and camera twist plots) and
+  the 3D cell, the same in every browser.
+
+Threads: viser calls the callbacks in its pool; they only check the role and queue the
+command (app/commands.py). The channel's reader writes the session; one display thread
+turns the session into page updates at bounded rates (the camera image encoded once for
+all browsers). Shared app state (views, job and run lists) is guarded by ``_lock``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import viser
+
+from app import live_image
+from app.assemble_panel import AssemblePanel
+from app.calibrate_panel import CalibratePanel
+from app.client_view import ClientView
+from app.commands import CommandQueue
+from app.controller_process import ControllerProcess
+from app.history_panel import HistoryPanel
+from app.roles import RoleRefused, Roles
+from app.scene3d import CellScene
+from app.session import Session, SessionView
+from app.status import status_markdown
+from app.teach_panel import TeachPanel
+from core.channel import ChannelError, ControllerClient
+from core.config import CellConfig
+
+log = logging.getLogger("vservo.app")
+
+IMAGE_PERIOD_S = 1 / 30  # the live image at up to 30 frames per second
+TEXT_PERIOD_S = 0.1
+SCENE_PERIOD_S = 0.1
+PLOT_PERIOD_S = 0.25
+
+
+@dataclass(frozen=True)
+class ServeOptions:
+    backend: str = "sim"
+    host: str = "127.0.0.1"
+    port: int = 8080
+    data: Path = Path(".")
+    seed: int | None = None
+    token: str = ""
+    cycle_period_s: float = 0.05
+    cell: str | None = None
+
+
+class OperatorApp:
+    def __init__(self, server: viser.ViserServer, client: ControllerClient, session: Session, roles: Roles,
+                 config: CellConfig, options: ServeOptions) -> None:
+        self.server, self.channel, self.session, self.roles = server, client, session, roles
+        self.config, self.options = config, options
+        self.commands = CommandQueue(client.call, roles)
+        self._lock = threading.Lock()
+        self._building = threading.Lock()
+        self.views: dict[int, ClientView] = {}
+        self.jobs: list[dict] = []
+        self.runs: list[dict] = []
+        self._job_details: dict[str, dict] = {}
+        self._stop = threading.Event()
+
+        server.gui.configure_theme(control_width="large", show_share_button=False,
+                                   titlebar_content=None, brand_color=(30, 90, 160))
+        server.gui.set_panel_label("vservo cell")
+        server.gui.main_panel.dock_left()
+        server.gui.main_panel.set_width(470)
+        # The E-STOP and the status line float over the 3D view in a panel of their own, so no
+        # scrolling of the long tabs ever takes the E-STOP out of sight; at the bottom, where the
+        # notifications (top left) never cover it.
+        self.safety = server.gui.add_panel()
+        with self.safety.add_tab("Cell", viser.Icon.ALERT_TRIANGLE):
+            estop = server.gui.add_button("E-STOP", color="red", icon=viser.Icon.HAND_STOP,
+                                          hint="Hold the robot now. Every browser may stop the cell.")
+            server.gui.add_html(f"<style>button[id='{estop._impl.uuid}'] {{height: 3.2em; font-size: 1.5em; "
+                                "font-weight: 800; letter-spacing: 0.12em}</style>")  # large: viser has no button size
+            self.status = server.gui.add_markdown("")
+        self.safety.float(x=-15, y=-15, width=440, height=190)
+        estop.on_click(lambda event: self.commands.estop(event.client_id, self._estop_reply(event.client_id)))
+        self.tabs = server.gui.add_tab_group(order=10)
+        self.scene = CellScene(server, config)
+        self.live = server.gui.add_panel()
+        self.live.dock_right()
+        self.live.set_width(560)
+        self.assemble = AssemblePanel(self, self.tabs.add_tab("Assemble", viser.Icon.PLAYER_PLAY), self.live)
+        self.teach = TeachPanel(self, self.tabs.add_tab("Teach", viser.Icon.SCHOOL))
+        self.history = HistoryPanel(self, self.tabs.add_tab("History", viser.Icon.HISTORY))
+        self.calibrate = CalibratePanel(self, self.tabs.add_tab("Calibrate", viser.Icon.TARGET))
+        self.panels = (self.assemble, self.teach, self.history, self.calibrate)
+
+        roles.listeners.append(self._on_operator_change)
+        server.on_client_connect(self._on_connect)
+        server.on_client_disconnect(self._on_disconnect)
+        self._display_thread = threading.Thread(target=self._display, name="app-display", daemon=True)
+        self._display_thread.start()
+        self.in_background(self.refresh_lists)
+
+    # -- helpers the panels use ----------------------------------------------------------
+
+    def send(self, view: ClientView, what: str, command: str, success: str | None = None,
+             done: Callable[[Any], None] | None = None, **args: Any) -> None:
+        """A browser's command: refused at once (in that browser) unless it holds control."""
+        try:
+            self.commands.submit(view.client_id, command, done or view.report(what, success), **args)
+        except RoleRefused as exc:
+            view.refused(what, exc)
+
+    def in_background(self, work: Callable[[], None]) -> None:
+        def run() -> None:
+            try:
+                work()
+            except ChannelError as exc:
+                log.warning("%s", exc)
+        threading.Thread(target=run, name="app-refresh", daemon=True).start()
+
+    def refresh_lists(self) -> None:
+        """Jobs and runs from the controller; every browser's lists follow."""
+        jobs = self.commands.call_now("list_jobs")
+        runs = self.commands.call_now("list_runs", limit=50)
+        with self._lock:
+            if jobs.ok:
+                self.jobs = jobs.result
+            if runs.ok:
+                self.runs = runs.result
+            views = list(self.views.values())
+        for panel in self.panels:
+            panel.lists_changed(views)
+
+    def job_detail(self, name: str | None) -> dict | None:
+        """A job's stored content (poses, settings), fetched once per name and save."""
+        if not name:
+            return None
+        with self._lock:
+            if name in self._job_details:
+                return self._job_details[name]
+        reply = self.commands.call_now("get_job", name=name)
+        detail = reply.result if reply.ok else None
+        with self._lock:
+            self._job_details[name] = detail
+        return detail
+
+    def forget_job(self, name: str) -> None:
+        with self._lock:
+            self._job_details.pop(name, None)
+
+    def job_names(self) -> list[str]:
+        with self._lock:
+            return [job["name"] for job in self.jobs if not job.get("problem")]
+
+    def _estop_reply(self, client_id: int | None) -> Callable[[Any], None]:
+        def done(reply: Any) -> None:
+            with self._lock:
+                view = self.views.get(client_id)
+            if view is not None:
+                view.report("E-STOP", "robot held")(reply)
+        return done
+
+    # -- browsers --------------------------------------------------------------------
+
+    def _on_connect(self, client: viser.ClientHandle) -> None:
+        view = ClientView(client)
+        with self._building:  # viser allows one `with tab:` at a time, and browsers connect in parallel
+            self._add_control_box(view)
+            for panel in self.panels:
+                panel.add_client(view)
+        with self._lock:
+            self.views[client.client_id] = view
+        view.set_operator(self.roles.is_operator(client.client_id))
+
+    def _on_disconnect(self, client: viser.ClientHandle) -> None:
+        with self._lock:
+            self.views.pop(client.client_id, None)
+        self.roles.disconnected(client.client_id)
+        for panel in self.panels:
+            panel.remove_client(client.client_id)
+
+    def _add_control_box(self, view: ClientView) -> None:
+        gui = view.client.gui
+        reset = view.control(gui.add_button("Reset (after e-stop, fault or a finished run)", icon=viser.Icon.REFRESH,
+                                            order=2))
+        reset.on_click(lambda _: self.send(view, "Reset", "reset", "ready"))
+        folder = gui.add_folder("Control", order=3)
+        with folder:
+            role = gui.add_markdown("")
+            token = gui.add_text("Operator token", "", hint="The token printed by `vservo serve` when it started")
+            take = gui.add_button("Take control", icon=viser.Icon.LOCK_OPEN)
+            release = gui.add_button("Release control", icon=viser.Icon.LOCK, disabled=True)
+
+        def on_take(_: Any) -> None:
+            try:
+                self.roles.take(view.client_id, token.value)
+            except RoleRefused as exc:
+                view.refused("Take control", exc)
+                return
+            token.value = ""
+
+        def on_role(is_operator: bool) -> None:
+            role.content = ("**Operator**: this browser holds control." if is_operator else
+                            "**Monitor** (read-only): " + ("another browser holds control." if self.roles.operator
+                                                           is not None else "no browser holds control."))
+            release.disabled, take.disabled = not is_operator, is_operator
+
+        take.on_click(on_take)
+        release.on_click(lambda _: self.roles.release(view.client_id))
+        view.on_role(on_role)
+
+    def _on_operator_change(self, old: int | None, new: int | None) -> None:
+        with self._lock:
+            views = dict(self.views)
+        for client_id, view in views.items():
+            try:
+                view.set_operator(client_id == new)
+            except RuntimeError:  # viser: its elements were removed as it left, before we heard of it
+                log.info("browser %d left while control changed hands", client_id)
+        if old is not None and old in views and new is not None:
+            views[old].notify("Control taken", "Another browser entered the operator token: this one is a monitor now.",
+                              error=True)
+        self._refresh_text(self.session.view())
+
+    # -- the display thread ------------------------------------------------------------------
+
+    def _display(self) -> None:
+        done_states = done_frames = runs_ended = 0
+        due = {"text": 0.0, "scene": 0.0, "plot": 0.0}
+        state_pending = {"text": False, "scene": False, "plot": False}
+        last_image = 0.0
+        while not self._stop.is_set():
+            if not any(state_pending.values()):
+                self.session.wait_for_news(done_states, done_frames, 0.5)
+            view = self.session.view()
+            now = time.monotonic()
+            if view.state_number != done_states:
+                done_states = view.state_number
+                state_pending = dict.fromkeys(state_pending, True)
+            try:
+                if view.frame is not None and view.frame.number != done_frames and now - last_image >= IMAGE_PERIOD_S:
+                    done_frames, last_image = view.frame.number, now
+                    self.assemble.show_frame(view.frame)
+                for name, period, update in (("text", TEXT_PERIOD_S, self._refresh_text),
+                                             ("scene", SCENE_PERIOD_S, self._refresh_scene),
+                                             ("plot", PLOT_PERIOD_S, self.assemble.refresh_plots)):
+                    if state_pending[name] and now >= due[name]:
+                        update(view)
+                        state_pending[name], due[name] = False, now + period
+                if view.runs_ended != runs_ended:
+                    runs_ended = view.runs_ended
+                    self.in_background(self.refresh_lists)
+            except Exception:  # one bad update must not freeze every browser's page
+                log.exception("display update failed")
+            time.sleep(max(0.0, IMAGE_PERIOD_S - (time.monotonic() - now)))
+
+    def _refresh_text(self, view: SessionView) -> None:
+        self.status.content = status_markdown(view.state, self.roles.operator is not None, view.controller_gone)
+        for panel in self.panels:
+            panel.refresh(view)
+
+    def _refresh_scene(self, view: SessionView) -> None:
+        overlay = live_image.Overlay.from_meta(view.frame.meta) if view.frame is not None else None
+        self.scene.update(view.state, overlay, view.trace.path_m)
+        self.teach.follow_flange(np.asarray(view.state["bMe"], float))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._display_thread.join(5.0)
+        self.calibrate.close()
+        self.commands.close()
+
+
+@dataclass
+class RunningApp:
+    """The app serving, with the controller process it started."""
+
+    app: OperatorApp
+    server: viser.ViserServer
+    channel: ControllerClient
+    controller: ControllerProcess
+    url: str
+
+    def close(self) -> int | None:
+        """Stop serving and stop the controller (SIGTERM: it holds the robot and exits); its exit code."""
+        self.app.close()
+        code = self.controller.stop()
+        self.channel.close()
+        with contextlib.redirect_stdout(io.StringIO()):  # viser says "Server stopped" on standard output
+            self.server.stop()
+        return code
+
+
+def start_app(options: ServeOptions, config: CellConfig) -> RunningApp:
+    """Start the controller process, connect to it and serve the page (returns once serving)."""
+    roles = Roles(options.token)
+    controller = ControllerProcess.start(backend=options.backend, data=options.data, seed=options.seed,
+                                         cycle_period_s=options.cycle_period_s, cell=options.cell)
+    try:
+        session = Session()
+        channel = ControllerClient(controller.address, controller.key, on_state=session.on_state,
+                                   on_frame=session.on_frame)
+        session.on_state(channel.state)  # the welcome's state (ignored if a newer one came first)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner whatever verbose says; ours is below
+            server = viser.ViserServer(host=options.host, port=options.port, verbose=False)
+        port = server.get_port()
+        if port != options.port:
+            log.warning("port %d was taken: serving on %d", options.port, port)
+        app = OperatorApp(server, channel, session, roles, config, options)
+    except BaseException:
+        controller.stop()  # never leave the controller running without its app
+        raise
+    return RunningApp(app, server, channel, controller, f"http://{options.host}:{port}")
+
+
+def serve(options: ServeOptions, config: CellConfig, announce: Callable[[str], None] = print) -> int:
+    """Run the app until SIGTERM / SIGINT: start the controller, serve the page, stop the controller."""
+    stop = threading.Event()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda *_: stop.set())
+    threading.excepthook = _log_thread_exception
+    running = start_app(options, config)
+    try:
+        announce(f"vservo serve: {running.url}  operator token: {options.token}  "
+                 f"(backend {options.backend}, data {options.data})")
+        while not stop.wait(0.5):
+            if not running.controller.alive:
+                why = f"the controller process exited with code {running.controller.process.returncode}"
+                running.app.session.on_controller_gone(why)
+                log.error("%s", why)
+                stop.wait()  # keep the page up to say so until the operator stops the app
+    finally:
+        code = running.close()
+    return 0 if code in (0, None) else 1
+
+
+def _log_thread_exception(args: threading.ExceptHookArgs) -> None:
+    log.error("unhandled exception in thread %s", args.thread.name if args.thread else "?",
+              exc_info=(args.exc_type, args.exc_value, args.exc_traceback))
+    print(f"vservo serve: unhandled exception in thread {args.thread.name if args.thread else '?'}: "
+          f"{args.exc_value!r}", file=sys.stderr)

@@ -1,0 +1,149 @@
+"""The app's picture of the cell, built from what the controller publishes over the channel.
+
+The controller sends its state (ControllerState as a dict) on every change and every
+servo cycle, and camera frames (JPEG plus what the vision saw in them). The session keeps
+the newest of each, and for the run under way the history the screens plot: feature
+error and camera twist per servo cycle, and the flange's path. Every browser is drawn
+from the same session, so a monitor sees exactly what the operator sees.
+
+Written by the channel's reader thread, read by the display thread: everything is
+guarded by one lock, and readers take immutable snapshots. Viser-free.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+MOVING_PHASES = ("servoing", "picking", "placing")
+TRACE_LENGTH = 5000  # servo cycles kept per run (a run takes a few hundred)
+PATH_STEP_M = 0.0005  # a new path point once the flange moved this far
+
+
+@dataclass(frozen=True)
+class LiveFrame:
+    """A camera frame as the controller sent it: what was seen (pixels) and the JPEG."""
+
+    meta: dict
+    jpeg: bytes
+    number: int  # frames received by the session so far, this one included
+
+
+@dataclass(frozen=True)
+class RunTrace:
+    """One run's servo history: per cycle the iteration, the controller's clock, the feature
+    error (px, NaN when unknown) and the camera twist cVc (6); and the flange's path (m)."""
+
+    run_id: int | None = None
+    iterations: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    times_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    errors_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    twists: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    path_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def cycle_rate_hz(self) -> float | None:
+        """Servo cycles per second over the run so far (controller clock); None before two cycles."""
+        if len(self.times_s) < 2 or self.times_s[-1] <= self.times_s[0]:
+            return None
+        return float((self.iterations[-1] - self.iterations[0]) / (self.times_s[-1] - self.times_s[0]))
+
+
+@dataclass(frozen=True)
+class SessionView:
+    """An immutable snapshot for the display: newest state and frame, the run's trace, counters."""
+
+    state: dict
+    frame: LiveFrame | None
+    trace: RunTrace
+    state_number: int  # states received so far
+    runs_ended: int  # runs whose outcome was recorded since the app started (the history needs a refresh)
+    controller_gone: str | None
+
+
+class Session:
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)
+        self._state: dict = {"phase": "idle", "bMe": np.eye(4).tolist(), "time_s": float("-inf")}
+        self._frame: LiveFrame | None = None
+        self._frames = 0
+        self._states = 0
+        self._runs_ended = 0
+        self._gone: str | None = None
+        self._run_id: int | None = None
+        self._ended_run: int | None = None
+        self._rows: list[tuple[int, float, float, list[float]]] = []  # iteration, time, error, twist
+        self._path: list[np.ndarray] = []
+
+    # -- written by the channel's reader -----------------------------------------------
+
+    def on_state(self, state: dict) -> None:
+        with self._changed:
+            if float(state.get("time_s") or 0.0) < float(self._state.get("time_s") or 0.0):
+                return  # older than what is shown (the welcome's state arriving after a newer one)
+            self._state = dict(state)
+            self._states += 1
+            phase, run_id = state.get("phase"), state.get("run_id")
+            if phase in MOVING_PHASES and run_id is not None and run_id != self._run_id:
+                self._run_id, self._rows, self._path = run_id, [], []
+            if run_id == self._run_id and phase in MOVING_PHASES:
+                self._add_cycle(state)
+                self._add_path_point(state)
+            if state.get("last_outcome") and run_id != self._ended_run:
+                # The run's outcome is on record now (the phase may have changed before: an e-stop).
+                self._ended_run = run_id
+                self._runs_ended += 1
+            self._changed.notify_all()
+
+    def _add_cycle(self, state: dict) -> None:
+        iteration = int(state.get("iteration") or 0)
+        if iteration <= 0 or (self._rows and iteration <= self._rows[-1][0]):
+            return  # a phase change, not a new servo cycle
+        error = state.get("error_px")
+        twist = [np.nan if v is None else float(v) for v in state.get("cVc") or [np.nan] * 6]
+        self._rows = (self._rows + [(iteration, float(state.get("time_s") or 0.0),
+                                     np.nan if error is None else float(error), twist)])[-TRACE_LENGTH:]
+
+    def _add_path_point(self, state: dict) -> None:
+        point = np.asarray(state.get("bMe"), float)[:3, 3]
+        if not self._path or np.linalg.norm(point - self._path[-1]) >= PATH_STEP_M:
+            self._path = (self._path + [point])[-TRACE_LENGTH:]
+
+    def on_frame(self, meta: dict, jpeg: bytes) -> None:
+        with self._changed:
+            self._frames += 1
+            self._frame = LiveFrame(meta, jpeg, self._frames)
+            self._changed.notify_all()
+
+    def on_controller_gone(self, why: str) -> None:
+        with self._changed:
+            self._gone = why
+            self._changed.notify_all()
+
+    # -- read by the display -----------------------------------------------------------
+
+    @property
+    def state(self) -> dict:
+        with self._lock:
+            return self._state
+
+    def view(self) -> SessionView:
+        with self._lock:
+            rows = self._rows
+            trace = RunTrace(
+                run_id=self._run_id,
+                iterations=np.array([r[0] for r in rows], int),
+                times_s=np.array([r[1] for r in rows], float),
+                errors_px=np.array([r[2] for r in rows], float),
+                twists=np.array([r[3] for r in rows], float).reshape(-1, 6),
+                path_m=np.array(self._path, float).reshape(-1, 3),
+            )
+            return SessionView(self._state, self._frame, trace, self._states, self._runs_ended, self._gone)
+
+    def wait_for_news(self, seen_states: int, seen_frames: int, timeout_s: float) -> bool:
+        """Block until a state or frame newer than those counts arrives (or the controller goes); False on timeout."""
+        with self._changed:
+            return self._changed.wait_for(
+                lambda: self._states > seen_states or self._frames > seen_frames or self._gone is not None, timeout_s)

@@ -1,0 +1,132 @@
+"""What the screens say about the cell, as text: status line, run progress, outcome, history.
+
+Plain functions from the controller's state (a dict) and the stored runs to markdown and
+numbers, so that every browser says the same and the wording is tested without a browser.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from app.session import RunTrace
+from core.spatial import pose_from_matrix, pose_to_mm_deg
+
+PHASE_WORDS = {
+    "idle": "Idle", "teaching": "Teaching", "servoing": "Servoing", "picking": "Picking", "placing": "Placing",
+    "done": "Done", "fault": "FAULT", "e-stopped": "E-STOPPED",
+}
+OUTCOME_WORDS = {"placed": "placed", "missed": "MISSED", "fault": "FAULT", "estopped": "E-STOPPED", None: "running"}
+
+
+def _number(value: object, digits: int = 2, unit: str = "") -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return f"{float(value):.{digits}f}{unit}"
+
+
+def status_markdown(state: dict, operator_present: bool, controller_gone: str | None = None) -> str:
+    """The line every browser shows under the e-stop."""
+    if controller_gone:
+        return f"**CONTROLLER STOPPED**: {controller_gone}. Restart `vservo serve`."
+    phase = PHASE_WORDS.get(state.get("phase"), str(state.get("phase")))
+    parts = [f"**{phase}**"]
+    if state.get("job"):
+        parts.append(f"job `{state['job']}`")
+    if state.get("run_id") is not None and state.get("phase") not in ("idle", "teaching"):
+        parts.append(f"run {state['run_id']}")
+        if state.get("stage"):
+            parts.append(f"stage {state['stage']}")
+        parts.append(f"cycle {state.get('iteration', 0)}")
+        parts.append(f"error {_number(state.get('error_px'), 1, ' px')}")
+    control = "an operator holds control" if operator_present else "no operator"
+    robot = f"{state.get('robot', '')} on {state.get('backend', '')}".strip()
+    detail = state.get("detail") or ""
+    return f"{' · '.join(parts)}  \n{detail}  \n<small>{robot} · {flange_text(state.get('bMe'))} · {control}</small>"
+
+
+def flange_text(bMe: object) -> str:
+    """The flange pose as the robot's pendant shows it: X Y Z in mm, phi theta psi in deg (eq. 2-13)."""
+    x, y, z, phi, theta, psi = np.round(pose_to_mm_deg(pose_from_matrix(np.asarray(bMe, float))), 2) + 0.0  # no "-0.00"
+    return f"flange X {x:.2f} Y {y:.2f} Z {z:.2f} mm, phi {phi:.2f} theta {theta:.2f} psi {psi:.2f} deg"
+
+
+def run_progress(state: dict, trace: RunTrace, threshold_px: float) -> float:
+    """0..100 through the run: the servo's share follows the smallest feature error so far on a
+    log scale from its first value down to the threshold; pick and place are fixed steps."""
+    phase = state.get("phase")
+    if phase == "done":
+        return 100.0
+    if phase == "placing":
+        return 88.0
+    if phase == "picking":
+        return 75.0
+    if phase != "servoing" and phase not in ("fault", "e-stopped"):
+        return 0.0
+    errors = trace.errors_px[np.isfinite(trace.errors_px)]
+    if len(errors) == 0:
+        return 5.0
+    # The best error so far: the bar never goes back when a stage switch raises the error a little.
+    first, now = max(errors[0], threshold_px * 1.01), max(errors.min(), threshold_px)
+    share = np.clip(np.log(first / now) / np.log(first / threshold_px), 0.0, 1.0)
+    return float(10.0 + 60.0 * share)
+
+
+def outcome_markdown(outcome: dict | None, run_id: int | None) -> str:
+    """The last run's end, as the operator reads it."""
+    if not outcome:
+        return "No run finished yet in this session."
+    word = OUTCOME_WORDS.get(outcome.get("outcome"), str(outcome.get("outcome")))
+    return (f"**Run {run_id}: {word}**: {outcome.get('reason', '')}  \n"
+            f"final feature error {_number(outcome.get('final_error_px'), 2, ' px')} · "
+            f"placement error {_number(outcome.get('placement_error_mm'), 2, ' mm')} · "
+            f"{_number(outcome.get('duration_s'), 1, ' s')} · {outcome.get('iterations', 0)} servo cycles")
+
+
+def teach_markdown(state: dict) -> str:
+    """What teaching still needs, or how to start it."""
+    if state.get("phase") != "teaching":
+        return "Not teaching. Choose a template (or a new job) and press **Begin teaching**."
+    missing = state.get("teach_missing") or []
+    if missing:
+        return "Still to teach: " + ", ".join(missing) + "."
+    return "Everything is taught: name the job and **Save**."
+
+
+def runs_table(runs: Sequence[dict], limit: int = 15) -> str:
+    """Past runs, newest first, as a markdown table."""
+    if not runs:
+        return "No runs yet."
+    lines = ["| run | job | outcome | duration | final error | placement | started |",
+             "|---|---|---|---|---|---|---|"]
+    for run in runs[:limit]:
+        started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(run["started_at"]))
+        lines.append(f"| {run['id']} | {run['job']} | {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))} | "
+                     f"{_number(run.get('duration_s'), 1, ' s')} | {_number(run.get('final_error_px'), 2, ' px')} | "
+                     f"{_number(run.get('placement_error_mm'), 2, ' mm')} | {started} |")
+    return "\n".join(lines)
+
+
+def run_label(run: dict) -> str:
+    """A run as a dropdown entry."""
+    return f"#{run['id']} {run['job']} {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))}"
+
+
+def stage_timeline(run: dict, width: int = 40) -> str:
+    """The run's servo stages in order, each with its share of the cycles as a bar."""
+    stages = run.get("stages") or []
+    total = sum(int(s.get("iterations", 0)) for s in stages)
+    lines = [f"**Run {run['id']}** ({run['job']}): {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))}, "
+             f"{run.get('reason') or ''}"]
+    if not total:
+        return lines[0] + "  \nNo servo cycles recorded."
+    lines.append("```")
+    for stage in stages:
+        count = int(stage.get("iterations", 0))
+        bar = "#" * max(1, round(width * count / total))
+        lines.append(f"{str(stage.get('stage')):>4} {bar} {count}")
+    lines.append("```")
+    return "\n".join(lines)

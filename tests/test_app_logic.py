@@ -1,0 +1,300 @@
+"""The operator app's logic without a browser: roles, the command path's checks, the session
+built from the controller's real state stream, the live image's overlays, the status texts."""
+
+from __future__ import annotations
+
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+from app import live_image
+from app.calibration_run import bar_fraction, results_markdown
+from app.commands import CommandQueue
+from app.roles import RoleRefused, Roles, new_token
+from app.scene3d import PartTracker, laser_ray, part_pose_from_corners, placed_part_frame
+from app.session import Session
+from app.status import flange_text, outcome_markdown, run_progress, runs_table, stage_timeline, status_markdown
+from app.teach_panel import jog_step
+from core.cell_controller import CellController
+from core.channel import Reply
+from core.config import load_cell
+from core.jobs import read_job_file
+from core.rig import simulated_rig
+from core.spatial import matrix_from_pose, pose_from_mm_deg
+from core.storage import DEMO_JOB, Store, shipped_job_path
+
+# -- roles -------------------------------------------------------------------------------------
+
+
+def test_only_the_token_gives_control_and_one_browser_holds_it():
+    roles = Roles("s3cret")
+    changes = []
+    roles.listeners.append(lambda old, new: changes.append((old, new)))
+    with pytest.raises(RoleRefused, match="wrong operator token"):
+        roles.take(1, "guess")
+    assert roles.operator is None
+    roles.take(1, " s3cret ")  # pasted with spaces
+    assert roles.is_operator(1) and not roles.is_operator(2)
+    roles.take(2, "s3cret")  # the token is the authority: a second screen takes over
+    assert roles.operator == 2 and changes == [(None, 1), (1, 2)]
+    assert not roles.release(1)  # a monitor cannot release someone else's control
+    assert roles.disconnected(2) and roles.operator is None
+    with pytest.raises(RoleRefused, match="read-only monitor"):
+        roles.require(3, "start")
+
+
+def test_an_empty_token_is_refused_and_new_tokens_differ():
+    with pytest.raises(ValueError, match="empty"):
+        Roles("  ")
+    assert new_token() != new_token() and len(new_token()) >= 16
+
+
+def test_commands_from_a_monitor_are_refused_before_they_reach_the_controller():
+    sent: list[tuple[str, dict]] = []
+    done = threading.Event()
+
+    def call(command: str, timeout_s: float = 0.0, **args):
+        sent.append((command, args))
+        done.set()
+        return Reply(True, result="ok")
+
+    roles = Roles("t")
+    queue = CommandQueue(call, roles)
+    try:
+        with pytest.raises(RoleRefused, match="start: this browser is a read-only monitor"):
+            queue.submit(7, "start", job="demo")
+        assert queue.call_now("list_jobs").ok  # a query is anyone's
+        queue.estop(7)  # so is the e-stop
+        assert done.wait(5.0)
+        roles.take(7, "t")
+        replies: list[Reply] = []
+        finished = threading.Event()
+        queue.submit(7, "save_job", lambda reply: (replies.append(reply), finished.set()), name="job-1")
+        assert finished.wait(5.0)
+        assert replies[0].ok
+        assert sent == [("list_jobs", {}), ("estop", {}), ("save_job", {"name": "job-1"})]
+    finally:
+        queue.close()
+
+
+def test_a_queued_command_is_dropped_when_control_changes_hands_before_it_is_sent():
+    release, under_way = threading.Event(), threading.Event()
+    sent: list[str] = []
+
+    def slow_call(command: str, timeout_s: float = 0.0, **args):
+        under_way.set()
+        release.wait(5.0)
+        sent.append(command)
+        return Reply(True)
+
+    roles = Roles("t")
+    roles.take(1, "t")
+    queue = CommandQueue(slow_call, roles)
+    replies: list[Reply] = []
+    finished = threading.Event()
+    try:
+        queue.submit(1, "jog", translation_m=[0, 0, 0.001])
+        assert under_way.wait(5.0)
+        queue.submit(1, "start", lambda reply: (replies.append(reply), finished.set()), job="demo")  # waiting
+        roles.take(2, "t")
+        release.set()
+        assert finished.wait(5.0)
+        assert sent == ["jog"] and not replies[0].ok and "control was released" in replies[0].error
+    finally:
+        queue.close()
+
+
+# -- the session, from a real controller's state stream --------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def recorded_run(tmp_path_factory):
+    """Every state a real assembly publishes, as the channel hands them to the app."""
+    store = Store(tmp_path_factory.mktemp("data"))
+    controller = CellController(simulated_rig(load_cell(), seed=2), store, seed=2)
+    states: list[dict] = []
+    controller.state_subscribers.append(lambda state: states.append(state.as_dict()))
+    controller.present_part()
+    controller.start("demo")
+    controller.wait()
+    outcome = controller.last_outcome
+    controller.close()
+    store.close()
+    return states, outcome
+
+
+def test_the_session_traces_the_run_from_the_state_stream(recorded_run):
+    states, outcome = recorded_run
+    session = Session()
+    for state in states:
+        session.on_state(state)
+    view = session.view()
+    assert view.state["phase"] == "done" and view.runs_ended == 1
+    trace = view.trace
+    assert trace.run_id == states[-1]["run_id"]
+    assert len(trace.iterations) == outcome.iterations  # one row per servo cycle, none for phase changes
+    assert np.all(np.diff(trace.iterations) == 1)
+    assert trace.errors_px[-1] == pytest.approx(outcome.final_error_px, abs=1e-9)
+    assert trace.twists.shape == (outcome.iterations, 6)
+    path_lengths = np.linalg.norm(np.diff(trace.path_m, axis=0), axis=1)
+    assert len(trace.path_m) > 10 and np.all(path_lengths >= 0.0005 - 1e-12)
+    assert trace.cycle_rate_hz() > 0
+
+
+def test_the_session_ignores_an_older_state_and_starts_a_new_trace_per_run(recorded_run):
+    states, _ = recorded_run
+    session = Session()
+    for state in states:
+        session.on_state(state)
+    session.on_state({**states[0], "time_s": states[0]["time_s"] - 1.0})  # late welcome
+    assert session.state["phase"] == "done"
+    running = next(s for s in states if s["phase"] == "servoing" and s["iteration"] > 0)
+    session.on_state({**running, "run_id": running["run_id"] + 1, "iteration": 1, "time_s": states[-1]["time_s"] + 1})
+    assert list(session.view().trace.iterations) == [1]
+
+
+def test_wait_for_news_wakes_on_a_frame():
+    session = Session()
+    threading.Timer(0.05, lambda: session.on_frame({"index": 1}, b"jpeg")).start()
+    assert session.wait_for_news(0, 0, 5.0)
+    assert session.view().frame.number == 1
+
+
+# -- the live image's overlays -------------------------------------------------------------------
+
+
+def _frame_meta() -> dict:
+    return {"corners_px": [[100.25, 100.5], [200.0, 100.0], [200.0, 200.0], [-1.0, -1.0]],
+            "laser_spot_px": [320.0, 240.0], "desired_corners_px": [[400, 300], [500, 300], [500, 400], [400, 400]],
+            "desired_laser_px": [450.0, 350.0],
+            "trail_px": [[[50, 50], [60, 50], [60, 60], [50, 60]], [[90, 95], [190, 95], [190, 195], [95, 190]]]}
+
+
+def test_overlays_are_drawn_where_the_features_are():
+    grey = np.full((480, 640), 40, np.uint8)
+    jpeg = cv2.imencode(".jpg", grey)[1].tobytes()
+    image = live_image.decode(live_image.render(jpeg, _frame_meta()))
+    drawn = cv2.imdecode(np.frombuffer(live_image.render(jpeg, _frame_meta()), np.uint8), cv2.IMREAD_COLOR)
+    assert image.shape == (480, 640)
+
+    def colour_near(x: float, y: float, radius: int) -> np.ndarray:
+        """The most saturated pixel on a ring of ``radius`` around (x, y)."""
+        angles = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+        ring = drawn[np.round(y + radius * np.sin(angles)).astype(int), np.round(x + radius * np.cos(angles)).astype(int)]
+        return ring[np.argmax(ring.max(axis=1).astype(int) - ring.min(axis=1))]
+
+    def close(colour: np.ndarray, bgr: tuple) -> bool:
+        return np.abs(colour.astype(int) - np.array(bgr)).max() < 60  # JPEG blurs colours
+
+    assert close(colour_near(100.25, 100.5, 7), live_image.SEEN_BGR)  # a seen corner's ring
+    assert close(colour_near(450, 350, 10), live_image.SPOT_BGR)  # the laser's target ring
+    assert close(colour_near(400, 300, 6), live_image.DESIRED_BGR)  # a desired corner's square
+    assert np.abs(drawn[240, 320].astype(int) - live_image.SPOT_BGR).max() < 60  # the spot's cross
+    unseen = drawn[250:270, 250:270]  # nothing drawn for the unseen corner (-1, -1) or elsewhere
+    assert np.abs(unseen.astype(int) - 40).max() < 12
+
+
+def test_overlay_reads_missing_features_as_nan():
+    overlay = live_image.Overlay.from_meta({"corners_px": [[1, 2], [None, None], [-1, -1], [3, 4]],
+                                            "laser_spot_px": None, "trail_px": []})
+    assert np.isnan(overlay.corners_px[1:3]).all() and overlay.corners_px[3].tolist() == [3, 4]
+    assert overlay.laser_spot_px is None and overlay.trail_px is None
+
+
+def test_a_bad_jpeg_is_named():
+    with pytest.raises(ValueError, match="not a readable JPEG"):
+        live_image.decode(b"not a jpeg")
+
+
+# -- texts and numbers the screens show ---------------------------------------------------------------
+
+
+def test_status_progress_and_outcome_texts(recorded_run):
+    states, outcome = recorded_run
+    servoing = next(s for s in states if s["phase"] == "servoing" and s["iteration"] > 5)
+    text = status_markdown(servoing, operator_present=True)
+    assert "**Servoing**" in text and f"cycle {servoing['iteration']}" in text and "an operator holds control" in text
+    assert "flange X" in text
+    assert "CONTROLLER STOPPED" in status_markdown(servoing, False, controller_gone="exit code 1")
+    session = Session()
+    progress = []
+    for state in states:
+        session.on_state(state)
+        progress.append(run_progress(state, session.view().trace, 3.0))
+    assert progress[-1] == 100.0
+    run = [p for p, s in zip(progress, states) if s["phase"] in ("servoing", "picking", "placing")]
+    assert np.all(np.diff(run) >= -1e-9), "the run's progress never goes back"
+    summary = outcome.summary()
+    assert "Run 7: placed" in outcome_markdown(summary, 7) and "placement error" in outcome_markdown(summary, 7)
+
+
+def test_history_texts():
+    run = {"id": 3, "job": "demo", "outcome": "estopped", "reason": "e-stop pressed", "duration_s": 2.5,
+           "final_error_px": None, "placement_error_mm": None, "started_at": 0.0,
+           "stages": [{"stage": "1A", "iterations": 30}, {"stage": "3", "iterations": 10}]}
+    table = runs_table([run])
+    assert "| 3 | demo | E-STOPPED | 2.5 s | - | - |" in table
+    timeline = stage_timeline(run, width=40)
+    assert "  1A " + "#" * 30 + " 30" in timeline and "   3 " + "#" * 10 + " 10" in timeline
+
+
+def test_flange_text_is_the_pendants_pose():
+    bMe = matrix_from_pose(pose_from_mm_deg([-400.0, 12.5, 300.0, 90.0, -10.0, 180.0]))
+    assert flange_text(bMe) == "flange X -400.00 Y 12.50 Z 300.00 mm, phi 90.00 theta -10.00 psi 180.00 deg"
+
+
+def test_jog_steps():
+    assert jog_step("-Z", "5 mm / 2 deg") == ([0.0, 0.0, -0.005], [0.0, 0.0, 0.0])
+    translation, rotation = jog_step("+Ry", "10 mm / 5 deg")
+    assert translation == [0.0] * 3 and rotation == pytest.approx([0.0, np.deg2rad(5.0), 0.0])
+
+
+def test_calibration_progress_and_table():
+    assert bar_fraction("collect planar [#####.........] 7/28 3s 400 corners") == pytest.approx(0.25)
+    assert bar_fraction("loading the cell") is None
+    table = results_markdown({"evaluate": {"methods": {"nn": {"x_mm": 0.1, "y_mm": 0.2, "xy_mm": 0.25, "max_xy_mm": 0.5}},
+                                           "corners": 10, "views": 2},
+                              "track": {"methods": {"nn": {"xy_mm": 0.04, "true": {"xy_mm": 0.37}}}, "points": 10}})
+    assert "| nn | 0.100 | 0.200 | 0.250 | 0.500 | 0.040 | 0.370 |" in table
+
+
+# -- the 3D view's geometry (the controller's picture, from measurements) ---------------------------------
+
+
+def test_the_part_is_placed_from_its_corners_and_carried_by_the_cup():
+    config = load_cell()
+    rig = simulated_rig(config, seed=1)
+    rig.robot.connect()
+    frame = rig.camera.read()
+    features, _ = rig.extractor.extract(frame.image)
+    bMe = rig.robot.read_pose()
+    mount, camera = config.nominal.mount, config.nominal.camera
+    bMo = part_pose_from_corners(features.corners_px, bMe, mount.eMc, camera, 0.020)
+    true_bMo = rig.cell.state.scene.cube.bMo
+    assert np.abs(bMo[:3, 3] - true_bMo[:3, 3]).max() < 0.002  # the nominal cell is the true one here
+
+    tracker = PartTracker(mount, camera)
+    overlay = live_image.Overlay(corners_px=features.corners_px)
+    state = {"bMe": bMe.tolist(), "holding_part": False}
+    assert np.allclose(tracker.update(state, overlay, 0.020), bMo)
+    tracker.update({"bMe": bMe.tolist(), "holding_part": True}, None, 0.020)  # grasped here
+    lifted = bMe.copy()
+    lifted[2, 3] += 0.1
+    carried = tracker.update({"bMe": lifted.tolist(), "holding_part": True}, None, 0.020)
+    assert np.allclose(carried[:3, 3], bMo[:3, 3] + [0, 0, 0.1]) and np.allclose(carried[:3, :3], bMo[:3, :3])
+    hidden = live_image.Overlay(corners_px=np.full((4, 2), np.nan))
+    assert np.allclose(tracker.update({"bMe": bMe.tolist(), "holding_part": False}, hidden, 0.020), carried)
+
+    start, end = laser_ray(bMe, mount.eMl, float(bMo[2, 3]))
+    assert end[2] == pytest.approx(bMo[2, 3]) and np.linalg.norm(end - start) > 0.05
+
+
+def test_the_metal_part_sits_under_the_demo_jobs_place_pose():
+    config = load_cell()
+    demo = read_job_file(shipped_job_path(DEMO_JOB))
+    bMp = placed_part_frame(demo.bMe_place, config.nominal.mount.eMv, demo.part_side_m)
+    true_bMp = simulated_rig(config, seed=1).cell.state.scene.metal_part.bMp
+    assert np.abs(bMp[:3, 3] - true_bMp[:3, 3]).max() < 0.004  # the cup taught 3 mm into its compensator
+    assert bMp[2, 2] == pytest.approx(1.0, abs=1e-6)  # the pocket opens upwards
