@@ -237,7 +237,9 @@ def _servo(cell: MeasurementSource, controller: Controller, desired: DesiredImag
             )
 
         try:
-            bMe = robot.read_pose()
+            # The cycle's one reading of the flange (on a real cell FlangeReadout took it
+            # from the robot): a second read would cost another RPOSC on the JRC.
+            bMe = measurement.bMe
             carry_out(robot, policy.command(bMe, eVc @ output.cVc), bMe)
         except UnreachableTarget as exc:
             return finish(False, Failure.UNREACHABLE, str(exc))
