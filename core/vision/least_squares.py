@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import cv2
 import numpy as np
 
 from core.spatial import Matrix
@@ -45,24 +46,36 @@ def levenberg_marquardt(
     residual, jac = model(params)
     cost = cost_of(residual)
     damping = 1e-3
-    diagonal = np.arange(len(params))
+    identity = np.eye(len(params))
     for _ in range(iterations):
         if loss_scale is None:
-            normal, gradient = jac.T @ jac, jac.T @ residual
+            weighted = jac
         else:
-            weight = 1.0 / (1.0 + residual * residual / loss_scale**2)
-            normal, gradient = jac.T @ (weight[:, None] * jac), jac.T @ (weight * residual)
-        normal[diagonal, diagonal] *= 1.0 + damping
-        normal[diagonal, diagonal] += 1e-9 * damping
-        step = np.linalg.solve(normal, -gradient)
+            weighted = jac * (1.0 / (1.0 + residual * residual / loss_scale**2))[:, None]
+        normal, gradient = weighted.T @ jac, weighted.T @ residual
+        # Marquardt's damping; a parameter no residual depends on (a zero column: a
+        # taper that shapes no pixel) gets a unit diagonal, and with its zero gradient
+        # no step.
+        diagonal = normal.diagonal().copy()
+        normal += identity * (damping * diagonal + (diagonal == 0.0))
+        step = _solve(normal, gradient)
+        if step is None:
+            damping *= 8.0
+            if damping > 1e8:
+                break
+            continue
         # Parameters on a bound that the step pushes further out stay there, and the
-        # others take the best step without them (a clipped joint step is not that).
+        # others take the best step without them (a clipped joint step is not that):
+        # the held ones' rows and columns become the identity's, their gradient zero.
         blocked = ((params <= lower) & (step < 0.0)) | ((params >= upper) & (step > 0.0))
         if blocked.any():
-            free = ~blocked
-            step = np.zeros_like(step)
-            if free.any():
-                step[free] = np.linalg.solve(normal[np.ix_(free, free)], -gradient[free])
+            normal[blocked] = 0.0
+            normal[:, blocked] = 0.0
+            normal[blocked, blocked] = 1.0
+            gradient = np.where(blocked, 0.0, gradient)
+            step = _solve(normal, gradient)
+            if step is None:
+                break
         trial = np.minimum(np.maximum(params + step, lower), upper)
         residual_t, jac_t = model(trial)
         cost_t = cost_of(residual_t)
@@ -77,3 +90,13 @@ def levenberg_marquardt(
             if damping > 1e8:
                 break
     return params, residual
+
+
+def _solve(normal: Matrix, gradient: Matrix) -> Matrix | None:
+    """The Gauss-Newton step -normal^-1 gradient, None when ``normal`` is singular.
+
+    OpenCV's solver: for these few parameters np.linalg.solve's call overhead costs
+    several times the arithmetic, in the fits' inner loop.
+    """
+    ok, step = cv2.solve(normal, -gradient[:, None], flags=cv2.DECOMP_LU)
+    return step[:, 0] if ok else None
