@@ -392,7 +392,8 @@ def _refine(
                 recentred = attempt == 0
                 continue
             new_lines.append((line_normal, line_offset))
-            support = min(inliers.sum() / 10.0, 1.0) * (0.5 + 0.5 * inliers.mean())
+            inlier_count = np.count_nonzero(inliers)
+            support = min(inlier_count / 10.0, 1.0) * (0.5 + 0.5 * inlier_count / len(inliers))
             qualities.append(support / (1.0 + (rms / 0.2) ** 2))
         if sum(quality > 0.0 for quality in qualities) < 2 and not recentred:
             return None  # (re-centred sides get their second pass first)
@@ -424,7 +425,11 @@ def _least_squares_lines(points: Matrix, members: np.ndarray, hints: Matrix) -> 
     """
     weights = members.astype(np.float64)
     u, v = points[:, 0], points[:, 1]
-    sums = weights.T @ np.column_stack([np.ones(len(points)), u, v, u * u, v * v, u * v])  # (K, 6)
+    moments = np.empty((len(points), 6))
+    moments[:, 0], moments[:, 1], moments[:, 2] = 1.0, u, v
+    np.multiply(points, points, out=moments[:, 3:5])
+    np.multiply(u, v, out=moments[:, 5])
+    sums = weights.T @ moments  # (K, 6): count, u, v, uu, vv, uv
     count = sums[:, 0]
     if count.min() < 4:
         return None
@@ -436,26 +441,31 @@ def _least_squares_lines(points: Matrix, members: np.ndarray, hints: Matrix) -> 
         return None
     slope = (count * sums[:, 5] - s_a * s_b) / det
     intercept = (s_b - slope * s_a) / count
-    ones = np.ones_like(slope)
-    normals = np.where(steep[:, None], np.column_stack([ones, -slope]), np.column_stack([-slope, ones]))
+    normals = np.empty((len(slope), 2))
+    normals[:, 0] = np.where(steep, 1.0, -slope)
+    normals[:, 1] = np.where(steep, -slope, 1.0)
     scale = np.sqrt(1.0 + slope * slope)
     flip = np.where((normals * hints).sum(axis=1) < 0.0, -1.0, 1.0) / scale
-    return [(normals[i] * flip[i], float(intercept[i] * flip[i]) - 0.5) for i in range(len(hints))]
+    normals *= flip[:, None]
+    offsets = (intercept * flip - 0.5).tolist()
+    return [(normals[i], offsets[i]) for i in range(len(hints))]
 
 
 def _distance_to_outline(point: Matrix, polygon: Matrix) -> float:
     """Distance from ``point`` to the closed polygon's sides."""
-    ends = np.roll(polygon, -1, axis=0)
-    direction = ends - polygon
+    direction = np.concatenate((polygon[1:], polygon[:1])) - polygon
     share = np.clip(((point - polygon) * direction).sum(axis=1) / (direction * direction).sum(axis=1), 0.0, 1.0)
-    return float(np.min(np.linalg.norm(polygon + share[:, None] * direction - point, axis=1)))
+    offset = polygon + share[:, None] * direction - point
+    return math.sqrt(float((offset * offset).sum(axis=1).min()))
 
 
 def _well_spread(points: Matrix, start: Matrix, stop: Matrix) -> bool:
     """Whether edge points cover enough of the side from ``start`` to ``stop`` to fix its line."""
+    if not len(points):
+        return False
     direction = stop - start
-    along = (points - start) @ direction / float(direction @ direction)
-    return bool(along.size and np.ptp(along) >= _LEAST_SPAN)
+    along = (points - start) @ direction
+    return float(along.max() - along.min()) >= _LEAST_SPAN * float(direction @ direction)
 
 
 def _move_allowance(quad: Matrix, spot_out: list[tuple[Matrix, float]]) -> Matrix:
@@ -471,13 +481,13 @@ def _move_allowance(quad: Matrix, spot_out: list[tuple[Matrix, float]]) -> Matri
 
 def _strayed(corners: Matrix, quad: Matrix, allowance: Matrix) -> bool:
     """Whether a corner is not finite or lies farther from the quadrilateral than allowed."""
-    return not np.isfinite(corners).all() or bool((np.abs(corners - quad).max(axis=1) > allowance).any())
+    return not (np.abs(corners - quad).max(axis=1) <= allowance).all()  # (NaN compares False)
 
 
 def _dim_inside(strips: Strips, count: int) -> float:
     """The lowest, over the sides, of the median grey level 2 px inside the face."""
-    values = np.where(strips.bright_high[:, None], strips.values, strips.values[:, ::-1])
-    levels = segment_medians(values[:, _BAND_REACH + 2], strips.segment, count)
+    inside = np.where(strips.bright_high, strips.values[:, _BAND_REACH + 2], strips.values[:, -_BAND_REACH - 3])
+    levels = segment_medians(inside, strips.segment, count)
     return float(np.nanmin(levels)) if np.any(np.isfinite(levels)) else np.inf
 
 
@@ -499,7 +509,7 @@ def _outline_lines(quad: Matrix, outline: Matrix, spot_out: list[tuple[Matrix, f
         lengths = np.sqrt((edges * edges).sum(axis=1))
         directions = edges / lengths[:, None]
         normals = directions[:, ::-1] * np.array([-1.0, 1.0])
-        normals *= np.where(((corners.mean(axis=0) - corners) * normals).sum(axis=1) < 0.0, -1.0, 1.0)[:, None]
+        normals *= np.where(((corners.sum(axis=0) / len(corners) - corners) * normals).sum(axis=1) < 0.0, -1.0, 1.0)[:, None]
         along = outline @ directions.T - (corners * directions).sum(axis=1)  # (M, 4)
         across = outline @ normals.T - (corners * normals).sum(axis=1)
         margin = 2.0 + 0.1 * lengths

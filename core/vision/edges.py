@@ -104,47 +104,47 @@ def sample_strips(
     leaving the image or reaching within a disc of ``keep_out`` [(centre, radius), ...]
     are skipped. None when there is no strip."""
     height, width = image.shape
-    count = len(segments)
-    span = np.arange(-reach, reach + 1)
-    # Per segment: which way the strips run and which pixels along the edge they cover.
-    steep_s, across_n, along_n, offsets, firsts, counts = [], [], [], [], [], []
+    # Per segment (in Python: there are a handful): which way its strips run, which
+    # pixels along the edge they cover, and its line in the strips' frame.
+    table, counts, shifts = [], [], []
+    total = 0
     for normal, offset, start, stop in segments:
-        steep = abs(normal[0]) > abs(normal[1])  # the edge runs more along v than along u
+        n0, n1 = float(normal[0]), float(normal[1])
+        steep = abs(n0) > abs(n1)  # the edge runs more along v than along u
         axis = 1 if steep else 0
         lo, hi = sorted((float(start[axis]), float(stop[axis])))
-        lo, hi = lo + end_margin, hi - end_margin
-        first = max(math.ceil(lo), 0)
-        last = min(math.floor(hi), (height if steep else width) - 1)
-        steep_s.append(steep)
-        across_n.append(float(normal[0] if steep else normal[1]))
-        along_n.append(float(normal[1] if steep else normal[0]))
-        offsets.append(float(offset))
-        firsts.append(first)
-        counts.append(max(last - first + 1, 0))
-    total = sum(counts)
+        first = max(math.ceil(lo + end_margin), 0)
+        last = min(math.floor(hi - end_margin), (height if steep else width) - 1)
+        count = max(last - first + 1, 0)
+        # (steep, normal across, normal along, offset, extent across, row stride of a
+        # step along, of a step across) in the flattened image
+        table.append((steep, n0 if steep else n1, n1 if steep else n0, float(offset), width if steep else height,
+                      width if steep else 1, 1 if steep else width))
+        counts.append(count)
+        shifts.append(first - total)
+        total += count
     if total == 0:
         return None
-    counts_a = np.array(counts)
-    seg = np.repeat(np.arange(count), counts_a)
-    run_start = np.repeat(np.cumsum(counts_a) - counts_a, counts_a)
-    along = np.arange(total) - run_start + np.repeat(np.array(firsts), counts_a)
-    steep = np.array(steep_s)[seg]
-    n_across, n_along = np.array(across_n)[seg], np.array(along_n)[seg]
-    base = np.rint((np.array(offsets)[seg] - n_along * along) / n_across).astype(np.int64)
-    across = base[:, None] + span[None, :]
-    keep = (across[:, 0] >= 0) & (across[:, -1] < np.where(steep, width, height))
+    seg = np.repeat(np.arange(len(segments)), counts)
+    along = np.arange(total) + np.repeat(shifts, counts)
+    steep, n_across, n_along, offsets, extent, along_stride, across_stride = np.array(table)[seg].T
+    base = np.rint((offsets - n_along * along) / n_across)
+    keep = (base >= reach) & (base + reach < extent)
+    steep = steep > 0.0
     for point, radius in keep_out:
         # The disc's centre in each strip's frame: along the edge and across it.
         za = np.where(steep, float(point[1]), float(point[0]))
         zc = np.where(steep, float(point[0]), float(point[1]))
-        nearest = np.minimum(np.maximum(zc, across[:, 0] - 0.5), across[:, -1] + 0.5)
+        nearest = np.minimum(np.maximum(zc, base - (reach + 0.5)), base + (reach + 0.5))
         keep &= (along - za) ** 2 + (nearest - zc) ** 2 > radius * radius
     if not keep.any():
         return None
-    seg, along, steep, base, across, n_across = seg[keep], along[keep], steep[keep], base[keep], across[keep], n_across[keep]
-    rows = np.where(steep[:, None], along[:, None], across)
-    cols = np.where(steep[:, None], across, along[:, None])
-    return Strips(seg, along, steep, base, image[rows, cols].astype(np.float64), n_across > 0.0)
+    seg, along, steep, base, n_across = seg[keep], along[keep], steep[keep], base[keep].astype(np.int64), n_across[keep]
+    # The strips' pixels by their index in the flattened image (cheaper than 2-D indexing).
+    first_pixel = along * along_stride[keep] + base * across_stride[keep]
+    pixels = first_pixel.astype(np.int64)[:, None] + across_stride[keep].astype(np.int64)[:, None] * np.arange(-reach, reach + 1)
+    values = np.ascontiguousarray(image).ravel().take(pixels).astype(np.float64)
+    return Strips(seg, along, steep, base, values, n_across > 0.0)
 
 
 def edge_points_many(
@@ -196,14 +196,13 @@ def edge_points_many(
         bright_high[ok],
     )
     strip = values[ok, level_px:-level_px]
-    bright = running_median(bright_raw[ok], seg)
-    dark = running_median(dark_raw[ok], seg)
+    bright, dark = running_median(np.array((bright_raw[ok], dark_raw[ok])).T, seg).T
     contrast = bright - dark
     bright_length = ((strip - dark[:, None]) / np.where(contrast > 0.0, contrast, 1.0)[:, None]).sum(axis=1)
     position = np.where(bright_high, base + k + 0.5 - bright_length, base - k - 0.5 + bright_length)
     # The edge must lie inside its strip, away from the ends.
     good = (contrast > min_contrast) & (np.abs(position - base) < k - 0.25)
-    points = np.column_stack([np.where(steep, position, along), np.where(steep, along, position)])[good]
+    points = np.array((np.where(steep, position, along), np.where(steep, along, position))).T[good]
     seg = seg[good]
     bounds = np.searchsorted(seg, np.arange(count + 1))
     return [points[bounds[i] : bounds[i + 1]] for i in range(count)]
@@ -216,10 +215,10 @@ def running_median(levels: Matrix, segment: np.ndarray, width: int = 5) -> Matri
     A median keeps the step where the far side of an edge changes (a side face ending
     at a junction) and follows uneven lighting, while it quietens the noise.
     """
-    index = np.arange(len(levels))
-    starts = np.searchsorted(segment, segment, side="left")
-    stops = np.searchsorted(segment, segment, side="right") - 1
-    window = np.clip(index[:, None] + (np.arange(width) - width // 2)[None, :], starts[:, None], stops[:, None])
+    bounds = np.searchsorted(segment, np.arange(int(segment[-1]) + 2)) if len(segment) else np.zeros(1, np.int64)
+    starts, stops = bounds[segment], bounds[segment + 1] - 1
+    window = np.arange(len(levels))[:, None] + (np.arange(width) - width // 2)
+    window = np.minimum(np.maximum(window, starts[:, None]), stops[:, None])
     return np.sort(levels[window], axis=1)[:, width // 2]
 
 
@@ -260,13 +259,14 @@ def fit_lines(
     b = np.where(steep, stacked[:, 0], stacked[:, 1])
     a_mean = np.bincount(seg, a, count) / np.maximum(sizes, 1)
     a = a - a_mean[seg]
+    aa, ab = a * a, a * b
     keep = np.ones(len(a), bool)
     bounds = np.concatenate([[0], np.cumsum(sizes)])
     for round_index in range(rounds):
         w = keep.astype(np.float64)
         n = np.bincount(seg, w, count)
         sa, sb = np.bincount(seg, w * a, count), np.bincount(seg, w * b, count)
-        saa, sab = np.bincount(seg, w * a * a, count), np.bincount(seg, w * a * b, count)
+        saa, sab = np.bincount(seg, w * aa, count), np.bincount(seg, w * ab, count)
         det = n * saa - sa * sa
         ok = (n >= min_points) & (det > 1e-12)
         slope = np.where(ok, (n * sab - sa * sb) / np.where(ok, det, 1.0), 0.0)
@@ -282,13 +282,14 @@ def fit_lines(
         new_keep = magnitude <= np.maximum(3.0 * sigma, 0.1)[seg]
         enough = np.bincount(seg, new_keep.astype(np.float64), count) >= min_points
         new_keep |= ~enough[seg] & keep  # a set that would fall short keeps its last inliers
-        if np.array_equal(new_keep, keep):
+        if not (new_keep ^ keep).any():
             break
         keep = new_keep
     # b = slope (a_img - a_mean) + intercept  <=>  b - slope a_img = intercept - slope a_mean
     scale = np.hypot(1.0, slope)
-    normals = np.where(steep_s[:, None], np.column_stack([np.ones(count), -slope]), np.column_stack([-slope, np.ones(count)]))
-    normals /= scale[:, None]
+    normals = np.empty((count, 2))
+    normals[:, 0] = np.where(steep_s, 1.0, -slope) / scale
+    normals[:, 1] = np.where(steep_s, -slope, 1.0) / scale
     offsets = (intercept - slope * a_mean) / scale
     flip = (normals * hints).sum(axis=1) < 0.0
     normals[flip] *= -1.0
@@ -301,13 +302,17 @@ def fit_lines(
 
 def polygon_corners(lines: list[tuple[Matrix, float]]) -> Matrix:
     """Corners (K, 2) of a polygon given by its K sides as lines n . x = d in order:
-    corner i is where side i - 1 meets side i; NaN where they are parallel."""
-    normals = np.array([normal for normal, _ in lines])
-    offsets = np.array([offset for _, offset in lines])
-    previous = np.arange(-1, len(lines) - 1)
-    before, offsets_before = normals[previous], offsets[previous]
-    det = before[:, 0] * normals[:, 1] - before[:, 1] * normals[:, 0]
-    det = np.where(np.abs(det) < 1e-9, np.nan, det)
-    u = (offsets_before * normals[:, 1] - before[:, 1] * offsets) / det
-    v = (before[:, 0] * offsets - offsets_before * normals[:, 0]) / det
-    return np.column_stack([u, v])
+    corner i is where side i - 1 meets side i (Cramer's rule); NaN where they are
+    parallel. (Scalar arithmetic: for a handful of lines it costs a fraction of the
+    array operations' overheads.)"""
+    corners = np.empty((len(lines), 2))
+    (a0, a1), d_a = lines[-1][0].tolist(), float(lines[-1][1])
+    for i, (normal, offset) in enumerate(lines):
+        (b0, b1), d_b = normal.tolist(), float(offset)
+        det = a0 * b1 - a1 * b0
+        if abs(det) < 1e-9:
+            corners[i] = np.nan
+        else:
+            corners[i] = ((d_a * b1 - a1 * d_b) / det, (a0 * d_b - d_a * b0) / det)
+        a0, a1, d_a = b0, b1, d_b
+    return corners
