@@ -151,8 +151,12 @@ def _subpixel_centre(img: np.ndarray, blob_u: np.ndarray, blob_v: np.ndarray) ->
     c0, c1 = max(int(u0 - r_ring) - 2, 0), min(int(u0 + r_ring) + 3, width)
     r0, r1 = max(int(v0 - r_ring) - 2, 0), min(int(v0 + r_ring) + 3, height)
     win = img[r0:r1, c0:c1].astype(np.float64)
-    uu, vv = np.meshgrid(np.arange(c0, c1, dtype=np.float64), np.arange(r0, r1, dtype=np.float64))
-    radius = np.hypot(uu - u0, vv - v0)
+    # The window's pixel centres (u along the rows, v down the columns), as full grids
+    # for the masks' selections.
+    u_axis, v_axis = np.arange(c0, c1, dtype=np.float64), np.arange(r0, r1, dtype=np.float64)
+    uu, vv = np.empty(win.shape), np.empty(win.shape)
+    uu[:], vv[:] = u_axis, v_axis[:, None]
+    radius = np.sqrt(((u_axis - u0) ** 2)[None, :] + ((v_axis - v0) ** 2)[:, None])
     hole = radius < r_hole
     # Edges further out than just around the hole do not reach the spot: only a thin
     # ring decides whether the surroundings are uniform.
@@ -161,7 +165,7 @@ def _subpixel_centre(img: np.ndarray, blob_u: np.ndarray, blob_v: np.ndarray) ->
     background, structured = _plane_background(win, uu, vv, near_ring)
     if not structured:
         # Uniform surroundings: the clipped spot stays symmetric, its centroid is its centre.
-        return _recentred_centroid(win - background, uu, vv, np.array([u0, v0]), r_blob), 1.0
+        return _recentred_centroid(win - background, u_axis, v_axis, np.array([u0, v0]), r_blob), 1.0
     edged = _edge_background(img, win, uu, vv, np.array([u0, v0]), radius, r_hole, r_ring)
     use = hole
     if edged is not None:
@@ -187,40 +191,49 @@ def _centroid(excess: Matrix, uu: Matrix, vv: Matrix, hole: np.ndarray, fallback
     return np.array([(weights * uu[hole]).sum() / total, (weights * vv[hole]).sum() / total])
 
 
-def _recentred_centroid(excess: Matrix, uu: Matrix, vv: Matrix, start: Matrix, r_blob: float) -> Matrix:
+def _recentred_centroid(excess: Matrix, u_axis: Matrix, v_axis: Matrix, start: Matrix, r_blob: float) -> Matrix:
     """Centroid of the spot's light in a tapered disc re-centred on it until it settles.
 
-    A disc centred on the estimate is symmetric about the true centre once it has
-    settled, so the cut tail does not bias it; a small disc keeps the noise low; signed
-    weights keep the noise unbiased.
+    ``excess`` is the light over the window whose pixel centres are ``u_axis`` along a
+    row and ``v_axis`` down a column. A disc centred on the estimate is symmetric about
+    the true centre once it has settled, so the cut tail does not bias it; a small disc
+    keeps the noise low; signed weights keep the noise unbiased.
     """
     radius = max(3.5, r_blob + 1.5)
-    centre = start.copy()
+    start_u, start_v = start.tolist()
+    centre_u, centre_v = start_u, start_v
     for _ in range(6):
-        taper = np.clip(radius + 0.5 - np.hypot(uu - centre[0], vv - centre[1]), 0.0, 1.0)
-        weights = taper * excess
-        total = weights.sum()
+        distance = np.sqrt(((u_axis - centre_u) ** 2)[None, :] + ((v_axis - centre_v) ** 2)[:, None])
+        weights = (radius + 0.5 - distance).clip(0.0, 1.0)
+        weights *= excess
+        total = float(weights.sum())
         if total <= 0.0:
             return start
-        new = np.array([(weights * uu).sum() / total, (weights * vv).sum() / total])
-        if np.hypot(*(new - start)) > radius:
+        new_u, new_v = float(weights.sum(axis=0) @ u_axis) / total, float(weights.sum(axis=1) @ v_axis) / total
+        if math.hypot(new_u - start_u, new_v - start_v) > radius:
             return start
-        moved = float(np.abs(new - centre).max())
-        centre = new
+        moved = max(abs(new_u - centre_u), abs(new_v - centre_v))
+        centre_u, centre_v = new_u, new_v
         if moved < 1e-3:
             break
-    return centre
+    return np.array([centre_u, centre_v])
 
 
 def _plane_background(win: Matrix, uu: Matrix, vv: Matrix, ring: np.ndarray) -> tuple[Matrix, bool]:
     """A plane fitted to the ring, and whether the ring shows more than a plane (an edge)."""
-    values = win[ring]
-    du, dv = uu[ring] - uu[ring].mean(), vv[ring] - vv[ring].mean()
-    design = np.column_stack([np.ones(values.size), du, dv])
+    values, u, v = win[ring], uu[ring], vv[ring]
+    u_mean, v_mean = float(u.sum()) / u.size, float(v.sum()) / v.size
+    design = np.empty((values.size, 3))
+    design[:, 0] = 1.0
+    np.subtract(u, u_mean, out=design[:, 1])
+    np.subtract(v, v_mean, out=design[:, 2])
     coef = np.linalg.solve(design.T @ design, design.T @ values)
     residual = values - design @ coef
     structured = np.count_nonzero(np.abs(residual) > _STRUCTURE_LEVEL) > 0.05 * values.size
-    return coef[0] + coef[1] * (uu - uu[ring].mean()) + coef[2] * (vv - vv[ring].mean()), bool(structured)
+    level, slope_u, slope_v = coef.tolist()
+    # (the grids' first row and column are the window's u and v axes)
+    plane = (level + slope_u * (uu[0] - u_mean))[None, :] + (slope_v * (vv[:, 0] - v_mean))[:, None]
+    return plane, bool(structured)
 
 
 def _edge_background(
@@ -418,8 +431,9 @@ def _fit_spot(
     keep = np.ones(values.size, bool)
     res = np.zeros(values.size)
     for _ in range(2):
+        kept = (values[keep], background[keep], u[keep], v[keep], clipped[keep])
         params, res = levenberg_marquardt(
-            lambda p: _residuals(p, values[keep], background[keep], u[keep], v[keep], clipped[keep]),
+            lambda p, kept=kept: _residuals(p, *kept),
             params,
             lower,
             upper,
@@ -442,13 +456,18 @@ def _fit_spot(
 
 def _residuals(p: Matrix, values: Matrix, background: Matrix, u: Matrix, v: Matrix, clipped: np.ndarray) -> tuple[Matrix, Matrix]:
     """Residuals of the clipped spot model and their Jacobian in (cu, cv, log A, log s)."""
-    cu, cv, log_a, log_s = p
+    cu, cv, log_a, log_s = p.tolist()
     amp, s2 = math.exp(log_a), math.exp(2.0 * log_s)
     du, dv = u - cu, v - cv
     r2 = du * du + dv * dv
-    g = amp * np.exp(-r2 / (2.0 * s2))
+    g = amp * np.exp(r2 * (-0.5 / s2))
     model = background + g
     res = np.where(clipped, np.minimum(model - CLIPPED_LEVEL, 0.0), model - values)
-    jac = np.column_stack([g * du / s2, g * dv / s2, g, g * r2 / s2])
+    g_s2 = g / s2
+    jac = np.empty((len(g), 4))
+    np.multiply(g_s2, du, out=jac[:, 0])
+    np.multiply(g_s2, dv, out=jac[:, 1])
+    jac[:, 2] = g
+    np.multiply(g_s2, r2, out=jac[:, 3])
     jac[clipped & (model >= CLIPPED_LEVEL)] = 0.0
     return res, jac
