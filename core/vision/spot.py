@@ -395,7 +395,8 @@ def _straight(gu: Matrix, gv: Matrix, normal: Matrix) -> bool:
     """Whether gradients keep one direction, as along a straight edge (a rim turns)."""
     across = gu * normal[1] - gv * normal[0]
     along = gu * normal[0] + gv * normal[1]
-    spread = math.degrees(math.sqrt(float(np.average((across / along) ** 2, weights=along))))
+    # the along-weighted mean of (across / along)^2
+    spread = math.degrees(math.sqrt(float((across * across / along).sum()) / float(along.sum())))
     return spread < _STRAIGHT_SPREAD_DEG
 
 
