@@ -20,7 +20,7 @@ import pytest
 from core.features import polygon_moments
 from core.vision.bands import banded_lines, coverage
 from core.vision.corners import CornerDetection, detect_corners
-from core.vision.edges import bright_contours, image_problem, sample_strips
+from core.vision.edges import bright_contours, image_problem, running_median, sample_strips
 from core.vision.least_squares import levenberg_marquardt
 from core.vision.region import RegionDetection, detect_object_region
 from core.vision.spot import SpotDetection, detect_laser_spot
@@ -671,6 +671,21 @@ def test_noise_does_not_invent_side_faces():
         segments = [(n, d, quad[i], quad[(i + 1) % 4]) for i, (n, d) in enumerate(lines)]
         strips = sample_strips(img, segments, 5, (), 7.0)
         assert banded_lines(strips, lines) == [None] * 4, seed
+
+
+def test_running_median_is_the_median_of_five_strips_within_each_segment():
+    # Ties and small integers exercise the comparison network; the window's members
+    # beyond a segment's ends repeat its end strip, never reach into the next segment.
+    rng = np.random.default_rng(3)
+    segment = np.repeat([0, 1, 3], [7, 2, 12])
+    levels = rng.integers(0, 4, (len(segment), 2)).astype(np.float64)
+    expected = np.empty_like(levels)
+    for i, s in enumerate(segment):
+        members = np.flatnonzero(segment == s)
+        window = np.clip(np.arange(i - 2, i + 3), members[0], members[-1])
+        expected[i] = np.median(levels[window], axis=0)
+    np.testing.assert_array_equal(running_median(levels, segment), expected)
+    np.testing.assert_array_equal(running_median(levels[:, 0], segment), expected[:, 0])
 
 
 def test_bounded_levenberg_marquardt_reaches_the_minimum_within_the_box():

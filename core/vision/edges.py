@@ -127,7 +127,7 @@ def sample_strips(
         return None
     seg = np.repeat(np.arange(len(segments)), counts)
     along = np.arange(total) + np.repeat(shifts, counts)
-    steep, n_across, n_along, offsets, extent, along_stride, across_stride = np.array(table)[seg].T
+    steep, n_across, n_along, offsets, extent, along_stride, across_stride = np.array(table).take(seg, axis=0).T
     base = np.rint((offsets - n_along * along) / n_across)
     keep = (base >= reach) & (base + reach < extent)
     steep = steep > 0.0
@@ -137,14 +137,17 @@ def sample_strips(
         zc = np.where(steep, float(point[0]), float(point[1]))
         nearest = np.minimum(np.maximum(zc, base - (reach + 0.5)), base + (reach + 0.5))
         keep &= (along - za) ** 2 + (nearest - zc) ** 2 > radius * radius
-    if not keep.any():
+    kept = np.flatnonzero(keep)
+    if not len(kept):
         return None
-    seg, along, steep, base, n_across = seg[keep], along[keep], steep[keep], base[keep].astype(np.int64), n_across[keep]
-    # The strips' pixels by their index in the flattened image (cheaper than 2-D indexing).
-    first_pixel = along * along_stride[keep] + base * across_stride[keep]
-    pixels = first_pixel.astype(np.int64)[:, None] + across_stride[keep].astype(np.int64)[:, None] * np.arange(-reach, reach + 1)
+    seg, along, steep, base, n_across = seg.take(kept), along.take(kept), steep.take(kept), base.take(kept), n_across.take(kept)
+    across_stride = across_stride.take(kept)
+    # The strips' pixels by their index in the flattened image (np.take: much cheaper
+    # than 2-D indexing).
+    first_pixel = along * along_stride.take(kept) + base * across_stride
+    pixels = (first_pixel[:, None] + across_stride[:, None] * np.arange(-reach, reach + 1)).astype(np.int64)
     values = np.ascontiguousarray(image).ravel().take(pixels).astype(np.float64)
-    return Strips(seg, along, steep, base, values, n_across > 0.0)
+    return Strips(seg, along, steep, base.astype(np.int64), values, n_across > 0.0)
 
 
 def edge_points_many(
@@ -185,41 +188,58 @@ def edge_points_many(
     bright_high = strips.bright_high
     bright_raw = np.where(bright_high, high_end, low_end)
     dark_raw = np.where(bright_high, low_end, high_end)
-    ok = bright_raw - dark_raw > min_contrast
-    if not ok.any():
+    ok = np.flatnonzero(bright_raw - dark_raw > min_contrast)
+    if not len(ok):
         return empty
     seg, along, steep, base, bright_high = (
-        strips.segment[ok],
-        strips.along[ok],
-        strips.steep[ok],
-        strips.base[ok],
-        bright_high[ok],
+        strips.segment.take(ok),
+        strips.along.take(ok),
+        strips.steep.take(ok),
+        strips.base.take(ok),
+        bright_high.take(ok),
     )
-    strip = values[ok, level_px:-level_px]
-    bright, dark = running_median(np.array((bright_raw[ok], dark_raw[ok])).T, seg).T
+    strip = values.take(ok, axis=0)[:, level_px:-level_px]
+    bright, dark = running_median(np.array((bright_raw.take(ok), dark_raw.take(ok))).T, seg).T
     contrast = bright - dark
     bright_length = ((strip - dark[:, None]) / np.where(contrast > 0.0, contrast, 1.0)[:, None]).sum(axis=1)
     position = np.where(bright_high, base + k + 0.5 - bright_length, base - k - 0.5 + bright_length)
     # The edge must lie inside its strip, away from the ends.
     good = (contrast > min_contrast) & (np.abs(position - base) < k - 0.25)
-    points = np.array((np.where(steep, position, along), np.where(steep, along, position))).T[good]
-    seg = seg[good]
+    good = np.flatnonzero(good)
+    points = np.array((np.where(steep, position, along), np.where(steep, along, position))).T.take(good, axis=0)
+    seg = seg.take(good)
     bounds = np.searchsorted(seg, np.arange(count + 1))
     return [points[bounds[i] : bounds[i + 1]] for i in range(count)]
 
 
-def running_median(levels: Matrix, segment: np.ndarray, width: int = 5) -> Matrix:
-    """Running median of ``width`` successive strips of the same segment (sorted by
-    segment), of each column of ``levels`` (N,) or (N, k).
+def running_median(levels: Matrix, segment: np.ndarray) -> Matrix:
+    """Running median of 5 successive strips of the same segment (sorted by segment),
+    of each column of ``levels`` (N,) or (N, k); near a segment's ends the window's
+    members beyond it repeat its end strip.
 
     A median keeps the step where the far side of an edge changes (a side face ending
     at a junction) and follows uneven lighting, while it quietens the noise.
     """
-    bounds = np.searchsorted(segment, np.arange(int(segment[-1]) + 2)) if len(segment) else np.zeros(1, np.int64)
-    starts, stops = bounds[segment], bounds[segment + 1] - 1
-    window = np.arange(len(levels))[:, None] + (np.arange(width) - width // 2)
-    window = np.minimum(np.maximum(window, starts[:, None]), stops[:, None])
-    return np.sort(levels[window], axis=1)[:, width // 2]
+    if not len(levels):
+        return levels.copy()
+    bounds = np.searchsorted(segment, np.arange(int(segment[-1]) + 2))
+    starts, stops = bounds.take(segment), bounds.take(segment + 1) - 1
+    window = np.minimum(np.maximum(np.arange(len(levels)) + _WINDOW_OFFSETS, starts), stops)  # (5, N)
+    return median_of_five(*np.take(levels, window, axis=0))
+
+
+#: The running window's members relative to its middle strip.
+_WINDOW_OFFSETS = np.arange(-2, 3)[:, None]
+
+
+def median_of_five(a: Matrix, b: Matrix, c: Matrix, d: Matrix, e: Matrix) -> Matrix:
+    """Elementwise median of five arrays by comparisons (a sorting network: for a few
+    hundred rows of five, sorting costs several times more). Of a, b, c, d the smallest
+    and the largest cannot be the median: it is the median of e and the two others.
+    """
+    low = np.maximum(np.minimum(a, b), np.minimum(c, d))
+    high = np.minimum(np.maximum(a, b), np.maximum(c, d))
+    return np.maximum(np.minimum(e, low), np.minimum(np.maximum(e, low), high))
 
 
 def segment_medians(values: Matrix, segment: np.ndarray, count: int) -> Matrix:
