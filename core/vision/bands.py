@@ -80,6 +80,14 @@ _KINK_PAIRS = np.array(
 )
 _KINKS_USED = np.isfinite(_KINK_PAIRS).sum(axis=1)
 _KINK_STARTS = 8
+#: The starts' levels (relative), flat ones first; the flat starts' line shifts (w L,
+#: the widest bands' taken as 2 px) and width parameters (b0, b1, kA, kB).
+_START_LEVELS = np.concatenate([_FLAT_SHARES, _START_SHARES])
+_FLAT_SHIFTS = _FLAT_SHARES * np.minimum(_FLAT_WIDTHS, 2.0)
+_FLAT_WIDTH_PARAMETERS = np.column_stack([_FLAT_WIDTHS, np.zeros_like(_FLAT_WIDTHS), np.full((len(_FLAT_WIDTHS), 2), _NO_TAPER)])
+#: Ridge on the kink patterns' first column, per point: strong without a taper (nothing
+#: of the band shows), a trace with one.
+_RIDGE_A = np.where(_KINKS_USED > 0, 1e-8, 1e-4)
 #: The band's level relative to the far level (0) and the face's (1).
 _SHARE_RANGE = (0.1, 0.9)
 
@@ -337,7 +345,7 @@ def _side(
     values: Matrix, across: Matrix, along: np.ndarray, bright: Matrix, dark: Matrix, ends: list[float], blur: float
 ) -> _Side:
     """One side's strips (bright-positive, pixel-major: the modelled pixels) ready for the fit."""
-    mean_along = float(along.mean())
+    mean_along = float(along.sum()) / len(along)
     t = along - mean_along
     corners = (ends[0] - mean_along, ends[1] - mean_along)
     return _Side(values.copy(), across.copy(), mean_along, t, corners, bright.copy(), dark.copy(), blur)
@@ -348,32 +356,35 @@ def _fit_band(side: _Side, step: tuple[float, float], step_cost: float, noise: f
     is significantly better than the single step at across = c0 + m t (``step``), whose
     cost over the side's pixels is ``step_cost``; else None."""
     c0, m = step
-    reach_t = 0.5 * float(side.t.max() - side.t.min()) + 1.0
+    t_low, t_high = float(side.t.min()), float(side.t.max())
+    reach_t = 0.5 * (t_high - t_low) + 1.0
     # The far level where the band is narrower than the strips (the widest bands' strips
     # end on the band itself).
-    dark, bright = np.sort(side.dark), np.sort(side.bright)
-    far, face = float(dark[len(dark) // 10]), float(bright[len(bright) // 2])
+    dark, bright = sorted(side.dark.tolist()), sorted(side.bright.tolist())
+    far, face = dark[len(dark) // 10], bright[len(bright) // 2]
     contrast = face - far
     turn = 2.5 / reach_t
     lower = np.array([c0 - _MAX_SHIFT_PX, m - turn, far + _SHARE_RANGE[0] * contrast, 0.0, -1.0, 0.0, 0.0])
     upper = np.array([c0 + _MAX_SHIFT_PX, m + turn, far + _SHARE_RANGE[1] * contrast, _MAX_WIDTH_PX, 1.0, _NO_TAPER, _NO_TAPER])
     starts = _starts(side, far, contrast)
-    starts = np.minimum(np.maximum(starts, lower), upper)
+    np.maximum(starts, lower, out=starts)
+    np.minimum(starts, upper, out=starts)
     band, band_cost = _descend(side, starts[_best(side, starts)], lower, upper, reach_t)
 
     dof = max(side.values.size - len(band), 1)
     # The residual's variance, at least the noise's: on a clean image a slight mismatch
     # of the model would otherwise count as significant.
     improvement = ((step_cost - band_cost) / _BAND_PARAMETERS) / max(band_cost / dof, noise)
-    if not (np.isfinite(band).all() and improvement > _F_RATIO):
+    fitted = band.tolist()
+    if not (all(map(math.isfinite, fitted)) and improvement > _F_RATIO):
         return None
-    face_side, outer_boundary = _lines(side, band)[0]
-    if (face_side - outer_boundary).max() <= 0.05:
+    if np.minimum.reduce((side.design[len(side.t) :] @ band).reshape(3, -1)).max() <= 0.05:
         return None  # no band after all
-    if band[2] > upper[2] - 0.01 * contrast:
+    if fitted[2] > upper[2] - 0.01 * contrast:
         return None  # a band at the face's level is only the edge moved
-    shift = band[0] - c0 + (band[1] - m) * side.t  # towards the face
-    if shift.max() > _MAX_SHIFT_PX or shift.min() < -_OUTWARD_SLACK_PX:
+    # How far the fit moved the side towards the face, at the strips' ends (it is a line).
+    shifts = [fitted[0] - c0 + (fitted[1] - m) * t for t in (t_low, t_high)]
+    if max(shifts) > _MAX_SHIFT_PX or min(shifts) < -_OUTWARD_SLACK_PX:
         # More than a band can explain, or the side moved outwards where a band (lighter
         # than the far level) can only have pulled the partial-area line out: the fit
         # found something else, a local minimum beside a band wider than the strips
@@ -399,50 +410,60 @@ def _starts(side: _Side, far: float, contrast: float) -> Matrix:
     # Kinks at shares of the side from either corner (NaN: no taper at that end).
     kink_a = (t_a + _KINK_PAIRS[:, 0] * (t_b - t_a))[:, None]
     kink_b = (t_b - _KINK_PAIRS[:, 1] * (t_b - t_a))[:, None]
-    # Columns (1, t, a, b) with L w = Lb0 a + Lb1 b, continuous at the kinks.
-    ramp_a = np.maximum((t - t_a) / (kink_a - t_a), 0.0)
-    ramp_b = np.maximum((t_b - t) / (t_b - kink_b), 0.0)
-    below, above = t < kink_a, t > kink_b
-    design = np.empty((len(_KINK_PAIRS), n, 4))
-    design[:, :, 0], design[:, :, 1] = 1.0, t
-    design[:, :, 2] = np.where(below, -ramp_a, np.where(above, -ramp_b, -1.0))
-    design[:, :, 3] = np.where(below, -kink_a * ramp_a, np.where(above, -kink_b * ramp_b, -t))
+    # Besides the line's columns (1, t), columns (a, b) with L w = Lb0 a + Lb1 b: -1 and
+    # -t between the kinks, ramping to zero at the corners beyond them (continuous).
+    ramp = np.fmin(np.fmin(np.maximum((t - t_a) / (kink_a - t_a), 0.0), np.maximum((t_b - t) / (t_b - kink_b), 0.0)), 1.0)
+    columns = np.empty((2,) + ramp.shape)  # (2, K, n)
+    np.negative(ramp, out=columns[0])
+    np.multiply(columns[0], np.fmin(np.fmax(t, kink_a), kink_b), out=columns[1])
+    # The line is common to every pattern: projected out once (Frisch-Waugh-Lovell), it
+    # leaves a 2 x 2 system per pattern, solved in closed form.
+    line_basis = side.width_basis[:2]
+    sum_t, sum_tt = float(t.sum()), float(t @ t)
+    det = n * sum_tt - sum_t * sum_t
+    to_line = np.array([sum_tt - sum_t * t, n * t - sum_t]) / det  # (2, n): the line's least squares
+    off_line = -(line_basis.T @ to_line)
+    off_line.flat[:: n + 1] += 1.0
+    projected = columns @ off_line
+    target = position @ off_line
+    gram = np.einsum("akn,bkn->abk", projected, projected)
     # Along a side with one taper a band widening linearly looks just like a tilted side
     # (only the partial areas are read here): the least widening is taken, the bottom
     # edge of a box's side face running nearly parallel to its top edge. Without a
     # taper nothing of the band shows, and it is left at zero.
-    ridge = np.zeros((len(_KINK_PAIRS), 4, 4))
-    ridge[:, 3, 3] = 1e-4 * float(t @ t)
-    ridge[:, 2, 2] = 1e-8 * n  # (a kink beyond the strips leaves the band's width unseen)
-    ridge[0, 2, 2] = 1e-4 * n
-    transposed = design.transpose(0, 2, 1)
-    coef = np.linalg.solve(transposed @ design + ridge, transposed @ position[:, None])  # (K, 4, 1)
-    residual = position[:, None] - design @ coef
-    cost = (residual * residual).sum(axis=(1, 2))
-    coef = coef[:, :, 0]
+    gram[1, 1] += 1e-4 * sum_tt
+    gram[0, 0] += _RIDGE_A * n  # (a kink beyond the strips leaves the band's width unseen)
+    moments = projected @ target
+    det = gram[0, 0] * gram[1, 1] - gram[0, 1] * gram[1, 0]
+    widths = np.array([gram[1, 1] * moments[0] - gram[0, 1] * moments[1], gram[0, 0] * moments[1] - gram[1, 0] * moments[0]])
+    widths /= det  # (2, K): Lb0, Lb1
+    explained = np.einsum("ak,akn->kn", widths, columns)
+    residual = target - np.einsum("ak,akn->kn", widths, projected)
+    cost = np.einsum("kn,kn->k", residual, residual)
     # Each kink must pay for itself (two parameters' worth of an information criterion).
     # Partial areas alone can mistake a tilted side for a taper: the few best kink
     # patterns all become starts, and the pixels decide.
-    score = n * np.log(np.maximum(cost / n, 1e-8)) + 2.0 * np.log(n) * _KINKS_USED
+    score = n * np.log(np.maximum(cost[1:] / n, 1e-8)) + 2.0 * np.log(n) * _KINKS_USED[1:]
+    picked = np.concatenate([[0], score.argsort()[:_KINK_STARTS] + 1])
+    lines = (position - explained[picked]) @ to_line.T  # (e0, m) of no taper and the picked patterns
+    levels = far + _START_LEVELS * contrast
+    starts = np.empty((len(_FLAT_WIDTHS) + _KINK_STARTS * len(_START_SHARES), 7))
     # No taper: the line is the partial area's, shifted out by w L for each width.
-    flat = np.zeros((len(_FLAT_WIDTHS), 7))
-    flat[:, 0] = coef[0, 0] + _FLAT_SHARES * np.minimum(_FLAT_WIDTHS, 2.0)
-    flat[:, 1] = coef[0, 1]
-    flat[:, 2] = far + _FLAT_SHARES * contrast
-    flat[:, 3] = _FLAT_WIDTHS
-    flat[:, 5:] = _NO_TAPER
+    flat = starts[: len(_FLAT_WIDTHS)]
+    flat[:, 3:] = _FLAT_WIDTH_PARAMETERS
+    flat[:, :2] = lines[0]
+    flat[:, 0] += _FLAT_SHIFTS
+    flat[:, 2] = levels[: len(_FLAT_WIDTHS)]
     # Tapers: each of the best kink patterns at each of a few levels.
-    picked = np.repeat(np.argsort(score[1:])[:_KINK_STARTS] + 1, len(_START_SHARES))
-    share = np.tile(_START_SHARES, _KINK_STARTS)[: len(picked)]
-    e0, m, lb0, lb1 = coef[picked].T
-    kink_a, kink_b = kink_a[picked, 0], kink_b[picked, 0]
-    tapered = np.empty((len(picked), 7))
-    tapered[:, 0], tapered[:, 1] = e0, m
-    tapered[:, 2] = far + share * contrast
-    tapered[:, 3], tapered[:, 4] = lb0 / share, lb1 / share
-    tapered[:, 5] = np.where(np.isnan(kink_a), _NO_TAPER, (lb0 + lb1 * kink_a) / (kink_a - t_a) / share)
-    tapered[:, 6] = np.where(np.isnan(kink_b), _NO_TAPER, (lb0 + lb1 * kink_b) / (t_b - kink_b) / share)
-    return np.concatenate([flat, tapered])
+    tapered = starts[len(_FLAT_WIDTHS) :].reshape(_KINK_STARTS, len(_START_SHARES), 7)
+    tapered[:, :, :2] = lines[1:, None, :]
+    tapered[:, :, 2] = levels[len(_FLAT_WIDTHS) :]
+    lb0, lb1 = widths[:, picked[1:]]
+    tapered[:, :, 3:5] = np.array([lb0, lb1]).T[:, None, :] / _START_SHARES[:, None]
+    kinks = np.array([kink_a[picked[1:], 0], kink_b[picked[1:], 0]])
+    taper_slopes = (lb0 + lb1 * kinks) / np.array([kinks[0] - t_a, t_b - kinks[1]])
+    tapered[:, :, 5:] = np.where(np.isnan(kinks).T[:, None, :], _NO_TAPER, taper_slopes.T[:, None, :] / _START_SHARES[:, None])
+    return starts
 
 
 def _best(side: _Side, starts: Matrix) -> int:
