@@ -315,6 +315,10 @@ class _Side:
     # What the fit's inner loop (``_residuals_and_jacobian``) would otherwise rebuild at
     # every step.
     @cached_property
+    def minus_width_basis(self) -> Matrix:
+        return -self.width_basis
+
+    @cached_property
     def design(self) -> Matrix:
         """(4 n, 7): the strips' face side e = c0 + m t and the width's pieces b0 + b1 t,
         kA (t - tA), kB (tB - t), as rows of a product with the parameters."""
@@ -348,7 +352,7 @@ def _side(
     mean_along = float(along.sum()) / len(along)
     t = along - mean_along
     corners = (ends[0] - mean_along, ends[1] - mean_along)
-    return _Side(values.copy(), across.copy(), mean_along, t, corners, bright.copy(), dark.copy(), blur)
+    return _Side(values.copy(), across.copy(), mean_along, t, corners, bright, dark, blur)
 
 
 def _fit_band(side: _Side, step: tuple[float, float], step_cost: float, noise: float) -> tuple[Matrix, float] | None:
@@ -486,15 +490,15 @@ def _best(side: _Side, starts: Matrix) -> int:
 
 def _to_image(band: Matrix, improvement: float, side: _Side, steep: bool, sign: float, normal: Matrix) -> BandFit:
     """The fitted face's side as an image line (oriented like ``normal``) and the band."""
-    c0, m = float(band[0]), float(band[1])
+    c0, m, level = band[:3].tolist()
     # across - m along = c0 - m mean_along in the bright-positive frame.
-    new_normal = np.array([1.0, -sign * m]) if steep else np.array([-sign * m, 1.0])
-    new_offset = sign * (c0 - m * side.mean_along)
-    scale = float(np.hypot(*new_normal))
-    new_normal, new_offset = new_normal / scale, new_offset / scale
-    if new_normal @ normal < 0.0:
-        new_normal, new_offset = -new_normal, -new_offset
-    return BandFit((new_normal, float(new_offset)), band[3:].copy(), float(band[2]), improvement)
+    u, v = (1.0, -sign * m) if steep else (-sign * m, 1.0)
+    offset = sign * (c0 - m * side.mean_along)
+    scale = float(np.hypot(u, v))
+    u, v, offset = u / scale, v / scale, offset / scale
+    if u * normal[0] + v * normal[1] < 0.0:
+        u, v, offset = -u, -v, -offset
+    return BandFit((np.array([u, v]), offset), band[3:].copy(), level, improvement)
 
 
 #: The slopes along the side of the width's pieces (bottom edge, taper A, taper B, none:
@@ -534,10 +538,8 @@ def _residuals(side: _Side, batch: Matrix) -> Matrix:
     return (dark + (bright - dark) * cover[:, 0] - side.values[:, :, None]) + (g - dark) * (cover[:, 1] - cover[:, 0])
 
 
-#: d f / d (b0, b1, kA, kB) of the band's outer boundary f = e - w with each piece of
-#: the width (columns: bottom edge, taper A, taper B, none), in units of
-#: ``_Side.width_basis``.
-_BOUNDARY_DERIVATIVES = -np.array([[1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+#: Which piece of the width (0 bottom edge, 1 taper A, 2 taper B) each of b0, b1, kA, kB shapes.
+_PIECE_OF_PARAMETER = np.array([[0], [0], [1], [2]])
 #: How the levels across the face's side and the band's outer boundary (bright - g,
 #: g - dark) change with g.
 _LEVEL_SLOPES = np.array([[-1.0], [1.0]])
@@ -566,8 +568,9 @@ def _residuals_and_jacobian(side: _Side, params: Matrix) -> tuple[Matrix, Matrix
     residual = jac[1] + side.dark_less_values
     np.multiply(jac[0], side.t_spread, out=jac[1])
     np.subtract(covers[0, :, 1], covers[0, :, 0], out=jac[2])
-    # d / d (b0, b1, kA, kB): only the piece that shapes the width moves it.
-    np.multiply(weighted[0, :, 1], (side.width_basis * _BOUNDARY_DERIVATIVES[:, piece])[:, None, :], out=jac[3:])
+    # d / d (b0, b1, kA, kB): only the piece that shapes the width moves it (f = e - w).
+    boundary = np.where(piece == _PIECE_OF_PARAMETER, side.minus_width_basis, 0.0)
+    np.multiply(weighted[0, :, 1], boundary[:, None, :], out=jac[3:])
     return residual.ravel(), jac.reshape(7, -1).T
 
 
