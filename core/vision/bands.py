@@ -79,6 +79,9 @@ _KINK_PAIRS = np.array(
     [(np.nan, np.nan)] + [(a or np.nan, b or np.nan) for a in _KINKS for b in _KINKS if (a or b) and a + b < 1.0]
 )
 _KINKS_USED = np.isfinite(_KINK_PAIRS).sum(axis=1)
+#: The kinks' shares from corner A (along t) and corner B (against t), and those directions.
+_KINK_DIRECTIONS = np.array([[1.0], [-1.0]])
+_KINK_SHARES = _KINK_PAIRS.T * _KINK_DIRECTIONS
 _KINK_STARTS = 8
 #: The starts' levels (relative), flat ones first; the flat starts' line shifts (w L,
 #: the widest bands' taken as 2 px) and width parameters (b0, b1, kA, kB).
@@ -411,15 +414,16 @@ def _starts(side: _Side, far: float, contrast: float) -> Matrix:
     n = len(t)
     bright_length = ((side.values - side.dark) / (side.bright - side.dark)).sum(axis=0)
     position = side.across[-1] + 0.5 - bright_length
-    # Kinks at shares of the side from either corner (NaN: no taper at that end).
-    kink_a = (t_a + _KINK_PAIRS[:, 0] * (t_b - t_a))[:, None]
-    kink_b = (t_b - _KINK_PAIRS[:, 1] * (t_b - t_a))[:, None]
+    # Kinks (2, K) at shares of the side from either corner (NaN: no taper at that end),
+    # and how far each lies from its corner.
+    kinks = np.array([[t_a], [t_b]]) + _KINK_SHARES * (t_b - t_a)
+    spans = (kinks - np.array([[t_a], [t_b]])) * _KINK_DIRECTIONS
     # Besides the line's columns (1, t), columns (a, b) with L w = Lb0 a + Lb1 b: -1 and
     # -t between the kinks, ramping to zero at the corners beyond them (continuous).
-    ramp = np.fmin(np.fmin(np.maximum((t - t_a) / (kink_a - t_a), 0.0), np.maximum((t_b - t) / (t_b - kink_b), 0.0)), 1.0)
-    columns = np.empty((2,) + ramp.shape)  # (2, K, n)
-    np.negative(ramp, out=columns[0])
-    np.multiply(columns[0], np.fmin(np.fmax(t, kink_a), kink_b), out=columns[1])
+    ramps = np.maximum(side.width_basis[2:, None, :] / spans[:, :, None], 0.0)
+    columns = np.empty(ramps.shape)  # (2, K, n)
+    np.negative(np.fmin(np.fmin(ramps[0], ramps[1]), 1.0), out=columns[0])
+    np.multiply(columns[0], np.fmin(np.fmax(t, kinks[0, :, None]), kinks[1, :, None]), out=columns[1])
     # The line is common to every pattern: projected out once (Frisch-Waugh-Lovell), it
     # leaves a 2 x 2 system per pattern, solved in closed form.
     line_basis = side.width_basis[:2]
@@ -462,11 +466,13 @@ def _starts(side: _Side, far: float, contrast: float) -> Matrix:
     tapered = starts[len(_FLAT_WIDTHS) :].reshape(_KINK_STARTS, len(_START_SHARES), 7)
     tapered[:, :, :2] = lines[1:, None, :]
     tapered[:, :, 2] = levels[len(_FLAT_WIDTHS) :]
-    lb0, lb1 = widths[:, picked[1:]]
-    tapered[:, :, 3:5] = np.array([lb0, lb1]).T[:, None, :] / _START_SHARES[:, None]
-    kinks = np.array([kink_a[picked[1:], 0], kink_b[picked[1:], 0]])
-    taper_slopes = (lb0 + lb1 * kinks) / np.array([kinks[0] - t_a, t_b - kinks[1]])
-    tapered[:, :, 5:] = np.where(np.isnan(kinks).T[:, None, :], _NO_TAPER, taper_slopes.T[:, None, :] / _START_SHARES[:, None])
+    # Their widths' parameters at each level (kA, kB from the width at the kinks).
+    patterns = picked[1:]
+    pattern_widths = widths[:, patterns]
+    pattern_kinks = kinks[:, patterns]
+    tapers = (pattern_widths[0] + pattern_widths[1] * pattern_kinks) / spans[:, patterns]
+    tapered[:, :, 3:] = np.concatenate([pattern_widths, tapers]).T[:, None, :] / _START_SHARES[:, None]
+    np.copyto(tapered[:, :, 5:], _NO_TAPER, where=np.isnan(pattern_kinks).T[:, None, :])
     return starts
 
 
