@@ -525,7 +525,7 @@ def _lines(side: _Side, batch: Matrix) -> tuple[Matrix, Matrix, np.ndarray]:
     piece[width <= 0.0] = 3
     np.subtract(lines[0], np.maximum(width, 0.0), out=lines[1])
     slopes = _PIECE_SLOPES @ batch
-    slope = slopes[piece] if batch.ndim == 1 else np.take_along_axis(slopes, piece, axis=0)
+    slope = slopes[piece] if batch.ndim == 1 else slopes[piece, np.arange(batch.shape[1])]
     return lines[:2], slope, piece
 
 
