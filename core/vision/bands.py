@@ -293,6 +293,14 @@ def _noise_variance(values: Matrix) -> float:
     return max(0.5 * float(bulk @ bulk) / max(len(bulk), 1), 1.0 / 12.0)
 
 
+#: The design's rows (e, the width's bottom edge, taper A, taper B) by parameter (c0, m,
+#: g, b0, b1, kA, kB): which row of ``_Side.width_basis`` multiplies it, if any.
+_DESIGN_BASIS = np.array([[0, 1, 0, 0, 0, 0, 0], [0, 0, 0, 0, 1, 0, 0], [0, 0, 0, 0, 0, 2, 0], [0, 0, 0, 0, 0, 0, 3]])
+_DESIGN_MASK = np.array([[1, 1, 0, 0, 0, 0, 0], [0, 0, 0, 1, 1, 0, 0], [0, 0, 0, 0, 0, 1, 0], [0, 0, 0, 0, 0, 0, 1]], float)[
+    :, :, None
+]
+
+
 @dataclass(frozen=True)
 class _Side:
     """One side's strips in the bright-positive frame (the face at larger ``across``),
@@ -325,13 +333,7 @@ class _Side:
     def design(self) -> Matrix:
         """(4 n, 7): the strips' face side e = c0 + m t and the width's pieces b0 + b1 t,
         kA (t - tA), kB (tB - t), as rows of a product with the parameters."""
-        basis = self.width_basis
-        design = np.zeros((4, len(self.t), 7))
-        design[0, :, :2] = basis[:2].T
-        design[1, :, 3:5] = basis[:2].T
-        design[2, :, 5] = basis[2]
-        design[3, :, 6] = basis[3]
-        return design.reshape(-1, 7)
+        return (self.width_basis[_DESIGN_BASIS] * _DESIGN_MASK).transpose(0, 2, 1).reshape(-1, 7)
 
     @cached_property
     def level_offsets(self) -> Matrix:
@@ -346,6 +348,23 @@ class _Side:
     @cached_property
     def t_spread(self) -> Matrix:
         return np.repeat(self.t[None, :], len(self.values), axis=0)
+
+    def every_other(self) -> _Side:
+        """The side on every other strip."""
+        strips = slice(None, None, 2)
+        sparse = _Side(
+            self.values[:, strips],
+            self.across[:, strips],
+            self.mean_along,
+            self.t[strips],
+            self.ends,
+            self.bright[strips],
+            self.dark[strips],
+            self.blur,
+        )
+        # Its design's rows are this side's (set where the cached property keeps its value).
+        sparse.__dict__["design"] = self.design.reshape(4, len(self.t), 7)[:, strips].reshape(-1, 7)
+        return sparse
 
 
 def _side(
@@ -479,17 +498,7 @@ def _starts(side: _Side, far: float, contrast: float) -> Matrix:
 def _best(side: _Side, starts: Matrix) -> int:
     """Index of the parameter set (rows of ``starts``) of least cost (on every other
     strip: it only ranks)."""
-    every_other = slice(None, None, 2)
-    sparse = _Side(
-        side.values[:, every_other],
-        side.across[:, every_other],
-        side.mean_along,
-        side.t[every_other],
-        side.ends,
-        side.bright[every_other],
-        side.dark[every_other],
-        side.blur,
-    )
+    sparse = side.every_other()
     residuals = _residuals(sparse, starts.T).reshape(-1, len(starts))
     return int(np.argmin(np.einsum("ig,ig->g", residuals, residuals)))
 
