@@ -189,7 +189,7 @@ def banded_lines(strips: Strips, lines: list[tuple[Matrix, float]]) -> list[Band
     values = np.where(strips.bright_high[:, None], strips.values, strips.values[:, ::-1]).T.copy()
     sign = np.where(strips.bright_high, 1.0, -1.0)
     reach = len(values) // 2
-    across = sign * strips.base + np.arange(-reach + 1.0, reach)[:, None]  # the inner pixels'
+    across = sign * strips.base + np.arange(-reach + 1.0, reach)[:, None]  # the inner pixels' centres
     normals = np.array([normal for normal, _ in lines])[segment]
     offsets = np.array([offset for _, offset in lines])
     # The strips' axes were chosen from the lines they were sampled along, which a 45
@@ -296,9 +296,7 @@ def _noise_variance(values: Matrix) -> float:
 #: The design's rows (e, the width's bottom edge, taper A, taper B) by parameter (c0, m,
 #: g, b0, b1, kA, kB): which row of ``_Side.width_basis`` multiplies it, if any.
 _DESIGN_BASIS = np.array([[0, 1, 0, 0, 0, 0, 0], [0, 0, 0, 0, 1, 0, 0], [0, 0, 0, 0, 0, 2, 0], [0, 0, 0, 0, 0, 0, 3]])
-_DESIGN_MASK = np.array([[1, 1, 0, 0, 0, 0, 0], [0, 0, 0, 1, 1, 0, 0], [0, 0, 0, 0, 0, 1, 0], [0, 0, 0, 0, 0, 0, 1]], float)[
-    :, :, None
-]
+_DESIGN_MASK = np.array([[1, 1, 0, 0, 0, 0, 0], [0, 0, 0, 1, 1, 0, 0], [0, 0, 0, 0, 0, 1, 0], [0, 0, 0, 0, 0, 0, 1]], float)
 
 
 @dataclass(frozen=True)
@@ -333,7 +331,7 @@ class _Side:
     def design(self) -> Matrix:
         """(4 n, 7): the strips' face side e = c0 + m t and the width's pieces b0 + b1 t,
         kA (t - tA), kB (tB - t), as rows of a product with the parameters."""
-        return (self.width_basis[_DESIGN_BASIS] * _DESIGN_MASK).transpose(0, 2, 1).reshape(-1, 7)
+        return (self.width_basis[_DESIGN_BASIS] * _DESIGN_MASK[:, :, None]).transpose(0, 2, 1).reshape(-1, 7)
 
     @cached_property
     def level_offsets(self) -> Matrix:
