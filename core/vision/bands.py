@@ -34,7 +34,8 @@ a side without a band keeps its partial-area line, and noise does not invent ban
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -78,7 +79,18 @@ _KINK_PAIRS = np.array(
     [(np.nan, np.nan)] + [(a or np.nan, b or np.nan) for a in _KINKS for b in _KINKS if (a or b) and a + b < 1.0]
 )
 _KINKS_USED = np.isfinite(_KINK_PAIRS).sum(axis=1)
+#: The kinks' shares from corner A (along t) and corner B (against t), and those directions.
+_KINK_DIRECTIONS = np.array([[1.0], [-1.0]])
+_KINK_SHARES = _KINK_PAIRS.T * _KINK_DIRECTIONS
 _KINK_STARTS = 8
+#: The starts' levels (relative), flat ones first; the flat starts' line shifts (w L,
+#: the widest bands' taken as 2 px) and width parameters (b0, b1, kA, kB).
+_START_LEVELS = np.concatenate([_FLAT_SHARES, _START_SHARES])
+_FLAT_SHIFTS = _FLAT_SHARES * np.minimum(_FLAT_WIDTHS, 2.0)
+_FLAT_WIDTH_PARAMETERS = np.column_stack([_FLAT_WIDTHS, np.zeros_like(_FLAT_WIDTHS), np.full((len(_FLAT_WIDTHS), 2), _NO_TAPER)])
+#: Ridge on the kink patterns' first column, per point: strong without a taper (nothing
+#: of the band shows), a trace with one.
+_RIDGE_A = np.where(_KINKS_USED > 0, 1e-8, 1e-4)
 #: The band's level relative to the far level (0) and the face's (1).
 _SHARE_RANGE = (0.1, 0.9)
 
@@ -99,11 +111,12 @@ class BandFit:
     improvement: float
 
 
-def coverage(across: Matrix, edge: Matrix, slant: Matrix | float, blur: float = 0.0) -> tuple[Matrix, Matrix]:
+def coverage(across: Matrix, edge: Matrix, slant: Matrix | float, blur: float = 0.0, derivative: bool = True) -> Matrix:
     """Share of each pixel (centre ``across``) beyond an edge crossing it at ``edge``
-    with ``slant`` px per px along the strip, seen through a Gaussian ``blur``, and its
-    derivative with respect to the edge's position. "Beyond" is towards larger across;
-    the arguments broadcast.
+    with ``slant`` px per px along the strip, seen through a Gaussian ``blur``, and
+    (unless not ``derivative``) its derivative with respect to the edge's position,
+    stacked: (2, ...). "Beyond" is towards larger across; ``across`` and ``edge``
+    broadcast to the result's shape, ``slant`` to it.
 
     Without blur exact (the pixel's box cut by a straight line: the share is the mean,
     over the pixel's extent along the strip, of the clipped distance to the edge, whose
@@ -112,23 +125,36 @@ def coverage(across: Matrix, edge: Matrix, slant: Matrix | float, blur: float = 
     their summed variances).
     """
     c = across + (0.5 - edge)
-    # The slant spread to the full shape once: broadcast against a short last axis (a
-    # strip's few pixels) every operation would loop over that axis alone, which costs
-    # several times the arithmetic. (Plain ufuncs: this runs in fits' inner loops.)
-    spread_slant = np.empty_like(c)
-    spread_slant[...] = np.maximum(np.abs(slant), MIN_SLANT)
-    slant = spread_slant
+    slant = np.maximum(np.abs(slant), MIN_SLANT)
     if blur >= 0.25:
         spread = np.sqrt((1.0 + slant * slant) / 12.0 + blur * blur)
         z = (c - 0.5) / spread
-        return 0.5 * (1.0 + _erf(z / math.sqrt(2.0))), -np.exp(-0.5 * z * z) / (spread * math.sqrt(2.0 * math.pi))
-    half = 0.5 * slant
+        share = 0.5 * (1.0 + _erf(z / math.sqrt(2.0)))
+        if not derivative:
+            return share
+        return np.array([share, -np.exp(-0.5 * z * z) / (spread * math.sqrt(2.0 * math.pi))])
     # A(z) = z^2 / 2 on [0, 1], z - 1/2 beyond, 0 below: with z+ = max(z, 0) and
-    # h = min(z+, 1), A = h (h / 2 - 1) + z+.
-    high, low = np.maximum(c + half, 0.0), np.maximum(c - half, 0.0)
-    inside_high, inside_low = np.minimum(high, 1.0), np.minimum(low, 1.0)
-    area = inside_high * (0.5 * inside_high - 1.0) + high - inside_low * (0.5 * inside_low - 1.0) - low
-    return area / slant, (inside_low - inside_high) / slant
+    # h = min(z+, 1), A = h (h / 2 - 1) + z+; at the pixel's two ends along the strip,
+    # z = c +- slant / 2, in one array (these run in fits' inner loops: few operations).
+    half = 0.5 * slant
+    positive = np.empty((2,) + c.shape)
+    np.add(c, half, out=positive[0])
+    np.subtract(c, half, out=positive[1])
+    np.maximum(positive, 0.0, out=positive)
+    inside = np.minimum(positive, 1.0)
+    antiderivative = 0.5 * inside
+    antiderivative -= 1.0
+    antiderivative *= inside
+    antiderivative += positive
+    if not derivative:
+        area = antiderivative[0] - antiderivative[1]
+        area /= slant
+        return area
+    result = np.empty_like(positive)
+    np.subtract(antiderivative[0], antiderivative[1], out=result[0])
+    np.subtract(inside[1], inside[0], out=result[1])
+    result /= slant
+    return result
 
 
 def _erf(x: Matrix) -> Matrix:
@@ -156,64 +182,75 @@ def banded_lines(strips: Strips, lines: list[tuple[Matrix, float]]) -> list[Band
     result: list[BandFit | None] = [None] * count
     segment = strips.segment
     bounds = np.searchsorted(segment, np.arange(count + 1))
-    # Every strip in the bright-positive frame: the face at the larger index.
-    values = np.where(strips.bright_high[:, None], strips.values, strips.values[:, ::-1])
+    sizes = bounds[1:] - bounds[:-1]
+    membership = (segment == np.arange(count)[:, None]).astype(np.float64)  # (sides, strips)
+    # Every strip in the bright-positive frame (the face at the larger index), pixel-major:
+    # a row per pixel across, so that what varies by strip runs along the rows.
+    values = np.where(strips.bright_high[:, None], strips.values, strips.values[:, ::-1]).T.copy()
     sign = np.where(strips.bright_high, 1.0, -1.0)
-    reach = values.shape[1] // 2
-    across = (sign * strips.base)[:, None] + np.arange(-reach + 1, reach)[None, :]
-    normals = np.array([normal for normal, _ in lines])
+    reach = len(values) // 2
+    across = sign * strips.base + np.arange(-reach + 1.0, reach)[:, None]  # the inner pixels' centres
+    normals = np.array([normal for normal, _ in lines])[segment]
     offsets = np.array([offset for _, offset in lines])
     # The strips' axes were chosen from the lines they were sampled along, which a 45
     # degree side may see the other way round from these.
     steep = strips.steep
-    n_across = np.where(steep, normals[segment, 0], normals[segment, 1])
-    n_along = np.where(steep, normals[segment, 1], normals[segment, 0])
+    n_across = np.where(steep, normals[:, 0], normals[:, 1])
+    n_along = np.where(steep, normals[:, 1], normals[:, 0])
     edge = sign * (offsets[segment] - n_along * strips.along) / n_across
     slope = n_along / n_across
-    dark, bright = running_median(values[:, [0, -1]], segment).T
+    dark, bright = running_median(values[[0, -1]].T, segment).T
     noise = _noise_variance(values)
-    pixels = values.shape[1] - 2
+    inner = values[1:-1]
     contrasts = segment_medians(bright - dark, segment, count)
-    sizes = np.diff(bounds)
     usable = (sizes >= 8) & (contrasts >= _MIN_CONTRAST)
 
     def step_costs(blur: float) -> tuple[Matrix, np.ndarray]:
         """Each strip's cost as a single step, and the sides that it leaves banded."""
-        cover = coverage(across, edge[:, None], slope[:, None], blur)[0]
-        residual = values[:, 1:-1] - (dark[:, None] + (bright - dark)[:, None] * cover)
-        costs = (residual * residual).sum(axis=1)
-        side_costs = np.add.reduceat(costs, np.minimum(bounds[:-1], len(costs) - 1)) * (sizes > 0)
+        residual = inner - (dark + (bright - dark) * coverage(across, edge, slope, blur, derivative=False))
+        costs = np.einsum("ij,ij->j", residual, residual)
         # Well over what noise leaves of a step's pixels (with its levels and line read
         # from the same noisy pixels, a band-free side's cost runs to about twice the
         # noise's share) and than a band would have to explain to be believed.
-        expected = _GATE_RATIO * sizes * pixels + _F_RATIO * _BAND_PARAMETERS
-        return costs, usable & (side_costs > expected * noise)
+        expected = _GATE_RATIO * sizes * len(inner) + _F_RATIO * _BAND_PARAMETERS
+        return costs, usable & (membership @ costs > expected * noise)
 
     blur = 0.0
     strip_costs, banded = step_costs(blur)
-    if banded.any():
-        blur = _edge_blur(strips, lines)
-        if blur > 0.0:
-            strip_costs, banded = step_costs(blur)
+    if not banded.any():
+        return result
+    blur = _edge_blur(inner, sign * strips.base - edge, slope, membership)
+    if blur > 0.0:
+        strip_costs, banded = step_costs(blur)
     corners = polygon_corners(lines)
-    for index in np.flatnonzero(banded):
+    for index in np.flatnonzero(banded).tolist():
+        start, stop = bounds[index], bounds[index + 1]
         # Of a long side every other strip (or fewer) is plenty: the fit costs per pixel.
-        picked = np.arange(bounds[index], bounds[index + 1], -(-sizes[index] // _MAX_STRIPS))
-        first = picked[0]
-        axis = 1 if steep[first] else 0
-        ends = [corners[index, axis], corners[(index + 1) % count, axis]]
-        if not np.all(np.isfinite(ends)):
+        picked = slice(start, stop, -(-(stop - start) // _MAX_STRIPS))
+        axis = 1 if steep[start] else 0
+        ends = sorted([float(corners[index, axis]), float(corners[(index + 1) % count, axis])])
+        if not (math.isfinite(ends[0]) and math.isfinite(ends[1])):
             continue
-        side = _side(values[picked], across[picked], strips.along[picked], bright[picked], dark[picked], sorted(ends), blur)
-        step = (float(edge[picked].mean()), -float(sign[first] * slope[first]))
+        side = _side(inner[:, picked], across[:, picked], strips.along[picked], bright[picked], dark[picked], ends, blur)
+        strip_edges = edge[picked]
+        step = (float(strip_edges.sum()) / len(strip_edges), -float(sign[start] * slope[start]))
         fit = _fit_band(side, step, float(strip_costs[picked].sum()), noise)
         if fit is not None:
-            result[index] = _to_image(*fit, side, bool(steep[first]), float(sign[first]), lines[index][0])
+            result[index] = _to_image(*fit, side, bool(steep[start]), float(sign[start]), lines[index][0])
     return result
 
 
-def _edge_blur(strips: Strips, lines: list[tuple[Matrix, float]]) -> float:
+#: The midpoints between a strip's inner pixels, from its base pixel (px), raised to the
+#: powers 0, 1 and 2: the steps' moments about the base pixel (see ``_edge_blur``).
+_MIDPOINT_POWERS = (np.arange(-4, 4) + 0.5) ** np.arange(3)[:, None]
+
+
+def _edge_blur(inner: Matrix, base_from_line: Matrix, slope: Matrix, membership: Matrix) -> float:
     """The optical blur of the image (sigma of a Gaussian, px), from the top face's sides.
+
+    ``inner`` are the strips' 9 inner pixels (bright-positive, pixel-major), each strip's
+    base pixel ``base_from_line`` px from its line, which has ``slope`` along it;
+    ``membership`` (sides, strips) says which side each strip is on.
 
     Across a straight edge the grey levels' differences spread with variance 1/6 (the
     pixel's box, twice: the edge's coverage and the differencing) plus slant^2 / 12
@@ -222,32 +259,21 @@ def _edge_blur(strips: Strips, lines: list[tuple[Matrix, float]]) -> float:
     cleanest side decides (a side face along a side widens its profile); estimates
     under 0.45 px are within the noise and read as no blur.
     """
-    values = strips.values[:, 1:-1]  # 4 px each side
-    sign = np.where(strips.bright_high, 1.0, -1.0)
-    normals = np.array([normal for normal, _ in lines])[strips.segment]
-    offsets = np.array([offset for _, offset in lines])[strips.segment]
-    n_across = np.where(strips.steep, normals[:, 0], normals[:, 1])
-    n_along = np.where(strips.steep, normals[:, 1], normals[:, 0])
-    line_at = (offsets - n_along * strips.along) / n_across  # across coordinate of the line
-    # Differences between neighbours, at the midpoints, in the bright-positive frame.
-    steps = sign[:, None] * np.diff(values, axis=1)
-    position = sign[:, None] * (strips.base[:, None] + np.arange(-4, 4)[None, :] + 0.5 - line_at[:, None])
-    contrast = sign * (values[:, -1] - values[:, 0])
-    usable = contrast > 20.0
-    count = len(lines)
-    # Each side's moments of the normalised steps in one pass (bincount by side).
-    d = np.where(usable[:, None], steps / np.where(usable, contrast, 1.0)[:, None], 0.0)
-    segment = strips.segment
-    m0 = np.bincount(segment, d.sum(axis=1), count)
-    m1 = np.bincount(segment, (d * position).sum(axis=1), count)
-    m2 = np.bincount(segment, (d * position * position).sum(axis=1), count)
-    slant2 = np.bincount(segment, (n_along / n_across) ** 2 * usable, count)
-    strips_used = np.bincount(segment, usable, count)
-    ok = (strips_used >= 6) & (m0 > 0.0)
+    # Each strip's steps' moments about its base pixel (exact: integer grey levels and
+    # half-integer positions), then about its line: with x = k + o, the sums of d x and
+    # d x^2 are S1 + o S0 and S2 + 2 o S1 + o^2 S0.
+    s0, s1, s2 = _MIDPOINT_POWERS @ (inner[1:] - inner[:-1])
+    usable = s0 > 20.0  # s0 is the strip's contrast
+    contrast = np.where(usable, s0, 1.0)
+    mean = s1 / contrast
+    o = base_from_line
+    per_strip = np.array([usable, (mean + o) * usable, (s2 / contrast + o * (2.0 * mean + o)) * usable, slope * slope * usable])
+    strips_used, m1, m2, slant2 = per_strip @ membership.T
+    ok = strips_used >= 6
     if not ok.any():
         return 0.0
-    m0, m1, m2 = m0[ok], m1[ok], m2[ok]
-    per_side = np.sort(m2 / m0 - (m1 / m0) ** 2 - 1.0 / 6.0 - slant2[ok] / strips_used[ok] / 12.0)
+    m0, m1, m2 = strips_used[ok], m1[ok], m2[ok]
+    per_side = np.sort(m2 / m0 - (m1 / m0) ** 2 - 1.0 / 6.0 - slant2[ok] / m0 / 12.0)
     variance = float(per_side[min(1, len(per_side) - 1)])
     sigma = math.sqrt(variance) if variance > 0.0 else 0.0
     return sigma if sigma > 0.45 else 0.0
@@ -256,53 +282,97 @@ def _edge_blur(strips: Strips, lines: list[tuple[Matrix, float]]) -> float:
 def _noise_variance(values: Matrix) -> float:
     """The image's noise variance (grey levels^2), at least the 8-bit quantisation's.
 
-    From the two pixels at each strip's face end (bright-positive ``values``), 4 and 5
-    px inside the face: half the mean square of their difference, leaving out the few
-    far beyond the bulk (a strip that reaches the mark, say).
+    From the two pixels at each strip's face end (bright-positive, pixel-major
+    ``values``), 4 and 5 px inside the face: half the mean square of their difference,
+    leaving out the few far beyond the bulk (a strip that reaches the mark, say).
     """
-    difference = values[:, -1] - values[:, -2]
+    difference = values[-1] - values[-2]
     middle = len(difference) // 2
     spread = 1.4826 * float(np.sort(np.abs(difference - np.sort(difference)[middle]))[middle])
     bulk = difference[np.abs(difference) <= max(3.0, 4.0 * spread)]
     return max(0.5 * float(bulk @ bulk) / max(len(bulk), 1), 1.0 / 12.0)
 
 
+#: The design's rows (e, the width's bottom edge, taper A, taper B) by parameter (c0, m,
+#: g, b0, b1, kA, kB): which row of ``_Side.width_basis`` multiplies it, if any.
+_DESIGN_BASIS = np.array([[0, 1, 0, 0, 0, 0, 0], [0, 0, 0, 0, 1, 0, 0], [0, 0, 0, 0, 0, 2, 0], [0, 0, 0, 0, 0, 0, 3]])
+_DESIGN_MASK = np.array([[1, 1, 0, 0, 0, 0, 0], [0, 0, 0, 1, 1, 0, 0], [0, 0, 0, 0, 0, 1, 0], [0, 0, 0, 0, 0, 0, 1]], float)
+
+
 @dataclass(frozen=True)
 class _Side:
-    """One side's strips in the bright-positive frame (the face at larger ``across``)."""
+    """One side's strips in the bright-positive frame (the face at larger ``across``),
+    pixel-major: row k holds every strip's k-th pixel, so that what varies by strip
+    broadcasts along the rows (long contiguous runs, where the fits' inner loops spend
+    their time)."""
 
-    values: Matrix  # (n, p) grey levels of the modelled pixels
-    across: Matrix  # (n, p) their centres
+    values: Matrix  # (p, n) grey levels of the modelled pixels
+    across: Matrix  # (p, n) their centres
     mean_along: float  # the strips' mean along coordinate
     t: Matrix  # (n,) along coordinate relative to ``mean_along``
     ends: tuple[float, float]  # tA < tB, the face's corners at the side's ends, in t
     bright: Matrix  # (n,) the face's level just inside (running median)
     dark: Matrix  # (n,) the level beyond the band (running median)
     blur: float
-    # Derived arrays the fit's inner loop would otherwise rebuild at every step.
-    t_column: Matrix = field(init=False)
-    dark_column: Matrix = field(init=False)
-    bright_column: Matrix = field(init=False)
-    strip_index: np.ndarray = field(init=False)
-    width_basis: Matrix = field(init=False)  # (n, 4): 1, t, t - tA, tB - t
 
-    def __post_init__(self) -> None:
+    @cached_property
+    def width_basis(self) -> Matrix:
+        """(4, n): 1, t, t - tA, tB - t (the width's pieces are these times its parameters)."""
         t_a, t_b = self.ends
-        object.__setattr__(self, "t_column", self.t[:, None])
-        object.__setattr__(self, "dark_column", self.dark[:, None])
-        object.__setattr__(self, "bright_column", self.bright[:, None])
-        object.__setattr__(self, "strip_index", np.arange(len(self.t)))
-        object.__setattr__(self, "width_basis", np.column_stack([np.ones_like(self.t), self.t, self.t - t_a, t_b - self.t]))
+        return np.array([np.ones_like(self.t), self.t, self.t - t_a, t_b - self.t])
+
+    # What the fit's inner loop (``_residuals_and_jacobian``) would otherwise rebuild at
+    # every step.
+    @cached_property
+    def minus_width_basis(self) -> Matrix:
+        return -self.width_basis
+
+    @cached_property
+    def design(self) -> Matrix:
+        """(4 n, 7): the strips' face side e = c0 + m t and the width's pieces b0 + b1 t,
+        kA (t - tA), kB (tB - t), as rows of a product with the parameters."""
+        return (self.width_basis[_DESIGN_BASIS] * _DESIGN_MASK[:, :, None]).transpose(0, 2, 1).reshape(-1, 7)
+
+    @cached_property
+    def level_offsets(self) -> Matrix:
+        """(2, n): bright and -dark, the levels across the face's side and the band's
+        outer boundary (bright - g, g - dark) less their dependence on g."""
+        return np.array([self.bright, -self.dark])
+
+    @cached_property
+    def dark_less_values(self) -> Matrix:
+        return self.dark - self.values
+
+    @cached_property
+    def t_spread(self) -> Matrix:
+        return np.repeat(self.t[None, :], len(self.values), axis=0)
+
+    def every_other(self) -> _Side:
+        """The side on every other strip."""
+        strips = slice(None, None, 2)
+        sparse = _Side(
+            self.values[:, strips],
+            self.across[:, strips],
+            self.mean_along,
+            self.t[strips],
+            self.ends,
+            self.bright[strips],
+            self.dark[strips],
+            self.blur,
+        )
+        # Its design's rows are this side's (set where the cached property keeps its value).
+        sparse.__dict__["design"] = self.design.reshape(4, len(self.t), 7)[:, strips].reshape(-1, 7)
+        return sparse
 
 
 def _side(
     values: Matrix, across: Matrix, along: np.ndarray, bright: Matrix, dark: Matrix, ends: list[float], blur: float
 ) -> _Side:
-    """One side's strips (bright-positive, level pixels at the ends) ready for the fit."""
-    mean_along = float(along.mean())
-    t = along.astype(np.float64) - mean_along
+    """One side's strips (bright-positive, pixel-major: the modelled pixels) ready for the fit."""
+    mean_along = float(along.sum()) / len(along)
+    t = along - mean_along
     corners = (ends[0] - mean_along, ends[1] - mean_along)
-    return _Side(values[:, 1:-1], across.astype(np.float64), mean_along, t, corners, bright, dark, blur)
+    return _Side(values.copy(), across.copy(), mean_along, t, corners, bright, dark, blur)
 
 
 def _fit_band(side: _Side, step: tuple[float, float], step_cost: float, noise: float) -> tuple[Matrix, float] | None:
@@ -310,29 +380,35 @@ def _fit_band(side: _Side, step: tuple[float, float], step_cost: float, noise: f
     is significantly better than the single step at across = c0 + m t (``step``), whose
     cost over the side's pixels is ``step_cost``; else None."""
     c0, m = step
-    reach_t = 0.5 * float(side.t.max() - side.t.min()) + 1.0
+    t_low, t_high = float(side.t.min()), float(side.t.max())
+    reach_t = 0.5 * (t_high - t_low) + 1.0
     # The far level where the band is narrower than the strips (the widest bands' strips
     # end on the band itself).
-    dark, bright = np.sort(side.dark), np.sort(side.bright)
-    far, face = float(dark[len(dark) // 10]), float(bright[len(bright) // 2])
+    dark, bright = sorted(side.dark.tolist()), sorted(side.bright.tolist())
+    far, face = dark[len(dark) // 10], bright[len(bright) // 2]
     contrast = face - far
     turn = 2.5 / reach_t
     lower = np.array([c0 - _MAX_SHIFT_PX, m - turn, far + _SHARE_RANGE[0] * contrast, 0.0, -1.0, 0.0, 0.0])
     upper = np.array([c0 + _MAX_SHIFT_PX, m + turn, far + _SHARE_RANGE[1] * contrast, _MAX_WIDTH_PX, 1.0, _NO_TAPER, _NO_TAPER])
     starts = _starts(side, far, contrast)
-    starts = np.minimum(np.maximum(starts, lower), upper)
+    np.maximum(starts, lower, out=starts)
+    np.minimum(starts, upper, out=starts)
     band, band_cost = _descend(side, starts[_best(side, starts)], lower, upper, reach_t)
 
     dof = max(side.values.size - len(band), 1)
     # The residual's variance, at least the noise's: on a clean image a slight mismatch
     # of the model would otherwise count as significant.
     improvement = ((step_cost - band_cost) / _BAND_PARAMETERS) / max(band_cost / dof, noise)
-    if not (np.isfinite(band).all() and improvement > _F_RATIO and _width(side, band[None])[0].max() > 0.05):
+    fitted = band.tolist()
+    if not (all(map(math.isfinite, fitted)) and improvement > _F_RATIO):
         return None
-    if band[2] > upper[2] - 0.01 * contrast:
+    if np.minimum.reduce((side.design[len(side.t) :] @ band).reshape(3, -1)).max() <= 0.05:
+        return None  # no band after all
+    if fitted[2] > upper[2] - 0.01 * contrast:
         return None  # a band at the face's level is only the edge moved
-    shift = band[0] - c0 + (band[1] - m) * side.t  # towards the face
-    if shift.max() > _MAX_SHIFT_PX or shift.min() < -_OUTWARD_SLACK_PX:
+    # How far the fit moved the side towards the face, at the strips' ends (it is a line).
+    shifts = [fitted[0] - c0 + (fitted[1] - m) * t for t in (t_low, t_high)]
+    if max(shifts) > _MAX_SHIFT_PX or min(shifts) < -_OUTWARD_SLACK_PX:
         # More than a band can explain, or the side moved outwards where a band (lighter
         # than the far level) can only have pulled the partial-area line out: the fit
         # found something else, a local minimum beside a band wider than the strips
@@ -353,153 +429,162 @@ def _starts(side: _Side, far: float, contrast: float) -> Matrix:
     """
     t, (t_a, t_b) = side.t, side.ends
     n = len(t)
-    bright_length = ((side.values - side.dark[:, None]) / (side.bright - side.dark)[:, None]).sum(axis=1)
-    position = side.across[:, -1] + 0.5 - bright_length
-    # Kinks at shares of the side from either corner (NaN: no taper at that end).
-    kink_a = (t_a + _KINK_PAIRS[:, 0] * (t_b - t_a))[:, None]
-    kink_b = (t_b - _KINK_PAIRS[:, 1] * (t_b - t_a))[:, None]
-    # Columns (1, t, a, b) with L w = Lb0 a + Lb1 b, continuous at the kinks.
-    ramp_a = np.maximum((t - t_a) / (kink_a - t_a), 0.0)
-    ramp_b = np.maximum((t_b - t) / (t_b - kink_b), 0.0)
-    below, above = t < kink_a, t > kink_b
-    design = np.empty((len(_KINK_PAIRS), n, 4))
-    design[:, :, 0], design[:, :, 1] = 1.0, t
-    design[:, :, 2] = np.where(below, -ramp_a, np.where(above, -ramp_b, -1.0))
-    design[:, :, 3] = np.where(below, -kink_a * ramp_a, np.where(above, -kink_b * ramp_b, -t))
+    bright_length = ((side.values - side.dark) / (side.bright - side.dark)).sum(axis=0)
+    position = side.across[-1] + 0.5 - bright_length
+    # Kinks (2, K) at shares of the side from either corner (NaN: no taper at that end),
+    # and how far each lies from its corner.
+    kinks = np.array([[t_a], [t_b]]) + _KINK_SHARES * (t_b - t_a)
+    spans = (kinks - np.array([[t_a], [t_b]])) * _KINK_DIRECTIONS
+    # Besides the line's columns (1, t), columns (a, b) with L w = Lb0 a + Lb1 b: -1 and
+    # -t between the kinks, ramping to zero at the corners beyond them (continuous).
+    ramps = np.maximum(side.width_basis[2:, None, :] / spans[:, :, None], 0.0)
+    columns = np.empty(ramps.shape)  # (2, K, n)
+    np.negative(np.fmin(np.fmin(ramps[0], ramps[1]), 1.0), out=columns[0])
+    np.multiply(columns[0], np.fmin(np.fmax(t, kinks[0, :, None]), kinks[1, :, None]), out=columns[1])
+    # The line is common to every pattern: projected out once (Frisch-Waugh-Lovell), it
+    # leaves a 2 x 2 system per pattern, solved in closed form.
+    line_basis = side.width_basis[:2]
+    sum_t, sum_tt = float(t.sum()), float(t @ t)
+    det = n * sum_tt - sum_t * sum_t
+    to_line = np.array([sum_tt - sum_t * t, n * t - sum_t]) / det  # (2, n): the line's least squares
+    off_line = -(line_basis.T @ to_line)
+    off_line.flat[:: n + 1] += 1.0
+    projected = columns @ off_line
+    target = position @ off_line
+    gram = np.einsum("akn,bkn->abk", projected, projected)
     # Along a side with one taper a band widening linearly looks just like a tilted side
     # (only the partial areas are read here): the least widening is taken, the bottom
     # edge of a box's side face running nearly parallel to its top edge. Without a
     # taper nothing of the band shows, and it is left at zero.
-    ridge = np.zeros((len(_KINK_PAIRS), 4, 4))
-    ridge[:, 3, 3] = 1e-4 * float(t @ t)
-    ridge[:, 2, 2] = 1e-8 * n  # (a kink beyond the strips leaves the band's width unseen)
-    ridge[0, 2, 2] = 1e-4 * n
-    transposed = design.transpose(0, 2, 1)
-    coef = np.linalg.solve(transposed @ design + ridge, transposed @ position[:, None])  # (K, 4, 1)
-    residual = position[:, None] - design @ coef
-    cost = (residual * residual).sum(axis=(1, 2))
-    coef = coef[:, :, 0]
+    gram[1, 1] += 1e-4 * sum_tt
+    gram[0, 0] += _RIDGE_A * n  # (a kink beyond the strips leaves the band's width unseen)
+    moments = projected @ target
+    det = gram[0, 0] * gram[1, 1] - gram[0, 1] * gram[1, 0]
+    widths = np.array([gram[1, 1] * moments[0] - gram[0, 1] * moments[1], gram[0, 0] * moments[1] - gram[1, 0] * moments[0]])
+    widths /= det  # (2, K): Lb0, Lb1
+    explained = np.einsum("ak,akn->kn", widths, columns)
+    residual = target - np.einsum("ak,akn->kn", widths, projected)
+    cost = np.einsum("kn,kn->k", residual, residual)
     # Each kink must pay for itself (two parameters' worth of an information criterion).
     # Partial areas alone can mistake a tilted side for a taper: the few best kink
     # patterns all become starts, and the pixels decide.
-    score = n * np.log(np.maximum(cost / n, 1e-8)) + 2.0 * np.log(n) * _KINKS_USED
+    score = n * np.log(np.maximum(cost[1:] / n, 1e-8)) + 2.0 * np.log(n) * _KINKS_USED[1:]
+    picked = np.concatenate([[0], score.argsort()[:_KINK_STARTS] + 1])
+    lines = (position - explained[picked]) @ to_line.T  # (e0, m) of no taper and the picked patterns
+    levels = far + _START_LEVELS * contrast
+    starts = np.empty((len(_FLAT_WIDTHS) + _KINK_STARTS * len(_START_SHARES), 7))
     # No taper: the line is the partial area's, shifted out by w L for each width.
-    flat = np.zeros((len(_FLAT_WIDTHS), 7))
-    flat[:, 0] = coef[0, 0] + _FLAT_SHARES * np.minimum(_FLAT_WIDTHS, 2.0)
-    flat[:, 1] = coef[0, 1]
-    flat[:, 2] = far + _FLAT_SHARES * contrast
-    flat[:, 3] = _FLAT_WIDTHS
-    flat[:, 5:] = _NO_TAPER
+    flat = starts[: len(_FLAT_WIDTHS)]
+    flat[:, 3:] = _FLAT_WIDTH_PARAMETERS
+    flat[:, :2] = lines[0]
+    flat[:, 0] += _FLAT_SHIFTS
+    flat[:, 2] = levels[: len(_FLAT_WIDTHS)]
     # Tapers: each of the best kink patterns at each of a few levels.
-    picked = np.repeat(np.argsort(score[1:])[:_KINK_STARTS] + 1, len(_START_SHARES))
-    share = np.tile(_START_SHARES, _KINK_STARTS)[: len(picked)]
-    e0, m, lb0, lb1 = coef[picked].T
-    kink_a, kink_b = kink_a[picked, 0], kink_b[picked, 0]
-    tapered = np.empty((len(picked), 7))
-    tapered[:, 0], tapered[:, 1] = e0, m
-    tapered[:, 2] = far + share * contrast
-    tapered[:, 3], tapered[:, 4] = lb0 / share, lb1 / share
-    tapered[:, 5] = np.where(np.isnan(kink_a), _NO_TAPER, (lb0 + lb1 * kink_a) / (kink_a - t_a) / share)
-    tapered[:, 6] = np.where(np.isnan(kink_b), _NO_TAPER, (lb0 + lb1 * kink_b) / (t_b - kink_b) / share)
-    return np.concatenate([flat, tapered])
+    tapered = starts[len(_FLAT_WIDTHS) :].reshape(_KINK_STARTS, len(_START_SHARES), 7)
+    tapered[:, :, :2] = lines[1:, None, :]
+    tapered[:, :, 2] = levels[len(_FLAT_WIDTHS) :]
+    # Their widths' parameters at each level (kA, kB from the width at the kinks).
+    patterns = picked[1:]
+    pattern_widths = widths[:, patterns]
+    pattern_kinks = kinks[:, patterns]
+    tapers = (pattern_widths[0] + pattern_widths[1] * pattern_kinks) / spans[:, patterns]
+    tapered[:, :, 3:] = np.concatenate([pattern_widths, tapers]).T[:, None, :] / _START_SHARES[:, None]
+    np.copyto(tapered[:, :, 5:], _NO_TAPER, where=np.isnan(pattern_kinks).T[:, None, :])
+    return starts
 
 
 def _best(side: _Side, starts: Matrix) -> int:
-    """Index of the parameter set of least cost (on every other strip: it only ranks)."""
-    sparse = _Side(
-        side.values[::2], side.across[::2], side.mean_along, side.t[::2], side.ends, side.bright[::2], side.dark[::2], side.blur
-    )
-    residuals = _residuals(sparse, starts)
-    return int(np.argmin(np.einsum("gi,gi->g", residuals, residuals)))
+    """Index of the parameter set (rows of ``starts``) of least cost (on every other
+    strip: it only ranks)."""
+    sparse = side.every_other()
+    residuals = _residuals(sparse, starts.T).reshape(-1, len(starts))
+    return int(np.argmin(np.einsum("ig,ig->g", residuals, residuals)))
 
 
 def _to_image(band: Matrix, improvement: float, side: _Side, steep: bool, sign: float, normal: Matrix) -> BandFit:
     """The fitted face's side as an image line (oriented like ``normal``) and the band."""
-    c0, m = float(band[0]), float(band[1])
+    c0, m, level = band[:3].tolist()
     # across - m along = c0 - m mean_along in the bright-positive frame.
-    new_normal = np.array([1.0, -sign * m]) if steep else np.array([-sign * m, 1.0])
-    new_offset = sign * (c0 - m * side.mean_along)
-    scale = float(np.hypot(*new_normal))
-    new_normal, new_offset = new_normal / scale, new_offset / scale
-    if new_normal @ normal < 0.0:
-        new_normal, new_offset = -new_normal, -new_offset
-    return BandFit((new_normal, float(new_offset)), band[3:].copy(), float(band[2]), improvement)
+    u, v = (1.0, -sign * m) if steep else (-sign * m, 1.0)
+    offset = sign * (c0 - m * side.mean_along)
+    scale = float(np.hypot(u, v))
+    u, v, offset = u / scale, v / scale, offset / scale
+    if u * normal[0] + v * normal[1] < 0.0:
+        u, v, offset = -u, -v, -offset
+    return BandFit((np.array([u, v]), offset), band[3:].copy(), level, improvement)
 
 
-def _width(side: _Side, batch: Matrix) -> tuple[Matrix, Matrix, np.ndarray]:
-    """The band's width w(t) (G, n) under parameter sets (G, 7), its slope along the
-    side, and which piece shapes it (0 bottom edge, 1 and 2 the tapers, 3 none)."""
-    t_a, t_b = side.ends
-    b0, b1, k_a, k_b = (batch[:, i, None] for i in range(3, 7))
-    bottom, taper_a, taper_b = b0 + b1 * side.t, k_a * (side.t - t_a), k_b * (t_b - side.t)
-    width = np.minimum(np.minimum(bottom, taper_a), taper_b)
-    piece = np.where(width == bottom, 0, np.where(width == taper_a, 1, 2))
+#: The slopes along the side of the width's pieces (bottom edge, taper A, taper B, none:
+#: b1, kA, -kB, 0) as rows of a product with the parameters.
+_PIECE_SLOPES = np.array([[0.0, 0, 0, 0, 1, 0, 0], [0, 0, 0, 0, 0, 1, 0], [0, 0, 0, 0, 0, 0, -1], [0, 0, 0, 0, 0, 0, 0]])
+
+
+def _lines(side: _Side, batch: Matrix) -> tuple[Matrix, Matrix, np.ndarray]:
+    """Across coordinates (2, n, ...) of the face's side e (index 0) and of the band's
+    outer boundary f = e - w (1) under parameters ``batch`` (7, ...) = (c0, m, g, b0, b1,
+    kA, kB) (parameter sets as columns), the outer boundary's slope along the side
+    beyond the side's own (n, ...: the width's), and which piece shapes the width (0
+    bottom edge, 1 and 2 the tapers, 3 none: clipped at zero)."""
+    lines = (side.design @ batch).reshape((4, len(side.t)) + batch.shape[1:])  # e, the width's pieces
+    pieces = lines[1:]
+    piece = pieces.argmin(axis=0)
+    width = np.minimum.reduce(pieces)
     piece[width <= 0.0] = 3
-    slopes = np.concatenate([b1, k_a, -k_b, np.zeros_like(b1)], axis=1)  # (G, 4)
-    return np.maximum(width, 0.0), np.take_along_axis(slopes, piece, axis=1), piece
-
-
-def _geometry(side: _Side, batch: Matrix) -> tuple[Matrix, Matrix, np.ndarray]:
-    """Coverages (2, G, n, p) of the face's side (index 0) and of the band's outer
-    boundary (1) under parameter sets ``batch`` (G, 7) = (c0, m, g, b0, b1, kA, kB), their
-    derivatives with respect to the edges' positions, and the width's active piece."""
-    c0, m = batch[:, 0, None], batch[:, 1, None]  # (G, 1)
-    width, dw_dt, active = _width(side, batch)
-    edges = np.empty(width.shape + (1,), dtype=np.float64)[None].repeat(2, axis=0)  # (2, G, n, 1)
-    edges[0, ..., 0] = c0 + m * side.t
-    edges[1, ..., 0] = edges[0, ..., 0] - width
-    slants = np.empty_like(edges)
-    slants[0, ..., 0] = m
-    # The band's outer boundary slants with the side plus the width's change along it.
-    slants[1, ..., 0] = m - dw_dt
-    cover, d_cover = coverage(side.across, edges, slants, side.blur)
-    return cover, d_cover, active
+    np.subtract(lines[0], np.maximum(width, 0.0), out=lines[1])
+    slopes = _PIECE_SLOPES @ batch
+    slope = slopes[piece] if batch.ndim == 1 else slopes[piece, np.arange(batch.shape[1])]
+    return lines[:2], slope, piece
 
 
 def _residuals(side: _Side, batch: Matrix) -> Matrix:
-    """Residuals (G, N) of the grey levels under G parameter sets (see ``_geometry``)."""
-    cover = _geometry(side, batch)[0]
-    dark, bright, g = side.dark[:, None], side.bright[:, None], batch[:, 2, None, None]
-    return (side.values - (dark + (g - dark) * cover[1] + (bright - g) * cover[0])).reshape(len(batch), -1)
+    """Residuals (p, n, G) of the grey levels (model minus image) under parameter sets
+    ``batch`` (7, G) (see ``_lines``)."""
+    edges, dw_dt, _ = _lines(side, batch)
+    slants = np.empty_like(edges)
+    slants[0] = batch[1]
+    # The band's outer boundary slants with the side plus the width's change along it.
+    np.subtract(batch[1], dw_dt, out=slants[1])
+    cover = coverage(side.across[:, None, :, None], edges, slants, side.blur, derivative=False)  # (p, 2, n, G)
+    g, dark, bright = batch[2], side.dark[:, None], side.bright[:, None]
+    # D + (g - D) cover_f + (B - g) cover_e, written so that g has no effect at all where
+    # the band has no width (cover_f = cover_e): such starts tie exactly, not by roundoff.
+    return (dark + (bright - dark) * cover[:, 0] - side.values[:, :, None]) + (g - dark) * (cover[:, 1] - cover[:, 0])
 
 
-#: Which of d w / d (b0, b1, kA, kB) each piece of the width (bottom edge, taper A,
-#: taper B, none) has: 1 or t, (t - tA), (tB - t) by ``_Side.width_basis``.
-_PIECE_DERIVATIVES = np.array([[1.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 0.0]])
+#: Which piece of the width (0 bottom edge, 1 taper A, 2 taper B) each of b0, b1, kA, kB shapes.
+_PIECE_OF_PARAMETER = np.array([[0], [0], [1], [2]])
+#: How the levels across the face's side and the band's outer boundary (bright - g,
+#: g - dark) change with g.
+_LEVEL_SLOPES = np.array([[-1.0], [1.0]])
 
 
 def _residuals_and_jacobian(side: _Side, params: Matrix) -> tuple[Matrix, Matrix]:
-    """Residuals (N,) of the grey levels under ``params`` and their Jacobian (N, 7).
+    """Residuals (N,) of the grey levels (model minus image) under ``params`` and their
+    Jacobian (N, 7).
 
     The same model as ``_residuals`` for one parameter set, written for few array
     operations: it runs in the fit's inner loop.
     """
-    c0, m, g, b0, b1, k_a, k_b = params.tolist()
-    n = len(side.t)
-    pieces = np.empty((3, n))
-    pieces[0] = b0 + b1 * side.t
-    pieces[1] = k_a * side.width_basis[:, 2]
-    pieces[2] = k_b * side.width_basis[:, 3]
-    piece = pieces.argmin(axis=0)
-    width = pieces[piece, side.strip_index]
-    piece[width <= 0.0] = 3  # clipped at zero: no piece moves it
-    edges, slants = np.empty((2, n, 1)), np.empty((2, n, 1))
-    edges[0, :, 0] = c0 + m * side.t
-    edges[1, :, 0] = edges[0, :, 0] - np.maximum(width, 0.0)
+    m, g = params[1:3].tolist()
+    edges, dw_dt, piece = _lines(side, params)
+    slants = np.empty_like(edges)
     slants[0] = m
     # The band's outer boundary slants with the side plus the width's change along it.
-    slants[1, :, 0] = m - np.array([b1, k_a, -k_b, 0.0])[piece]
-    (cover_e, cover_f), (d_e, d_f) = coverage(side.across, edges, slants, side.blur)
-    residual = side.values - (side.dark_column + (g - side.dark_column) * cover_f + (side.bright_column - g) * cover_e)
-    d_far = (g - side.dark_column) * d_f
-    d_edge = d_far + (side.bright_column - g) * d_e  # d prediction / d c0
-    jac = np.empty(cover_e.shape + (7,))
-    jac[..., 0] = d_edge
-    jac[..., 1] = d_edge * side.t_column
-    jac[..., 2] = cover_f - cover_e
-    # d w / d (b0, b1, kA, kB): only the piece that shapes the width moves it.
-    jac[..., 3:] = -d_far[..., None] * (side.width_basis * _PIECE_DERIVATIVES[piece])[:, None, :]
-    return residual.ravel(), -jac.reshape(-1, 7)
+    np.subtract(m, dw_dt, out=slants[1])
+    covers = coverage(side.across[:, None, :], edges, slants, side.blur)  # (2, p, 2, n)
+    # Each edge's share and its derivative times the levels across it (the face's over the
+    # band's, the band's over the far one's), summed over the two edges: the prediction
+    # less the dark level, and its derivative with respect to c0.
+    weighted = covers[::-1] * (side.level_offsets + g * _LEVEL_SLOPES)
+    jac = np.empty((7,) + side.values.shape)
+    np.add(weighted[:, :, 0], weighted[:, :, 1], out=jac[:2])
+    residual = jac[1] + side.dark_less_values
+    np.multiply(jac[0], side.t_spread, out=jac[1])
+    np.subtract(covers[0, :, 1], covers[0, :, 0], out=jac[2])
+    # d / d (b0, b1, kA, kB): only the piece that shapes the width moves it (f = e - w).
+    boundary = np.where(piece == _PIECE_OF_PARAMETER, side.minus_width_basis, 0.0)
+    np.multiply(weighted[0, :, 1], boundary[:, None, :], out=jac[3:])
+    return residual.ravel(), jac.reshape(7, -1).T
 
 
 def _descend(side: _Side, params: Matrix, lower: Matrix, upper: Matrix, reach_t: float) -> tuple[Matrix, float]:

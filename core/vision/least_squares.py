@@ -40,26 +40,28 @@ def levenberg_marquardt(
 
     def cost_of(residual: Matrix) -> float:
         if loss_scale is None:
-            return float(residual @ residual)
+            return float(residual.dot(residual))
         return float(np.log1p(residual * residual / loss_scale**2).sum())
 
+    # The bookkeeping of a few parameters runs on Python floats: numpy's per-call
+    # overhead would cost many times the arithmetic.
+    bounds = list(zip(lower.tolist(), upper.tolist()))
+    values = params.tolist()
     residual, jac = model(params)
     cost = cost_of(residual)
     damping = 1e-3
-    identity = np.eye(len(params))
     for _ in range(iterations):
         if loss_scale is None:
             weighted = jac
         else:
             weighted = jac * (1.0 / (1.0 + residual * residual / loss_scale**2))[:, None]
-        normal, gradient = weighted.T @ jac, weighted.T @ residual
+        normal, gradient = weighted.T.dot(jac), weighted.T.dot(residual)
         # Marquardt's damping; a parameter no residual depends on (a zero column: a
         # taper that shapes no pixel) gets a unit diagonal, and with its zero gradient
         # no step.
-        diagonal = normal.diagonal().copy()
-        normal += identity * (damping * diagonal + (diagonal == 0.0))
-        step = _solve(normal, gradient)
-        if step is None:
+        normal.flat[:: len(values) + 1] = [x + (damping * x + (x == 0.0)) for x in normal.diagonal().tolist()]
+        descent = _solve(normal, gradient)  # the step's negative
+        if descent is None:
             damping *= 8.0
             if damping > 1e8:
                 break
@@ -67,21 +69,22 @@ def levenberg_marquardt(
         # Parameters on a bound that the step pushes further out stay there, and the
         # others take the best step without them (a clipped joint step is not that):
         # the held ones' rows and columns become the identity's, their gradient zero.
-        blocked = ((params <= lower) & (step < 0.0)) | ((params >= upper) & (step > 0.0))
-        if blocked.any():
+        held = [(x <= low and d > 0.0) or (x >= high and d < 0.0) for x, (low, high), d in zip(values, bounds, descent)]
+        if any(held):
+            blocked = np.array(held)
             normal[blocked] = 0.0
             normal[:, blocked] = 0.0
             normal[blocked, blocked] = 1.0
-            gradient = np.where(blocked, 0.0, gradient)
-            step = _solve(normal, gradient)
-            if step is None:
+            descent = _solve(normal, np.where(blocked, 0.0, gradient))
+            if descent is None:
                 break
-        trial = np.minimum(np.maximum(params + step, lower), upper)
+        trial_values = [_clip(x - d, low, high) for x, (low, high), d in zip(values, bounds, descent)]
+        trial = np.array(trial_values)
         residual_t, jac_t = model(trial)
         cost_t = cost_of(residual_t)
         if cost_t < cost:
             old = params
-            params, residual, jac, cost = trial, residual_t, jac_t, cost_t
+            params, values, residual, jac, cost = trial, trial_values, residual_t, jac_t, cost_t
             damping = max(damping / 4.0, 1e-7)
             if settled(old, params):
                 break
@@ -92,11 +95,17 @@ def levenberg_marquardt(
     return params, residual
 
 
-def _solve(normal: Matrix, gradient: Matrix) -> Matrix | None:
-    """The Gauss-Newton step -normal^-1 gradient, None when ``normal`` is singular.
+def _solve(normal: Matrix, gradient: Matrix) -> list[float] | None:
+    """normal^-1 gradient (the Gauss-Newton step's negative), None when ``normal`` is singular.
 
     OpenCV's solver: for these few parameters np.linalg.solve's call overhead costs
     several times the arithmetic, in the fits' inner loop.
     """
-    ok, step = cv2.solve(normal, -gradient[:, None], flags=cv2.DECOMP_LU)
-    return step[:, 0] if ok else None
+    ok, solution = cv2.solve(normal, gradient[:, None], flags=cv2.DECOMP_LU)
+    return solution.ravel().tolist() if ok else None
+
+
+def _clip(x: float, low: float, high: float) -> float:
+    """``x`` within [low, high] (NaN stays NaN, as with np.minimum(np.maximum(...)))."""
+    x = low if x < low else x
+    return high if x > high else x
