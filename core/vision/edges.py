@@ -281,14 +281,17 @@ def fit_lines(
     b = np.where(steep, stacked[:, 0], stacked[:, 1])
     a_mean = np.bincount(seg, a, count) / np.maximum(sizes, 1)
     a = a - a_mean[seg]
-    aa, ab = a * a, a * b
+    # The sets' sums of 1, a, b, aa, ab over their inliers: one product per round with
+    # the points' one-hot set membership.
+    moments = np.empty((len(a), 5))
+    moments[:, 0], moments[:, 1], moments[:, 2] = 1.0, a, b
+    np.multiply(a, a, out=moments[:, 3])
+    np.multiply(a, b, out=moments[:, 4])
+    member = (seg[:, None] == np.arange(count)).astype(np.float64)
     keep = np.ones(len(a), bool)
     bounds = np.concatenate([[0], np.cumsum(sizes)])
     for round_index in range(rounds):
-        w = keep.astype(np.float64)
-        n = np.bincount(seg, w, count)
-        sa, sb = np.bincount(seg, w * a, count), np.bincount(seg, w * b, count)
-        saa, sab = np.bincount(seg, w * aa, count), np.bincount(seg, w * ab, count)
+        n, sa, sb, saa, sab = (moments * keep[:, None]).T.dot(member)
         det = n * saa - sa * sa
         ok = (n >= min_points) & (det > 1e-12)
         slope = np.where(ok, (n * sab - sa * sb) / np.where(ok, det, 1.0), 0.0)
@@ -310,12 +313,12 @@ def fit_lines(
     # b = slope (a_img - a_mean) + intercept  <=>  b - slope a_img = intercept - slope a_mean
     scale = np.hypot(1.0, slope)
     normals = np.empty((count, 2))
-    normals[:, 0] = np.where(steep_s, 1.0, -slope) / scale
-    normals[:, 1] = np.where(steep_s, -slope, 1.0) / scale
-    offsets = (intercept - slope * a_mean) / scale
-    flip = (normals * hints).sum(axis=1) < 0.0
-    normals[flip] *= -1.0
-    offsets[flip] *= -1.0
+    normals[:, 0] = np.where(steep_s, 1.0, -slope)
+    normals[:, 1] = np.where(steep_s, -slope, 1.0)
+    # unit length, and pointing like the hints
+    sign = np.where((normals * hints).sum(axis=1) < 0.0, -1.0, 1.0) / scale
+    normals *= sign[:, None]
+    offsets = (intercept - slope * a_mean) * sign
     rms = np.sqrt(np.bincount(seg, keep * residual**2, count) / np.maximum(n, 1.0)) / scale
     for i in np.flatnonzero(ok):
         results[i] = (normals[i], float(offsets[i]), keep[bounds[i] : bounds[i + 1]].copy(), float(rms[i]))
