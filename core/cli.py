@@ -570,7 +570,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     # The detectors work on small regions, where OpenCV's thread pool costs more than it
     # gives: its workers spin after every call, on a 2-core cell PC taking the core that
     # the other process (controller or app) needs. Measured on the bench: the same
-    # detection time or better, a quarter less CPU. One thread per process.
+    # detection time or better, and a quarter less CPU than with the pool. One thread
+    # per process.
     cv2.setNumThreads(1)
     try:
         return args.run(args)
