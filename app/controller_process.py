@@ -37,7 +37,7 @@ class ControllerProcess:
     def start(cls, *, backend: str, data: Path, seed: int | None, cycle_period_s: float,
               cell: str | None = None) -> ControllerProcess:
         key = new_key()
-        command = [sys.executable, "-m", "core.cli", *(["--cell", cell] if cell else []), "controller",
+        command = [sys.executable, "-m", "core.cli", *(["--cell", cell] if cell else []), "controller", "--exit-with-parent",
                    "--backend", backend, "--data", str(data), "--cycle-period", str(cycle_period_s),
                    *(["--seed", str(seed)] if seed is not None else [])]
         # Its log goes to our standard error, as the operator's terminal shows the app's.

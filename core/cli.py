@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -311,9 +313,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_controller(args: argparse.Namespace) -> int:
-    import os
     import signal
-    import threading
 
     from core.cell_controller import CellController
     from core.channel import KEY_ENVIRONMENT, ControllerServer
@@ -336,6 +336,8 @@ def _cmd_controller(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
+    if args.exit_with_parent:
+        threading.Thread(target=_stop_when_orphaned, args=(os.getppid(), stop), name="parent-watch", daemon=True).start()
     print(json.dumps({"controller": {"host": server.address[0], "port": server.address[1],
                                      "backend": controller.rig.robot.name}}), flush=True)
     stop.wait()
@@ -345,9 +347,21 @@ def _cmd_controller(args: argparse.Namespace) -> int:
     return 0
 
 
+def _stop_when_orphaned(parent_pid: int, stop: threading.Event, period_s: float = 0.5) -> None:
+    """Set ``stop`` once this process's parent is no longer ``parent_pid``.
+
+    A parent killed outright (SIGKILL, a crash) sends no signal; its children are handed
+    to init, which changes their parent id. Polling it works for every way to die.
+    """
+    while not stop.wait(period_s):
+        if os.getppid() != parent_pid:
+            print(f"vservo controller: the process that started it ({parent_pid}) is gone: holding the robot "
+                  "and stopping", file=sys.stderr, flush=True)
+            stop.set()
+
+
 def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
     import signal
-    import threading
 
     from core.robot.jrc_emulator import FaultPlan, JrcEmulator
     from core.simulator import SimulatedCell
@@ -376,7 +390,6 @@ def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
 
 def _cmd_serve(args: argparse.Namespace) -> int:
     import logging
-    import os
 
     from app.controller_process import ControllerStartError
     from app.roles import TOKEN_ENVIRONMENT, new_token
@@ -496,6 +509,9 @@ def build_parser() -> argparse.ArgumentParser:
     controller.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
     controller.add_argument("--cycle-period", type=float, default=0.05, metavar="S",
                             help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
+    controller.add_argument("--exit-with-parent", action="store_true",
+                            help="hold the robot and exit when the process that started this one is gone "
+                                 "(`vservo serve` sets it: a killed app leaves no controller holding the cell)")
     controller.set_defaults(run=_cmd_controller)
 
     serve = commands.add_parser(

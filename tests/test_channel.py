@@ -107,6 +107,55 @@ def test_the_controller_runs_as_its_own_process(tmp_path):
     assert refused.returncode == 2 and KEY_ENVIRONMENT in refused.stderr
 
 
+# A stand-in for `vservo serve`: it starts the controller as serve does, prints its pid,
+# and waits to be killed.
+_STARTER = """
+import sys, time
+from pathlib import Path
+from app.controller_process import ControllerProcess
+controller = ControllerProcess.start(backend="sim", data=Path(sys.argv[1]), seed=2, cycle_period_s=0.05)
+print(controller.process.pid, flush=True)
+time.sleep(600)
+"""
+
+
+def _running(pid: int) -> bool:
+    """Whether the process exists and has not exited (an unreaped zombie has)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def test_a_controller_whose_app_is_killed_outright_stops_by_itself(tmp_path):
+    # SIGKILL runs no handler in the app: the orphaned controller notices its parent is
+    # gone, holds the robot and exits, freeing the cell (a real JRC's serial port).
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    log = tmp_path / "controller.stderr"
+    with open(log, "w") as stderr:
+        starter = subprocess.Popen([sys.executable, "-c", _STARTER, str(tmp_path)], stdout=subprocess.PIPE,
+                                   stderr=stderr, text=True)
+    controller_pid = int(starter.stdout.readline())
+    assert _running(controller_pid)
+    starter.send_signal(signal.SIGKILL)
+    starter.wait()
+    starter.stdout.close()
+    deadline = time.monotonic() + 60.0  # a liveness bound, not a timing: it polls every 0.5 s
+    while _running(controller_pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    orphaned = _running(controller_pid)
+    if orphaned:
+        os.kill(controller_pid, signal.SIGKILL)  # leave no stray process behind a failure
+    assert not orphaned, "the orphaned controller is still running"
+    assert "is gone: holding the robot and stopping" in log.read_text()
+
+
 class SlowMotionBackend(SimulatedBackend):
     """The simulated robot with moves that take time, as a real arm's do: wait_motion
     returns when the test lets the move finish, or at once when the robot is held."""
