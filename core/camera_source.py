@@ -125,6 +125,24 @@ class BaseSource:
             raise CameraSourceError(f"{self!r} is closed")
 
 
+def read_mono8(path: str | Path) -> NDArray[np.uint8]:
+    """The image file at ``path`` as an 8-bit single-channel image (``to_mono8``).
+
+    Raises CameraSourceError naming the file when it is missing, cannot be decoded or
+    has a layout ``to_mono8`` does not take.
+    """
+    try:
+        raw = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except OSError as exc:
+        raise CameraSourceError(f"cannot read image {str(path)!r}: {exc.strerror or exc}") from None
+    if raw is None:
+        raise CameraSourceError(f"cannot decode image {str(path)!r}")
+    try:
+        return to_mono8(raw)
+    except CameraSourceError as exc:
+        raise CameraSourceError(f"{str(path)!r}: {exc}") from None
+
+
 def to_mono8(image: np.ndarray) -> NDArray[np.uint8]:
     """A camera image as an 8-bit monochrome (H, W) array.
 
@@ -429,13 +447,7 @@ class ImageFolderSource(BaseSource):
         if self._next >= len(self.paths):
             raise SourceLost(f"end of image folder {str(self.folder)!r} after {len(self.paths)} images")
         path = self.paths[self._next]
-        raw = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise CameraSourceError(f"cannot decode image {str(path)!r}")
-        try:
-            image = to_mono8(raw)
-        except CameraSourceError as exc:
-            raise CameraSourceError(f"{str(path)!r}: {exc}") from None
+        image = read_mono8(path)
         height, width = image.shape
         if self._size is not None and (width, height) != self._size:
             raise CameraSourceError(

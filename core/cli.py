@@ -221,19 +221,14 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:
-    import cv2
-
-    from core.camera_source import CameraSourceError, to_mono8
+    from core.camera_source import CameraSourceError, read_mono8
     from core.scene import Cube
     from core.vision.pipeline import ImageFeatureExtractor, front_winding
 
-    image = cv2.imread(args.image, cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise ValueError(f"cannot read an image from {args.image}")
     try:
-        image = to_mono8(image)
+        image = read_mono8(args.image)
     except CameraSourceError as exc:
-        raise ValueError(f"{args.image}: {exc}") from None
+        raise ValueError(str(exc)) from None
     config = load_cell(args.cell)
     extractor = ImageFeatureExtractor(
         config.nominal.camera, config.nominal.laser, front_winding(Cube(np.eye(4)).corners_o),

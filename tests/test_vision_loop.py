@@ -182,7 +182,7 @@ def test_detect_reads_an_image_file(cell_config, tmp_path):
     assert found["laser_depth_mm"] == pytest.approx(162.0, abs=0.5)
     missing = subprocess.run([sys.executable, "-m", "core.cli", "detect", str(tmp_path / "none.png")],
                              capture_output=True, text=True, timeout=120)
-    assert missing.returncode == 2 and "cannot read an image" in missing.stderr
+    assert missing.returncode == 2 and "cannot read image" in missing.stderr and "none.png" in missing.stderr
 
 
 def test_a_simulated_camera_is_a_frame_source(cell_config):
