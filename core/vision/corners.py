@@ -464,8 +464,9 @@ def _well_spread(points: Matrix, start: Matrix, stop: Matrix) -> bool:
     if not len(points):
         return False
     direction = stop - start
+    length2 = float(direction @ direction)
     along = (points - start) @ direction
-    return float(along.max() - along.min()) >= _LEAST_SPAN * float(direction @ direction)
+    return length2 > 0.0 and float(along.max() - along.min()) >= _LEAST_SPAN * length2
 
 
 def _move_allowance(quad: Matrix, spot_out: list[tuple[Matrix, float]]) -> Matrix:

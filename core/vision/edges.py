@@ -116,8 +116,8 @@ def sample_strips(
         first = max(math.ceil(lo + end_margin), 0)
         last = min(math.floor(hi - end_margin), (height if steep else width) - 1)
         count = max(last - first + 1, 0)
-        # (steep, normal across, normal along, offset, extent across, row stride of a
-        # step along, of a step across) in the flattened image
+        # (steep, normal across, normal along, offset, extent across, and the index
+        # steps in the flattened image of a pixel along and of a pixel across)
         table.append((steep, n0 if steep else n1, n1 if steep else n0, float(offset), width if steep else height,
                       width if steep else 1, 1 if steep else width))
         counts.append(count)
