@@ -114,12 +114,7 @@ class CalibrationDataset:
     @classmethod
     def load(cls, path: str | Path, min_corners: int = MIN_CORNERS) -> CalibrationDataset:
         """Read and validate a dataset file (DatasetError names the file and the fault)."""
-        try:
-            arrays, metadata = read_archive(path, KIND)
-        except DatasetError:
-            raise
-        except CalibrationFileError as exc:
-            raise DatasetError(str(exc)) from None
+        arrays, metadata = read_archive(path, KIND, DatasetError)
         missing = [key for key in ("pixels_px", "world_m", "view", "bMe") if key not in arrays]
         if missing:
             raise DatasetError(f"{path}: missing array {missing[0]}")

@@ -140,12 +140,7 @@ class NNCalibration:
     def load(cls, path: str | Path, input_set: str | None = None) -> NNCalibration:
         """A trained calibration from a file; ModelFileError if it is untrained, its arrays
         do not match its layers, or it was trained on other inputs than ``input_set``."""
-        try:
-            arrays, meta = read_archive(path, KIND)
-        except ModelFileError:
-            raise
-        except CalibrationFileError as exc:
-            raise ModelFileError(str(exc)) from None
+        arrays, meta = read_archive(path, KIND, ModelFileError)
         if not meta.get("trained"):
             raise ModelFileError(f"{path}: the network was never trained; train it first (vservo calibrate train)")
         stored_set, hidden = meta.get("input_set"), meta.get("hidden")

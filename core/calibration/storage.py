@@ -38,29 +38,31 @@ def write_archive(path: str | Path, kind: str, arrays: dict[str, np.ndarray], me
     return path
 
 
-def read_archive(path: str | Path, kind: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """The arrays and metadata of a ``kind`` file; CalibrationFileError if it is anything else."""
+def read_archive(
+    path: str | Path, kind: str, error: type[CalibrationFileError] = CalibrationFileError
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The arrays and metadata of a ``kind`` file; ``error`` (a CalibrationFileError, the
+    caller's own kind) naming the file and the fault if it is anything else."""
     path = Path(path)
     if not path.is_file():
-        raise CalibrationFileError(f"{path}: no such file")
+        raise error(f"{path}: no such file")
     try:
         with np.load(path, allow_pickle=False) as npz:
             arrays = {name: npz[name] for name in npz.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise CalibrationFileError(f"{path}: not a vservo calibration file ({exc})") from None
+        raise error(f"{path}: not a vservo calibration file ({exc})") from None
     if _HEADER not in arrays:
-        raise CalibrationFileError(f"{path}: not a vservo calibration file (no header)")
+        raise error(f"{path}: not a vservo calibration file (no header)")
     try:
         header = json.loads(str(arrays.pop(_HEADER)))
     except json.JSONDecodeError as exc:
-        raise CalibrationFileError(f"{path}: corrupt header ({exc})") from None
+        raise error(f"{path}: corrupt header ({exc})") from None
     if not isinstance(header, dict) or header.get("kind") != kind:
         found = header.get("kind") if isinstance(header, dict) else None
-        raise CalibrationFileError(f"{path}: holds a {found!r}, not a {kind!r}")
+        raise error(f"{path}: holds a {found!r}, not a {kind!r}")
     if header.get("format_version") != FORMAT_VERSION:
-        raise CalibrationFileError(f"{path}: format version {header.get('format_version')!r}, this vservo reads "
-                                   f"version {FORMAT_VERSION}")
+        raise error(f"{path}: format version {header.get('format_version')!r}, this vservo reads version {FORMAT_VERSION}")
     metadata = header.get("metadata")
     if not isinstance(metadata, dict):
-        raise CalibrationFileError(f"{path}: header has no metadata table")
+        raise error(f"{path}: header has no metadata table")
     return arrays, metadata
