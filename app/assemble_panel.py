@@ -15,13 +15,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 import viser
 
-from app import live_image
-from app.client_view import ClientView
-from app.session import LiveFrame, RunTrace, SessionView
-from app.status import outcome_markdown, run_progress
+from vservo.app import live_image
+from vservo.app.client_view import ClientView
+from vservo.app.session import LiveFrame, RunTrace, SessionView
+from vservo.app.status import outcome_markdown, run_progress
 
 if TYPE_CHECKING:
-    from app.server import OperatorApp
+    from vservo.app.server import OperatorApp
 
 TWIST_NAMES = ("vx m/s", "vy m/s", "vz m/s", "wx rad/s", "wy rad/s", "wz rad/s")
 TWIST_COLOURS = ("#d62728", "#2ca02c", "#1f77b4", "#ff7f0e", "#9467bd", "#8c564b")

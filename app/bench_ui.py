@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from app.browser import (
+from vservo.app.browser import (
     dismiss_notifications,
     free_port,
     launch_chromium,
@@ -33,9 +33,9 @@ from app.browser import (
     take_control,
     wait_for_status,
 )
-from app.roles import new_token
-from app.server import IMAGE_PERIOD_S, RunningApp, ServeOptions, start_app
-from core.config import CellConfig
+from vservo.app.roles import new_token
+from vservo.app.server import IMAGE_PERIOD_S, RunningApp, ServeOptions, start_app
+from vservo.core.cell.config import CellConfig
 
 WATCH_IMAGE_TIMES = """() => {
     window.__imageTimes = [];

@@ -74,7 +74,7 @@ class ServeProcess:
               timeout_s: float = 120.0) -> ServeProcess:
         stderr_path = Path(data) / "serve.stderr"
         Path(data).mkdir(parents=True, exist_ok=True)
-        command = [sys.executable, "-m", "core.cli", "serve", "--port", str(free_port()), "--data", str(data),
+        command = [sys.executable, "-m", "vservo.app.cli", "serve", "--port", str(free_port()), "--data", str(data),
                    "--token", token, "--cycle-period", str(cycle_period_s), "--seed", str(seed)]
         with open(stderr_path, "w") as stderr:
             process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=stderr, text=True)

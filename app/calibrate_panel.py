@@ -13,12 +13,12 @@ from typing import TYPE_CHECKING, Any
 
 import viser
 
-from app.calibration_run import PRESETS, QUICK, CalibrationProgress, CalibrationRun, results_markdown
-from app.client_view import ClientView
-from app.session import SessionView
+from vservo.app.calibration_run import PRESETS, QUICK, CalibrationProgress, CalibrationRun, results_markdown
+from vservo.app.client_view import ClientView
+from vservo.app.session import SessionView
 
 if TYPE_CHECKING:
-    from app.server import OperatorApp
+    from vservo.app.server import OperatorApp
 
 
 class CalibratePanel:

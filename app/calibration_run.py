@@ -51,7 +51,7 @@ def bar_fraction(line: str) -> float | None:
 
 
 def step_command(step: str, folder: Path, preset: str, cell: str | None) -> list[str]:
-    return [sys.executable, "-m", "core.cli", *(["--cell", cell] if cell else []), "calibrate", step,
+    return [sys.executable, "-m", "vservo.app.cli", *(["--cell", cell] if cell else []), "calibrate", step,
             "--dir", str(folder), "--json", *PRESETS[preset].get(step, ())]
 
 

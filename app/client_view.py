@@ -14,8 +14,8 @@ from typing import Any
 
 import viser
 
-from app.roles import RoleRefused, Roles
-from core.channel import Reply
+from vservo.app.roles import RoleRefused, Roles
+from vservo.core.production.channel import Reply
 
 
 class ClientView:

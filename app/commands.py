@@ -19,8 +19,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from app.roles import RoleRefused, Roles
-from core.channel import ChannelError, Reply
+from vservo.app.roles import RoleRefused, Roles
+from vservo.core.production.channel import ChannelError, Reply
 
 log = logging.getLogger("vservo.app")
 

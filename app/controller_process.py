@@ -1,11 +1,11 @@
 """The controller as its own process, started and stopped by the app.
 
-``vservo serve`` runs ``python -m core.cli controller`` with a fresh random channel key
+``vservo serve`` runs ``python -m vservo.app.cli controller`` with a fresh random channel key
 in its environment (never on the command line, where ``ps`` would show it), reads the
 one JSON line with the channel's address, and connects. Stopping sends SIGTERM: the
 controller holds the robot if a run is under way, closes its devices and exits.
 If the app dies instead, the controller notices its last app leaving and holds the
-robot itself (core/channel.py).
+robot itself (core/production/channel.py).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from core.channel import KEY_ENVIRONMENT, new_key
+from vservo.core.production.channel import KEY_ENVIRONMENT, new_key
 
 START_TIMEOUT_S = 60.0  # loading the arm model and the camera takes seconds on a loaded machine
 
@@ -37,8 +37,8 @@ class ControllerProcess:
     def start(cls, *, backend: str, data: Path, seed: int | None, cycle_period_s: float,
               cell: str | None = None) -> ControllerProcess:
         key = new_key()
-        command = [sys.executable, "-m", "core.cli", *(["--cell", cell] if cell else []), "controller", "--exit-with-parent",
-                   "--backend", backend, "--data", str(data), "--cycle-period", str(cycle_period_s),
+        command = [sys.executable, "-m", "vservo.app.cli", *(["--cell", cell] if cell else []), "controller",
+                   "--exit-with-parent", "--backend", backend, "--data", str(data), "--cycle-period", str(cycle_period_s),
                    *(["--seed", str(seed)] if seed is not None else [])]
         # Its log goes to our standard error, as the operator's terminal shows the app's.
         process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env={**os.environ, KEY_ENVIRONMENT: key.hex()})

@@ -14,14 +14,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import viser
 
-from app import live_image
-from app.client_view import ClientView
-from app.session import SessionView
-from app.status import run_label, runs_table, stage_timeline
-from core.recording import Recording, RecordingError
+from vservo.app import live_image
+from vservo.app.client_view import ClientView
+from vservo.app.session import SessionView
+from vservo.app.status import run_label, runs_table, stage_timeline
+from vservo.core.perception.recording import Recording, RecordingError
 
 if TYPE_CHECKING:
-    from app.server import OperatorApp
+    from vservo.app.server import OperatorApp
 
 REPLAY_MAX_PERIOD_S = 0.2  # a slow recorded cycle is shown for at most this long
 NO_RUN = "(no runs yet)"

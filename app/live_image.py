@@ -51,7 +51,7 @@ class Overlay:
 
     @classmethod
     def from_meta(cls, meta: dict) -> Overlay:
-        """From a channel frame message's meta (core.channel.frame_message)."""
+        """From a channel frame message's meta (vservo.core.production.channel.frame_message)."""
         trail = meta.get("trail_px")
         return cls(
             corners_px=pixel_array(meta.get("corners_px"), (4, 2)),

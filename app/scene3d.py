@@ -21,14 +21,14 @@ import viser
 import viser.transforms as vtf
 from pinocchio.visualize import ViserVisualizer
 
-from app.live_image import Overlay
-from core.camera import CameraModel
-from core.config import CellConfig
-from core.kinematics import ToolMount
-from core.pose_estimation import PoseEstimationError, pose_from_planar_points
-from core.scene import Cube, MetalPart
-from core.spatial import Matrix, inverse, rot_x, transform
-from robot_models.loader import load_arm
+from vservo.app.live_image import Overlay
+from vservo.core.cell.config import CellConfig
+from vservo.core.cell.kinematics import ToolMount
+from vservo.core.cell.scene import Cube, MetalPart
+from vservo.core.geometry.camera import CameraModel
+from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
+from vservo.core.geometry.spatial import Matrix, inverse, rot_x, transform
+from vservo.robot_models.loader import load_arm
 
 RAY_LENGTH_M = 0.3  # the beam drawn when no part is known to end it on
 PART_RGB = (230, 160, 40)
@@ -136,7 +136,7 @@ class CellScene:
         server.initial_camera.look_at = (-0.28, 0.02, 0.05)
 
     def show_job(self, job: dict | None) -> None:
-        """The metal part where ``job`` (its dict, core.jobs.Job.as_dict) places the part; None hides it."""
+        """The metal part where ``job`` (its dict, vservo.core.production.jobs.Job.as_dict) places the part; None hides it."""
         for handle in self.metal:
             handle.remove()
         self.metal = []

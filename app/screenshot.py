@@ -1,6 +1,6 @@
 """The README's screenshot: the assemble view in the middle of a run on the simulated cell.
 
-    python -m app.screenshot [static/screenshots/assemble.png]
+    python -m vservo.app.screenshot [static/screenshots/assemble.png]
 
 Starts the app (as ``vservo serve`` does, on a free port and a scratch data folder),
 opens it in headless Chromium, takes control, presents a part, starts the demo job and
@@ -13,17 +13,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-from app.browser import (
-    dismiss_notifications,
-    free_port,
-    launch_chromium,
-    open_pages,
-    take_control,
-    wait_for_status,
-)
-from app.roles import new_token
-from app.server import ServeOptions, start_app
-from core.config import load_cell
+from vservo.app.browser import dismiss_notifications, free_port, launch_chromium, open_pages, take_control, wait_for_status
+from vservo.app.roles import new_token
+from vservo.app.server import ServeOptions, start_app
+from vservo.core.cell.config import load_cell
 
 DEFAULT = Path("static/screenshots/assemble.png")
 

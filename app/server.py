@@ -35,20 +35,20 @@ from typing import Any
 import numpy as np
 import viser
 
-from app import live_image
-from app.assemble_panel import AssemblePanel
-from app.calibrate_panel import CalibratePanel
-from app.client_view import ClientView
-from app.commands import CommandQueue
-from app.controller_process import ControllerProcess
-from app.history_panel import HistoryPanel
-from app.roles import RoleRefused, Roles
-from app.scene3d import CellScene
-from app.session import Session, SessionView
-from app.status import status_markdown
-from app.teach_panel import TeachPanel
-from core.channel import ChannelError, ControllerClient
-from core.config import CellConfig
+from vservo.app import live_image
+from vservo.app.assemble_panel import AssemblePanel
+from vservo.app.calibrate_panel import CalibratePanel
+from vservo.app.client_view import ClientView
+from vservo.app.commands import CommandQueue
+from vservo.app.controller_process import ControllerProcess
+from vservo.app.history_panel import HistoryPanel
+from vservo.app.roles import RoleRefused, Roles
+from vservo.app.scene3d import CellScene
+from vservo.app.session import Session, SessionView
+from vservo.app.status import status_markdown
+from vservo.app.teach_panel import TeachPanel
+from vservo.core.cell.config import CellConfig
+from vservo.core.production.channel import ChannelError, ControllerClient
 
 log = logging.getLogger("vservo.app")
 

@@ -12,8 +12,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from app.session import RunTrace
-from core.spatial import pose_from_matrix, pose_to_mm_deg
+from vservo.app.session import RunTrace
+from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
 
 PHASE_WORDS = {
     "idle": "Idle", "teaching": "Teaching", "servoing": "Servoing", "picking": "Picking", "placing": "Placing",

@@ -17,13 +17,13 @@ import numpy as np
 import viser
 import viser.transforms as vtf
 
-from app.client_view import ClientView
-from app.session import SessionView
-from app.status import teach_markdown
-from core.spatial import Matrix, pose_error, transform
+from vservo.app.client_view import ClientView
+from vservo.app.session import SessionView
+from vservo.app.status import teach_markdown
+from vservo.core.geometry.spatial import Matrix, pose_error, transform
 
 if TYPE_CHECKING:
-    from app.server import OperatorApp
+    from vservo.app.server import OperatorApp
 
 NEW_JOB = "(new job)"
 # Jog step: translation (m) and rotation (deg) per press.

@@ -50,7 +50,7 @@ def load_arm(name: str) -> ArmDescription:
         raise ValueError(f"unknown arm {name!r}: choose one of {', '.join(ARM_NAMES)}")
     urdf, package_dirs, flange_frame = _urdf_and_package_dirs(name)
     if not urdf.is_file():
-        hint = " (run `python -m robot_models.generate_urdf`)" if name == "upj" else ""
+        hint = " (run `python -m vservo.robot_models.generate_urdf`)" if name == "upj" else ""
         raise FileNotFoundError(f"URDF of arm {name!r} not found at {urdf}{hint}")
     model, collision_model, visual_model = pin.buildModelsFromUrdf(str(urdf), package_dirs=package_dirs)
     if not model.existFrame(flange_frame):

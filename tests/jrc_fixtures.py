@@ -5,10 +5,10 @@ from contextlib import contextmanager
 
 import pytest
 
-from core.config import parse_cell
-from core.robot.jrc import JrcBackend
-from core.robot.jrc_emulator import FaultPlan, JrcEmulator
 from tests.test_config import default_data
+from vservo.core.cell.config import parse_cell
+from vservo.core.robot.jrc import JrcBackend
+from vservo.core.sim.jrc_emulator import FaultPlan, JrcEmulator
 
 # Timers short enough for tests, long enough for a loaded 2-core machine.
 TEST_LINE = {"timer_a_s": 0.05, "timer_b_s": 0.5, "retry_1": 3, "retry_2": 3, "jwait_slice_s": 0.2}

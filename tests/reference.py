@@ -1,4 +1,4 @@
-"""Reference computations for the tests, written independently of core.spatial."""
+"""Reference computations for the tests, written independently of vservo.core.geometry.spatial."""
 
 import cv2
 import numpy as np

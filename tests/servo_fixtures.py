@@ -2,10 +2,10 @@
 
 import numpy as np
 
-from core.camera import sony_xc55
-from core.features import DesiredImage, ImageFeatures
-from core.simulator import visible_region
-from core.spatial import Pose6, matrix_from_pose
+from vservo.core.geometry.camera import sony_xc55
+from vservo.core.geometry.spatial import Pose6, matrix_from_pose
+from vservo.core.perception.features import DesiredImage, ImageFeatures
+from vservo.core.sim.plant import visible_region
 
 CAMERA = sony_xc55()
 SIDE = 0.02

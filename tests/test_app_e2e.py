@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.browser import (
+from vservo.app.browser import (
     ChromiumMissing,
     ServeProcess,
     choose,

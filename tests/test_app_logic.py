@@ -9,21 +9,21 @@ import cv2
 import numpy as np
 import pytest
 
-from app import live_image
-from app.calibration_run import bar_fraction, results_markdown
-from app.commands import CommandQueue
-from app.roles import RoleRefused, Roles, new_token
-from app.scene3d import PartTracker, laser_ray, part_pose_from_corners, placed_part_frame
-from app.session import Session
-from app.status import flange_text, outcome_markdown, run_progress, runs_table, stage_timeline, status_markdown
-from app.teach_panel import jog_step
-from core.cell_controller import CellController
-from core.channel import Reply
-from core.config import load_cell
-from core.jobs import read_job_file
-from core.rig import simulated_rig
-from core.spatial import matrix_from_pose, pose_from_mm_deg
-from core.storage import DEMO_JOB, Store, shipped_job_path
+from vservo.app import live_image
+from vservo.app.calibration_run import bar_fraction, results_markdown
+from vservo.app.commands import CommandQueue
+from vservo.app.roles import RoleRefused, Roles, new_token
+from vservo.app.scene3d import PartTracker, laser_ray, part_pose_from_corners, placed_part_frame
+from vservo.app.session import Session
+from vservo.app.status import flange_text, outcome_markdown, run_progress, runs_table, stage_timeline, status_markdown
+from vservo.app.teach_panel import jog_step
+from vservo.core.cell.config import load_cell
+from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg
+from vservo.core.production.cell_controller import CellController
+from vservo.core.production.channel import Reply
+from vservo.core.production.jobs import read_job_file
+from vservo.core.production.rig import simulated_rig
+from vservo.core.production.storage import DEMO_JOB, Store, shipped_job_path
 
 # -- roles -------------------------------------------------------------------------------------
 

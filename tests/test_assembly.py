@@ -9,12 +9,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from core.assembly import Phase
-from core.cell_controller import CellController, CommandRefused
-from core.cli import main
-from core.config import load_cell
-from core.rig import simulated_rig
-from core.storage import Store
+from vservo.app.cli import main
+from vservo.core.cell.config import load_cell
+from vservo.core.production.assembly import Phase
+from vservo.core.production.cell_controller import CellController, CommandRefused
+from vservo.core.production.rig import simulated_rig
+from vservo.core.production.storage import Store
 
 
 @pytest.fixture

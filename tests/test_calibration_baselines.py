@@ -4,7 +4,7 @@ recovers, what each model leaves out, and their files."""
 import numpy as np
 import pytest
 
-from core.calibration.baselines import (
+from vservo.core.calibration.baselines import (
     FreeHandEye,
     HandEyeAXXB,
     PlanarHomography,
@@ -12,9 +12,9 @@ from core.calibration.baselines import (
     load_classical,
     save_classical,
 )
-from core.calibration.dataset import CalibrationDataset
-from core.camera import CameraModel, Distortion, sony_xc55
-from core.spatial import exp_twist, inverse, rot_x, rot_z, rotation_angle, transform
+from vservo.core.calibration.dataset import CalibrationDataset
+from vservo.core.geometry.camera import CameraModel, Distortion, sony_xc55
+from vservo.core.geometry.spatial import exp_twist, inverse, rot_x, rot_z, rotation_angle, transform
 
 TABLE_Z = -0.175
 LENS = CameraModel(sony_xc55().intrinsics, Distortion(-0.16, 0.11, 6e-4, -4e-4, -0.02))

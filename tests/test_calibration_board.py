@@ -7,9 +7,9 @@ camera from its true pose (CameraModel.project), which the detector never sees.
 import numpy as np
 import pytest
 
-from core.calibration.checkerboard import BoardNotFound, Checkerboard, detect_board, find_corners
-from core.camera import CameraModel, Distortion, sony_xc55
-from core.spatial import exp_twist, rot_x, transform
+from vservo.core.calibration.checkerboard import BoardNotFound, Checkerboard, detect_board, find_corners
+from vservo.core.geometry.camera import CameraModel, Distortion, sony_xc55
+from vservo.core.geometry.spatial import exp_twist, rot_x, transform
 
 BOARD = Checkerboard.covering((-0.6, -0.3), (-0.15, 0.15), table_height_m=-0.175)
 LENS = CameraModel(sony_xc55().intrinsics, Distortion(-0.16, 0.11, 6e-4, -4e-4, -0.02))

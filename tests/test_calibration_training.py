@@ -5,11 +5,19 @@ import numpy as np
 import pytest
 import torch
 
-from core.calibration.dataset import CalibrationDataset, DatasetError
-from core.calibration.levenberg_marquardt import LMSettings, levenberg_marquardt
-from core.calibration.mlp import ModelFileError, NNCalibration, Normalisation, forward, nguyen_widrow, parameter_count, train_nn
-from core.calibration.storage import write_archive
-from core.spatial import rot_x, transform
+from vservo.core.calibration.dataset import CalibrationDataset, DatasetError
+from vservo.core.calibration.levenberg_marquardt import LMSettings, levenberg_marquardt
+from vservo.core.calibration.mlp import (
+    ModelFileError,
+    NNCalibration,
+    Normalisation,
+    forward,
+    nguyen_widrow,
+    parameter_count,
+    train_nn,
+)
+from vservo.core.calibration.storage import write_archive
+from vservo.core.geometry.spatial import rot_x, transform
 
 
 def rosenbrock(x):
@@ -49,7 +57,7 @@ def test_lm_stops_on_the_epoch_limit_and_on_a_rising_validation_error():
 
 
 def test_the_residual_jacobian_by_autograd_matches_finite_differences():
-    from core.calibration.mlp import TrainingData, residual_functions
+    from vservo.core.calibration.mlp import TrainingData, residual_functions
 
     rng = np.random.default_rng(0)
     data = TrainingData(torch.from_numpy(rng.uniform(-1, 1, (7, 4))), torch.from_numpy(rng.uniform(-1, 1, (7, 2))))
@@ -193,8 +201,8 @@ def test_a_file_that_is_not_a_dataset_is_refused(tmp_path):
 
 
 def test_the_6dof_inputs_are_height_and_the_rotation_away_from_tool_down():
-    from core.calibration.dataset import network_inputs
-    from core.spatial import exp_twist
+    from vservo.core.calibration.dataset import network_inputs
+    from vservo.core.geometry.spatial import exp_twist
 
     tool_down = transform(rot_x(np.pi), (-0.45, 0.01, 0.125))
     tilted = tool_down @ exp_twist([0, 0, 0, 0.03, -0.02, 0.1])

@@ -8,12 +8,12 @@ import sys
 import numpy as np
 import pytest
 
-from core.calibration.collection import Workspace
-from core.calibration.dataset import CalibrationDataset
-from core.calibration.levenberg_marquardt import LMSettings
-from core.calibration.tracking import TrackingSettings, sinusoid_points
-from core.calibration.workflow import CollectPlan, collect, evaluate, track, train
-from core.config import load_cell
+from vservo.core.calibration.collection import Workspace
+from vservo.core.calibration.dataset import CalibrationDataset
+from vservo.core.calibration.levenberg_marquardt import LMSettings
+from vservo.core.calibration.tracking import TrackingSettings, sinusoid_points
+from vservo.core.calibration.workflow import CollectPlan, collect, evaluate, track, train
+from vservo.core.cell.config import load_cell
 
 PATCH = Workspace(x_range_m=(-0.47, -0.43), y_range_m=(-0.02, 0.02), step_m=0.02)
 
@@ -63,7 +63,7 @@ def test_the_sinusoid_has_41_points_one_period_over_200_mm():
 
 
 def run(*args):
-    return subprocess.run([sys.executable, "-m", "core.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "vservo.app.cli", *args], capture_output=True, text=True, timeout=120)
 
 
 def test_evaluating_an_empty_folder_is_a_one_line_error(tmp_path):
@@ -77,7 +77,7 @@ def test_training_on_a_dataset_with_nan_is_a_one_line_error(tmp_path, ideal_fold
     data = CalibrationDataset.load(ideal_folder[0] / "planar.npz")
     pixels = data.pixels_px.copy()
     pixels[5, 0] = np.nan
-    from core.calibration.storage import write_archive
+    from vservo.core.calibration.storage import write_archive
 
     write_archive(tmp_path / "planar.npz", "vservo calibration dataset",
                   {"pixels_px": pixels, "world_m": data.world_m, "view": data.view, "bMe": data.bMe}, data.metadata)

@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from core.camera import CameraModel, Distortion, Intrinsics, as_points, sony_xc55
-from core.interaction import pixel_interaction_matrix, point_interaction_matrix
-from core.spatial import exp_twist, inverse, matrix_from_pose
+from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics, as_points, sony_xc55
+from vservo.core.geometry.interaction import pixel_interaction_matrix, point_interaction_matrix
+from vservo.core.geometry.spatial import exp_twist, inverse, matrix_from_pose
 
 # A realistic barrel lens on a wider camera than the XC-55, so the image corners reach
 # r ~ 0.8 in normalized units, where the higher-order terms matter.

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from core.camera_source import (
+from vservo.core.perception.camera_source import (
     CameraSourceError,
     Frame,
     FrameSource,

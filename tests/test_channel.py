@@ -8,13 +8,13 @@ import cv2
 import numpy as np
 import pytest
 
-from core.cell_controller import CellController
-from core.channel import APP_GONE, ChannelError, ControllerClient, ControllerServer, new_key
-from core.config import load_cell
-from core.rig import simulated_rig
-from core.robot.backend import SimulatedBackend
-from core.robot.safety import SafetyLayer
-from core.storage import Store
+from vservo.core.cell.config import load_cell
+from vservo.core.production.cell_controller import CellController
+from vservo.core.production.channel import APP_GONE, ChannelError, ControllerClient, ControllerServer, new_key
+from vservo.core.production.rig import simulated_rig
+from vservo.core.production.storage import Store
+from vservo.core.robot.safety import SafetyLayer
+from vservo.core.sim.backend import SimulatedBackend
 
 
 @pytest.fixture
@@ -88,11 +88,11 @@ def test_the_controller_runs_as_its_own_process(tmp_path):
     import subprocess
     import sys
 
-    from core.channel import KEY_ENVIRONMENT
+    from vservo.core.production.channel import KEY_ENVIRONMENT
 
     key = new_key()
     env = {**os.environ, KEY_ENVIRONMENT: key.hex()}
-    process = subprocess.Popen([sys.executable, "-m", "core.cli", "controller", "--data", str(tmp_path)],
+    process = subprocess.Popen([sys.executable, "-m", "vservo.app.cli", "controller", "--data", str(tmp_path)],
                                stdout=subprocess.PIPE, text=True, env=env)
     try:
         address = json.loads(process.stdout.readline())["controller"]
@@ -102,7 +102,7 @@ def test_the_controller_runs_as_its_own_process(tmp_path):
     finally:
         process.terminate()
         assert process.wait(30) == 0  # a clean stop on SIGTERM
-    refused = subprocess.run([sys.executable, "-m", "core.cli", "controller"], capture_output=True, text=True,
+    refused = subprocess.run([sys.executable, "-m", "vservo.app.cli", "controller"], capture_output=True, text=True,
                              env={k: v for k, v in os.environ.items() if k != KEY_ENVIRONMENT})
     assert refused.returncode == 2 and KEY_ENVIRONMENT in refused.stderr
 
@@ -112,7 +112,7 @@ def test_the_controller_runs_as_its_own_process(tmp_path):
 _STARTER = """
 import sys, time
 from pathlib import Path
-from app.controller_process import ControllerProcess
+from vservo.app.controller_process import ControllerProcess
 controller = ControllerProcess.start(backend="sim", data=Path(sys.argv[1]), seed=2, cycle_period_s=0.05)
 print(controller.process.pid, flush=True)
 time.sleep(600)

@@ -8,23 +8,23 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from core.cli import main
-from core.config import load_cell
-from core.kinematics import ArmKinematics
-from core.robot.jrc import JrcBackend
-from core.simulator import IK_TOLERANCE_M
-from core.spatial import pose_error
-from robot_models.loader import load_arm
-from robot_models.upj_dh import UPJ_DH
 from tests.jrc_fixtures import short_timer_cell
+from vservo.app.cli import main
+from vservo.core.cell.config import load_cell
+from vservo.core.cell.kinematics import ArmKinematics
+from vservo.core.geometry.spatial import pose_error
+from vservo.core.robot.jrc import JrcBackend
+from vservo.core.sim.plant import IK_TOLERANCE_M
+from vservo.robot_models.loader import load_arm
+from vservo.robot_models.upj_dh import UPJ_DH
 
 
 def run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "core.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "vservo.app.cli", *args], capture_output=True, text=True, timeout=120)
 
 
 def shipped_cell() -> str:
-    return resources.files("static").joinpath("cell.toml").read_text()
+    return resources.files("vservo.static").joinpath("cell.toml").read_text()
 
 
 def test_help_lists_every_command():
@@ -88,7 +88,7 @@ def test_demo_sees_the_thesis_laser_spot_and_measures_its_depth(capsys):
     corners = np.array(teach["corners_px"])
     assert np.allclose(np.ptp(corners, axis=0), [100.1, 100.1], atol=0.5)
     assert steps["elapsed_s"] == pytest.approx(10.0)
-    # The robot controller's IK stops at 0.1 um (core.simulator.IK_TOLERANCE_M).
+    # The robot controller's IK stops at 0.1 um (vservo.core.sim.plant.IK_TOLERANCE_M).
     assert steps["deviation_from_last_target_mm"] == pytest.approx(0.0, abs=IK_TOLERANCE_M * 1000.0)
 
 
@@ -103,7 +103,7 @@ def test_the_demo_steps_through_the_cells_motion_mode(tmp_path, capsys):
 
 
 def test_the_jrc_emulator_serves_a_pty_until_it_is_stopped():
-    process = subprocess.Popen([sys.executable, "-m", "core.cli", "jrc-emulator"], stdout=subprocess.PIPE,
+    process = subprocess.Popen([sys.executable, "-m", "vservo.app.cli", "jrc-emulator"], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True)
     try:
         device = process.stdout.readline().strip()

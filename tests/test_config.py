@@ -6,13 +6,13 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from core.config import ConfigError, load_cell, parse_cell
-from core.laser import LaserPointer
-from core.spatial import matrix_from_pose, pose_from_mm_deg
+from vservo.core.cell.config import ConfigError, load_cell, parse_cell
+from vservo.core.geometry.laser import LaserPointer
+from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg
 
 
 def default_data() -> dict:
-    return tomllib.loads(resources.files("static").joinpath("cell.toml").read_text())
+    return tomllib.loads(resources.files("vservo.static").joinpath("cell.toml").read_text())
 
 
 def test_default_cell_holds_the_thesis_values():
@@ -131,7 +131,7 @@ def test_missing_and_malformed_files(tmp_path):
 
 
 def test_a_cell_file_on_disk_round_trips(tmp_path):
-    text = resources.files("static").joinpath("cell.toml").read_text()
+    text = resources.files("vservo.static").joinpath("cell.toml").read_text()
     path = tmp_path / "my_cell.toml"
     path.write_text(text.replace("focal_length_mm = 6.0", "focal_length_mm = 6.02"))
     cell = load_cell(path)

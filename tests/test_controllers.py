@@ -6,11 +6,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from core.camera import CameraModel, Intrinsics
-from core.controllers.base import Failure, SingularJacobian, checked_pinv
-from core.controllers.hybrid import Hybrid25D, translation_interaction
-from core.controllers.ibvs import ClassicIbvs
-from core.controllers.laser_ibvs import (
+from tests.servo_fixtures import CAMERA, CORNERS_O, DESIRED_SPOT, DESIRED_cMo, desired_image, features, project, rotate_about
+from vservo.core.geometry.camera import CameraModel, Intrinsics
+from vservo.core.geometry.spatial import exp_twist, inverse, matrix_from_pose, transform, twist_transform
+from vservo.core.servo.laws.base import Failure, SingularJacobian, checked_pinv
+from vservo.core.servo.laws.hybrid import Hybrid25D, translation_interaction
+from vservo.core.servo.laws.ibvs import ClassicIbvs
+from vservo.core.servo.laws.laser_ibvs import (
     STAGE_1A,
     STAGE_1B,
     STAGE_2,
@@ -20,10 +22,8 @@ from core.controllers.laser_ibvs import (
     rotational_jacobian,
     translational_jacobian,
 )
-from core.controllers.pbvs import Pbvs
-from core.simulator import visible_region
-from core.spatial import exp_twist, inverse, matrix_from_pose, transform, twist_transform
-from tests.servo_fixtures import CAMERA, CORNERS_O, DESIRED_SPOT, DESIRED_cMo, desired_image, features, project, rotate_about
+from vservo.core.servo.laws.pbvs import Pbvs
+from vservo.core.sim.plant import visible_region
 
 H = 1e-6
 

@@ -9,8 +9,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from core.jobs import JobError, job_from_dict, read_job_file, write_job_file
-from core.storage import DEMO_JOB, Store, StoreError, shipped_job_path
+from vservo.core.production.jobs import JobError, job_from_dict, read_job_file, write_job_file
+from vservo.core.production.storage import DEMO_JOB, Store, StoreError, shipped_job_path
 
 
 @pytest.fixture

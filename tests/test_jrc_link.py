@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 import serial
 
-from core.kinematics import UnreachableTarget
-from core.robot.backend import RobotError
-from core.robot.bsc import (
+from tests.jrc_fixtures import TEST_LINE, TIME_SCALE, jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
+from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.geometry.spatial import Pose6, matrix_from_pose, pose_error, rot_x, transform
+from vservo.core.robot.backend import RobotError
+from vservo.core.robot.bsc import (
     ACK0,
     ACK1,
     ENQ,
@@ -29,13 +31,19 @@ from core.robot.bsc import (
     block_check,
     encode_blocks,
 )
-from core.robot.jrc import ERROR_MESSAGES, JrcBackend, JrcCommandError, JrcNotReady, describe_error, pose_from_wire, wire_pose
-from core.robot.jrc_emulator import FAULT_KINDS, FaultPlan, JrcEmulator
-from core.robot.pseudo_terminal import PseudoTerminal
-from core.robot.soak import run_soak
-from core.simulator import SimulatedCell
-from core.spatial import Pose6, matrix_from_pose, pose_error, rot_x, transform
-from tests.jrc_fixtures import TEST_LINE, TIME_SCALE, jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
+from vservo.core.robot.jrc import (
+    ERROR_MESSAGES,
+    JrcBackend,
+    JrcCommandError,
+    JrcNotReady,
+    describe_error,
+    pose_from_wire,
+    wire_pose,
+)
+from vservo.core.sim.jrc_emulator import FAULT_KINDS, FaultPlan, JrcEmulator
+from vservo.core.sim.plant import SimulatedCell
+from vservo.core.sim.pseudo_terminal import PseudoTerminal
+from vservo.core.study.link_soak import run_soak
 
 pytestmark = pytest.mark.usefixtures("no_leaked_threads")
 

@@ -6,11 +6,11 @@ from contextlib import ExitStack
 
 import pytest
 
-from core.robot.safety import SafetyLayer
-from core.step_policy import DividedPositionStep
-from core.study import RunSettings, run_task
-from core.tasks import TASKS
 from tests.jrc_fixtures import jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
+from vservo.core.robot.safety import SafetyLayer
+from vservo.core.servo.step_policy import DividedPositionStep
+from vservo.core.study.run import RunSettings, run_task
+from vservo.core.study.tasks import TASKS
 
 pytestmark = pytest.mark.usefixtures("no_leaked_threads")
 

@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.kinematics import ArmKinematics, ToolMount, UnreachableTarget
-from core.spatial import inverse, rot_x, rot_y, rot_z, theta_u, transform
-from robot_models.generate_urdf import UPJ_URDF_PATH, urdf_from_dh
-from robot_models.loader import ARM_NAMES, load_arm
-from robot_models.upj_dh import UPJ_DH
+from vservo.core.cell.kinematics import ArmKinematics, ToolMount, UnreachableTarget
+from vservo.core.geometry.spatial import inverse, rot_x, rot_y, rot_z, theta_u, transform
+from vservo.robot_models.generate_urdf import UPJ_URDF_PATH, urdf_from_dh
+from vservo.robot_models.loader import ARM_NAMES, load_arm
+from vservo.robot_models.upj_dh import UPJ_DH
 
 # A camera off the flange axis and tilted, so that errors in the tool frames show.
 MOUNT = ToolMount(

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.camera import CameraModel, Distortion, Intrinsics, sony_xc55
-from core.laser import LaserPointer, Ray, in_plane_range
-from core.spatial import matrix_from_pose, pose_from_mm_deg, rotation_from_rpy, transform
+from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics, sony_xc55
+from vservo.core.geometry.laser import LaserPointer, Ray, in_plane_range
+from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg, rotation_from_rpy, transform
 
 BASELINE = 0.030
 ALPHA = np.deg2rad(80.0)

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from core.plots import (
+from vservo.core.study.plots import (
     PALETTE,
     Axes,
     Series,

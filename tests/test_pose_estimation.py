@@ -1,6 +1,6 @@
 """Pose from image points against ground truth projected by OpenCV.
 
-Poses are drawn with core.spatial.matrix_from_pose and projected with cv2.projectPoints
+Poses are drawn with vservo.core.geometry.spatial.matrix_from_pose and projected with cv2.projectPoints
 (distortion included), errors are measured with OpenCV's Rodrigues, so nothing here
 reuses the code under test to build what it is compared with.
 """
@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from core.camera import CameraModel, Distortion, Intrinsics
-from core.pose_estimation import (
+from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
+from vservo.core.geometry.pose_estimation import (
     HomographyMotion,
     PoseEstimationError,
     decompose_homography,
@@ -21,7 +21,7 @@ from core.pose_estimation import (
     pose_from_planar_points,
     pose_from_posit,
 )
-from core.spatial import exp_twist, inverse, matrix_from_pose
+from vservo.core.geometry.spatial import exp_twist, inverse, matrix_from_pose
 
 # The thesis's XC-55 geometry (f = 810.8 px, 640 x 480) with a moderate barrel lens, so
 # that the undistortion is exercised.

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.camera_source import CameraSourceError, Frame, FrameSource, SourceLost
-from core.controllers.base import ControlOutput, Failure
-from core.recording import (
+from vservo.core.geometry.spatial import Pose6
+from vservo.core.perception.camera_source import CameraSourceError, Frame, FrameSource, SourceLost
+from vservo.core.perception.recording import (
     FORMAT_VERSION,
     PlaybackSource,
     Recording,
@@ -23,7 +23,7 @@ from core.recording import (
     to_jsonable,
     write_atomic,
 )
-from core.spatial import Pose6
+from vservo.core.servo.laws.base import ControlOutput, Failure
 
 SIZE = (40, 30)  # width, height
 META = {"cell": "pedestal", "camera": {"index": 0, "model": "mono"}, "fx": np.float64(800.0)}

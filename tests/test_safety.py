@@ -10,11 +10,10 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from core.controllers.base import ControlOutput, Failure
-from core.robot.backend import SimulatedBackend
-from core.robot.factory import robot_from_config
-from core.robot.jrc import JrcBackend
-from core.robot.safety import (
+from tests.jrc_fixtures import jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
+from vservo.core.geometry.spatial import pose_error, rot_z, transform
+from vservo.core.robot.jrc import JrcBackend
+from vservo.core.robot.safety import (
     BeyondJointLimits,
     OutsideWorkspace,
     SafetyLayer,
@@ -23,13 +22,14 @@ from core.robot.safety import (
     StepTooLarge,
     TooFast,
 )
-from core.servo_loop import LoopLimits, run_servo
-from core.simulator import SimulatedCell
-from core.spatial import pose_error, rot_z, transform
-from core.step_policy import DividedPositionStep
-from core.study import teach
-from core.tasks import TASKS
-from tests.jrc_fixtures import jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
+from vservo.core.servo.laws.base import ControlOutput, Failure
+from vservo.core.servo.loop import LoopLimits, run_servo
+from vservo.core.servo.step_policy import DividedPositionStep
+from vservo.core.sim.backend import SimulatedBackend
+from vservo.core.sim.plant import SimulatedCell
+from vservo.core.sim.robot_factory import robot_from_config
+from vservo.core.study.run import teach
+from vservo.core.study.tasks import TASKS
 
 pytestmark = pytest.mark.usefixtures("no_leaked_threads")
 

@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from core.laser import Ray
-from core.scene import Box, Cube, MetalPart, Scene
-from core.spatial import transform
 from tests.reference import homogeneous, random_unit, rodrigues
+from vservo.core.cell.scene import Box, Cube, MetalPart, Scene
+from vservo.core.geometry.laser import Ray
+from vservo.core.geometry.spatial import transform
 
 # ---------------------------------------------------------------------------------------
-# Independent references (no core.spatial beyond building inputs)
+# Independent references (no vservo.core.geometry.spatial beyond building inputs)
 # ---------------------------------------------------------------------------------------
 
 

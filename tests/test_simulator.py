@@ -7,18 +7,19 @@ import cv2
 import numpy as np
 import pytest
 
-from core.config import parse_cell
-from core.kinematics import UnreachableTarget
-from core.simulator import IK_TOLERANCE_M, SimulatedCell
-from core.spatial import Pose6, exp_twist, inverse, matrix_from_pose, pose_error, transform, twist_transform
-from core.step_policy import DividedPositionStep, IntegratedVelocity, PositionCommand, VelocityCommand
+from vservo.core.cell.config import parse_cell
+from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.geometry.spatial import Pose6, exp_twist, inverse, matrix_from_pose, pose_error, transform, twist_transform
+from vservo.core.robot.commands import PositionCommand, VelocityCommand
+from vservo.core.servo.step_policy import DividedPositionStep, IntegratedVelocity
+from vservo.core.sim.plant import IK_TOLERANCE_M, SimulatedCell
 
 # Task 1 of Table 5-1: cube 162 mm in front of the camera, centred near the laser spot.
 TEACH_cMo = matrix_from_pose(Pose6(0.011, -0.01, 0.162, np.pi, 0.0, -np.pi))
 
 
 def cell_data(**simulation) -> dict:
-    data = tomllib.loads(resources.files("static").joinpath("cell.toml").read_text())
+    data = tomllib.loads(resources.files("vservo.static").joinpath("cell.toml").read_text())
     data["simulation"].update(simulation)
     return data
 

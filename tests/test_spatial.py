@@ -1,4 +1,4 @@
-"""Rigid-body conventions, checked against computations that do not go through core.spatial.
+"""Rigid-body conventions, checked against computations that do not go through vservo.core.geometry.spatial.
 
 References used here: the element-by-element matrix of eq. 2-13, OpenCV's Rodrigues, a
 numpy scaling-and-squaring matrix exponential, np.linalg.inv, and finite differences.
@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from core.spatial import (
+from tests.reference import homogeneous, random_unit, rodrigues
+from vservo.core.geometry.spatial import (
     Pose6,
     exp_twist,
     interpolate,
@@ -29,7 +30,6 @@ from core.spatial import (
     transform,
     twist_transform,
 )
-from tests.reference import homogeneous, random_unit, rodrigues
 
 # ---------------------------------------------------------------------------------------
 # Independent references
@@ -84,7 +84,7 @@ def random_pose(rng, theta_limit=np.pi / 2):
 
 
 def random_rigid(rng):
-    """A random aMb built without core.spatial."""
+    """A random aMb built without vservo.core.geometry.spatial."""
     return homogeneous(rodrigues(random_unit(rng) * rng.uniform(0.0, np.pi)), rng.uniform(-1.0, 1.0, 3))
 
 

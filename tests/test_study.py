@@ -10,17 +10,18 @@ import cv2
 import numpy as np
 import pytest
 
-from core.config import load_cell
-from core.controllers.base import ControlOutput, Failure
-from core.montecarlo import DEPTH_RANGE_M, MAX_ROTATION_RAD, MAX_TRANSLATION_M, draw_initial_cMo, run_montecarlo
-from core.report import reproduce
-from core.servo_loop import LoopLimits, run_servo
-from core.simulate import simulate
-from core.simulator import SimulatedCell, visible_region
-from core.spatial import inverse, pose_error
-from core.step_policy import IntegratedVelocity
-from core.study import RunSettings, run_task, teach
-from core.tasks import ROBUSTNESS_TASK, TASKS, THESIS_PATH_LENGTH_M
+from vservo.core.cell.config import load_cell
+from vservo.core.geometry.spatial import inverse, pose_error
+from vservo.core.servo.laws.base import ControlOutput, Failure
+from vservo.core.servo.loop import LoopLimits, run_servo
+from vservo.core.servo.step_policy import IntegratedVelocity
+from vservo.core.sim.backend import SimulatedBackend
+from vservo.core.sim.plant import SimulatedCell, visible_region
+from vservo.core.study.montecarlo import DEPTH_RANGE_M, MAX_ROTATION_RAD, MAX_TRANSLATION_M, draw_initial_cMo, run_montecarlo
+from vservo.core.study.report import reproduce
+from vservo.core.study.run import RunSettings, run_task, teach
+from vservo.core.study.simulate import simulate
+from vservo.core.study.tasks import ROBUSTNESS_TASK, TASKS, THESIS_PATH_LENGTH_M
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +100,8 @@ def test_the_loop_names_no_progress_and_the_iteration_limit(cell_config):
     cell.place_cube(TASKS[2].placement.bMo(scene.table_height_m, scene.cube.side_m))
     desired = teach(cell, TASKS[2].desired_cMo, cell_config.nominal)
     policy = IntegratedVelocity(0.1)
-    stuck = run_servo(cell, Stalled(), desired, cell_config.nominal, policy, LoopLimits(progress_window=20))
+    stuck = run_servo(cell, Stalled(), desired, cell_config.nominal, policy, LoopLimits(progress_window=20),
+                      robot=SimulatedBackend.enabled(cell))
     assert stuck.failure is Failure.NO_PROGRESS and stuck.iterations == 21
     short = run_task(cell_config, TASKS[2], RunSettings(method="laser", max_iterations=5))
     assert short.outcome.failure is Failure.ITERATION_LIMIT and short.outcome.iterations == 5
@@ -121,7 +123,8 @@ def test_a_non_finite_twist_never_reaches_the_robot(cell_config):
     cell.place_cube(TASKS[2].placement.bMo(scene.table_height_m, scene.cube.side_m))
     desired = teach(cell, TASKS[2].desired_cMo, cell_config.nominal)
     q_before = cell.state.q.copy()
-    outcome = run_servo(cell, Broken(), desired, cell_config.nominal, IntegratedVelocity(0.1))
+    outcome = run_servo(cell, Broken(), desired, cell_config.nominal, IntegratedVelocity(0.1),
+                        robot=SimulatedBackend.enabled(cell))
     assert outcome.failure is Failure.SINGULAR_JACOBIAN and "non-finite" in outcome.reason
     assert np.array_equal(cell.state.q, q_before)
 
@@ -157,7 +160,8 @@ def test_the_robustness_test_converges_with_the_spot_off_its_row(runs):
 
 
 def simulate_cli(*args):
-    return subprocess.run([sys.executable, "-m", "core.cli", "simulate", *args], capture_output=True, text=True, timeout=300)
+    return subprocess.run([sys.executable, "-m", "vservo.app.cli", "simulate", *args], capture_output=True, text=True,
+                          timeout=300)
 
 
 def test_simulate_prints_one_json_object_with_every_field():
@@ -237,7 +241,7 @@ def test_reproduce_writes_the_report_figures_and_results(tmp_path):
 
 def test_teaching_sees_the_desired_features_of_table_5_2(cell_config):
     """The taught images at the desired poses are the corrected sets of Table 5-2 within 3 px."""
-    from core.tasks import THESIS_DESIRED_FEATURES_PX, THESIS_DESIRED_LASER_PX, distance_to_thesis_set
+    from vservo.core.study.tasks import THESIS_DESIRED_FEATURES_PX, THESIS_DESIRED_LASER_PX, distance_to_thesis_set
 
     scene = cell_config.simulation.scene
     for task, feature_set in ((1, 2), (2, 1), (3, 2), (4, 1)):

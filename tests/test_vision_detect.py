@@ -17,13 +17,13 @@ import cv2
 import numpy as np
 import pytest
 
-from core.features import polygon_moments
-from core.vision.bands import banded_lines, coverage
-from core.vision.corners import CornerDetection, detect_corners
-from core.vision.edges import bright_contours, image_problem, running_median, sample_strips
-from core.vision.least_squares import levenberg_marquardt
-from core.vision.region import RegionDetection, detect_object_region
-from core.vision.spot import SpotDetection, detect_laser_spot
+from vservo.core.perception.features import polygon_moments
+from vservo.core.perception.vision.bands import banded_lines, coverage
+from vservo.core.perception.vision.corners import CornerDetection, detect_corners
+from vservo.core.perception.vision.edges import bright_contours, image_problem, running_median, sample_strips
+from vservo.core.perception.vision.least_squares import levenberg_marquardt
+from vservo.core.perception.vision.region import RegionDetection, detect_object_region
+from vservo.core.perception.vision.spot import SpotDetection, detect_laser_spot
 
 SHAPE = (480, 640)
 TABLE, TOP, MARK = 60.0, 205.0, 35.0
@@ -40,7 +40,7 @@ def render(layers=(), discs=(), spots=(), shape=SHAPE, noise=0.0, gradient=0.0, 
     """A uint8 frame: ``layers`` [(convex polygon (N, 2), level)] then ``discs``
     [(centre, radius, level)] painted in order over the table, box-filtered to pixels;
     then uneven light (``gradient``: +-fraction across the frame), the spots (Gaussians
-    of peak ``spot_peak`` added on top: 255, or 800 like core.render's laser, which
+    of peak ``spot_peak`` added on top: 255, or 800 like vservo.core.sim.render's laser, which
     clips a wider core) and Gaussian noise, clipped to 0..255."""
     height, width = shape
     img = np.full(shape, table, np.float64)

@@ -8,20 +8,20 @@ import cv2
 import numpy as np
 import pytest
 
-from core.camera_source import Frame
-from core.config import load_cell
-from core.controllers.base import Failure
-from core.features import ImageFeatures
-from core.render import FrameFault, RenderSettings
-from core.replay import replay
-from core.scene import Cube
-from core.servo_loop import LoopLimits
-from core.sim_camera import SimulatedCamera
-from core.simulator import SimulatedCell
-from core.spatial import inverse
-from core.study import RunSettings, run_task
-from core.tasks import TASKS
-from core.vision.pipeline import ImageFeatureExtractor, front_winding, winding_of
+from vservo.core.cell.config import load_cell
+from vservo.core.cell.scene import Cube
+from vservo.core.geometry.spatial import inverse
+from vservo.core.perception.camera_source import Frame
+from vservo.core.perception.features import ImageFeatures
+from vservo.core.perception.vision.pipeline import ImageFeatureExtractor, front_winding, winding_of
+from vservo.core.servo.laws.base import Failure
+from vservo.core.servo.loop import LoopLimits
+from vservo.core.sim.camera import SimulatedCamera
+from vservo.core.sim.plant import SimulatedCell
+from vservo.core.sim.render import FrameFault, RenderSettings
+from vservo.core.study.replay import replay
+from vservo.core.study.run import RunSettings, run_task
+from vservo.core.study.tasks import TASKS
 
 
 @pytest.fixture(scope="module")
@@ -171,7 +171,7 @@ def test_detect_reads_an_image_file(cell_config, tmp_path):
     cell.place_camera(TASKS[2].desired_cMo)
     path = tmp_path / "view.png"
     cv2.imwrite(str(path), cv2.cvtColor(SimulatedCamera(cell).read().image, cv2.COLOR_GRAY2BGR))
-    result = subprocess.run([sys.executable, "-m", "core.cli", "detect", str(path), "--json"],
+    result = subprocess.run([sys.executable, "-m", "vservo.app.cli", "detect", str(path), "--json"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     found = json.loads(result.stdout)
@@ -180,7 +180,7 @@ def test_detect_reads_an_image_file(cell_config, tmp_path):
     truth = cell.truth.model.camera.project(cell.state.scene.cube.corners_b @ cMb[:3, :3].T + cMb[:3, 3])
     assert np.abs(np.array(found["corners"]["px"]) - truth).max() < 0.3
     assert found["laser_depth_mm"] == pytest.approx(162.0, abs=0.5)
-    missing = subprocess.run([sys.executable, "-m", "core.cli", "detect", str(tmp_path / "none.png")],
+    missing = subprocess.run([sys.executable, "-m", "vservo.app.cli", "detect", str(tmp_path / "none.png")],
                              capture_output=True, text=True, timeout=120)
     assert missing.returncode == 2 and "cannot read image" in missing.stderr and "none.png" in missing.stderr
 

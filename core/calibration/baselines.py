@@ -35,11 +35,11 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from core.calibration.checkerboard import table_points
-from core.calibration.dataset import CalibrationDataset
-from core.calibration.storage import CalibrationFileError, read_archive, write_archive
-from core.camera import CameraModel, Distortion, Intrinsics
-from core.spatial import Matrix, inverse, theta_u, transform
+from vservo.core.calibration.checkerboard import table_points
+from vservo.core.calibration.dataset import CalibrationDataset
+from vservo.core.calibration.storage import CalibrationFileError, read_archive, write_archive
+from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
+from vservo.core.geometry.spatial import Matrix, inverse, theta_u, transform
 
 KIND = "vservo classical calibration"
 

@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from core.calibration.collection import Collector, Workspace
-from core.calibration.levenberg_marquardt import LMSettings
-from core.calibration.mlp import train_nn
-from core.config import CellConfig
+from vservo.core.calibration.collection import Collector, Workspace
+from vservo.core.calibration.levenberg_marquardt import LMSettings
+from vservo.core.calibration.mlp import train_nn
+from vservo.core.cell.config import CellConfig
 
 TARGET_S = 30.0
 

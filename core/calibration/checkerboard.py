@@ -21,7 +21,7 @@ from the simulator's truth. A view whose best naming leaves corners more than ha
 square from the model, that two namings fit about equally, or whose grid the detector
 linked unevenly, is refused (``BoardNotFound``), as an engineer would discard it.
 
-Rendering uses the exact-area rasteriser of the synthetic camera (core.render): each
+Rendering uses the exact-area rasteriser of the synthetic camera (vservo.core.sim.render): each
 black square's edges are subdivided and pushed through the lens distortion, so the
 image is what the TRUE camera (intrinsics and distortion) sees from its TRUE pose.
 """
@@ -34,9 +34,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from core.camera import CameraModel
-from core.render import rasterize
-from core.spatial import Matrix, inverse
+from vservo.core.geometry.camera import CameraModel
+from vservo.core.geometry.spatial import Matrix, inverse
+from vservo.core.sim.render import rasterize
 
 # Chords per square edge: a distorted edge of ~27 px becomes 8 chords of ~3 px, whose
 # sagitta is far below a thousandth of a pixel for any realistic lens.

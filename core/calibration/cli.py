@@ -7,9 +7,9 @@ import json
 from pathlib import Path
 from typing import Any
 
-from core.calibration.collection import TRUTHS, Workspace
-from core.calibration.dataset import INPUT_SETS
-from core.calibration.tracking import TrackingSettings
+from vservo.core.calibration.collection import TRUTHS, Workspace
+from vservo.core.calibration.dataset import INPUT_SETS
+from vservo.core.calibration.tracking import TrackingSettings
 
 
 def _number(kind: type, low: float, strict: bool) -> Any:
@@ -63,13 +63,13 @@ def _emit(result: dict[str, Any], as_json: bool) -> None:
 
 
 def _config(args: argparse.Namespace):
-    from core.config import load_cell
+    from vservo.core.cell.config import load_cell
 
     return load_cell(args.cell)
 
 
 def _cmd_collect(args: argparse.Namespace) -> int:
-    from core.calibration.workflow import CollectPlan, collect
+    from vservo.core.calibration.workflow import CollectPlan, collect
 
     defaults = Workspace()
     workspace = Workspace(args.x_range_mm or defaults.x_range_m, args.y_range_mm or defaults.y_range_m,
@@ -81,13 +81,13 @@ def _cmd_collect(args: argparse.Namespace) -> int:
 
 
 def _settings(args: argparse.Namespace) -> Any:
-    from core.calibration.levenberg_marquardt import LMSettings
+    from vservo.core.calibration.levenberg_marquardt import LMSettings
 
     return LMSettings(epochs=args.epochs, goal=args.goal)
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from core.calibration.workflow import train
+    from vservo.core.calibration.workflow import train
 
     _emit(train(_config(args), Path(args.dir), args.inputs, args.samples, args.validation, _settings(args), args.seed,
                 args.hidden), args.json)
@@ -95,14 +95,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from core.calibration.workflow import evaluate
+    from vservo.core.calibration.workflow import evaluate
 
     _emit(evaluate(Path(args.dir), "test" if args.test == "held-out" else "varying_test"), args.json)
     return 0
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
-    from core.calibration.workflow import track
+    from vservo.core.calibration.workflow import track
 
     settings = TrackingSettings(gain=args.gain, seconds_per_point=args.seconds_per_point)
     _emit(track(_config(args), Path(args.dir), args.test, args.points, args.amplitude_mm / 1000.0, settings, args.seed),
@@ -111,7 +111,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from core.calibration.workflow import compare
+    from vservo.core.calibration.workflow import compare
 
     result = compare(_config(args), Path(args.dir), args.noise_px, args.seed, samples=args.samples,
                      settings=_settings(args), points=args.points)

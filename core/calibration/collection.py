@@ -37,14 +37,14 @@ from typing import Any
 
 import numpy as np
 
-from core.calibration.checkerboard import BoardNotFound, Checkerboard, detect_board
-from core.calibration.dataset import CalibrationDataset, bRe_TOOL_DOWN
-from core.camera import CameraModel, Distortion, Intrinsics
-from core.config import CellConfig, CellModel
-from core.kinematics import UnreachableTarget
-from core.simulator import SimulatedCell
-from core.spatial import Matrix, exp_twist, inverse, matrix_from_pose, pose_from_mm_deg, rot_z, transform
-from core.step_policy import PositionCommand
+from vservo.core.calibration.checkerboard import BoardNotFound, Checkerboard, detect_board
+from vservo.core.calibration.dataset import CalibrationDataset, bRe_TOOL_DOWN
+from vservo.core.cell.config import CellConfig, CellModel
+from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
+from vservo.core.geometry.spatial import Matrix, exp_twist, inverse, matrix_from_pose, pose_from_mm_deg, rot_z, transform
+from vservo.core.robot.commands import PositionCommand
+from vservo.core.sim.plant import SimulatedCell
 
 TRUTHS = ("ideal", "realistic", "cell")
 MOVE_SPEED_M_S = 0.1

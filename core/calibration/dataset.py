@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from core.calibration.storage import CalibrationFileError, read_archive, write_archive
-from core.spatial import Matrix, rot_x, theta_u
+from vservo.core.calibration.storage import CalibrationFileError, read_archive, write_archive
+from vservo.core.geometry.spatial import Matrix, rot_x, theta_u
 
 KIND = "vservo calibration dataset"
 # A fit of the 4-20-2 MLP has 142 weights: fewer corners than this cannot pin it down,
@@ -30,7 +30,7 @@ MIN_CORNERS = 150
 bRe_TOOL_DOWN = rot_x(np.pi)
 
 
-# The NN's input sets (core.calibration.mlp), all derived from a dataset's rows.
+# The NN's input sets (vservo.core.calibration.mlp), all derived from a dataset's rows.
 INPUT_SETS: dict[str, tuple[str, ...]] = {
     "planar": ("u", "v", "Tx", "Ty"),
     "height": ("u", "v", "Tx", "Ty", "Tz"),

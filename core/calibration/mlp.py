@@ -35,10 +35,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from core.calibration.dataset import INPUT_SETS, CalibrationDataset, network_inputs
-from core.calibration.levenberg_marquardt import LMResult, LMSettings, levenberg_marquardt
-from core.calibration.storage import CalibrationFileError, read_archive, write_archive
-from core.spatial import Matrix
+from vservo.core.calibration.dataset import INPUT_SETS, CalibrationDataset, network_inputs
+from vservo.core.calibration.levenberg_marquardt import LMResult, LMSettings, levenberg_marquardt
+from vservo.core.calibration.storage import CalibrationFileError, read_archive, write_archive
+from vservo.core.geometry.spatial import Matrix
 
 KIND = "vservo NN hand-eye calibration"
 HIDDEN_UNITS = 20

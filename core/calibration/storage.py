@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from core.recording import to_jsonable, write_atomic
+from vservo.core.perception.recording import to_jsonable, write_atomic
 
 FORMAT_VERSION = 1
 _HEADER = "header_json"

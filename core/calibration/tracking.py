@@ -34,14 +34,14 @@ from typing import Any
 
 import numpy as np
 
-from core.calibration.baselines import PlanarCalibration
-from core.calibration.collection import MOVE_SPEED_M_S, cell_with_truth
-from core.calibration.dataset import bRe_TOOL_DOWN
-from core.config import CellConfig
-from core.kinematics import UnreachableTarget
-from core.simulator import SimulatedCell
-from core.spatial import Matrix, inverse, transform
-from core.step_policy import PositionCommand, VelocityCommand
+from vservo.core.calibration.baselines import PlanarCalibration
+from vservo.core.calibration.collection import MOVE_SPEED_M_S, cell_with_truth
+from vservo.core.calibration.dataset import bRe_TOOL_DOWN
+from vservo.core.cell.config import CellConfig
+from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.geometry.spatial import Matrix, inverse, transform
+from vservo.core.robot.commands import PositionCommand, VelocityCommand
+from vservo.core.sim.plant import SimulatedCell
 
 SINUSOID_CENTRE_M = (-0.450, 0.0)
 

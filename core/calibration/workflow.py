@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from core.calibration.baselines import (
+from vservo.core.calibration.baselines import (
     FreeHandEye,
     HandEyeAXXB,
     PlanarCalibration,
@@ -32,11 +32,11 @@ from core.calibration.baselines import (
     load_classical,
     save_classical,
 )
-from core.calibration.collection import Collector, Workspace, add_pixel_noise, cell_with_truth
-from core.calibration.dataset import INPUT_SETS, CalibrationDataset, DatasetError
-from core.calibration.levenberg_marquardt import LMSettings
-from core.calibration.mlp import HIDDEN_UNITS, NNCalibration, train_nn
-from core.calibration.tracking import (
+from vservo.core.calibration.collection import Collector, Workspace, add_pixel_noise, cell_with_truth
+from vservo.core.calibration.dataset import INPUT_SETS, CalibrationDataset, DatasetError
+from vservo.core.calibration.levenberg_marquardt import LMSettings
+from vservo.core.calibration.mlp import HIDDEN_UNITS, NNCalibration, train_nn
+from vservo.core.calibration.tracking import (
     Tracker,
     TrackingSettings,
     error_summary,
@@ -44,8 +44,8 @@ from core.calibration.tracking import (
     sinusoid_points,
     tracking_summary,
 )
-from core.config import CellConfig
-from core.progress import Progress
+from vservo.core.cell.config import CellConfig
+from vservo.core.progress import Progress
 
 CLASSICAL = ("free_hand_eye", "axxb", "planar_homography")
 NN_FILES = {"planar": "nn", "height": "nn_height", "pose": "nn_pose"}
@@ -247,7 +247,7 @@ def compare(config: CellConfig, folder: Path, noise_levels: Sequence[float] = (0
 
 
 def _realistic_description(config: CellConfig) -> dict[str, Any]:
-    from core.calibration import collection
+    from vservo.core.calibration import collection
 
     truth = cell_with_truth(config, "realistic").simulation
     return {"distortion_k1_k2_p1_p2_k3": truth.truth.camera.distortion.as_opencv().tolist(),

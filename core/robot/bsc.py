@@ -33,8 +33,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from core.config import JrcLineConfig
-from core.robot.backend import RobotError
+from vservo.core.cell.config import JrcLineConfig
+from vservo.core.robot.backend import RobotError
 
 log = logging.getLogger("vservo.bsc")
 

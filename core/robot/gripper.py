@@ -10,8 +10,6 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from core.simulator import SimulatedCell
-
 
 class VacuumGripper(Protocol):
     def set_vacuum(self, on: bool) -> None: ...
@@ -20,14 +18,3 @@ class VacuumGripper(Protocol):
         ...
 
 
-class SimulatedVacuum:
-    """The simulated cell's cup: it grips only where the true cup meets the true part."""
-
-    def __init__(self, cell: SimulatedCell) -> None:
-        self.cell = cell
-
-    def set_vacuum(self, on: bool) -> None:
-        self.cell.vacuum(on)
-
-    def holding(self) -> bool:
-        return self.cell.holding_part

@@ -9,7 +9,7 @@ target), IMOV (incremental linear move), JWAIT (wait for the end of the motion).
 Units and angles at the wire: X, Y, Z in mm, Rx, Ry, Rz in degrees, base coordinates.
 Rx, Ry, Rz are taken as fixed-axis rotations about the base X, then Y, then Z, so
 R = Rz(Rz) Ry(Ry) Rx(Rx): eq. 2-13 with phi = Rz, theta = Ry, psi = Rx
-(core/spatial.py). RPOSC is asked for tool 0, taken to be the bare flange: bMe. Both
+(core/geometry/spatial.py). RPOSC is asked for tool 0, taken to be the bare flange: bMe. Both
 are the conventions of the Yaskawa manuals of the family and need one check on the real
 controller (jog about one axis, compare the pendant's readout with ``read_pose``).
 
@@ -30,11 +30,11 @@ from dataclasses import dataclass
 import numpy as np
 import serial
 
-from core.config import JrcLineConfig
-from core.kinematics import UnreachableTarget
-from core.robot.backend import RobotError, RobotNotReady, RobotStatus
-from core.robot.bsc import BscStation, ByteChannel, LinkError, Message
-from core.spatial import Matrix, Pose6, matrix_from_pose, pose_from_matrix, pose_from_mm_deg, pose_to_mm_deg
+from vservo.core.cell.config import JrcLineConfig
+from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.geometry.spatial import Matrix, Pose6, matrix_from_pose, pose_from_matrix, pose_from_mm_deg, pose_to_mm_deg
+from vservo.core.robot.backend import RobotError, RobotNotReady, RobotStatus
+from vservo.core.robot.bsc import BscStation, ByteChannel, LinkError, Message
 
 log = logging.getLogger("vservo.jrc")
 

@@ -25,11 +25,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from core.config import CellConfig, SafetyConfig
-from core.kinematics import ArmKinematics, UnreachableTarget
-from core.robot.backend import RobotBackend, RobotError, RobotStatus, apply_increment, move_and_wait
-from core.spatial import Matrix, interpolate, pose_error
-from robot_models.loader import load_arm
+from vservo.core.cell.config import CellConfig, SafetyConfig
+from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
+from vservo.core.geometry.spatial import Matrix, interpolate, pose_error
+from vservo.core.robot.backend import RobotBackend, RobotError, RobotStatus, apply_increment, move_and_wait
+from vservo.robot_models.loader import load_arm
 
 log = logging.getLogger("vservo.safety")
 

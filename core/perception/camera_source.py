@@ -1,0 +1,461 @@
+"""Where images come from: a live camera, a video file or stream, still images, a recording.
+
+Every source hands out ``Frame`` objects through one small interface, ``FrameSource``:
+``read()`` blocks until the next frame and raises ``SourceLost`` once the source cannot
+deliver anymore; ``close()`` releases it; a source is a context manager. Frames are
+always monochrome 8-bit (H, W) arrays, the camera of the cell being monochrome: colour
+frames are converted to grey and 16-bit frames keep their high byte (``to_mono8``).
+
+Timestamps depend on the source: a live source (camera, stream, video file played as if
+live) stamps each frame with a monotonic clock when ``read`` gets it, playback of a
+recording (``vservo.core.perception.recording.PlaybackSource``) gives the recorded time and a simulated
+source the simulation time. Only differences between the timestamps of one source mean
+anything. Sizes are (width, height) in pixels, as OpenCV and ``CameraModel`` give them;
+``Frame.image`` has the numpy shape (height, width).
+
+Sources are not thread-safe: one consumer reads each source.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+log = logging.getLogger("vservo.camera")
+
+Size = tuple[int, int]  # (width, height) in pixels
+
+
+class CameraSourceError(RuntimeError):
+    """A source that cannot be opened, or a frame it delivered that cannot be used."""
+
+
+class SourceLost(CameraSourceError):
+    """The source cannot deliver anymore: end of a file or recording, or a camera that
+    stayed unreachable through all its reconnection attempts."""
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One monochrome image and when it was taken.
+
+    image: uint8 array of shape (height, width).
+    timestamp_s: seconds; a monotonic clock for live sources, the recorded time for
+      playback, the simulation time for a simulated source.
+    index: the source's frame counter, 0 for its first frame.
+    Frames compare by identity (``eq=False``): comparing the pixels is the caller's choice.
+    """
+
+    image: NDArray[np.uint8]
+    timestamp_s: float
+    index: int
+
+    def __post_init__(self) -> None:
+        image = self.image
+        if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8 or image.size == 0:
+            what = f"{image.dtype} array of shape {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
+            raise ValueError(f"a frame image is a non-empty uint8 (height, width) array, got {what}")
+        if (
+            isinstance(self.timestamp_s, bool)
+            or not isinstance(self.timestamp_s, (int, float))
+            or not math.isfinite(self.timestamp_s)
+        ):
+            raise ValueError(f"a frame timestamp is a finite number of seconds, got {self.timestamp_s!r}")
+        if isinstance(self.index, bool) or not isinstance(self.index, (int, np.integer)) or self.index < 0:
+            raise ValueError(f"a frame index is an integer >= 0, got {self.index!r}")
+
+    @property
+    def size(self) -> Size:
+        """(width, height) in pixels."""
+        height, width = self.image.shape
+        return width, height
+
+
+@runtime_checkable
+class FrameSource(Protocol):
+    """What the servo loop and the recorder need from any source of frames."""
+
+    @property
+    def image_size(self) -> Size | None:
+        """(width, height) of the frames, None while the source cannot tell yet."""
+        ...
+
+    def read(self) -> Frame:
+        """The next frame; raises SourceLost when the source cannot deliver anymore."""
+        ...
+
+    def close(self) -> None:
+        """Release the source; calling it again does nothing."""
+        ...
+
+    def __enter__(self) -> FrameSource: ...
+
+    def __exit__(self, *exc_info: object) -> None: ...
+
+
+class BaseSource:
+    """Context-manager plumbing shared by the sources: ``with source: ...`` closes it."""
+
+    _closed = False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        self._closed = True
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise CameraSourceError(f"{self!r} is closed")
+
+
+def read_mono8(path: str | Path) -> NDArray[np.uint8]:
+    """The image file at ``path`` as an 8-bit single-channel image (``to_mono8``).
+
+    Raises CameraSourceError naming the file when it is missing, cannot be decoded or
+    has a layout ``to_mono8`` does not take.
+    """
+    try:
+        raw = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except OSError as exc:
+        raise CameraSourceError(f"cannot read image {str(path)!r}: {exc.strerror or exc}") from None
+    if raw is None:
+        raise CameraSourceError(f"cannot decode image {str(path)!r}")
+    try:
+        return to_mono8(raw)
+    except CameraSourceError as exc:
+        raise CameraSourceError(f"{str(path)!r}: {exc}") from None
+
+
+def to_mono8(image: np.ndarray) -> NDArray[np.uint8]:
+    """A camera image as an 8-bit monochrome (H, W) array.
+
+    Accepts (H, W), (H, W, 1), BGR (H, W, 3) and BGRA (H, W, 4) images (OpenCV's channel
+    order) of uint8 or uint16. Colour goes to grey with ``cv2.cvtColor``; 16-bit keeps
+    the high byte (value >> 8), mapping the full 16-bit range onto 0 .. 255. A camera
+    that puts 10 or 12 significant bits in 16-bit words therefore comes out dark: scale
+    such frames before handing them over.
+    """
+    if not isinstance(image, np.ndarray) or image.size == 0:
+        raise CameraSourceError(f"expected an image array, got {type(image).__name__}")
+    if image.dtype not in (np.uint8, np.uint16):
+        raise CameraSourceError(f"unsupported pixel type {image.dtype}: frames are 8- or 16-bit")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    elif image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    elif image.ndim == 3 and image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
+    elif image.ndim != 2:
+        raise CameraSourceError(f"unsupported image shape {image.shape}: expected (H, W) or (H, W, 1|3|4)")
+    if image.dtype == np.uint16:
+        image = (image >> 8).astype(np.uint8)
+    return np.ascontiguousarray(image)
+
+
+def _check_size(size: Size | None, name: str) -> Size | None:
+    if size is None:
+        return None
+    if len(size) != 2 or not all(isinstance(v, (int, np.integer)) and v > 0 for v in size):
+        raise ValueError(f"{name} is (width, height) in positive pixels, got {size!r}")
+    return int(size[0]), int(size[1])
+
+
+def _format_size(size: Size) -> str:
+    return f"{size[0]}x{size[1]}"
+
+
+class CaptureLike(Protocol):
+    """The part of ``cv2.VideoCapture`` a VideoCaptureSource uses (tests pass fakes)."""
+
+    def isOpened(self) -> bool: ...
+
+    def read(self) -> tuple[bool, Any]: ...
+
+    def release(self) -> None: ...
+
+    def set(self, prop_id: int, value: float) -> bool: ...
+
+    def get(self, prop_id: int) -> float: ...
+
+
+def is_video_file(spec: int | str) -> bool:
+    """Whether ``spec`` names a video file (or an image sequence such as ``img_%04d.png``).
+
+    Everything else is live: a device index, a device path under /dev/, a stream URL
+    (anything with ``://``) and a GStreamer pipeline (anything with ``!``). A file ends;
+    a live source that stops delivering is reconnected.
+    """
+    return isinstance(spec, str) and "://" not in spec and not spec.startswith("/dev/") and "!" not in spec
+
+
+class VideoCaptureSource(BaseSource):
+    """Frames from OpenCV's VideoCapture: a camera by device index, a video file, a stream.
+
+    spec: device index (0, 1, ...), path of a video file, or a stream URL / pipeline
+      (see ``is_video_file`` for how they are told apart).
+    expected_size: (width, height); a frame of another size raises CameraSourceError.
+    reconnect_attempts / reconnect_delay_s: when a live source fails to deliver a frame,
+      the capture is released and reopened up to this many times, waiting the delay
+      before each attempt; then SourceLost. A video file is never reopened for a failed
+      read: its end raises SourceLost("end of video file ..."), or rewinds with ``loop``.
+    loop: replay a video file from its start when it ends (files only).
+    clock / sleep: the timestamp clock and the wait between reconnections, injectable
+      so tests neither wait nor depend on the time of day.
+    opener: makes a capture from the spec, ``cv2.VideoCapture`` by default; tests inject
+      fakes that fail and recover.
+
+    A spec that cannot be opened at all raises CameraSourceError at construction, without
+    retries: a wrong index or path is a set-up error, not a dropped connection. Opening a
+    device index that does not exist is immediate with OpenCV's V4L2 backend (well under
+    a millisecond), so this fails fast.
+    """
+
+    def __init__(
+        self,
+        spec: int | str,
+        *,
+        expected_size: Size | None = None,
+        reconnect_attempts: int = 3,
+        reconnect_delay_s: float = 0.5,
+        loop: bool = False,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+        opener: Callable[[int | str], CaptureLike] | None = None,
+    ) -> None:
+        if isinstance(spec, bool) or not isinstance(spec, (int, str)) or spec == "" or (isinstance(spec, int) and spec < 0):
+            raise ValueError(f"a capture spec is a device index >= 0 or a non-empty path/URL, got {spec!r}")
+        if isinstance(reconnect_attempts, bool) or not isinstance(reconnect_attempts, int) or reconnect_attempts < 0:
+            raise ValueError(f"reconnect_attempts must be an integer >= 0, got {reconnect_attempts!r}")
+        if not (reconnect_delay_s >= 0.0 and math.isfinite(reconnect_delay_s)):
+            raise ValueError(f"reconnect_delay_s must be finite and >= 0, got {reconnect_delay_s!r}")
+        self.spec = spec
+        self.is_file = is_video_file(spec)
+        if loop and not self.is_file:
+            raise ValueError(f"loop applies to video files only, not to the live source {spec!r}")
+        self.expected_size = _check_size(expected_size, "expected_size")
+        self.reconnect_attempts = reconnect_attempts
+        self.reconnect_delay_s = float(reconnect_delay_s)
+        self.loop = loop
+        self._clock = clock
+        self._sleep = sleep
+        self._opener: Callable[[int | str], CaptureLike] = opener if opener is not None else cv2.VideoCapture
+        self._next_index = 0
+        self._last_size: Size | None = None
+        self._lost: str | None = None  # why the source is gone, once it is
+        self._cap: CaptureLike | None = None
+        cap, why = self._open()
+        if cap is None:
+            raise CameraSourceError(f"cannot open {self._describe()}: {why}")
+        self._cap = cap
+
+    def __repr__(self) -> str:
+        return f"VideoCaptureSource({self.spec!r})"
+
+    def _describe(self) -> str:
+        if isinstance(self.spec, int):
+            return f"camera device {self.spec}"
+        return f"video file {self.spec!r}" if self.is_file else f"stream {self.spec!r}"
+
+    def _open(self) -> tuple[CaptureLike | None, str]:
+        """A fresh opened capture, or None and why not."""
+        try:
+            cap = self._opener(self.spec)
+        except Exception as exc:  # OpenCV raises cv2.error for some bad specs; fakes anything
+            return None, f"{type(exc).__name__}: {exc}"
+        if cap.isOpened():
+            return cap, ""
+        cap.release()
+        if self.is_file and not Path(self.spec).exists() and "%" not in self.spec:
+            return None, "no such file"
+        if self.is_file:
+            return None, "OpenCV cannot decode it (not a video, or a codec this build lacks)"
+        return None, "no such device, or it is busy or unreachable"
+
+    def _read_once(self) -> np.ndarray | None:
+        """One read from the current capture: the image, or None when it failed."""
+        if self._cap is None:
+            return None
+        try:
+            ok, image = self._cap.read()
+        except cv2.error as exc:
+            log.warning("%s: read raised %s", self._describe(), exc)
+            return None
+        if not ok or image is None or getattr(image, "size", 0) == 0:
+            return None
+        return image
+
+    def _release(self) -> None:
+        if self._cap is not None:
+            try:
+                self._cap.release()
+            finally:
+                self._cap = None
+
+    def _lose(self, why: str) -> SourceLost:
+        self._lost = why
+        self._release()
+        return SourceLost(why)
+
+    @property
+    def image_size(self) -> Size | None:
+        if self._last_size is not None:
+            return self._last_size
+        if self.expected_size is not None:
+            return self.expected_size
+        if self._cap is not None:
+            width, height = int(self._cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(self._cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+            if width > 0 and height > 0:
+                return width, height
+        return None
+
+    def read(self) -> Frame:
+        self._check_open()
+        if self._lost is not None:
+            raise SourceLost(self._lost)
+        image = self._read_once()
+        if image is None:
+            image = self._rewind() if self.is_file else self._reconnect()
+        timestamp = float(self._clock())
+        mono = to_mono8(image)
+        height, width = mono.shape
+        if self.expected_size is not None and (width, height) != self.expected_size:
+            raise CameraSourceError(
+                f"{self._describe()} delivered a {_format_size((width, height))} frame, "
+                f"expected {_format_size(self.expected_size)} (width x height)"
+            )
+        self._last_size = (width, height)
+        frame = Frame(mono, timestamp, self._next_index)
+        self._next_index += 1
+        return frame
+
+    def _rewind(self) -> np.ndarray:
+        """The first frame again at the end of a looping file; SourceLost without ``loop``."""
+        if not self.loop:
+            raise self._lose(f"end of video file {self.spec!r} after {self._next_index} frames")
+        log.debug("%s: rewinding", self._describe())
+        if self._cap is not None and self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0):
+            image = self._read_once()
+            if image is not None:
+                return image
+        # Some backends cannot seek: reopening the file starts it over as well.
+        self._release()
+        cap, why = self._open()
+        self._cap = cap
+        image = self._read_once()
+        if image is None:
+            raise self._lose(f"video file {self.spec!r} yields no frame after rewinding{': ' + why if why else ''}")
+        return image
+
+    def _reconnect(self) -> np.ndarray:
+        """Release and reopen a live source until it delivers, or SourceLost."""
+        why = "read failed"
+        for attempt in range(1, self.reconnect_attempts + 1):
+            self._release()
+            log.warning(
+                "%s: no frame (%s); reconnecting in %.2f s, attempt %d of %d",
+                self._describe(),
+                why,
+                self.reconnect_delay_s,
+                attempt,
+                self.reconnect_attempts,
+            )
+            self._sleep(self.reconnect_delay_s)
+            self._cap, open_why = self._open()
+            if self._cap is None:
+                why = f"reopening failed: {open_why}"
+                continue
+            image = self._read_once()
+            if image is not None:
+                log.info("%s: reconnected at attempt %d", self._describe(), attempt)
+                return image
+            why = "read failed after reopening"
+        raise self._lose(
+            f"{self._describe()} delivers no frame after {self.reconnect_attempts} reconnection attempts "
+            f"{self.reconnect_delay_s:g} s apart (last: {why})"
+        )
+
+    def close(self) -> None:
+        self._release()
+        super().close()
+
+
+class ImageFolderSource(BaseSource):
+    """Still images of a folder played in sorted file-name order, one per ``read``.
+
+    For set-up and tests: a few saved frames stand in for the camera. Names sort as
+    strings, so number them with leading zeros (``000012.png``). Images of any depth or
+    channel count ``to_mono8`` accepts are converted; all must have the size of the first.
+    timestamps: one per image (finite, non-decreasing); without them each frame is
+    stamped with ``clock`` when read. The index of a frame is its position in the order.
+    SourceLost after the last image.
+    """
+
+    def __init__(
+        self,
+        folder: str | Path,
+        pattern: str = "*.png",
+        timestamps: Sequence[float] | None = None,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise CameraSourceError(f"image folder {str(self.folder)!r} does not exist or is not a folder")
+        self.paths = tuple(sorted((p for p in self.folder.glob(pattern) if p.is_file()), key=lambda p: p.name))
+        if not self.paths:
+            raise CameraSourceError(f"no image matches {pattern!r} in {str(self.folder)!r}")
+        if timestamps is not None:
+            timestamps = [float(t) for t in timestamps]
+            if len(timestamps) != len(self.paths):
+                raise ValueError(f"{len(timestamps)} timestamps for {len(self.paths)} images in {str(self.folder)!r}")
+            if not all(math.isfinite(t) for t in timestamps) or any(b < a for a, b in zip(timestamps, timestamps[1:])):
+                raise ValueError("image timestamps must be finite and non-decreasing")
+        self.timestamps = None if timestamps is None else tuple(timestamps)
+        self._clock = clock
+        self._next = 0
+        self._size: Size | None = None
+
+    def __repr__(self) -> str:
+        return f"ImageFolderSource({str(self.folder)!r})"
+
+    @property
+    def image_size(self) -> Size | None:
+        return self._size
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def read(self) -> Frame:
+        self._check_open()
+        if self._next >= len(self.paths):
+            raise SourceLost(f"end of image folder {str(self.folder)!r} after {len(self.paths)} images")
+        path = self.paths[self._next]
+        image = read_mono8(path)
+        height, width = image.shape
+        if self._size is not None and (width, height) != self._size:
+            raise CameraSourceError(
+                f"image {str(path)!r} is {_format_size((width, height))}, the folder's first image "
+                f"{_format_size(self._size)} (width x height)"
+            )
+        self._size = (width, height)
+        timestamp = self.timestamps[self._next] if self.timestamps is not None else float(self._clock())
+        frame = Frame(image, timestamp, self._next)
+        self._next += 1
+        return frame

@@ -1,0 +1,447 @@
+"""The controller process's core: the cell's state machine, its commands and what it publishes.
+
+It owns the rig (robot backend, vacuum, camera, vision) and the store. Commands come
+from one operator at a time (the channel and the app decide who that is); every command
+is checked against the current phase, and a refused one raises CommandRefused with the
+reason, never moves the robot. The phases (vservo.core.production.assembly.Phase):
+
+    idle --teach--> teaching --save/cancel--> idle
+    idle --start--> servoing (stages) --> picking --> placing --> done | fault
+    any  --estop--> e-stopped --reset--> idle
+
+E-stop acts at once from the caller's thread: it sends hold to the robot before it
+returns, so a move the assembly thread has not yet sent is refused by the robot itself
+and the arm stops within the control cycle under way. Motion needs an explicit enable:
+servo power is switched on by ``start`` or a jog and a reset never restarts a run.
+
+Subscribers get ControllerState snapshots and camera frames with the features seen in
+them; they are called from the controller's threads and must not block.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.geometry.spatial import Matrix, exp_twist
+from vservo.core.perception.camera_source import CameraSourceError, Frame
+from vservo.core.perception.features import DesiredImage, ImageFeatures
+from vservo.core.perception.recording import RunRecorder
+from vservo.core.production.assembly import AssemblyEvent, AssemblyOutcome, Phase, PhaseChange, run_assembly
+from vservo.core.production.jobs import Job, JobError
+from vservo.core.production.rig import Rig
+from vservo.core.production.storage import Store
+from vservo.core.robot.backend import MotionStopped, RobotError, apply_increment
+from vservo.core.servo.loop import cycle_record
+from vservo.core.servo.teaching import TeachError, desired_from_features
+
+log = logging.getLogger("vservo.controller")
+
+JOG_SPEED_M_S = 0.02
+TRAIL_LENGTH = 400  # feature positions kept for the trajectories drawn on the image
+
+
+class CommandRefused(Exception):
+    """A command that cannot be carried out now; the message says why."""
+
+
+@dataclass(frozen=True)
+class TeachDraft:
+    """A job being taught: what has been captured so far."""
+
+    template: str | None = None
+    desired: DesiredImage | None = None
+    taught_bMe: Matrix | None = None
+    start_bMe: Matrix | None = None
+    eMe_pick: Matrix | None = None
+    bMe_place: Matrix | None = None
+    threshold_px: float = 3.0
+    gain: float = 1.0
+    approach_m: float = 0.04
+
+    def missing(self) -> list[str]:
+        names = {"desired": "the desired image", "start_bMe": "the start pose", "eMe_pick": "the pick pose",
+                 "bMe_place": "the place pose"}
+        return [text for key, text in names.items() if getattr(self, key) is None]
+
+
+@dataclass(frozen=True)
+class ControllerState:
+    """What every screen shows; published on every change and every servo cycle."""
+
+    phase: str = Phase.IDLE.value
+    detail: str = ""
+    job: str | None = None
+    run_id: int | None = None
+    stage: str | None = None
+    iteration: int = 0
+    error_px: float | None = None
+    cVc: list[float] = field(default_factory=lambda: [0.0] * 6)
+    bMe: list[list[float]] = field(default_factory=lambda: np.eye(4).tolist())
+    q: list[float] = field(default_factory=list)
+    holding_part: bool = False
+    robot: str = ""
+    backend: str = ""
+    teach_missing: list[str] = field(default_factory=list)
+    last_outcome: dict | None = None
+    time_s: float = 0.0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class FrameView:
+    """A camera frame and what the vision saw in it, for the live image."""
+
+    frame: Frame
+    corners_px: Matrix | None = None
+    laser_spot_px: Matrix | None = None
+    desired: DesiredImage | None = None
+    trail_px: Matrix | None = None  # (T, 4, 2): corner positions so far in this run
+
+
+def _finite_list(values: Matrix) -> list:
+    return [None if not np.isfinite(v) else float(v) for v in np.asarray(values, dtype=float).ravel()]
+
+
+class CellController:
+    def __init__(self, rig: Rig, store: Store, *, seed: int = 0, cycle_period_s: float = 0.0) -> None:
+        self.rig = rig
+        self.store = store
+        self.rng = np.random.default_rng(seed)
+        self.cycle_period_s = cycle_period_s  # a floor on the servo cycle, so a fast simulator can be watched
+        self._lock = threading.RLock()  # one command at a time; the camera and robot are shared
+        self._state = ControllerState(backend=rig.robot.name, robot=rig.config.arm)
+        self._draft: TeachDraft | None = None
+        self._estop = threading.Event()
+        self._estop_reason = "e-stop pressed"
+        self._jogging = threading.Event()  # a jog or a gizmo move is under way
+        self._run_thread: threading.Thread | None = None
+        self._trail: list[Matrix] = []
+        self._desired: DesiredImage | None = None  # drawn over the live image
+        self._desired_image: np.ndarray | None = None
+        self.last_outcome: AssemblyOutcome | None = None
+        self.state_subscribers: list[Callable[[ControllerState], None]] = []
+        self.frame_subscribers: list[Callable[[FrameView], None]] = []
+        self.rig.robot.connect()
+        self._publish_state()
+
+    # -- publishing ------------------------------------------------------------------
+
+    @property
+    def state(self) -> ControllerState:
+        return self._state
+
+    def _update(self, **changes) -> None:
+        self._state = replace(self._state, time_s=time.time(), **changes)
+        self._publish_state()
+
+    def _publish_state(self) -> None:
+        for subscriber in list(self.state_subscribers):
+            subscriber(self._state)
+
+    def _publish_frame(self, view: FrameView) -> None:
+        for subscriber in list(self.frame_subscribers):
+            subscriber(view)
+
+    def _robot_readout(self, bMe: Matrix | None = None) -> dict:
+        """Flange pose (read from the robot unless given), joints and vacuum sensor for the state."""
+        bMe = self.rig.robot.read_pose() if bMe is None else bMe
+        q = self.rig.cell.state.q.tolist() if self.rig.cell is not None else []
+        return {"bMe": bMe.tolist(), "q": q, "holding_part": self.rig.gripper.holding()}
+
+    def look(self) -> tuple[Frame, ImageFeatures]:
+        """Grab one frame, detect in it and publish it (the live view while no run owns the camera)."""
+        with self._lock:
+            if self.running:
+                raise CommandRefused("the assembly run owns the camera")
+            frame = self.rig.camera.read()
+        features, _ = self.rig.extractor.extract(frame.image)
+        self._publish_frame(FrameView(frame, features.corners_px, features.laser_spot_px, self._desired, None))
+        return frame, features
+
+    # -- guards ------------------------------------------------------------------------
+
+    @property
+    def running(self) -> bool:
+        return self._run_thread is not None and self._run_thread.is_alive()
+
+    @property
+    def in_motion(self) -> bool:
+        """A run or a jog is moving the robot (the channel holds it if its last app goes away)."""
+        return self.running or self._jogging.is_set()
+
+    def _require(self, *phases: Phase) -> None:
+        if self._estop.is_set():
+            raise CommandRefused("e-stop is active: reset it first")
+        if self.running:
+            raise CommandRefused("an assembly run is under way")
+        if Phase(self._state.phase) not in phases:
+            allowed = " or ".join(p.value for p in phases)
+            raise CommandRefused(f"not possible while {self._state.phase} (only when {allowed})")
+
+    def _enable_motion(self) -> None:
+        status = self.rig.robot.status()
+        if status.alarm:
+            raise CommandRefused(f"the robot is in alarm: {status.detail or 'reset the alarm on the controller'}")
+        if not status.servo_on:
+            self.rig.robot.servo(True)
+
+    # -- jogging and teaching ----------------------------------------------------------
+
+    def jog(self, translation_m: Matrix, rotation_rad: Matrix = (0.0, 0.0, 0.0), frame: str = "base") -> None:
+        """Move the flange by a small step: translation and rotation (rad) in the base or tool frame."""
+        with self._lock:
+            self._require(Phase.IDLE, Phase.TEACHING, Phase.DONE, Phase.FAULT)
+            step = np.concatenate([np.asarray(translation_m, float), np.asarray(rotation_rad, float)])
+            if step.shape != (6,) or not np.all(np.isfinite(step)):
+                raise CommandRefused(f"a jog takes 3 finite translations and 3 rotations, got {step.tolist()}")
+            if frame not in ("base", "tool"):
+                raise CommandRefused(f"jog frame {frame!r}: choose base or tool")
+            bMe = self.rig.robot.read_pose()
+            # In the base frame: translation added, rotation about the flange's own origin.
+            increment = exp_twist(np.concatenate([np.zeros(3), step[3:]]))
+            increment[:3, 3] = step[:3]
+            target = bMe @ exp_twist(step) if frame == "tool" else apply_increment(bMe, increment)
+            self.move_to(target)
+
+    def move_to(self, bMe_target: Matrix) -> None:
+        """A linear move to a flange pose (the 3D gizmo, or a jog)."""
+        with self._lock:
+            self._require(Phase.IDLE, Phase.TEACHING, Phase.DONE, Phase.FAULT)
+            self._enable_motion()
+            self._jogging.set()
+            try:
+                self.rig.robot.move_linear(np.asarray(bMe_target, float), JOG_SPEED_M_S)
+            except MotionStopped as exc:
+                raise CommandRefused(f"the move was stopped: {exc}") from exc
+            except (RobotError, UnreachableTarget) as exc:
+                raise CommandRefused(f"move refused: {exc}") from exc
+            finally:
+                self._jogging.clear()
+            self._update(**self._robot_readout())
+
+    def begin_teach(self, template: str | None = None) -> None:
+        """Start teaching a job, from scratch or from an existing job's poses and settings."""
+        with self._lock:
+            self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
+            draft = TeachDraft()
+            if template:
+                job = self.store.load_job(template)
+                draft = TeachDraft(template, None, None, job.start_bMe, job.eMe_pick, job.bMe_place,
+                                   job.threshold_px, job.gain, job.approach_m)
+            self._draft = draft
+            self._update(phase=Phase.TEACHING.value, detail="jog to the desired view and capture it",
+                         teach_missing=draft.missing())
+
+    def _set_draft(self, detail: str, **changes) -> None:
+        self._draft = replace(self._draft, **changes)
+        self._update(detail=detail, teach_missing=self._draft.missing())
+
+    def capture_desired(self, part_side_m: float = 0.020) -> DesiredImage:
+        """Take the desired image here (Fig. C-2): the four corners and the laser spot must be seen."""
+        with self._lock:
+            self._require(Phase.TEACHING)
+            frame, features = self.look()
+            try:
+                desired = desired_from_features(features, self.rig.config.nominal.camera, part_side_m)
+            except TeachError as exc:
+                raise CommandRefused(str(exc)) from exc
+            self._desired = desired
+            self._desired_image = frame.image
+            self._set_draft(f"desired image captured, laser depth {1000 * desired.depth_m:.1f} mm",
+                            desired=desired, taught_bMe=self.rig.robot.read_pose())
+            return desired
+
+    def set_start_pose(self) -> None:
+        with self._lock:
+            self._require(Phase.TEACHING)
+            self._set_draft("start pose set here", start_bMe=self.rig.robot.read_pose())
+
+    def set_pick_pose(self) -> None:
+        """The cup is on the part now: store the motion from the desired view to here."""
+        with self._lock:
+            self._require(Phase.TEACHING)
+            if self._draft.taught_bMe is None:
+                raise CommandRefused("capture the desired image first: the pick is taught relative to it")
+            eMe_pick = np.linalg.inv(self._draft.taught_bMe) @ self.rig.robot.read_pose()
+            self._set_draft("pick pose set here", eMe_pick=eMe_pick)
+
+    def set_place_pose(self) -> None:
+        with self._lock:
+            self._require(Phase.TEACHING)
+            self._set_draft("place pose set here", bMe_place=self.rig.robot.read_pose())
+
+    def set_settings(self, threshold_px: float, gain: float, approach_m: float) -> None:
+        with self._lock:
+            self._require(Phase.TEACHING)
+            for name, value in (("threshold_px", threshold_px), ("gain", gain), ("approach_m", approach_m)):
+                if not (np.isfinite(value) and value > 0):
+                    raise CommandRefused(f"{name} must be a positive number, got {value!r}")
+            self._set_draft("settings changed", threshold_px=threshold_px, gain=gain, approach_m=approach_m)
+
+    def save_job(self, name: str, description: str = "", part_side_m: float = 0.020) -> Job:
+        with self._lock:
+            self._require(Phase.TEACHING)
+            draft = self._draft
+            if draft.missing():
+                raise CommandRefused(f"cannot save yet: teach {', '.join(draft.missing())}")
+            try:
+                job = Job(name=name, description=description, part_side_m=part_side_m, desired=draft.desired,
+                          taught_bMe=draft.taught_bMe, start_bMe=draft.start_bMe, eMe_pick=draft.eMe_pick,
+                          bMe_place=draft.bMe_place, approach_m=draft.approach_m, threshold_px=draft.threshold_px,
+                          gain=draft.gain)
+            except JobError as exc:
+                raise CommandRefused(str(exc)) from exc
+            self.store.save_job(job, self._desired_image)
+            self._draft = None
+            self._update(phase=Phase.IDLE.value, detail=f"job {name!r} saved", job=name, teach_missing=[])
+            return job
+
+    def cancel_teach(self) -> None:
+        with self._lock:
+            self._require(Phase.TEACHING)
+            self._draft = None
+            self._update(phase=Phase.IDLE.value, detail="teaching cancelled", teach_missing=[])
+
+    def present_part(self) -> None:
+        """Simulated cell only: a new part arrives near where the job was taught."""
+        with self._lock:
+            self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
+            if self.rig.present_part is None:
+                raise CommandRefused("parts arrive by hand on a real cell")
+            self.rig.present_part(self.rng)
+            self._update(detail="a new part is on the table", **self._robot_readout())
+
+    # -- assembly ------------------------------------------------------------------------
+
+    def start(self, job_name: str, record: bool = True) -> int:
+        """Start one assembly of ``job_name`` in the background; returns the run's id."""
+        with self._lock:
+            self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
+            try:
+                job = self.store.load_job(job_name)
+            except JobError as exc:
+                raise CommandRefused(str(exc)) from exc
+            self._enable_motion()
+            run_id = self.store.start_run(job.name, self.rig.robot.name)
+            self._desired, self._trail = job.desired, []
+            self._update(phase=Phase.SERVOING.value, detail="starting", job=job.name, run_id=run_id, stage=None,
+                         iteration=0, error_px=None, last_outcome=None)
+            self._run_thread = threading.Thread(target=self._run, args=(job, run_id, record), name="assembly", daemon=True)
+            self._run_thread.start()
+            return run_id
+
+    def wait(self, timeout_s: float | None = None) -> None:
+        """Block until the run under way (if any) ends."""
+        thread = self._run_thread
+        if thread is not None:
+            thread.join(timeout_s)
+
+    def _run(self, job: Job, run_id: int, record: bool) -> None:
+        folder = self.store.run_folder(run_id)
+        recorder = RunRecorder(folder, {"job": job.name, "run": run_id, "desired": job.desired}) if record else None
+        perception = self.rig.perception()
+        last_cycle_at = time.monotonic()
+
+        def on_event(event: AssemblyEvent) -> None:
+            nonlocal last_cycle_at
+            if isinstance(event, PhaseChange):
+                if event.phase not in (Phase.DONE, Phase.FAULT, Phase.ESTOPPED):
+                    self._update(phase=event.phase.value, detail=event.detail, **self._robot_readout())
+                return
+            cycle = event.cycle
+            frame = perception.last_frame
+            if recorder is not None:
+                recorder.record(frame, cycle_record(cycle))
+            self._trail = (self._trail + [cycle.features.corners_px])[-TRAIL_LENGTH:]
+            self._update(stage=cycle.output.stage, iteration=cycle.iteration + 1,
+                         error_px=float(cycle.output.error_px) if np.isfinite(cycle.output.error_px) else None,
+                         cVc=_finite_list(cycle.output.cVc), detail=cycle.output.note or self._state.detail,
+                         **self._robot_readout(cycle.measurement.bMe))
+            if frame is not None:
+                self._publish_frame(FrameView(frame, cycle.features.corners_px, cycle.features.laser_spot_px,
+                                              job.desired, np.array(self._trail)))
+            if self.cycle_period_s:
+                time.sleep(max(0.0, self.cycle_period_s - (time.monotonic() - last_cycle_at)))
+            last_cycle_at = time.monotonic()
+
+        try:
+            outcome = run_assembly(
+                job, self.rig.robot, self.rig.gripper, perception, self.rig.config.nominal, self.rig.policy,
+                dof=self.rig.dof, on_event=on_event, measure_placement=self.rig.measure_placement,
+                estopped=self._estop.is_set,
+            )
+        except CameraSourceError as exc:
+            self.rig.robot.hold(True)
+            outcome = AssemblyOutcome("fault", f"camera: {exc}", float("nan"), None, 0.0, [], 0)
+        except Exception as exc:  # a bug must still leave the robot held and the run on record
+            log.exception("assembly run %d crashed", run_id)
+            self.rig.robot.hold(True)
+            outcome = AssemblyOutcome("fault", f"internal error: {exc!r}", float("nan"), None, 0.0, [], 0)
+        if outcome.outcome == "estopped":
+            outcome = replace(outcome, reason=self._estop_reason)
+        if recorder is not None:
+            recorder.close(outcome.summary())
+        self.store.finish_run(run_id, outcome.outcome, outcome.reason, outcome.final_error_px,
+                              outcome.placement_error_mm, outcome.duration_s, outcome.stages,
+                              str(folder) if recorder is not None else None)
+        phase = Phase.ESTOPPED if self._estop.is_set() else Phase.FAULT if outcome.outcome == "fault" else Phase.DONE
+        self._update(phase=phase.value, detail=outcome.reason, last_outcome=outcome.summary(), **self._robot_readout())
+        self.last_outcome = outcome
+
+    # -- safety ----------------------------------------------------------------------------
+
+    def estop(self, why: str = "e-stop pressed") -> None:
+        """Hold the robot now and refuse every move until reset (never waits for a lock).
+
+        ``why`` is what the state, the log and the run's record say stopped it.
+        """
+        self._estop_reason = why
+        self._estop.set()
+        try:
+            self.rig.robot.emergency_stop(why)
+            detail = f"{why}: robot held"
+        except RobotError as exc:
+            detail = f"{why}: hold could not be sent ({exc}); use the pendant's e-stop"
+        log.warning(detail)
+        self._update(phase=Phase.ESTOPPED.value, detail=detail)
+
+    def reset(self) -> None:
+        """Clear an e-stop or a fault once the run has stopped: release the hold, back to idle."""
+        if self.running:
+            raise CommandRefused("the run is still stopping; try again")
+        with self._lock:
+            if Phase(self._state.phase) not in (Phase.ESTOPPED, Phase.FAULT, Phase.DONE):
+                raise CommandRefused(f"nothing to reset while {self._state.phase}")
+            try:
+                self.rig.robot.reset_emergency_stop()
+                self.rig.robot.reset_alarms()
+                self.rig.robot.hold(False)
+            except RobotError as exc:
+                raise CommandRefused(f"reset failed: {exc}") from exc
+            self._estop.clear()
+            self._update(phase=Phase.IDLE.value, detail="reset: ready", **self._robot_readout())
+
+    def close(self) -> None:
+        """Stop: hold the robot if a run is under way, then release the devices."""
+        if self.running:
+            self.estop("e-stop: the controller process is stopping")
+            self.wait(10.0)
+        self.rig.close()
+
+
+def run_job_once(controller: CellController, job_name: str) -> dict:
+    """One headless assembly (``vservo run``): a new part on a simulated cell, start, wait."""
+    if controller.rig.present_part is not None:
+        controller.present_part()
+    run_id = controller.start(job_name)
+    controller.wait()
+    return {**controller.last_outcome.summary(), "job": job_name, "run_id": run_id}

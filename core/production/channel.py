@@ -1,0 +1,362 @@
+"""The channel between the controller process and the app: authenticated, local, versioned.
+
+Transport: ``multiprocessing.connection`` over TCP on the loopback interface. Both ends
+prove they hold the shared key (an HMAC challenge each way) before a byte of a message
+is read, so another program on the PC cannot drive the robot. The key is handed to the
+controller process in the environment (never on a command line, where ``ps`` shows it).
+
+Messages are JSON objects with a ``type``; a camera frame is a ``frame`` object followed
+by one binary message, the JPEG. The app's side:
+
+    hello {version}                      -> welcome {version, state} | refused {error}
+    command {id, name, args}             -> reply {id, ok, result | error}
+                                            state {state}            (on every change)
+                                            frame {meta} + JPEG      (the live image)
+
+State and frames are sent newest-first: a slow reader skips to the latest one instead
+of queueing the past, so one stalled browser never slows the controller.
+
+Commands of one app are carried out in the order sent, one at a time, except ``estop``:
+it is carried out the moment it arrives, even while a long move of that app is under
+way. When the last app disconnects (closed, crashed, cable pulled) while a run or a jog
+is moving the robot, the controller e-stops: the robot is held and the state says why.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import secrets
+import socket
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from multiprocessing.connection import Client, Connection, Listener
+from typing import Any
+
+import cv2
+import numpy as np
+
+from vservo.core.production.cell_controller import CellController, CommandRefused, ControllerState, FrameView
+from vservo.core.production.jobs import JobError
+
+log = logging.getLogger("vservo.channel")
+
+PROTOCOL_VERSION = 1
+KEY_ENVIRONMENT = "VSERVO_CONTROLLER_KEY"
+LIVE_VIEW_PERIOD_S = 0.1  # the camera image while no run owns the camera
+JPEG_QUALITY = 85
+
+
+class ChannelError(RuntimeError):
+    """The other end is gone, refused us, or speaks another version."""
+
+
+def new_key() -> bytes:
+    return secrets.token_bytes(32)
+
+
+def _vector(value: Any, length: int, name: str) -> np.ndarray:
+    array = np.asarray(value, dtype=float)
+    if array.shape != (length,) or not np.all(np.isfinite(array)):
+        raise CommandRefused(f"{name} must be {length} finite numbers, got {value!r}")
+    return array
+
+
+def _pose(value: Any) -> np.ndarray:
+    array = np.asarray(value, dtype=float)
+    if array.shape != (4, 4) or not np.all(np.isfinite(array)):
+        raise CommandRefused(f"a pose must be a 4 x 4 matrix of finite numbers, got {value!r}")
+    return array
+
+
+def _jobs(controller: CellController) -> list[dict]:
+    return [{"name": e.name, "saved_at": e.saved_at, "problem": e.problem, "shipped": e.shipped}
+            for e in controller.store.list_jobs()]
+
+
+def _runs(controller: CellController, limit: int = 50) -> list[dict]:
+    return [r.__dict__ for r in controller.store.list_runs(limit)]
+
+
+# Every command the app may send: name -> how to carry it out with its JSON arguments.
+COMMANDS: dict[str, Callable[[CellController, dict], Any]] = {
+    "jog": lambda c, a: c.jog(_vector(a.get("translation_m", [0, 0, 0]), 3, "translation_m"),
+                              _vector(a.get("rotation_rad", [0, 0, 0]), 3, "rotation_rad"), str(a.get("frame", "base"))),
+    "move_to": lambda c, a: c.move_to(_pose(a.get("bMe"))),
+    "begin_teach": lambda c, a: c.begin_teach(a.get("template")),
+    "capture_desired": lambda c, a: c.capture_desired().corners_px.tolist(),
+    "set_start_pose": lambda c, a: c.set_start_pose(),
+    "set_pick_pose": lambda c, a: c.set_pick_pose(),
+    "set_place_pose": lambda c, a: c.set_place_pose(),
+    "set_settings": lambda c, a: c.set_settings(float(a["threshold_px"]), float(a["gain"]), float(a["approach_m"])),
+    "save_job": lambda c, a: c.save_job(str(a.get("name", "")), str(a.get("description", ""))).name,
+    "cancel_teach": lambda c, a: c.cancel_teach(),
+    "present_part": lambda c, a: c.present_part(),
+    "start": lambda c, a: c.start(str(a.get("job", ""))),
+    "estop": lambda c, a: c.estop(),
+    "reset": lambda c, a: c.reset(),
+    "list_jobs": lambda c, a: _jobs(c),
+    "list_runs": lambda c, a: _runs(c, int(a.get("limit", 50))),
+    "get_job": lambda c, a: c.store.load_job(str(a.get("name", ""))).as_dict(),
+}
+IMMEDIATE = "estop"  # never waits behind another command of the same app
+APP_GONE = "e-stop: the app disconnected while the robot was moving"
+
+
+def frame_message(view: FrameView) -> tuple[dict, bytes]:
+    """The live image as JPEG and what was seen in it (pixels, for the app's overlays)."""
+    ok, jpeg = cv2.imencode(".jpg", view.frame.image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    if not ok:
+        raise ChannelError("a camera frame could not be encoded")
+
+    def pixels(values: np.ndarray | None) -> list | None:
+        return None if values is None else np.where(np.isfinite(values), values, -1.0).round(2).tolist()
+
+    meta = {
+        "index": view.frame.index,
+        "time_s": view.frame.timestamp_s,
+        "corners_px": pixels(view.corners_px),
+        "laser_spot_px": pixels(view.laser_spot_px),
+        "desired_corners_px": pixels(view.desired.corners_px if view.desired else None),
+        "desired_laser_px": pixels(view.desired.laser_spot_px if view.desired else None),
+        "trail_px": pixels(view.trail_px),
+    }
+    return meta, jpeg.tobytes()
+
+
+class _Subscriber:
+    """One connected app: its connection and the newest unsent state and frame."""
+
+    def __init__(self, connection: Connection) -> None:
+        self.connection = connection
+        self.send_lock = threading.Lock()
+        self.pending = threading.Condition()
+        self.state: ControllerState | None = None
+        self.frame: FrameView | None = None
+        self.closed = False
+
+    def offer(self, state: ControllerState | None = None, frame: FrameView | None = None) -> None:
+        with self.pending:
+            if state is not None:
+                self.state = state
+            if frame is not None:
+                self.frame = frame
+            self.pending.notify()
+
+    def send(self, message: dict, payload: bytes | None = None) -> None:
+        with self.send_lock:
+            self.connection.send_bytes(json.dumps(message).encode())
+            if payload is not None:
+                self.connection.send_bytes(payload)
+
+
+class ControllerServer:
+    """Serves a CellController on 127.0.0.1 to apps that hold the key."""
+
+    def __init__(self, controller: CellController, authkey: bytes, host: str = "127.0.0.1", port: int = 0) -> None:
+        self.controller = controller
+        self.listener = Listener((host, port), authkey=authkey)
+        self.address: tuple[str, int] = self.listener.address
+        self.subscribers: list[_Subscriber] = []
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        controller.state_subscribers.append(self._on_state)
+        controller.frame_subscribers.append(self._on_frame)
+        self._threads = [threading.Thread(target=self._accept, name="channel-accept", daemon=True),
+                         threading.Thread(target=self._live_view, name="live-view", daemon=True)]
+        for thread in self._threads:
+            thread.start()
+
+    def _on_state(self, state: ControllerState) -> None:
+        for subscriber in list(self.subscribers):
+            subscriber.offer(state=state)
+
+    def _on_frame(self, view: FrameView) -> None:
+        for subscriber in list(self.subscribers):
+            subscriber.offer(frame=view)
+
+    def _accept(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                connection = self.listener.accept()
+            except Exception as exc:  # a client failing the key challenge, or the listener closed
+                if self._stopping.is_set():
+                    return
+                log.warning("connection refused: %r", exc)
+                continue
+            threading.Thread(target=self._serve, args=(connection,), name="channel-client", daemon=True).start()
+
+    def _serve(self, connection: Connection) -> None:
+        subscriber = _Subscriber(connection)
+        commands: queue.Queue[dict | None] = queue.Queue()
+        try:
+            hello = json.loads(connection.recv_bytes())
+            if hello.get("type") != "hello" or hello.get("version") != PROTOCOL_VERSION:
+                subscriber.send({"type": "refused", "error": f"this controller speaks channel version {PROTOCOL_VERSION}, "
+                                 f"the app sent {hello.get('version')!r}"})
+                return
+            subscriber.send({"type": "welcome", "version": PROTOCOL_VERSION, "state": self.controller.state.as_dict()})
+            with self._lock:
+                self.subscribers.append(subscriber)
+            threading.Thread(target=self._push, args=(subscriber,), name="channel-push", daemon=True).start()
+            threading.Thread(target=self._carry_out, args=(subscriber, commands), name="channel-commands",
+                             daemon=True).start()
+            while True:
+                message = json.loads(connection.recv_bytes())
+                if message.get("type") != "command":
+                    continue
+                if message.get("name") == IMMEDIATE:
+                    subscriber.send(self._execute(message))
+                else:
+                    commands.put(message)
+        except (EOFError, OSError, TypeError, ValueError):
+            pass  # the app went away (or sent garbage, or the server closed)
+        finally:
+            commands.put(None)
+            with self._lock:
+                if subscriber in self.subscribers:
+                    self.subscribers.remove(subscriber)
+                last_gone = not self.subscribers
+            with subscriber.pending:
+                subscriber.closed = True
+                subscriber.pending.notify()
+            connection.close()
+            if last_gone and not self._stopping.is_set() and self.controller.in_motion:
+                log.warning(APP_GONE)
+                self.controller.estop(APP_GONE)
+
+    def _carry_out(self, subscriber: _Subscriber, commands: queue.Queue) -> None:
+        """One app's commands, in order; replies go back as each one ends."""
+        while (message := commands.get()) is not None:
+            reply = self._execute(message)
+            try:
+                subscriber.send(reply)
+            except (OSError, EOFError):
+                return
+
+    def _execute(self, message: dict) -> dict:
+        name, args = message.get("name"), message.get("args") or {}
+        reply = {"type": "reply", "id": message.get("id")}
+        command = COMMANDS.get(name)
+        if command is None:
+            return {**reply, "ok": False, "error": f"unknown command {name!r}"}
+        try:
+            return {**reply, "ok": True, "result": command(self.controller, args)}
+        except (CommandRefused, JobError, KeyError, TypeError, ValueError) as exc:
+            return {**reply, "ok": False, "error": str(exc)}
+
+    def _push(self, subscriber: _Subscriber) -> None:
+        while True:
+            with subscriber.pending:
+                subscriber.pending.wait_for(lambda: subscriber.closed or subscriber.state or subscriber.frame)
+                if subscriber.closed:
+                    return
+                state, frame = subscriber.state, subscriber.frame
+                subscriber.state = subscriber.frame = None
+            try:
+                if state is not None:
+                    subscriber.send({"type": "state", "state": state.as_dict()})
+                if frame is not None:
+                    meta, jpeg = frame_message(frame)
+                    subscriber.send({"type": "frame", "meta": meta}, jpeg)
+            except (OSError, EOFError):
+                return
+
+    def _live_view(self) -> None:
+        while not self._stopping.wait(LIVE_VIEW_PERIOD_S):
+            if self.subscribers and not self.controller.running:
+                try:
+                    self.controller.look()
+                except CommandRefused:
+                    pass  # a run took the camera meanwhile
+                except Exception as exc:  # a camera that fails is shown as such, the server lives on
+                    log.warning("live view: %s", exc)
+
+    def close(self) -> None:
+        self._stopping.set()
+        self.listener.close()
+        for subscriber in list(self.subscribers):
+            subscriber.connection.close()
+
+
+@dataclass
+class Reply:
+    ok: bool
+    result: Any = None
+    error: str | None = None
+
+
+class ControllerClient:
+    """The app's end: commands with replies, and callbacks for state and frames."""
+
+    def __init__(self, address: tuple[str, int], authkey: bytes,
+                 on_state: Callable[[dict], None] = lambda state: None,
+                 on_frame: Callable[[dict, bytes], None] = lambda meta, jpeg: None) -> None:
+        try:
+            self.connection = Client(address, authkey=authkey)
+        except Exception as exc:  # ConnectionRefusedError, AuthenticationError
+            raise ChannelError(f"cannot connect to the controller at {address[0]}:{address[1]}: {exc!r}") from exc
+        self.on_state, self.on_frame = on_state, on_frame
+        self.connection.send_bytes(json.dumps({"type": "hello", "version": PROTOCOL_VERSION}).encode())
+        welcome = json.loads(self.connection.recv_bytes())
+        if welcome.get("type") != "welcome":
+            raise ChannelError(welcome.get("error", f"unexpected answer {welcome!r}"))
+        self.state: dict = welcome["state"]
+        self._replies: dict[int, Reply] = {}
+        self._reply_ready = threading.Condition()
+        self._next_id = 0
+        self._send_lock = threading.Lock()
+        self.connected = True
+        self._reader = threading.Thread(target=self._read, name="controller-client", daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        try:
+            while True:
+                message = json.loads(self.connection.recv_bytes())
+                kind = message.get("type")
+                if kind == "state":
+                    self.state = message["state"]
+                    self.on_state(self.state)
+                elif kind == "frame":
+                    self.on_frame(message["meta"], self.connection.recv_bytes())
+                elif kind == "reply":
+                    with self._reply_ready:
+                        self._replies[message["id"]] = Reply(message["ok"], message.get("result"), message.get("error"))
+                        self._reply_ready.notify_all()
+        except (EOFError, OSError, TypeError):
+            pass  # the controller went away, or close() took the connection from under recv (TypeError)
+        finally:
+            with self._reply_ready:
+                self.connected = False
+                self._reply_ready.notify_all()
+
+    def call(self, command: str, timeout_s: float = 30.0, **args: Any) -> Reply:
+        """Send ``command`` with its arguments (``save_job`` takes one called name) and wait for the reply."""
+        with self._send_lock:
+            self._next_id += 1
+            request = self._next_id
+            try:
+                self.connection.send_bytes(json.dumps({"type": "command", "id": request, "name": command,
+                                                       "args": args}).encode())
+            except OSError as exc:
+                raise ChannelError(f"the controller is gone: {exc}") from exc
+        with self._reply_ready:
+            if not self._reply_ready.wait_for(lambda: request in self._replies or not self.connected, timeout_s):
+                raise ChannelError(f"no reply to {command!r} within {timeout_s} s")
+            if request not in self._replies:
+                raise ChannelError("the controller is gone")
+            return self._replies.pop(request)
+
+    def close(self) -> None:
+        # Shut the socket down before closing it: a close alone neither wakes our reader
+        # blocked in recv nor tells the controller we are gone (the reader holds the socket).
+        try:
+            with socket.fromfd(self.connection.fileno(), socket.AF_INET, socket.SOCK_STREAM) as duplicate:
+                duplicate.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass  # already closed or shut down by the other end
+        self.connection.close()
+        self._reader.join(5.0)

@@ -1,0 +1,253 @@
+"""Jobs and runs in SQLite, images and recordings on disk beside it (ARCHITECTURE.md).
+
+The data folder holds ``vservo.sqlite`` (the jobs, every assembly attempt), ``images/``
+(each job's desired image, PNG) and ``runs/`` (a recording per run). A job's row and
+its image are written so that a crash leaves the old job or the new one: the image goes
+to a new file first, the row's transaction then points at it. A row that cannot be
+read (a corrupt or hand-edited record) is listed with what is wrong with it, never
+silently dropped, and nothing else is lost.
+
+The shipped demo job (static/jobs/demo.json) is available in every store under its
+name until a job of that name is saved.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from vservo.core.perception.recording import write_atomic
+from vservo.core.production.jobs import Job, JobError, job_from_json, read_job_file, validate_job_name
+
+SCHEMA_VERSION = 1
+DEMO_JOB = "demo"
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS jobs (
+    name TEXT PRIMARY KEY,
+    body TEXT NOT NULL,
+    image TEXT,
+    saved_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS runs (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    job TEXT NOT NULL,
+    backend TEXT NOT NULL,
+    started_at REAL NOT NULL,
+    finished_at REAL,
+    outcome TEXT,
+    reason TEXT,
+    final_error_px REAL,
+    placement_error_mm REAL,
+    duration_s REAL,
+    stages TEXT,
+    recording TEXT
+);
+"""
+
+
+class StoreError(RuntimeError):
+    """The data folder cannot be used; the message names the file and the cause."""
+
+
+@dataclass(frozen=True)
+class JobEntry:
+    """A job as listed: its name, when it was saved, and why it cannot be loaded, if so."""
+
+    name: str
+    saved_at: float
+    problem: str | None = None
+    shipped: bool = False
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """One assembly attempt."""
+
+    id: int
+    job: str
+    backend: str
+    started_at: float
+    finished_at: float | None
+    outcome: str | None  # None while it runs (or if the process died during it)
+    reason: str | None
+    final_error_px: float | None
+    placement_error_mm: float | None
+    duration_s: float | None
+    stages: list[dict]
+    recording: str | None
+
+
+def default_data_dir() -> Path:
+    """$VSERVO_DATA, else ~/.local/share/vservo (the XDG data folder)."""
+    if os.environ.get("VSERVO_DATA"):
+        return Path(os.environ["VSERVO_DATA"])
+    base = os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share"
+    return Path(base) / "vservo"
+
+
+def shipped_job_path(name: str) -> Path:
+    return Path(str(resources.files("vservo.static").joinpath("jobs", f"{name}.json")))
+
+
+class Store:
+    """The data folder. Safe to use from several threads (one connection, one lock)."""
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        self.images = self.root / "images"
+        self.runs_dir = self.root / "runs"
+        try:
+            self.images.mkdir(parents=True, exist_ok=True)
+            self.runs_dir.mkdir(exist_ok=True)
+            self._db = sqlite3.connect(self.root / "vservo.sqlite", check_same_thread=False, isolation_level=None)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.executescript(_SCHEMA)
+            row = self._db.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()
+        except (OSError, sqlite3.Error) as exc:
+            raise StoreError(f"{self.root}: cannot open the data folder ({exc})") from exc
+        if row is None:
+            self._db.execute("INSERT INTO meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
+        elif row[0] != str(SCHEMA_VERSION):
+            raise StoreError(f"{self.root / 'vservo.sqlite'}: schema version {row[0]}, this vservo uses {SCHEMA_VERSION}")
+        self._lock = threading.Lock()
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    @contextmanager
+    def _transaction(self) -> Iterator[sqlite3.Connection]:
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._db
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+
+    # -- jobs ------------------------------------------------------------------------
+
+    def save_job(self, job: Job, image: np.ndarray | None = None) -> None:
+        """Save (or replace) a job and its desired image."""
+        image_name = None
+        if image is not None:
+            ok, png = cv2.imencode(".png", image)
+            if not ok:
+                raise StoreError(f"job {job.name!r}: the desired image cannot be encoded as PNG")
+            image_name = f"{job.name}-{time.time_ns()}.png"
+            write_atomic(self.images / image_name, png.tobytes())
+        with self._transaction() as db:
+            old = db.execute("SELECT image FROM jobs WHERE name = ?", (job.name,)).fetchone()
+            db.execute(
+                "INSERT OR REPLACE INTO jobs (name, body, image, saved_at) VALUES (?, ?, ?, ?)",
+                (job.name, json.dumps(job.as_dict()), image_name or (old[0] if old else None), time.time()),
+            )
+        if image_name and old and old[0]:
+            (self.images / old[0]).unlink(missing_ok=True)
+
+    def load_job(self, name: str) -> Job:
+        validate_job_name(name)
+        with self._lock:
+            row = self._db.execute("SELECT body FROM jobs WHERE name = ?", (name,)).fetchone()
+        if row is None:
+            if name == DEMO_JOB:
+                return read_job_file(shipped_job_path(DEMO_JOB))
+            raise JobError(f"no job named {name!r} (jobs: {', '.join(e.name for e in self.list_jobs()) or 'none'})")
+        return job_from_json(row[0], f"job {name!r} in {self.root / 'vservo.sqlite'}")
+
+    def job_image(self, name: str) -> np.ndarray | None:
+        """The job's desired image, or None if it has none."""
+        with self._lock:
+            row = self._db.execute("SELECT image FROM jobs WHERE name = ?", (name,)).fetchone()
+        if row is None and name == DEMO_JOB:
+            path = shipped_job_path(DEMO_JOB).with_suffix(".png")
+        elif row is None or row[0] is None:
+            return None
+        else:
+            path = self.images / row[0]
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            raise StoreError(f"job {name!r}: its desired image {path} is missing or unreadable")
+        return image
+
+    def list_jobs(self) -> list[JobEntry]:
+        with self._lock:
+            rows = self._db.execute("SELECT name, body, saved_at FROM jobs ORDER BY name").fetchall()
+        entries = []
+        for name, body, saved_at in rows:
+            try:
+                job_from_json(body, f"job {name!r}")
+                problem = None
+            except JobError as exc:
+                problem = str(exc)
+            entries.append(JobEntry(name, saved_at, problem))
+        if DEMO_JOB not in {e.name for e in entries}:
+            entries.insert(0, JobEntry(DEMO_JOB, shipped_job_path(DEMO_JOB).stat().st_mtime, shipped=True))
+        return entries
+
+    def delete_job(self, name: str) -> None:
+        with self._transaction() as db:
+            row = db.execute("SELECT image FROM jobs WHERE name = ?", (name,)).fetchone()
+            if row is None:
+                raise JobError(f"no job named {name!r}")
+            db.execute("DELETE FROM jobs WHERE name = ?", (name,))
+        if row[0]:
+            (self.images / row[0]).unlink(missing_ok=True)
+
+    # -- runs ------------------------------------------------------------------------
+
+    def start_run(self, job: str, backend: str) -> int:
+        with self._transaction() as db:
+            cursor = db.execute("INSERT INTO runs (job, backend, started_at) VALUES (?, ?, ?)", (job, backend, time.time()))
+            return int(cursor.lastrowid)
+
+    def run_folder(self, run_id: int) -> Path:
+        return self.runs_dir / f"{run_id:06d}"
+
+    def finish_run(self, run_id: int, outcome: str, reason: str, final_error_px: float | None,
+                   placement_error_mm: float | None, duration_s: float, stages: list[dict], recording: str | None) -> None:
+        with self._transaction() as db:
+            db.execute(
+                "UPDATE runs SET finished_at = ?, outcome = ?, reason = ?, final_error_px = ?, placement_error_mm = ?,"
+                " duration_s = ?, stages = ?, recording = ? WHERE id = ?",
+                (time.time(), outcome, reason, _finite_or_none(final_error_px), _finite_or_none(placement_error_mm),
+                 duration_s, json.dumps(stages), recording, run_id),
+            )
+
+    def list_runs(self, limit: int = 100) -> list[RunRecord]:
+        with self._lock:
+            rows = self._db.execute("SELECT * FROM runs ORDER BY id DESC LIMIT ?", (limit,)).fetchall()
+        return [_run_record(row) for row in rows]
+
+    def run(self, run_id: int) -> RunRecord:
+        with self._lock:
+            row = self._db.execute("SELECT * FROM runs WHERE id = ?", (run_id,)).fetchone()
+        if row is None:
+            raise StoreError(f"no run {run_id}")
+        return _run_record(row)
+
+
+def _finite_or_none(value: float | None) -> float | None:
+    return None if value is None or not np.isfinite(value) else float(value)
+
+
+def _run_record(row: tuple) -> RunRecord:
+    try:
+        stages = json.loads(row[10]) if row[10] else []
+    except json.JSONDecodeError:
+        stages = [{"stage": "unreadable stage record", "iterations": 0}]
+    return RunRecord(row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7], row[8], row[9], stages, row[11])

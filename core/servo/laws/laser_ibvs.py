@@ -1,0 +1,177 @@
+"""The switching IBVS with a laser pointer (thesis section 4.4, Appendix C).
+
+Three sub-controllers, switched on image errors:
+
+- Stage 1.A (all corners seen): turn the camera (3 rotational DOF) until the corners sit
+  on the imaginary desired features, the desired corners shifted by the current laser
+  spot minus the desired spot (Fig. 4-5) and scaled to the current pattern (below); the laser then lies on the part where it lies
+  in the desired image, and a half turn about the optical axis is done here by rotation
+  rather than by IBVS's retreat (eqs. 4-26 .. 4-29). Switch when ||f_id - f|| <= f0.
+- Stage 1.B (part of the object outside the image): turn the camera (2 DOF) to bring the
+  visible object region's centroid (image moments, eqs. 4-33 .. 4-35) onto the laser
+  spot (eqs. 4-30 .. 4-32, 4-36), until every corner is seen; then 1.A.
+- Stage 1.C: during stage 1 the camera also translates by v = cTe x w (eqs. 4-37, 4-38),
+  so that the end effector turns in place instead of swinging around the camera.
+- Stage 2: translation from the stacked corners and laser spot with the laser depth
+  (eqs. 4-39 .. 4-42, 4-23), rotation that keeps the spot on the corners' centroid
+  (eqs. 4-45 .. 4-48), gains K1, K2 (eq. 4-49). Switch to 3 when ||f_d^l - f^l|| <= f0^l
+  (eq. 4-43).
+- Stage 3: classic IBVS with the constant interaction matrix at the desired features and
+  depth (eqs. 4-50, 4-51) until ||f_d - f|| is below the final threshold.
+
+Interpretation (THESIS-NOTES section 5). Fig. 4-5 shifts the desired corners to the
+current spot; from 0.42 m the part's image is less than half the desired size and no
+rotation can make the corners match that, so ||f_id - f|| would never fall below f0.
+The imaginary features therefore also take the current pattern's scale (about the
+spot): at the desired depth this is the construction of Fig. 4-5, and the stage then
+regulates what rotation can change, which eq. 4-26 (a sum of errors) already hinted
+at. Stage 1.A takes w_z from the orientation of the
+pattern, the angle that turns the current corners onto the imaginary ones, and w_x, w_y
+from the least squares of eq. 4-29 for what is left (the partitioning of Corke &
+Hutchinson 2001): at a half turn about the optical axis every error is radial, the
+least-squares w_z of eq. 4-29 is exactly zero, and only this turns the camera round as
+Fig. 5-1 shows. And the laser spot is rigid with the camera, so a
+rotation does not move the spot in the image, it moves the object. Stages 1.B and 2
+therefore turn the camera so that the object centroid c moves onto the spot,
+J^r(c) w = K (f^l - c); the thesis writes the same goal as the spot moving onto the
+centroid, with the lit point taken as stationary on the part. Taken literally, with the
+signs of eqs. 4-36 and 4-48, the two terms would push the centroid away from the spot.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vservo.core.geometry.camera import CameraModel
+from vservo.core.geometry.interaction import pixel_interaction_matrix
+from vservo.core.geometry.spatial import Matrix
+from vservo.core.perception.features import DesiredImage, ImageFeatures
+from vservo.core.servo.laws.base import ControlOutput, Failure, SingularJacobian, checked_pinv, feature_error_px
+
+STAGE_1A, STAGE_1B, STAGE_2, STAGE_3 = "1A", "1B", "2", "3"
+# Rotation-only Jacobians do not depend on depth; any positive value fills the slot.
+_ANY_DEPTH = 1.0
+
+
+def rotational_jacobian(camera: CameraModel, uv: Matrix) -> Matrix:
+    """J^r of eqs. 4-24 / 4-31: the rotational columns of the pixel interaction matrix."""
+    return pixel_interaction_matrix(camera, uv, _ANY_DEPTH)[:, 3:]
+
+
+def translational_jacobian(camera: CameraModel, uv: Matrix, Z: float) -> Matrix:
+    """J^t of eq. 4-23 stacked for every point (eq. 4-42) at the common depth Z."""
+    return pixel_interaction_matrix(camera, uv, Z)[:, :3]
+
+
+def image_rotation(from_px: Matrix, to_px: Matrix) -> float:
+    """Angle in (-pi, pi] of the plane rotation that best turns one point pattern onto
+    another about their centroids (2D Procrustes), counter-clockwise in (u, v)."""
+    a = from_px - from_px.mean(axis=0)
+    b = to_px - to_px.mean(axis=0)
+    return float(np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b)))
+
+
+def pattern_scale(points_px: Matrix) -> float:
+    """RMS distance of a point pattern to its centroid (px)."""
+    return float(np.sqrt(np.mean(np.sum((points_px - points_px.mean(axis=0)) ** 2, axis=1))))
+
+
+def imaginary_features(desired: DesiredImage, features: ImageFeatures) -> Matrix:
+    """The desired corners moved with the laser spot (Fig. 4-5) and scaled to the current
+    pattern about the spot: where the corners are when the spot lies on the part as in
+    the desired image, seen from the current distance."""
+    scale = pattern_scale(features.corners_px) / pattern_scale(desired.corners_px)
+    return features.laser_spot_px + scale * (desired.corners_px - desired.laser_spot_px)
+
+
+@dataclass(frozen=True)
+class LaserIbvs:
+    """Settings of the switching controller; gains and thresholds of section 5.2."""
+
+    camera: CameraModel
+    cTe: Matrix  # position of the flange E in the camera frame (stage 1.C)
+    k_rotation_1a: float = 1.0  # K_l, eq. 4-29
+    k_rotation_1b: float = 1.0  # K_l2, eq. 4-36
+    k_translation: float = 1.0  # K1, eq. 4-49
+    k_rotation: float = 1.0  # K2, eq. 4-49; raise it under a bad laser calibration
+    k_final: float = 1.0  # stage 3
+    f0_px: float = 10.0  # eq. 4-27
+    f0_laser_px: float = 10.0  # eq. 4-43
+    final_threshold_px: float = 1.0
+    name: str = "laser"
+
+    def step(self, features: ImageFeatures, desired: DesiredImage, stage: str | None) -> ControlOutput:
+        error_px = feature_error_px(features, desired)
+        try:
+            if stage in (None, STAGE_1A, STAGE_1B):
+                return self._stage_1(features, desired, error_px)
+            if stage == STAGE_2:
+                return self._stage_2(features, desired, error_px, note="")
+            return self._stage_3(features, desired, error_px, note="")
+        except SingularJacobian as exc:
+            return ControlOutput.stop(stage or STAGE_1A, error_px, Failure.SINGULAR_JACOBIAN, str(exc))
+
+    def _with_compensation(self, w: Matrix) -> Matrix:
+        """Stage 1.C: v = cTe x w keeps the flange in place while the camera turns (eq. 4-38)."""
+        return np.concatenate([np.cross(self.cTe, w), w])
+
+    def _stage_1(self, features: ImageFeatures, desired: DesiredImage, error_px: float) -> ControlOutput:
+        if not features.laser_visible:
+            return ControlOutput.stop(STAGE_1A, error_px, Failure.FEATURES_LOST, "laser spot not seen")
+        if not features.all_corners_visible:
+            return self._stage_1b(features, error_px)
+
+        # Stage 1.A: imaginary features, Fig. 4-5, at the scale of the current pattern.
+        f_id = imaginary_features(desired, features)
+        e = (f_id - features.corners_px).ravel()
+        stage_error = float(np.linalg.norm(e))
+        if stage_error <= self.f0_px:
+            return self._stage_2(features, desired, error_px, note=f"1A -> 2: ||f_id - f|| = {stage_error:.2f} px")
+        # The turn about the optical axis comes from the pattern's orientation: a least-
+        # squares w_z vanishes at a half turn, where every error is radial (eq. 4-25).
+        # An image pattern turns at -w_z (x right, y down), hence the sign.
+        J = rotational_jacobian(self.camera, features.corners_px)
+        w_z = -self.k_rotation_1a * image_rotation(features.corners_px, f_id)
+        w_xy = checked_pinv(J[:, :2]) @ (self.k_rotation_1a * e - J[:, 2] * w_z)
+        w = np.array([w_xy[0], w_xy[1], w_z])
+        return ControlOutput(self._with_compensation(w), STAGE_1A, error_px, stage_error)
+
+    def _stage_1b(self, features: ImageFeatures, error_px: float) -> ControlOutput:
+        region = features.region
+        if not region.seen:
+            return ControlOutput.stop(STAGE_1B, error_px, Failure.FEATURES_LOST, "object not in the image")
+        e = features.laser_spot_px - region.centroid_px
+        J = rotational_jacobian(self.camera, region.centroid_px)[:, :2]  # w_x, w_y only (eq. 4-31)
+        w_xy = self.k_rotation_1b * checked_pinv(J) @ e
+        w = np.array([w_xy[0], w_xy[1], 0.0])
+        return ControlOutput(self._with_compensation(w), STAGE_1B, error_px, float(np.linalg.norm(e)))
+
+    def _stage_2(self, features: ImageFeatures, desired: DesiredImage, error_px: float, note: str) -> ControlOutput:
+        if not (features.all_corners_visible and features.laser_visible):
+            return ControlOutput.stop(STAGE_2, error_px, Failure.FEATURES_LOST, "corners or laser spot lost in stage 2")
+        laser_error = desired.laser_spot_px - features.laser_spot_px
+        laser_error_px = float(np.linalg.norm(laser_error))
+        if laser_error_px <= self.f0_laser_px:
+            switch = f"2 -> 3: ||f_d^l - f^l|| = {laser_error_px:.2f} px"
+            return self._stage_3(features, desired, error_px, note=f"{note}; {switch}" if note else switch)
+
+        # Translation: corners and laser spot as stationary points at the laser depth (4-42).
+        points = np.vstack([features.corners_px, features.laser_spot_px])
+        e_t = np.concatenate([(desired.corners_px - features.corners_px).ravel(), laser_error])
+        v = self.k_translation * checked_pinv(translational_jacobian(self.camera, points, features.laser_depth_m)) @ e_t
+        # Rotation: keep the spot on the centroid of the corners (4-47, 4-48).
+        centroid = features.corners_px.mean(axis=0)
+        w = self.k_rotation * checked_pinv(rotational_jacobian(self.camera, centroid)) @ (features.laser_spot_px - centroid)
+        return ControlOutput(np.concatenate([v, w]), STAGE_2, error_px, laser_error_px, note=note)
+
+    def _stage_3(self, features: ImageFeatures, desired: DesiredImage, error_px: float, note: str) -> ControlOutput:
+        if not features.all_corners_visible:
+            return ControlOutput.stop(STAGE_3, error_px, Failure.FEATURES_LOST, "corners lost in stage 3")
+        if error_px <= self.final_threshold_px:
+            return ControlOutput(np.zeros(6), STAGE_3, error_px, error_px, converged=True, note=note)
+        # Constant interaction matrix at the desired features and depth (4-50, 4-51).
+        L_desired = pixel_interaction_matrix(self.camera, desired.corners_px, desired.depth_m)
+        e = (desired.corners_px - features.corners_px).ravel()
+        return ControlOutput(self.k_final * checked_pinv(L_desired) @ e, STAGE_3, error_px, error_px, note=note)

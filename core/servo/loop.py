@@ -1,0 +1,269 @@
+"""The look-and-move loop: measure, control, convert, command, and watch for failure.
+
+One cycle (ARCHITECTURE.md): the cell's measurement becomes image features (laser depth
+from the NOMINAL laser and camera), the controller turns them into a camera twist cVc,
+the nominal eVc carries it to the flange, the step policy makes it a robot command from
+the flange pose the robot reports, and the robot backend (the simulator, or the JRC
+link, usually behind the safety layer) carries it out. The loop watches what a cell
+operator would: a shrinking image (the camera retreating), an error that stops falling
+(a local minimum), a robot that cannot reach the target or refuses or stops a move, and
+the iteration budget. It stops the robot (no further command) on the first failure and
+names the cause. Behind a safety layer it arms the watchdog for the run and feeds it
+every camera frame.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any, Protocol
+
+import numpy as np
+
+from vservo.core.cell.config import CellModel
+from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.geometry.camera import CameraModel
+from vservo.core.geometry.laser import LaserPointer
+from vservo.core.geometry.spatial import Matrix, twist_transform
+from vservo.core.perception.features import DesiredImage, ImageFeatures, polygon_moments
+from vservo.core.perception.measurement import Measurement, features_from_measurement
+from vservo.core.robot.backend import RobotBackend, RobotError, carry_out
+from vservo.core.robot.safety import SafetyLayer, Watchdog
+from vservo.core.servo.laws.base import Controller, ControlOutput, Failure
+from vservo.core.servo.step_policy import StepPolicy
+
+log = logging.getLogger("vservo.servo")
+
+
+@dataclass(frozen=True)
+class LoopLimits:
+    """When the loop gives up.
+
+    retreat_area_fraction: the corners' image area below this fraction of both the first
+      and the desired area means the camera is backing away (IBVS's retreat, Chaumette 1998).
+    progress_window / progress_fraction: a stage whose error has not fallen by this
+      fraction over this many cycles is stuck in a local minimum.
+    spot_hold_cycles: for how many cycles a laser spot that vanished (hidden behind the
+      part's edge as it climbs onto it) is taken to be where it was last seen.
+    lost_hold_cycles: for how many consecutive cycles the loop holds the robot (zero
+      twist, no command) while the controller finds its features lost (a frame or two
+      in which a detector misses them) before it stops with the features lost.
+    """
+
+    max_iterations: int = 3000
+    retreat_area_fraction: float = 0.75
+    progress_window: int = 150
+    progress_fraction: float = 0.01
+    spot_hold_cycles: int = 10
+    lost_hold_cycles: int = 3
+
+
+@dataclass(frozen=True)
+class Cycle:
+    """One look-and-move cycle as the loop saw it."""
+
+    iteration: int
+    measurement: Measurement
+    features: ImageFeatures
+    output: ControlOutput
+
+
+@dataclass(frozen=True)
+class ServoOutcome:
+    converged: bool
+    failure: Failure | None
+    reason: str
+    cycles: tuple[Cycle, ...]
+
+    @property
+    def iterations(self) -> int:
+        return len(self.cycles)
+
+    @property
+    def final_error_px(self) -> float:
+        return self.cycles[-1].output.error_px if self.cycles else float("nan")
+
+    @property
+    def stages(self) -> list[dict[str, int | str]]:
+        """Consecutive stages in the order they ran, with their iteration counts."""
+        runs: list[dict[str, int | str]] = []
+        for cycle in self.cycles:
+            if runs and runs[-1]["stage"] == cycle.output.stage:
+                runs[-1]["iterations"] += 1
+            else:
+                runs.append({"stage": cycle.output.stage, "iterations": 1})
+        return runs
+
+
+class MeasurementSource(Protocol):
+    """What the loop samples each cycle: the simulator, or a real cell's robot readout
+    (whose features then come from camera frames, see Perception)."""
+
+    def measure(self, look: bool = True) -> Measurement: ...
+
+
+class Perception(Protocol):
+    """Where the loop's features come from: the measurement's projections or a camera.
+
+    uses_projection: whether it reads the measurement's projected features at all.
+    """
+
+    uses_projection: bool
+
+    def perceive(self, measurement: Measurement) -> ImageFeatures: ...
+
+
+@dataclass(frozen=True)
+class ProjectedPerception:
+    """Ideal detection: the simulator's projected corners and spot (with its pixel noise)."""
+
+    camera: CameraModel
+    laser: LaserPointer
+    uses_projection: bool = True
+
+    def perceive(self, measurement: Measurement) -> ImageFeatures:
+        return features_from_measurement(measurement, self.camera, self.laser)
+
+
+def hold_spot(features: ImageFeatures, last_seen: ImageFeatures | None) -> ImageFeatures:
+    """The features with a vanished laser spot replaced by its last sighting, if any.
+
+    The spot's image position depends only on the depth it lands at, which changes little
+    over a few cycles, so the last sighting is a good estimate while it stays hidden.
+    """
+    if features.laser_visible or last_seen is None:
+        return features
+    return replace(features, laser_spot_px=last_seen.laser_spot_px, laser_depth_m=last_seen.laser_depth_m)
+
+
+def corner_area_px2(corners_px: Matrix) -> float:
+    return polygon_moments(corners_px)[0] if not np.isnan(corners_px).any() else float("nan")
+
+
+def run_servo(
+    cell: MeasurementSource,
+    controller: Controller,
+    desired: DesiredImage,
+    model: CellModel,
+    policy: StepPolicy,
+    limits: LoopLimits = LoopLimits(),
+    on_cycle: Callable[[Cycle], None] | None = None,
+    perception: Perception | None = None,
+    *,
+    robot: RobotBackend,
+) -> ServoOutcome:
+    """Servo to the desired image with ``controller``; ``model`` is the nominal cell.
+
+    ``cell`` is the camera side: its measurements feed ``perception``, by default the
+    simulator's projected points. ``robot`` carries out the moves; it must be connected
+    with servo power on. Behind a SafetyLayer the watchdog is armed for the run.
+    """
+    perception = perception or ProjectedPerception(model.camera, model.laser)
+    watchdog = robot.watchdog if isinstance(robot, SafetyLayer) else None
+    if watchdog is not None:
+        watchdog.arm()
+    try:
+        return _servo(cell, controller, desired, model, policy, limits, on_cycle, perception, robot, watchdog)
+    finally:
+        if watchdog is not None:
+            watchdog.disarm()
+
+
+def _servo(cell: MeasurementSource, controller: Controller, desired: DesiredImage, model: CellModel, policy: StepPolicy,
+           limits: LoopLimits, on_cycle: Callable[[Cycle], None] | None, perception: Perception, robot: RobotBackend,
+           watchdog: Watchdog | None) -> ServoOutcome:
+    eVc = twist_transform(model.eMc)
+    desired_area = corner_area_px2(desired.corners_px)
+    first_area = float("nan")
+    cycles: list[Cycle] = []
+    stage: str | None = None
+    last_spot: ImageFeatures | None = None  # the last frame that saw the laser spot
+    spot_hidden_for = 0
+    lost_for = 0  # consecutive cycles held with the features lost
+    recent_errors: deque[float] = deque(maxlen=limits.progress_window + 1)  # of the current stage
+
+    def finish(converged: bool, failure: Failure | None, reason: str) -> ServoOutcome:
+        if failure is not None:
+            log.info("servo stopped at cycle %d: %s (%s)", len(cycles), failure.value, reason)
+        return ServoOutcome(converged, failure, reason, tuple(cycles))
+
+    for iteration in range(limits.max_iterations):
+        measurement = cell.measure(look=perception.uses_projection)
+        seen = perception.perceive(measurement)
+        if watchdog is not None:
+            watchdog.feed("camera")
+        if seen.laser_visible:
+            last_spot, spot_hidden_for = seen, 0
+        else:
+            spot_hidden_for += 1
+        features = hold_spot(seen, last_spot if spot_hidden_for <= limits.spot_hold_cycles else None)
+        output = controller.step(features, desired, stage)
+        lost_for = lost_for + 1 if output.failure is Failure.FEATURES_LOST else 0
+        hold = 0 < lost_for <= limits.lost_hold_cycles
+        if hold:
+            output = replace(output, failure=None, note=f"holding, {output.note} ({lost_for} of {limits.lost_hold_cycles})")
+        cycle = Cycle(iteration, measurement, features, output)
+        cycles.append(cycle)
+        if on_cycle is not None:
+            on_cycle(cycle)
+        if output.note:
+            log.info("cycle %d: %s", iteration, output.note)
+        if hold:
+            continue  # no command: the next frame may see the features again
+        if output.failure is not None:
+            return finish(False, output.failure, output.note)
+        if output.converged:
+            return finish(True, None, f"feature error {output.error_px:.3f} px")
+        if not np.all(np.isfinite(output.cVc)):
+            # Never send a NaN to a robot: the law broke down (a degenerate Jacobian or depth).
+            return finish(False, Failure.SINGULAR_JACOBIAN, f"stage {output.stage} returned a non-finite twist")
+
+        area = corner_area_px2(features.corners_px)
+        if np.isnan(first_area):
+            first_area = area
+        if area < limits.retreat_area_fraction * min(first_area, desired_area):
+            return finish(False, Failure.CAMERA_RETREAT, f"corner area {area:.0f} px^2, first {first_area:.0f} px^2")
+
+        if output.stage != stage:
+            recent_errors.clear()
+        stage = output.stage
+        recent_errors.append(output.stage_error)
+        if len(recent_errors) == recent_errors.maxlen and recent_errors[-1] > (1.0 - limits.progress_fraction) * recent_errors[0]:
+            return finish(
+                False, Failure.NO_PROGRESS, f"stage {stage} error {recent_errors[-1]:.2f} after {limits.progress_window} cycles"
+            )
+
+        try:
+            # The cycle's one reading of the flange (on a real cell FlangeReadout took it
+            # from the robot): a second read would cost another RPOSC on the JRC.
+            bMe = measurement.bMe
+            carry_out(robot, policy.command(bMe, eVc @ output.cVc), bMe)
+        except UnreachableTarget as exc:
+            return finish(False, Failure.UNREACHABLE, str(exc))
+        except RobotError as exc:
+            return finish(False, Failure.ROBOT_STOPPED, str(exc))
+    return finish(False, Failure.ITERATION_LIMIT, f"{limits.max_iterations} cycles")
+
+
+def cycle_record(cycle: Cycle) -> dict[str, Any]:
+    """What a recording keeps of one cycle: what the loop saw, decided and commanded."""
+    output, features = cycle.output, cycle.features
+    return {
+        "iteration": cycle.iteration,
+        "time_s": cycle.measurement.time_s,
+        "q": cycle.measurement.q,
+        "bMe": cycle.measurement.bMe,
+        "corners_px": features.corners_px,
+        "laser_spot_px": features.laser_spot_px,
+        "laser_depth_m": features.laser_depth_m,
+        "region": features.region,
+        "stage": output.stage,
+        "cVc": output.cVc,
+        "error_px": output.error_px,
+        "stage_error": output.stage_error,
+        "converged": output.converged,
+        "failure": output.failure,
+        "note": output.note,
+    }

@@ -1,0 +1,490 @@
+"""An emulator of the JRC controller's side of the host link, on the kinematic simulator.
+
+It answers the host commands of JRC-PROTOCOL.md over a real serial device (a
+pseudo-terminal it creates, or a given port) with its own controller state: servo power,
+the three holds (pendant, external, command), an alarm, and one motion at a time. The
+robot is a SimulatedCell, the same plant the simulated camera looks at: a MOVL or IMOV
+target goes through the controller's nominal IK, and the arm travels there in joint
+space at the commanded speed (or the controller's rotation rate when the rotation takes
+longer), reporting running until it arrives. A hold, servo off or an alarm stops the
+motion where it is and discards the rest of it: the host decides how to go on.
+
+Time: the plant's clock runs ``time_scale`` times faster than the wall clock, so tests
+need not wait real seconds; JWAIT's time is controller (plant) time. The plant is only
+touched while a command is handled, when the host is waiting for the reply, so a host
+thread may read the same SimulatedCell between commands without a lock.
+
+Fault injection (FaultPlan): each host exchange meets a fault with probability ``rate``,
+of a kind drawn uniformly from ``kinds``: a reply block with a corrupted BCC, a byte
+dropped or an answer delayed (0.3 .. 1.5 timer A) in one of the emulator's next
+transmissions, a block accepted without its ACK (missing ACK), a good block refused
+with NAK, a silence that outlasts the host's retries (timeout), or an alarm or a
+pendant hold in the middle of the next motion.
+
+Inferred behaviour (no public JRC document; check on the real controller): JWAIT answers
+0 when the motion ended, -1 when it was stopped, and status 2010 when its time ran out
+with the robot still moving; IMOV takes MOVL's operands with increments; RALARM answers
+``code,text`` pairs; a target out of reach is refused with 5200.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+import serial
+
+from vservo.core.cell.config import JrcLineConfig
+from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.geometry.spatial import Matrix, pose_error
+from vservo.core.robot.backend import apply_increment
+from vservo.core.robot.bsc import BscStation, ByteChannel, LinkError, Message, Port
+from vservo.core.robot.jrc import (
+    D1_RUNNING,
+    D2_ALARM,
+    D2_COMMAND_HOLD,
+    D2_EXTERNAL_HOLD,
+    D2_PENDANT_HOLD,
+    D2_SERVO_ON,
+    DATA_REPLY,
+    HOST_COMMAND,
+    OUT_OF_RANGE,
+    ROBOT_OPERATING,
+    STATUS_REPLY,
+    open_serial,
+    pose_from_wire,
+    wire_pose,
+)
+from vservo.core.sim.plant import ROTATION_SPEED_RAD_S, SimulatedCell
+from vservo.core.sim.pseudo_terminal import PseudoTerminal
+
+log = logging.getLogger("vservo.jrc_emulator")
+
+FAULT_KINDS = ("bcc", "drop", "delay", "missing_ack", "nak", "timeout", "alarm", "hold")
+MOTION_FAULTS = ("alarm", "hold")
+MAX_SPEED_MM_S = 1000.0
+MAX_ROTATION_SPEED_DEG_S = 180.0
+EMULATED_ALARM = (4315, "COLLISION DETECT (EMULATED)")
+# RSTATS d1: play mode and command remote, as a cell under host control runs.
+D1_PLAY, D1_REMOTE = 1 << 6, 1 << 7
+MOTION_FIELDS = 17
+JWAIT_TICK_S = 0.002
+IDLE_POLL_S = 0.05
+
+
+@dataclass(frozen=True)
+class FaultPlan:
+    """Which faults to inject, how often, from which seed."""
+
+    rate: float = 0.0
+    seed: int = 0
+    kinds: tuple[str, ...] = FAULT_KINDS
+    pendant_hold_s: float = 1.0  # controller time an injected pendant hold lasts
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.rate <= 1.0:
+            raise ValueError(f"fault rate {self.rate!r} must lie in [0, 1]")
+        unknown = set(self.kinds) - set(FAULT_KINDS)
+        if unknown or not self.kinds:
+            raise ValueError(f"unknown fault kinds {sorted(unknown)}: choose from {', '.join(FAULT_KINDS)}")
+
+
+class FaultInjector:
+    """The emulator's faults (a bsc.LinkFaults), one per host exchange at most.
+
+    ``injected`` counts the faults that really happened, by kind (a drop aimed past the
+    end of a short exchange, say, does not count).
+    """
+
+    def __init__(self, plan: FaultPlan, line: JrcLineConfig) -> None:
+        self.plan, self.line = plan, line
+        self.rng = np.random.default_rng(plan.seed)
+        self.injected: Counter[str] = Counter()
+        self._armed: str | None = None
+        self._countdown = 0  # outgoing transmissions before a drop or delay hits
+        self.pending_motion_fault: str | None = None
+        self._forced: list[str] = []
+
+    def inject(self, kind: str) -> None:
+        """Force a fault of ``kind`` on the next exchange (an alarm or hold: on the next motion)."""
+        if kind not in FAULT_KINDS:
+            raise ValueError(f"unknown fault kind {kind!r}: choose from {', '.join(FAULT_KINDS)}")
+        self._forced.append(kind)
+
+    def begin_exchange(self) -> str | None:
+        """Draw this exchange's fault; returns "timeout" when the bid is to be ignored."""
+        self._armed = None
+        if self._forced:
+            kind = self._forced.pop(0)
+        elif self.rng.random() < self.plan.rate:
+            kind = str(self.rng.choice(self.plan.kinds))
+        else:
+            return None
+        if kind in MOTION_FAULTS:
+            self.pending_motion_fault = kind  # strikes the next motion, whichever exchange carries it
+        elif kind == "timeout":
+            self.injected[kind] += 1
+            return kind
+        else:
+            self._armed = kind
+            self._countdown = int(self.rng.integers(0, 4))  # ACK0, ACK1, the reply's ENQ, the reply block
+        return None
+
+    def outgoing(self, data: bytes, what: str) -> bytes | None:
+        kind = self._armed
+        if kind == "bcc" and what == "block":
+            self._fired()
+            return data[:-1] + bytes(((data[-1] + 1) & 0xFF,))
+        if kind in ("drop", "delay") and what in ("ack", "enq", "block"):
+            if self._countdown > 0:
+                self._countdown -= 1
+                return data
+            self._fired()
+            if kind == "drop":
+                cut = int(self.rng.integers(0, len(data)))
+                return data[:cut] + data[cut + 1:]
+            time.sleep(self.rng.uniform(0.3, 1.5) * self.line.timer_a_s)
+        return data
+
+    def on_block(self) -> str | None:
+        if self._armed in ("nak", "missing_ack"):
+            verdict = "nak" if self._armed == "nak" else "no_ack"
+            self._fired()
+            return verdict
+        return None
+
+    def take_motion_fault(self) -> str | None:
+        """The alarm or pendant hold waiting for a motion; it counts once it strikes."""
+        kind, self.pending_motion_fault = self.pending_motion_fault, None
+        return kind
+
+    def _fired(self) -> None:
+        self.injected[self._armed] += 1
+        self._armed = None
+
+
+@dataclass
+class Motion:
+    """One linear move under way, in joint space, in controller (plant) time."""
+
+    q_start: Matrix
+    q_end: Matrix
+    duration_s: float
+    elapsed_s: float = 0.0
+    stop_at_s: float | None = None  # an injected alarm or pendant hold strikes here
+    stop_kind: str | None = None
+
+    def joints_at(self, t_s: float) -> Matrix:
+        s = min(t_s / self.duration_s, 1.0) if self.duration_s > 0.0 else 1.0
+        return self.q_start + s * (self.q_end - self.q_start)
+
+
+class JrcEmulator:
+    """The controller side of the link, on ``cell``; start it on a pseudo-terminal or a port.
+
+    ``executed`` lists the motion commands the controller accepted, in order: the proof
+    that no move was lost or carried out twice.
+    """
+
+    def __init__(self, cell: SimulatedCell, line: JrcLineConfig, faults: FaultPlan = FaultPlan(),
+                 time_scale: float = 1.0, pace: bool = False) -> None:
+        if not time_scale > 0.0:
+            raise ValueError(f"time scale {time_scale!r} must be positive")
+        self.cell, self.line, self.time_scale, self.pace = cell, line, time_scale, pace
+        self.faults = FaultInjector(faults, line)
+        self.executed: list[str] = []
+        self.exchanges = 0
+        self.servo_on = False
+        self.command_hold = False
+        self.external_hold = False
+        self.pendant_hold_until_s: float | None = None
+        self.alarm: tuple[int, str] | None = None
+        self.motion: Motion | None = None
+        self.last_motion_stopped = False
+        self.device: str | None = None
+        self.station: BscStation | None = None
+        self._pty: PseudoTerminal | None = None
+        self._serial: serial.SerialBase | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_real_s = time.monotonic()
+
+    # -- running -----------------------------------------------------------------------
+
+    def start_on_pty(self) -> str:
+        """Create a raw pseudo-terminal, serve on it, and return the device the host opens."""
+        self._pty = PseudoTerminal()
+        self.device = self._pty.device
+        self._start(self._pty.port)
+        return self.device
+
+    def start_on_port(self, device: str) -> None:
+        """Serve on a real serial port, with the line settings of ``line``."""
+        self._serial = open_serial(self.line, device)
+        self.device = device
+        self._start(self._serial)
+
+    def _start(self, port: Port) -> None:
+        channel = ByteChannel(port, self.line.wire_time_s(1) if self.pace else None)
+        self.station = BscStation(channel, self.line, yields=False, faults=self.faults)
+        self._last_real_s = time.monotonic()
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._serve, name="jrc-emulator", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop serving and close the device; safe to call twice."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._pty is not None:
+            self._pty.close()
+            self._pty = None
+        if self._serial is not None:
+            self._serial.close()
+            self._serial = None
+
+    def __enter__(self) -> JrcEmulator:
+        self.start_on_pty()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _serve(self) -> None:
+        station, ignoring = self.station, 0
+        while not self._stop.is_set():
+            if not station.wait_for_bid(time.monotonic() + IDLE_POLL_S):
+                continue
+            if ignoring:
+                ignoring -= 1
+                continue
+            if self.faults.begin_exchange() == "timeout":
+                ignoring = self.line.retry_1  # this bid and every repeat the host will try
+                continue
+            try:
+                request = station.receive_text()
+            except LinkError as exc:
+                log.info("host message lost: %s", exc)
+                continue
+            self.exchanges += 1
+            reply = self.handle(request)
+            try:
+                station.send(reply)
+            except LinkError as exc:
+                log.info("reply lost: %s", exc)
+
+    # -- the controller ----------------------------------------------------------------
+
+    def handle(self, request: Message) -> Message:
+        """One host command in, its reply out."""
+        self._advance()
+        if request.header != HOST_COMMAND:
+            return _status(1010)
+        name, _, operands = request.text.rstrip("\r").partition(" ")
+        fields = [f.strip() for f in operands.split(",")] if operands.strip() else []
+        handler = getattr(self, f"_cmd_{name.lower()}", None)
+        if handler is None:
+            return _status(1010)
+        try:
+            return handler(fields)
+        except _Refused as refusal:
+            return _status(refusal.code)
+
+    def _cmd_rstats(self, fields: list[str]) -> Message:
+        _count(fields, 0, 0)
+        d1 = D1_PLAY | D1_REMOTE | (D1_RUNNING if self.motion is not None else 0)
+        d2 = ((D2_PENDANT_HOLD if self.pendant_hold_until_s is not None else 0)
+              | (D2_EXTERNAL_HOLD if self.external_hold else 0)
+              | (D2_COMMAND_HOLD if self.command_hold else 0)
+              | (D2_ALARM if self.alarm is not None else 0)
+              | (D2_SERVO_ON if self.servo_on else 0))
+        return _data(f"{d1},{d2}")
+
+    def _cmd_ralarm(self, fields: list[str]) -> Message:
+        _count(fields, 0, 0)
+        code, text = self.alarm or (0, "")
+        return _data(f"{code},{text}")
+
+    def _cmd_reset(self, fields: list[str]) -> Message:
+        _count(fields, 0, 0)
+        self.alarm = None
+        return _status(0)
+
+    def _cmd_cancel(self, fields: list[str]) -> Message:
+        _count(fields, 0, 0)
+        return _status(0)
+
+    def _cmd_rposc(self, fields: list[str]) -> Message:
+        _count(fields, 2, 2)
+        frame, external = _integers(fields)
+        if frame != 0 or external not in (0, 1):
+            raise _Refused(1013)  # base coordinates only
+        x, y, z, rx, ry, rz = wire_pose(self.cell.controller_arm.fk(self.cell.state.q))
+        values = f"{x:.3f},{y:.3f},{z:.3f},{rx:.2f},{ry:.2f},{rz:.2f},0,0" + (",0" * 6 if external else "")
+        return _data(values)
+
+    def _cmd_svon(self, fields: list[str]) -> Message:
+        (on,) = _switch(fields)
+        if on and self.alarm is not None:
+            raise _Refused(2060)
+        self.servo_on = on
+        if not on:
+            self._stop_motion()
+        return _status(0)
+
+    def _cmd_hold(self, fields: list[str]) -> Message:
+        (on,) = _switch(fields)
+        self.command_hold = on
+        if on:
+            self._stop_motion()
+        return _status(0)
+
+    def _cmd_movl(self, fields: list[str]) -> Message:
+        return self._start_motion("MOVL", fields, lambda bMe, target: target)
+
+    def _cmd_imov(self, fields: list[str]) -> Message:
+        return self._start_motion("IMOV", fields, apply_increment)
+
+    def _cmd_jwait(self, fields: list[str]) -> Message:
+        _count(fields, 1, 1)
+        try:
+            wait_s = float(fields[0])
+        except ValueError:
+            raise _Refused(5170) from None
+        waited_s = 0.0
+        while self.motion is not None and (wait_s < 0 or waited_s < wait_s) and not self._stop.is_set():
+            time.sleep(JWAIT_TICK_S)
+            waited_s += self._advance()
+        if self.motion is not None:
+            return _status(ROBOT_OPERATING)
+        return _data("-1" if self.last_motion_stopped else "0")
+
+    # -- motion ------------------------------------------------------------------------
+
+    def _start_motion(self, name: str, fields: list[str], target_of) -> Message:
+        _count(fields, MOTION_FIELDS, MOTION_FIELDS)
+        try:
+            numbers = [float(f) for f in fields]
+        except ValueError:
+            raise _Refused(5170) from None
+        speed_kind, speed, frame = numbers[:3]
+        if speed_kind not in (0, 1) or frame != 0 or not speed > 0:
+            raise _Refused(1013)
+        if speed > (MAX_SPEED_MM_S if speed_kind == 0 else MAX_ROTATION_SPEED_DEG_S):
+            raise _Refused(OUT_OF_RANGE)
+        self._refuse_unless_ready()
+        bMe = self.cell.controller_arm.fk(self.cell.state.q)
+        target = target_of(bMe, pose_from_wire(numbers[3:9]))
+        try:
+            q_end = self.cell.controller_ik(target)
+        except UnreachableTarget:
+            raise _Refused(OUT_OF_RANGE) from None
+        translation, rotation = pose_error(bMe, target)
+        if speed_kind == 0:
+            duration = max(translation * 1000.0 / speed, rotation / ROTATION_SPEED_RAD_S)
+        else:
+            duration = max(np.degrees(rotation) / speed, translation * 1000.0 / MAX_SPEED_MM_S)
+        motion = Motion(self.cell.state.q.copy(), q_end, duration)
+        fault = self.faults.take_motion_fault()
+        if fault is not None:
+            motion.stop_at_s, motion.stop_kind = float(self.faults.rng.uniform(0.2, 0.8)) * duration, fault
+        self.motion, self.last_motion_stopped = motion, False
+        self.executed.append(f"{name} {','.join(fields)}")
+        return _status(0)
+
+    def _refuse_unless_ready(self) -> None:
+        if self.alarm is not None:
+            raise _Refused(2060)
+        if self.pendant_hold_until_s is not None:
+            raise _Refused(2020)
+        if self.external_hold:
+            raise _Refused(2040)
+        if self.command_hold:
+            raise _Refused(2050)
+        if not self.servo_on:
+            raise _Refused(2070)
+        if self.motion is not None:
+            raise _Refused(ROBOT_OPERATING)
+
+    def _advance(self) -> float:
+        """Bring the plant up to now (controller time); returns the controller time passed."""
+        now = time.monotonic()
+        dt = (now - self._last_real_s) * self.time_scale
+        self._last_real_s = now
+        cell, motion = self.cell, self.motion
+        if motion is not None:
+            end = motion.duration_s if motion.stop_at_s is None else motion.stop_at_s
+            step = min(dt, end - motion.elapsed_s)
+            motion.elapsed_s += step
+            if motion.elapsed_s < end:
+                cell.move_joints(motion.joints_at(motion.elapsed_s), step, settle=False)
+            elif motion.stop_kind is None:
+                cell.move_joints(motion.q_end, step, settle=True)
+                self.motion = None
+            else:
+                cell.move_joints(motion.joints_at(motion.elapsed_s), step, settle=False)
+                self._strike(motion.stop_kind)
+            cell.pass_time(dt - step)
+        else:
+            cell.pass_time(dt)
+        if self.pendant_hold_until_s is not None and cell.state.time_s >= self.pendant_hold_until_s:
+            self.pendant_hold_until_s = None
+        return dt
+
+    def _strike(self, kind: str) -> None:
+        """An injected alarm (servo power drops) or pendant hold in the middle of a motion."""
+        self.faults.injected[kind] += 1
+        if kind == "alarm":
+            self.alarm = EMULATED_ALARM
+            self.servo_on = False
+        else:
+            self.pendant_hold_until_s = self.cell.state.time_s + self.faults.plan.pendant_hold_s
+        self._stop_motion()
+
+    def _stop_motion(self) -> None:
+        if self.motion is not None:
+            self.motion = None
+            self.last_motion_stopped = True
+
+
+class _Refused(Exception):
+    def __init__(self, code: int) -> None:
+        self.code = code
+
+
+def _status(code: int) -> Message:
+    return Message(STATUS_REPLY, f"{code:04d}\r")
+
+
+def _data(text: str) -> Message:
+    return Message(DATA_REPLY, text + "\r")
+
+
+def _count(fields: list[str], low: int, high: int) -> None:
+    if len(fields) > high:
+        raise _Refused(1011)
+    if len(fields) < low:
+        raise _Refused(1012)
+
+
+def _integers(fields: list[str]) -> list[int]:
+    try:
+        return [int(f) for f in fields]
+    except ValueError:
+        raise _Refused(5170) from None
+
+
+def _switch(fields: list[str]) -> list[bool]:
+    _count(fields, 1, 1)
+    (value,) = _integers(fields)
+    if value not in (0, 1):
+        raise _Refused(1013)
+    return [bool(value)]
+
+

@@ -1,0 +1,56 @@
+"""``vservo simulate``: one run of the simulation study, from the command line's terms."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from vservo.core.cell.config import parse_cell, read_cell_data
+from vservo.core.cell.kinematics import ArmKinematics
+from vservo.core.geometry.spatial import matrix_from_pose
+from vservo.core.study.run import RunResult, RunSettings, run_task
+from vservo.core.study.tasks import ServoTask, find_placement, robustness_cell, servo_task
+from vservo.robot_models.loader import load_arm
+
+
+def simulate(
+    cell_path: str | Path | None = None,
+    task_number: int | None = None,
+    method: str = "laser",
+    robust: bool = False,
+    seed: int | None = None,
+    initial: np.ndarray | None = None,
+    desired: np.ndarray | None = None,
+    gain: float = 1.0,
+    max_iterations: int = 3000,
+    dt_s: float = 0.1,
+    features: str = "projected",
+    record_to: str | None = None,
+) -> RunResult:
+    """Run a task (default task 2) or a scene given by its poses; see ``vservo simulate --help``."""
+    data, source = read_cell_data(cell_path)
+    if robust:
+        data, source = robustness_cell(data), f"{source} with the errors of Table 5-3"
+    config = parse_cell(data, source)
+
+    task = servo_task(task_number or 2, robust)
+    if initial is not None or desired is not None:
+        task = _scene_task(task, initial, desired, config)
+    settings = RunSettings(method=method, gain=gain, dt_s=dt_s, max_iterations=max_iterations, features=features,
+                           record_to=record_to)
+    return run_task(config, task, settings, seed)
+
+
+def _scene_task(task: ServoTask, initial: np.ndarray | None, desired: np.ndarray | None, config) -> ServoTask:
+    """The task with its poses replaced, placed where the arm can serve it."""
+    initial_cMo = matrix_from_pose(initial) if initial is not None else task.initial_cMo
+    desired_cMo = matrix_from_pose(desired) if desired is not None else task.desired_cMo
+    arm = ArmKinematics(load_arm(config.arm), config.nominal.mount)
+    scene = config.simulation.scene
+    placement, _ = find_placement(
+        arm, config.home_q, scene.table_height_m, scene.cube.side_m, initial_cMo, desired_cMo, config.simulation.truth.eMc
+    )
+    return replace(task, name="scene", initial_cMo=initial_cMo, desired_cMo=desired_cMo, placement=placement,
+                   description="poses given on the command line")
