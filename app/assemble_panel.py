@@ -10,18 +10,15 @@ components of the run under way.
 from __future__ import annotations
 
 import threading
-from typing import TYPE_CHECKING
 
 import numpy as np
 import viser
 
 from vservo.app import live_image
 from vservo.app.client_view import ClientView
+from vservo.app.context import AppContext
 from vservo.app.session import LiveFrame, RunTrace, SessionView
 from vservo.app.status import outcome_markdown, run_progress
-
-if TYPE_CHECKING:
-    from vservo.app.server import OperatorApp
 
 TWIST_NAMES = ("vx m/s", "vy m/s", "vz m/s", "wx rad/s", "wy rad/s", "wz rad/s")
 TWIST_COLOURS = ("#d62728", "#2ca02c", "#1f77b4", "#ff7f0e", "#9467bd", "#8c564b")
@@ -41,7 +38,7 @@ def plot_data(trace: RunTrace) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray
 
 
 class AssemblePanel:
-    def __init__(self, app: OperatorApp, tab: viser.GuiTabHandle, live: viser.PanelHandle) -> None:
+    def __init__(self, app: AppContext, tab: viser.GuiTabHandle, live: viser.PanelHandle) -> None:
         self.app, self.tab = app, tab
         gui = app.server.gui
         with tab:

@@ -9,20 +9,18 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import viser
 
 from vservo.app.calibration_run import PRESETS, QUICK, CalibrationProgress, CalibrationRun, results_markdown
 from vservo.app.client_view import ClientView
+from vservo.app.context import AppContext
 from vservo.app.session import SessionView
-
-if TYPE_CHECKING:
-    from vservo.app.server import OperatorApp
 
 
 class CalibratePanel:
-    def __init__(self, app: OperatorApp, tab: viser.GuiTabHandle) -> None:
+    def __init__(self, app: AppContext, tab: viser.GuiTabHandle) -> None:
         self.app, self.tab = app, tab
         gui = app.server.gui
         with tab:

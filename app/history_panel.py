@@ -9,19 +9,17 @@ with the live image's overlays, in this browser only, at the recorded pace.
 from __future__ import annotations
 
 import threading
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import viser
 
 from vservo.app import live_image
 from vservo.app.client_view import ClientView
+from vservo.app.context import AppContext
 from vservo.app.session import SessionView
 from vservo.app.status import run_label, runs_table, stage_timeline
 from vservo.core.perception.recording import Recording, RecordingError
-
-if TYPE_CHECKING:
-    from vservo.app.server import OperatorApp
 
 REPLAY_MAX_PERIOD_S = 0.2  # a slow recorded cycle is shown for at most this long
 NO_RUN = "(no runs yet)"
@@ -46,7 +44,7 @@ def replay_overlays(recording: Recording) -> list[tuple[dict, live_image.Overlay
 
 
 class HistoryPanel:
-    def __init__(self, app: OperatorApp, tab: viser.GuiTabHandle) -> None:
+    def __init__(self, app: AppContext, tab: viser.GuiTabHandle) -> None:
         self.app, self.tab = app, tab
         with tab:
             self.table = app.server.gui.add_markdown("No runs yet.", order=1)

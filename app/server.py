@@ -29,7 +29,6 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -40,6 +39,7 @@ from vservo.app.assemble_panel import AssemblePanel
 from vservo.app.calibrate_panel import CalibratePanel
 from vservo.app.client_view import ClientView
 from vservo.app.commands import CommandQueue
+from vservo.app.context import ServeOptions
 from vservo.app.controller_process import ControllerProcess
 from vservo.app.history_panel import HistoryPanel
 from vservo.app.roles import RoleRefused, Roles
@@ -56,18 +56,6 @@ IMAGE_PERIOD_S = 1 / 30  # the live image at up to 30 frames per second
 TEXT_PERIOD_S = 0.1
 SCENE_PERIOD_S = 0.1
 PLOT_PERIOD_S = 0.25
-
-
-@dataclass(frozen=True)
-class ServeOptions:
-    backend: str = "sim"
-    host: str = "127.0.0.1"
-    port: int = 8080
-    data: Path = Path(".")
-    seed: int | None = None
-    token: str = ""
-    cycle_period_s: float = 0.05
-    cell: str | None = None
 
 
 class OperatorApp:
@@ -166,6 +154,7 @@ class OperatorApp:
     def forget_job(self, name: str) -> None:
         with self._lock:
             self._job_details.pop(name, None)
+        self.assemble.forget_shown_job()
 
     def job_names(self) -> list[str]:
         with self._lock:

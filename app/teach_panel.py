@@ -11,19 +11,17 @@ height; name and save. Shared: what is still missing before the job can be saved
 from __future__ import annotations
 
 import threading
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import viser
 import viser.transforms as vtf
 
 from vservo.app.client_view import ClientView
+from vservo.app.context import AppContext
 from vservo.app.session import SessionView
 from vservo.app.status import teach_markdown
 from vservo.core.geometry.spatial import Matrix, pose_error, transform
-
-if TYPE_CHECKING:
-    from vservo.app.server import OperatorApp
 
 NEW_JOB = "(new job)"
 # Jog step: translation (m) and rotation (deg) per press.
@@ -53,7 +51,7 @@ def gizmo_pose(position: Any, wxyz: Any) -> Matrix:
 
 
 class TeachPanel:
-    def __init__(self, app: OperatorApp, tab: viser.GuiTabHandle) -> None:
+    def __init__(self, app: AppContext, tab: viser.GuiTabHandle) -> None:
         self.app, self.tab = app, tab
         with tab:
             self.missing = app.server.gui.add_markdown("", order=100)
@@ -128,7 +126,6 @@ class TeachPanel:
                 view.report("Save job", f"job {name.value!r} saved")(reply)
                 if reply.ok:
                     app.forget_job(reply.result)
-                    app.assemble.forget_shown_job()
                     app.refresh_lists()
             send(view, "Save job", "save_job", done=saved, name=name.value.strip(), description=description.value)
 

@@ -1,0 +1,59 @@
+"""What the server shares with its tabs: the serve options and the app's services.
+
+Each tab (assemble, teach, history, calibrate) gets the running app as an AppContext and
+uses nothing else of it, so the panels never import the server that builds them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import viser
+
+from vservo.app.client_view import ClientView
+from vservo.app.roles import Roles
+from vservo.app.scene3d import CellScene
+from vservo.app.session import Session
+
+
+@dataclass(frozen=True)
+class ServeOptions:
+    backend: str = "sim"
+    host: str = "127.0.0.1"
+    port: int = 8080
+    data: Path = Path(".")
+    seed: int | None = None
+    token: str = ""
+    cycle_period_s: float = 0.05
+    cell: str | None = None
+
+
+class AppContext(Protocol):
+    server: viser.ViserServer
+    session: Session
+    roles: Roles
+    options: ServeOptions
+    scene: CellScene
+    runs: list[dict]
+
+    def send(self, view: ClientView, what: str, command: str, success: str | None = None,
+             done: Callable[[Any], None] | None = None, **args: Any) -> None:
+        """A browser's command, refused in that browser unless it holds control."""
+        ...
+
+    def in_background(self, work: Callable[[], None]) -> None: ...
+
+    def refresh_lists(self) -> None:
+        """Fetch jobs and runs from the controller; every tab's lists follow."""
+        ...
+
+    def job_detail(self, name: str | None) -> dict | None: ...
+
+    def forget_job(self, name: str) -> None:
+        """The job ``name`` was saved anew: its cached detail and the shown job are stale."""
+        ...
+
+    def job_names(self) -> list[str]: ...
