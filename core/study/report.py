@@ -236,7 +236,7 @@ def montecarlo_outcome(montecarlo: dict[str, dict[str, Any]]) -> str:
         part = f"{method} {m['success_rate']:.1%}"
         if m["failures"]:
             failure, count = max(m["failures"].items(), key=lambda item: item[1])
-            part += f" (most often {failure}: {count} of {m['n']})"
+            part += f" (most common failure {failure}: {count} of {m['n']})"
         parts.append(part)
     return "Success rates, highest first: " + "; ".join(parts) + "."
 
