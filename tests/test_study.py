@@ -1,27 +1,37 @@
 """The simulation study on the simulated cell: the pattern of Table 5-4, the failure
 monitor, the command line, the Monte Carlo sampling and the report."""
 
+import hashlib
+import importlib.util
 import json
+import re
+import shlex
 import subprocess
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from vservo.core.cell.config import load_cell
+from vservo.core.cell.config import load_cell, read_cell_data
 from vservo.core.geometry.spatial import inverse, pose_error
 from vservo.core.servo.laws.base import ControlOutput, Failure
 from vservo.core.servo.loop import LoopLimits, run_servo
 from vservo.core.servo.step_policy import IntegratedVelocity
 from vservo.core.sim.backend import SimulatedBackend
 from vservo.core.sim.plant import SimulatedCell, visible_region
+from vservo.core.study import provenance
 from vservo.core.study.montecarlo import DEPTH_RANGE_M, MAX_ROTATION_RAD, MAX_TRANSLATION_M, draw_initial_cMo, run_montecarlo
-from vservo.core.study.report import reproduce
+from vservo.core.study.report import report_markdown, reproduce, run_study, study_cells
 from vservo.core.study.run import RunSettings, run_task, teach
 from vservo.core.study.simulate import simulate
 from vservo.core.study.tasks import ROBUSTNESS_TASK, TASKS, THESIS_PATH_LENGTH_M
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED_CELL = ROOT / "static" / "cell.toml"
+SNAPSHOT = ROOT / "static" / "study"  # made by `vservo reproduce --out static/study`
 
 
 @pytest.fixture(scope="module")
@@ -226,17 +236,108 @@ def test_montecarlo_is_reproducible_and_counts_every_sample(cell_config):
     assert converged + sum(first["failures"].values()) == 4
 
 
-def test_reproduce_writes_the_report_figures_and_results(tmp_path):
-    summaries = reproduce(tmp_path, montecarlo_n=0)
+@pytest.fixture(scope="module")
+def reproduced(tmp_path_factory):
+    """``vservo reproduce`` without the Monte Carlo: its folder and what it returned."""
+    out = tmp_path_factory.mktemp("study")
+    return out, reproduce(out, montecarlo_n=0)
+
+
+def test_reproduce_writes_the_report_figures_and_results(reproduced):
+    tmp_path, summaries = reproduced
     report = (tmp_path / "report.md").read_text()
-    assert "Table 5-4 analogue" in report and "0.348" in report and "0.364" in report
-    assert "Robustness test" in report and "Where and why" in report
+    assert "Table 5-4 analogue" in report and "Robustness test" in report and "Where the results differ" in report
     results = json.loads((tmp_path / "results.json").read_text())
-    assert results["runs"]["2/laser"]["converged"] == summaries["runs"]["2/laser"]["converged"] is True
+    assert results == summaries and report == report_markdown(results)
+    assert results["runs"]["2/laser"]["converged"] is True
+    made = results["provenance"]
+    assert made["command"] == f"vservo reproduce --out {tmp_path} --montecarlo 0 --seed 0"
+    assert made["cell"] == "static/cell.toml" and made["cell_sha256"] == hashlib.sha256(SHIPPED_CELL.read_bytes()).hexdigest()
+    assert re.fullmatch(r"[0-9a-f]{40}(-dirty)?|unknown", made["commit"])
+    assert f"from commit `{made['commit']}` on {made['date']}" in report
     assert len(summaries["figures"]) == 8
     for name in summaries["figures"]:
         image = cv2.imread(str(tmp_path / name))
         assert image is not None and image.shape[0] > 200 and image.std() > 5
+
+
+def test_the_report_says_what_its_own_results_say(reproduced):
+    """The Table 5-4 analogue shows the run's paths beside Table 5-4's, and a path more than
+    10 % from the thesis's gets its own line: exactly those paths, recomputed here."""
+    out, results = reproduced
+    runs, report = results["runs"], (out / "report.md").read_text()
+    table = report.split("## Table 5-4 analogue")[1].split("## Every run")[0]
+    rows = {cells[0]: cells[1:] for cells in
+            (line.strip("| ").split(" | ") for line in table.splitlines() if re.match(r"\| \d \|", line))}
+    methods = list(dict.fromkeys(key.split("/")[1] for key in runs))
+    for task in TASKS:
+        for column, method in enumerate(methods):
+            s = runs[f"{task}/{method}"]
+            shown = f"{s['path_length_m']:.3f}" if s["converged"] else f"failure ({s['failure']})"
+            assert rows[str(task)][2 * column] == shown, (task, method)
+
+    off = {(task, method) for task in TASKS for method, thesis in THESIS_PATH_LENGTH_M[task].items()
+           if thesis and runs[f"{task}/{method}"]["converged"]
+           and abs(runs[f"{task}/{method}"]["path_length_m"] - thesis) > 0.10 * thesis}
+    flagged = {(int(task), method)
+               for task, method in re.findall(r"^- Task (\d), (\S+): path [\d.]+ m against the thesis's", report, re.M)}
+    assert flagged == off
+    assert (2, "ibvs") in off  # 0.310 m against 0.404 m
+    assert "- Task 2, ibvs: path 0.310 m against the thesis's 0.404 m, 23.2% shorter." in report
+    robust = results["robustness"]
+    assert f"after {robust['iterations']} iterations" in report and f"{robust['path_length_m']:.3f} m against" in report
+
+
+def _assert_same(fresh, committed, where="results"):
+    """The fresh run's values are the committed ones: exact for everything but floats, which
+    the summaries round to 6 decimals (a last-digit flip is allowed, a real change is not)."""
+    if isinstance(fresh, dict):
+        assert fresh.keys() == committed.keys(), where
+        for key in fresh:
+            _assert_same(fresh[key], committed[key], f"{where}/{key}")
+    elif isinstance(fresh, list):
+        assert len(fresh) == len(committed), where
+        for i, (a, b) in enumerate(zip(fresh, committed)):
+            _assert_same(a, b, f"{where}[{i}]")
+    elif isinstance(fresh, float) and not isinstance(committed, bool):
+        assert committed == pytest.approx(fresh, rel=1e-6, abs=2e-6), where
+    else:
+        assert fresh == committed, where
+
+
+def test_the_committed_study_snapshot_is_what_the_code_makes():
+    """static/study/ is re-made (the four tasks with every method and the robustness run,
+    not the Monte Carlo) with its recorded settings; its numbers and report must be these."""
+    committed = json.loads((SNAPSHOT / "results.json").read_text())
+    made = committed["provenance"]
+    assert shlex.split(made["command"])[:4] == ["vservo", "reproduce", "--out", "static/study"]
+    assert "--cell" not in made["command"] and made["cell"] == "static/cell.toml"
+    assert made["cell_sha256"] == hashlib.sha256(SHIPPED_CELL.read_bytes()).hexdigest(), "the cell changed: re-make it"
+    assert re.fullmatch(r"[0-9a-f]{40}", made["commit"]), "a snapshot is made from a clean, committed tree"
+    fresh = run_study(*study_cells(*read_cell_data()), committed["dt_s"]).summaries()
+    for part in fresh:
+        _assert_same(fresh[part], committed[part], part)
+    assert (SNAPSHOT / "report.md").read_text() == report_markdown(committed)
+    assert sorted(path.name for path in SNAPSHOT.glob("*.png")) == sorted(committed["figures"])
+
+
+def test_an_installed_copy_records_an_unknown_commit(tmp_path, monkeypatch):
+    """Outside a checkout of vservo (an installed copy) the commit is "unknown", not an error."""
+    copy = tmp_path / "provenance.py"
+    copy.write_text(Path(provenance.__file__).read_text())
+    spec = importlib.util.spec_from_file_location("provenance_copy", copy)
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, module)  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    assert module.source_commit() == "unknown"
+    git = ["git", "-C", str(tmp_path), "-c", "user.name=study", "-c", "user.email=study@localhost"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    subprocess.run([*git, "add", "provenance.py"], check=True)
+    subprocess.run([*git, "commit", "-q", "-m", "copy"], check=True)
+    head = subprocess.run([*git, "rev-parse", "HEAD"], check=True, capture_output=True, text=True).stdout.strip()
+    assert module.source_commit() == head
+    copy.write_text(copy.read_text() + "# changed\n")
+    assert module.source_commit() == f"{head}-dirty"
 
 
 def test_teaching_sees_the_desired_features_of_table_5_2(cell_config):

@@ -406,18 +406,21 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>") -> CellConfig:
     return CellConfig(source, arm, home_q, nominal, motion, simulation, backend, jrc, safety)
 
 
+def read_cell_bytes(path: str | Path | None = None) -> tuple[bytes, str]:
+    """A cell file's bytes (what a study snapshot hashes) and its name; ``None`` reads the shipped cell."""
+    if path is None:
+        return resources.files("vservo.static").joinpath(DEFAULT_CELL).read_bytes(), f"static/{DEFAULT_CELL}"
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"cell file not found: {path}")
+    return path.read_bytes(), str(path)
+
+
 def read_cell_data(path: str | Path | None = None) -> tuple[dict[str, Any], str]:
     """The parsed TOML of a cell file and its name; ``None`` reads the shipped cell."""
-    if path is None:
-        text = resources.files("vservo.static").joinpath(DEFAULT_CELL).read_text(encoding="utf-8")
-        source = f"static/{DEFAULT_CELL}"
-    else:
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"cell file not found: {path}")
-        text, source = path.read_text(encoding="utf-8"), str(path)
+    raw, source = read_cell_bytes(path)
     try:
-        return tomllib.loads(text), source
+        return tomllib.loads(raw.decode("utf-8")), source
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from None
 

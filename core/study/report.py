@@ -2,21 +2,23 @@
 
 The figures follow Figs. 5-1 .. 5-8 (image trajectories, camera velocities, pose errors,
 feature errors, end-effector paths); the report puts the Table 5-4 analogue beside the
-thesis's numbers and says where and why the results differ.
+thesis's numbers and says, from the numbers of the run, where the results differ. The
+snapshot records where it came from (core/study/provenance.py).
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from vservo.core.cell.config import parse_cell, read_cell_data
+from vservo.core.cell.config import CellConfig, parse_cell, read_cell_bytes, read_cell_data
 from vservo.core.progress import Progress
 from vservo.core.servo.methods import METHODS
-from vservo.core.study import plots
+from vservo.core.study import plots, provenance
 from vservo.core.study.montecarlo import run_montecarlo
 from vservo.core.study.run import RunResult, RunSettings, run_task
 from vservo.core.study.tasks import (
@@ -125,6 +127,11 @@ def write_figures(results: dict[tuple[int, str], RunResult], robust: RunResult, 
 
 
 # -- report --------------------------------------------------------------------------------
+#
+# Every sentence that says what a result means is built from that result: a snapshot
+# that changes changes its report with it.
+
+PATH_TOLERANCE = 0.10  # a path further than this from Table 5-4's gets its own line
 
 
 def _path_cell(summary: dict[str, Any]) -> str:
@@ -140,13 +147,116 @@ def _thesis_cell(task: int, method: str) -> str:
     return "failure" if value is None else f"{value:.3f}"
 
 
-def report_markdown(summaries: dict[str, Any], notes: list[str]) -> str:
-    runs = summaries["runs"]
-    lines = [
+def _join(words: list[str]) -> str:
+    return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " and " + words[-1]
+
+
+def _stages(summary: dict[str, Any]) -> str:
+    return ", ".join(f"{stage['stage']} x{stage['iterations']}" for stage in summary["stages"])
+
+
+def _failed(method: str, summary: dict[str, Any]) -> str:
+    plural = "s" if summary["iterations"] != 1 else ""
+    return f"{method} fails after {summary['iterations']} iteration{plural} ({summary['failure']}: {summary['reason']})"
+
+
+def task_outcome(task: int, runs: dict[str, dict[str, Any]]) -> str:
+    """Which methods converge on a task and in how many iterations, which fail, how and when."""
+    summaries = {method: runs[f"{task}/{method}"] for method in METHODS}
+    converged = [method for method, s in summaries.items() if s["converged"]]
+    parts = []
+    if converged:
+        verb = "converges" if len(converged) == 1 else "converge"
+        iterations = _join([str(summaries[method]["iterations"]) for method in converged])
+        parts.append(f"{_join(converged)} {verb} ({iterations} iterations)")
+    parts += [_failed(method, s) for method, s in summaries.items() if not s["converged"]]
+    return f"Task {task} ({TASKS[task].description}): " + "; ".join(parts) + "."
+
+
+def path_off_thesis(task: int, method: str, summary: dict[str, Any]) -> str | None:
+    """The line for a converged path more than PATH_TOLERANCE from Table 5-4's, else None.
+
+    Task 1's laser path is 0 in the thesis (a turn in place), where no ratio exists: there a
+    path that is not 0 at the table's millimetre resolution gets the line.
+    """
+    thesis = THESIS_PATH_LENGTH_M[task].get(method)
+    if thesis is None or not summary["converged"]:
+        return None
+    path = summary["path_length_m"]
+    head = f"Task {task}, {method}: path {path:.3f} m against the thesis's {thesis:.3f} m"
+    if thesis == 0.0:
+        return f"{head} (a turn in place)." if round(path, 3) != 0.0 else None
+    deviation = (path - thesis) / thesis
+    if abs(deviation) <= PATH_TOLERANCE:
+        return None
+    return f"{head}, {abs(deviation):.1%} {'longer' if deviation > 0 else 'shorter'}."
+
+
+def differences(runs: dict[str, dict[str, Any]], robust: dict[str, Any]) -> list[str]:
+    """Where the runs and the thesis part: outcomes, paths beyond PATH_TOLERANCE, the robustness test."""
+    notes = []
+    if not robust["converged"]:
+        notes.append(f"Robustness test: the thesis's task 2 converges under the errors of Table 5-3; here the laser "
+                     f"method stops after {robust['iterations']} iterations ({robust['failure']}: {robust['reason']}), "
+                     f"after stages {_stages(robust)}.")
+    for task in TASKS:
+        for method in ("laser", "2.5d", "ibvs"):
+            s, thesis = runs[f"{task}/{method}"], THESIS_PATH_LENGTH_M[task][method]
+            if (thesis is None) == s["converged"]:
+                what = "converges" if s["converged"] else f"fails ({s['failure']}: {s['reason']})"
+                notes.append(f"Task {task}, {method}: the thesis reports {'a failure' if thesis is None else 'success'}, "
+                             f"here it {what}.")
+            off = path_off_thesis(task, method, s)
+            if off:
+                notes.append(off)
+    pbvs = runs["2/pbvs"]
+    if pbvs["converged"]:
+        notes.append(f"Task 2, PBVS: the thesis reports that the corners leave the image (Fig. 5-7); here they stay in "
+                     f"it and PBVS converges in {pbvs['iterations']} iterations, along a path of "
+                     f"{pbvs['path_length_m']:.3f} m for a straight line of {pbvs['straight_line_m']:.3f} m.")
+    return notes or [f"None: every outcome is the thesis's and every path within {PATH_TOLERANCE:.0%} of the thesis's."]
+
+
+def robustness_outcome(robust: dict[str, Any], nominal: dict[str, Any]) -> str:
+    """How the robustness run ended, beside task 2's run without the errors."""
+    if not robust["converged"]:
+        return (f"Under the errors of Table 5-3 the laser method stops after {robust['iterations']} iterations "
+                f"({_stages(robust)}): {robust['failure']}, {robust['reason']}. The thesis's run converges.")
+    change = (robust["path_length_m"] - nominal["path_length_m"]) / nominal["path_length_m"]
+    return (f"Under the errors of Table 5-3 the laser method converges, as in the thesis, after {robust['iterations']} "
+            f"iterations ({_stages(robust)}) where task 2 without them takes {nominal['iterations']}; its path is "
+            f"{robust['path_length_m']:.3f} m against {nominal['path_length_m']:.3f} m ({change:+.1%}).")
+
+
+def montecarlo_outcome(montecarlo: dict[str, dict[str, Any]]) -> str:
+    """The methods by success rate, each with its most common failure."""
+    ranked = sorted(montecarlo.items(), key=lambda item: item[1]["success_rate"], reverse=True)
+    parts = []
+    for method, m in ranked:
+        part = f"{method} {m['success_rate']:.1%}"
+        if m["failures"]:
+            failure, count = max(m["failures"].items(), key=lambda item: item[1])
+            part += f" (most common failure {failure}: {count} of {m['n']})"
+        parts.append(part)
+    return "Success rates, highest first: " + "; ".join(parts) + "."
+
+
+def _header(summaries: dict[str, Any]) -> list[str]:
+    made = summaries["provenance"]
+    return [
         "# vservo: the simulation study of chapter 5",
         "",
-        f"Cell: {summaries['cell']}. Velocity control with dt = {summaries['dt_s']} s, every gain 1, "
-        "final threshold 1 px, f0 = f0^l = 10 px. Path lengths are of the true end effector.",
+        f"Made by `{made['command']}` from commit `{made['commit']}` on {made['date']}, with the cell "
+        f"{made['cell']} (sha256 `{made['cell_sha256']}`). results.json holds the same numbers and this record.",
+        "",
+        f"Velocity control with dt = {summaries['dt_s']} s, every gain 1, final threshold 1 px, f0 = f0^l = 10 px. "
+        "Path lengths are of the true end effector.",
+    ]
+
+
+def report_markdown(summaries: dict[str, Any]) -> str:
+    runs = summaries["runs"]
+    lines = _header(summaries) + [
         "",
         "## Table 5-4 analogue: length of the end-effector path (m)",
         "",
@@ -159,6 +269,8 @@ def report_markdown(summaries: dict[str, Any], notes: list[str]) -> str:
             cells += [_path_cell(runs[f"{task}/{method}"]), _thesis_cell(task, method)]
         lines.append(f"| {task} | " + " | ".join(cells) + " |")
     lines += ["", "PBVS has no column in Table 5-4; the thesis reports that it loses the features in task 2 (Fig. 5-7).", ""]
+    lines += [f"- {task_outcome(task, runs)}" for task in TASKS]
+    lines += [""]
 
     lines += ["## Every run", "", "| task | method | converged | failure | iterations | final error (px) | "
               "path (m) | straight line (m) | final pose error (mm, deg) | stages |", "|---|---|---|---|---|---|---|---|---|---|"]
@@ -182,9 +294,7 @@ def report_markdown(summaries: dict[str, Any], notes: list[str]) -> str:
         f"{robust['final_pose_error']['translation_m'] * 1000:.2f} mm / "
         f"{np.degrees(robust['final_pose_error']['rotation_rad']):.2f} deg.",
         "",
-        "The cell has Table 5-3's applied values and the controller its actual ones: the thesis sees the laser "
-        "spot leave its row of the image in this run (Fig. 5-5 a), which only the applied beam does. Read the other "
-        "way round, stage 3 turns the camera further round the part and the run diverges (core/study/tasks.py).",
+        robustness_outcome(robust, runs["2/laser"]),
         "",
         "## Desired features taught in simulation beside Table 5-2 (corrected sets)",
         "",
@@ -201,10 +311,12 @@ def report_markdown(summaries: dict[str, Any], notes: list[str]) -> str:
     montecarlo = summaries.get("montecarlo")
     if montecarlo:
         first = next(iter(montecarlo.values()))
+        draws = first["draws_per_sample"]
+        reach = (f"On average {draws} poses that passed the view checks were drawn for each one the arm could reach: "
+                 "the arm's reach filters the distribution." if draws > 1
+                 else "The arm could reach every pose that passed the view checks.")
         lines += ["", f"## Monte Carlo: {first['n']} random initial poses, seed {first['seed']}", "",
-                  first["distribution"] + f". On average {first['draws_per_sample']} poses that passed the view checks "
-                  "were drawn for each one the arm could reach: the UPJ's small workspace filters the distribution "
-                  "towards smaller displacements. Every method meets the same poses.", "",
+                  f"{first['distribution']}. {reach} Every method meets the same poses.", "",
                   "| method | success rate | path median (m) | path p95 (m) | iterations median | iterations p95 | failures |",
                   "|---|---|---|---|---|---|---|"]
         for method, m in montecarlo.items():
@@ -212,90 +324,77 @@ def report_markdown(summaries: dict[str, Any], notes: list[str]) -> str:
                 f"| {method} | {m['success_rate']:.1%} | {m['path_length_m']['median']} | {m['path_length_m']['p95']} | "
                 f"{m['iterations']['median']} | {m['iterations']['p95']} | {m['failures']} |"
             )
+        lines += ["", montecarlo_outcome(montecarlo)]
 
-    lines += ["", "## Where and why the results differ from the thesis", ""] + [f"- {note}" for note in notes]
+    notes = differences(runs, robust)
+    lines += ["", "## Where the results differ from the thesis", ""] + [f"- {note}" for note in notes]
     lines += ["", "## Figures", ""] + [f"- `{name}`" for name in summaries["figures"]]
     return "\n".join(lines) + "\n"
 
 
-def differences(runs: dict[str, dict[str, Any]], robust: dict[str, Any]) -> list[str]:
-    """What the thesis reports and this study does not, with the reason, from the runs themselves."""
-    notes = []
-    if not robust["converged"]:
-        notes.append(
-            f"Robustness test: the thesis's task 2 converges under the errors of Table 5-3; here it stops at "
-            f"{robust['iterations']} iterations ({robust['failure']}: {robust['reason']}), after stages "
-            + ", ".join(f"{s['stage']} x{s['iterations']}" for s in robust["stages"])
-            + "."
-        )
-    for task in TASKS:
-        for method in ("laser", "2.5d", "ibvs"):
-            s, thesis = runs[f"{task}/{method}"], THESIS_PATH_LENGTH_M[task][method]
-            if (thesis is None) == s["converged"]:
-                what = "converges" if s["converged"] else f"fails ({s['failure']}: {s['reason']})"
-                notes.append(f"Task {task}, {method}: the thesis reports {'a failure' if thesis is None else 'success'}, "
-                             f"here it {what}.")
-    if runs["2/pbvs"]["converged"]:
-        notes.append(
-            "Task 2, PBVS: the corners stay in the image here (Fig. 5-7 analogue), where the thesis saw them leave "
-            "it. With Table 5-1 read as THESIS-NOTES section 6 says (object frame at a corner of the face), the "
-            "camera centre's straight line keeps the part in view; the printed poses do not reproduce Fig. 5-7."
-        )
-    for task in (1, 3):
-        s = runs[f"{task}/ibvs"]
-        if not s["converged"]:
-            notes.append(f"Task {task}, classic IBVS fails by {s['failure']} ({s['reason']}), as the thesis says.")
-    notes.append(
-        "Failures named 'unreachable' are the Motoman UPJ's: its tool-down workspace is a thin shell, and a method "
-        "whose path leaves it stops there (the thesis's toolbox simulation did not bound the joints). Each task "
-        "places the cube where the arm can serve it (core/study/tasks.py)."
-    )
-    notes.append(
-        "Stage 1.A scales the imaginary features to the current pattern and takes w_z from the pattern's "
-        "orientation; stages 1.B and 2 turn the object's centroid onto the laser spot (core/servo/laws/laser_ibvs.py "
-        "explains why the literal equations cannot switch or converge)."
-    )
-    return notes
+# -- the study -----------------------------------------------------------------------------
 
 
-def reproduce(out: Path, cell_path: str | Path | None = None, montecarlo_n: int = 500, seed: int = 0,
-              dt_s: float = 0.1) -> dict[str, Any]:
-    """Run the whole study, write results.json, report.md and the figures into ``out``."""
-    data, source = read_cell_data(cell_path)
-    config = parse_cell(data, source)
-    robust_config = parse_cell(robustness_cell(data), f"{source} with the errors of Table 5-3")
-    settings = {method: RunSettings(method=method, dt_s=dt_s) for method in METHODS}
+@dataclass(frozen=True)
+class StudyRuns:
+    """Every task with every method, and the robustness test: what a snapshot re-runs."""
 
+    results: dict[tuple[int, str], RunResult]
+    robust: RunResult
+
+    def summaries(self) -> dict[str, Any]:
+        """The runs' part of results.json."""
+        return {
+            "runs": {f"{task}/{method}": result.summary() for (task, method), result in self.results.items()},
+            "robustness": self.robust.summary(),
+            "desired_features_px": {str(task): self.results[task, "laser"].desired.corners_px.tolist() for task in TASKS},
+        }
+
+
+def study_cells(data: dict[str, Any], source: str) -> tuple[CellConfig, CellConfig]:
+    """The cell of the four tasks and the robustness test's (Table 5-3's errors), from cell-file data."""
+    return parse_cell(data, source), parse_cell(robustness_cell(data), f"{source} with the errors of Table 5-3")
+
+
+def run_study(config: CellConfig, robust_config: CellConfig, dt_s: float) -> StudyRuns:
+    """The four tasks with every method and the robustness test, each run once (seeded, deterministic)."""
     progress = Progress(len(TASKS) * len(METHODS) + 1, "reproduce")
     results: dict[tuple[int, str], RunResult] = {}
     for task_number, task in TASKS.items():
         for method in METHODS:
-            results[task_number, method] = run_task(config, task, settings[method])
+            results[task_number, method] = run_task(config, task, RunSettings(method=method, dt_s=dt_s))
             progress.advance(f"task {task_number} {method}")
-    robust = run_task(robust_config, ROBUSTNESS_TASK, settings["laser"])
+    robust = run_task(robust_config, ROBUSTNESS_TASK, RunSettings(method="laser", dt_s=dt_s))
     progress.advance("robustness")
     progress.close()
+    return StudyRuns(results, robust)
 
-    runs = {f"{task}/{method}": result.summary() for (task, method), result in results.items()}
-    summaries: dict[str, Any] = {
-        "cell": source,
-        "dt_s": dt_s,
-        "runs": runs,
-        "robustness": robust.summary(),
-        "desired_features_px": {str(task): results[task, "laser"].desired.corners_px.tolist() for task in TASKS},
-    }
+
+def reproduce(out: Path, cell_path: str | Path | None = None, montecarlo_n: int = 500, seed: int = 0,
+              dt_s: float = 0.1) -> dict[str, Any]:
+    """Run the whole study, write results.json, report.md and the figures into ``out``.
+
+    The provenance is taken first, before anything in ``out`` changes: regenerating the
+    committed snapshot must not mark its own commit dirty.
+    """
+    cell_bytes, source = read_cell_bytes(cell_path)
+    made = provenance.record(source, cell_bytes, provenance.reproduce_command(out, cell_path, montecarlo_n, seed))
+    config, robust_config = study_cells(*read_cell_data(cell_path))
+    study = run_study(config, robust_config, dt_s)
+
+    summaries: dict[str, Any] = {"provenance": made.as_dict(), "dt_s": dt_s, **study.summaries()}
     if montecarlo_n > 0:
         summaries["montecarlo"] = {}
         for method in MONTECARLO_METHODS:
             bar = Progress(montecarlo_n, f"montecarlo {method}")
             summaries["montecarlo"][method] = run_montecarlo(
-                config, settings[method], montecarlo_n, seed,
+                config, RunSettings(method=method, dt_s=dt_s), montecarlo_n, seed,
                 on_sample=lambda outcome, bar=bar: bar.advance("ok" if outcome.converged else outcome.failure),
             )
             bar.close()
 
     out.mkdir(parents=True, exist_ok=True)
-    summaries["figures"] = [path.name for path in write_figures(results, robust, out)]
-    (out / "results.json").write_text(json.dumps(summaries, indent=2))
-    (out / "report.md").write_text(report_markdown(summaries, differences(runs, summaries["robustness"])))
+    summaries["figures"] = [path.name for path in write_figures(study.results, study.robust, out)]
+    (out / "results.json").write_text(json.dumps(summaries, indent=2) + "\n")
+    (out / "report.md").write_text(report_markdown(summaries))
     return summaries
