@@ -170,7 +170,7 @@ def test_a_fed_watchdog_stays_quiet(backend_name):
 
 
 class Approach:
-    """A controller that asks for 10 mm/s along the optical axis, forever."""
+    """A control law that asks for 10 mm/s along the optical axis, forever."""
 
     name = "approach"
 

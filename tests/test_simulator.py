@@ -50,7 +50,7 @@ def test_corners_are_seen_through_the_true_camera_not_the_nominal_one():
     bMc_true = cell.ground_truth_bMe() @ truth.model.eMc
     expected = project_with_opencv(truth.model.camera, inverse(bMc_true), cell.state.scene.cube.corners_b)
     assert np.allclose(seen.corners_px, expected, atol=1e-9)
-    # What the nominal model would predict differs by pixels: the controller cannot read the truth.
+    # What the nominal model would predict differs by pixels: the control law cannot read the truth.
     config = parse_cell(data)
     bMc_nominal = seen.bMe @ config.nominal.eMc
     nominal = project_with_opencv(config.nominal.camera, inverse(bMc_nominal), cell.state.scene.cube.corners_b)

@@ -1,7 +1,7 @@
 """The cell configuration file (TOML): the nominal cell, its layout, and the simulated truth.
 
 One file describes a cell. Its nominal sections (robot, camera, hand_eye, laser,
-vacuum, motion) are what controllers and calibrations may use; ``[jrc]`` holds the
+vacuum, motion) are what control laws and calibrations may use; ``[jrc]`` holds the
 serial line to a JRC controller and ``[safety]`` the limits on every move; ``[simulation]``
 describes the plant the simulator plays: its seed and noise, ``[simulation.scene]``
 (where the table, cube and metal part really are) and ``[simulation.truth.*]`` tables

@@ -1,7 +1,7 @@
 """One-click assembly (Fig. C-3): servo on the taught image, pick the part, place it.
 
 The sequence, as the thesis's cell ran it: move to the job's start pose (the part's
-area in view), servo with the job's controller until the feature error is below the
+area in view), servo with the job's control law until the feature error is below the
 taught threshold (3 px), move the fixed taught transform eMe_pick so the vacuum cup
 meets the part, suction on (the vacuum sensor must confirm the grip), lift, move over
 the taught place pose, lower into the metal part, release, retreat.
@@ -33,7 +33,7 @@ from vservo.core.robot.backend import RobotBackend, RobotError
 from vservo.core.robot.gripper import VacuumGripper
 from vservo.core.robot.safety import SafetyLayer
 from vservo.core.servo.loop import Cycle, LoopLimits, Perception, run_servo
-from vservo.core.servo.methods import LawSettings, build_controller
+from vservo.core.servo.methods import LawSettings, build_law
 from vservo.core.servo.step_policy import StepPolicy
 
 log = logging.getLogger("vservo.assembly")
@@ -178,8 +178,8 @@ def run_assembly(
         on_event(PhaseChange(Phase.SERVOING, "moving to the start pose"))
         move(job.start_bMe)
         on_event(PhaseChange(Phase.SERVOING, f"servoing with the {job.method} method"))
-        controller = build_controller(model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
-        servo = run_servo(FlangeReadout(robot, dof), controller, job.desired, model, policy, limits,
+        law = build_law(model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
+        servo = run_servo(FlangeReadout(robot, dof), law, job.desired, model, policy, limits,
                           on_cycle=lambda cycle: on_event(ServoCycle(cycle)), perception=perception, robot=robot)
         if not servo.converged:
             if estopped():

@@ -1,4 +1,4 @@
-"""The simulated cell: the plant that vservo's controllers and calibrations act on.
+"""The simulated cell: the plant that vservo's control laws and calibrations act on.
 
 It holds the TRUE cell (camera intrinsics and distortion, eMc, cMl, the arm with its
 kinematic errors, repeatability and pixel noise, where the cube lies) and hands out only
@@ -6,7 +6,7 @@ what a real cell would: joint and Cartesian readouts from the robot controller, 
 computes them with its NOMINAL model, and pixel measurements of the cube corners and the
 laser spot. Nothing nominal is used to produce a measurement, and nothing true leaks
 into one, except through the ``ground_truth_*`` accessors that exist for evaluation
-(path lengths, final pose errors) and are never to be called by a controller.
+(path lengths, final pose errors) and are never to be called by a control law.
 
 Moves follow the robot controller's logic: the target flange pose is turned into joints
 by the controller's nominal inverse kinematics, and the real arm ends where its true
@@ -345,14 +345,14 @@ class SimulatedCell:
         jogging the arm until the view is right would (teaching, a task's initial pose).
 
         Solved with the true arm, so it is exact even when the nominal model is wrong;
-        a controller never calls it.
+        a control law never calls it.
         """
         bMc = self.state.scene.cube.bMo @ inverse(np.asarray(cMo, dtype=float))
         bMe = bMc @ inverse(self.truth.model.eMc)
         q = self.truth.arm.ik(bMe, self.state.q).q
         self.state = replace(self.state, q=q, eMe_settle=np.eye(4))
 
-    # -- evaluation only: what no controller may read --------------------------------
+    # -- evaluation only: what no control law may read -------------------------------
 
     def ground_truth_bMe(self) -> Matrix:
         """The true flange pose."""

@@ -20,6 +20,7 @@ from vservo.core.servo.laws.base import (
     ControlOutput,
     Failure,
     SingularJacobian,
+    Stage,
     checked_pinv,
     feature_error_px,
     verdict_on_all_corners,
@@ -61,18 +62,18 @@ class ClassicIbvs:
         L_current = pixel_interaction_matrix(self.camera, features.corners_px, corner_depths(features, desired, self.depth))
         return L_current if self.interaction == "current" else 0.5 * (L_current + L_desired)
 
-    def step(self, features: ImageFeatures, desired: DesiredImage, stage: str | None) -> ControlOutput:
+    def step(self, features: ImageFeatures, desired: DesiredImage, stage: Stage | None) -> ControlOutput:
         error_px = feature_error_px(features, desired)
-        verdict = verdict_on_all_corners(self.name, features, error_px, self.final_threshold_px)
+        verdict = verdict_on_all_corners(Stage.IBVS, features, error_px, self.final_threshold_px)
         if verdict is not None:
             return verdict
         if self.interaction != "desired" and self.depth != "constant":
             depths = corner_depths(features, desired, self.depth)
             if not np.all(np.isfinite(depths) & (depths > 0)):
-                return ControlOutput.stop(self.name, error_px, Failure.FEATURES_LOST, f"no {self.depth} depth")
+                return ControlOutput.stop(Stage.IBVS, error_px, Failure.FEATURES_LOST, f"no {self.depth} depth")
         try:
             L_pinv = checked_pinv(self.interaction_matrix(features, desired))
         except SingularJacobian as exc:
-            return ControlOutput.stop(self.name, error_px, Failure.SINGULAR_JACOBIAN, str(exc))
+            return ControlOutput.stop(Stage.IBVS, error_px, Failure.SINGULAR_JACOBIAN, str(exc))
         e = (features.corners_px - desired.corners_px).ravel()
-        return ControlOutput(-self.gain * L_pinv @ e, self.name, error_px, error_px)
+        return ControlOutput(-self.gain * L_pinv @ e, Stage.IBVS, error_px, error_px)
