@@ -17,7 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-MOVING_PHASES = ("servoing", "picking", "placing")
+from vservo.core.production.assembly import Phase
+
+MOVING_PHASES = (Phase.SERVOING, Phase.PICKING, Phase.PLACING)
 TRACE_LENGTH = 5000  # servo cycles kept per run (a run takes a few hundred)
 PATH_STEP_M = 0.0005  # a new path point once the flange moved this far
 
@@ -66,7 +68,7 @@ class Session:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
-        self._state: dict = {"phase": "idle", "bMe": np.eye(4).tolist(), "time_s": float("-inf")}
+        self._state: dict = {"phase": Phase.IDLE.value, "bMe": np.eye(4).tolist(), "time_s": float("-inf")}
         self._frame: LiveFrame | None = None
         self._frames = 0
         self._states = 0
