@@ -317,7 +317,7 @@ def test_the_emulator_answers_one_transaction_as_the_protocol_draws_it(emulator,
     assert block[0] == SOH and block[1:8] == b"90,001" + bytes((STX,))
     assert block[-2:] == bcc_by_hand(block[1:-2])
     values = [float(v) for v in block[8:-4].decode().split(",")]
-    bMe = cell.controller_arm.fk(cell.state.q)
+    bMe = cell.jrc_arm.fk(cell.state.q)
     assert np.allclose(values[:3], bMe[:3, 3] * 1000.0, atol=0.0005)
     assert len(values) == 8
 
@@ -344,18 +344,18 @@ def test_status_servo_pose_and_moves(robot, cell):
     status = robot.status()
     assert status.servo_on and status.ready and not status.running
     bMe = robot.read_pose()
-    translation, rotation = pose_error(bMe, cell.controller_arm.fk(cell.state.q))
+    translation, rotation = pose_error(bMe, cell.jrc_arm.fk(cell.state.q))
     assert translation < 1e-6 and rotation < np.radians(0.006)  # RPOSC's 0.001 mm and 0.01 deg
 
     target = transform(t=(0.02, -0.01, 0.005)) @ bMe
     robot.move_to(target, 0.05)
     assert robot.wait_motion() is True
-    translation, _ = pose_error(cell.controller_arm.fk(cell.state.q), target)
+    translation, _ = pose_error(cell.jrc_arm.fk(cell.state.q), target)
     assert translation < 1e-6
-    before = cell.controller_arm.fk(cell.state.q)
+    before = cell.jrc_arm.fk(cell.state.q)
     robot.move_by(transform(t=(0.0, 0.0, -0.01)), 0.05)
     assert robot.wait_motion()
-    after = cell.controller_arm.fk(cell.state.q)
+    after = cell.jrc_arm.fk(cell.state.q)
     assert np.allclose(after[:3, 3] - before[:3, 3], [0.0, 0.0, -0.01], atol=1e-6)
     assert np.allclose(after[:3, :3], before[:3, :3], atol=1e-6)
 
@@ -389,7 +389,7 @@ def test_a_hold_stops_the_motion_where_it_is(robot, cell, emulator):
     assert robot.wait_motion() is False
     status = robot.status()
     assert status.held and not status.running and "command hold" in status.detail
-    assert pose_error(cell.controller_arm.fk(cell.state.q), target)[0] > 0.03
+    assert pose_error(cell.jrc_arm.fk(cell.state.q), target)[0] > 0.03
 
 
 def test_an_alarm_in_the_middle_of_a_move_is_reported_and_reset(robot, cell, emulator):
@@ -401,14 +401,14 @@ def test_an_alarm_in_the_middle_of_a_move_is_reported_and_reset(robot, cell, emu
     assert robot.wait_motion() is False
     status = robot.status()
     assert status.alarm and not status.servo_on and "4315 COLLISION DETECT" in status.detail
-    travelled = pose_error(cell.controller_arm.fk(cell.state.q), start)[0]
+    travelled = pose_error(cell.jrc_arm.fk(cell.state.q), start)[0]
     assert 0.0 < travelled < 0.03  # stopped part of the way
     with pytest.raises(JrcNotReady, match="2060"):
         robot.move_to(target, 0.05)
     robot.reset_alarms()
     robot.servo(True)
     robot.move_to(target, 0.05)
-    assert robot.wait_motion() and pose_error(cell.controller_arm.fk(cell.state.q), target)[0] < 1e-6
+    assert robot.wait_motion() and pose_error(cell.jrc_arm.fk(cell.state.q), target)[0] < 1e-6
     assert emulator.faults.injected["alarm"] == 1
 
 
@@ -437,7 +437,7 @@ def test_every_link_fault_is_recovered(cell, config, kind, counter):
     with jrc_link(cell, config, FaultPlan(1.0, seed=3, kinds=(kind,))) as (robot, emulator):
         poses = [robot.read_pose() for _ in range(12)]
         counters = robot.station.counters
-    bMe = cell.controller_arm.fk(cell.state.q)
+    bMe = cell.jrc_arm.fk(cell.state.q)
     assert all(pose_error(pose, bMe)[0] < 1e-6 for pose in poses)
     assert emulator.faults.injected[kind] >= 12
     if counter is not None:

@@ -61,7 +61,7 @@ def test_the_robot_reports_its_nominal_pose_while_the_true_arm_is_elsewhere():
     data = cell_data(joint_placement_error_mm=0.5, joint_placement_error_deg=0.05)
     cell = at_teach_pose(data)
     seen = cell.measure()
-    assert np.allclose(seen.bMe, cell.controller_arm.fk(seen.q), atol=1e-12)
+    assert np.allclose(seen.bMe, cell.jrc_arm.fk(seen.q), atol=1e-12)
     translation, rotation = pose_error(seen.bMe, cell.ground_truth_bMe())
     assert 1e-4 < translation < 0.02 and rotation > 1e-5
 

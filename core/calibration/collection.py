@@ -135,7 +135,7 @@ class Collector:
         self.cell = SimulatedCell(self.config, seed)
         self.board = Checkerboard.covering(workspace.x_range_m, workspace.y_range_m,
                                            self.config.simulation.scene.table_height_m)
-        self.arm = self.cell.controller_arm
+        self.arm = self.cell.jrc_arm
 
     # -- where to look --------------------------------------------------------------
 

@@ -65,7 +65,7 @@ def forward(params: torch.Tensor, x: torch.Tensor, inputs: int, hidden: int) -> 
     return (W2 @ h[:, :, None])[..., 0] + b2
 
 
-def nguyen_widrow(inputs: int, hidden: int, rng: np.random.Generator) -> np.ndarray:
+def nguyen_widrow(inputs: int, hidden: int, rng: np.random.Generator) -> Matrix:
     """Initial weights for inputs in [-1, 1] (Nguyen and Widrow 1990; Matlab's initnw)."""
     beta = 0.7 * hidden ** (1.0 / inputs)
     W1 = rng.uniform(-1.0, 1.0, (hidden, inputs))
@@ -111,7 +111,7 @@ class NNCalibration:
 
     input_set: str
     hidden: int
-    params: np.ndarray
+    params: Matrix
     normalisation: Normalisation
     trained: bool = False
     training: dict[str, Any] = field(default_factory=dict)

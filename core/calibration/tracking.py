@@ -154,7 +154,7 @@ def random_targets(tracker: Tracker, count: int, seed: int, x_range_m: tuple[flo
     """Random targets in the workspace and, for each, a random start viewpoint in the
     workspace within ``reach_m`` of it (so the target is in view); the arm reaches both."""
     rng = np.random.default_rng([seed, 13])
-    arm = tracker.cell.controller_arm
+    arm = tracker.cell.jrc_arm
     targets, starts = [], []
     for _ in range(500 * count):
         if len(targets) == count:

@@ -24,10 +24,10 @@ import numpy as np
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage
 from vservo.core.perception.recording import write_atomic
+from vservo.core.servo.methods import METHODS
 
 JOB_FORMAT = "vservo-job"
 JOB_VERSION = 1
-METHODS = ("laser", "ibvs", "pbvs", "2.5d")
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 

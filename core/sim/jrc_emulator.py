@@ -325,7 +325,7 @@ class JrcEmulator:
         frame, external = _integers(fields)
         if frame != 0 or external not in (0, 1):
             raise _Refused(1013)  # base coordinates only
-        x, y, z, rx, ry, rz = wire_pose(self.cell.controller_arm.fk(self.cell.state.q))
+        x, y, z, rx, ry, rz = wire_pose(self.cell.jrc_arm.fk(self.cell.state.q))
         values = f"{x:.3f},{y:.3f},{z:.3f},{rx:.2f},{ry:.2f},{rz:.2f},0,0" + (",0" * 6 if external else "")
         return _data(values)
 
@@ -379,10 +379,10 @@ class JrcEmulator:
         if speed > (MAX_SPEED_MM_S if speed_kind == 0 else MAX_ROTATION_SPEED_DEG_S):
             raise _Refused(OUT_OF_RANGE)
         self._refuse_unless_ready()
-        bMe = self.cell.controller_arm.fk(self.cell.state.q)
+        bMe = self.cell.jrc_arm.fk(self.cell.state.q)
         target = target_of(bMe, pose_from_wire(numbers[3:9]))
         try:
-            q_end = self.cell.controller_ik(target)
+            q_end = self.cell.jrc_ik(target)
         except UnreachableTarget:
             raise _Refused(OUT_OF_RANGE) from None
         translation, rotation = pose_error(bMe, target)

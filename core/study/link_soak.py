@@ -157,7 +157,7 @@ def run_soak(config: CellConfig, moves: int = 2000, fault_rate: float = 0.05, se
         try:
             soak = _Soak(robot, emulator)
             soak.recover(robot.read_pose()[:3, 3] * 1000.0)  # servo on, wherever the arm is
-            bMe_start = cell.controller_arm.fk(cell.state.q)  # evaluation: the emulator's own pose
+            bMe_start = cell.jrc_arm.fk(cell.state.q)  # evaluation: the emulator's own pose
             target_mm = bMe_start[:3, 3] * 1000.0
             for increment in increments:
                 target_mm = target_mm + increment
@@ -171,14 +171,14 @@ def run_soak(config: CellConfig, moves: int = 2000, fault_rate: float = 0.05, se
                     new = emulator.faults.injected - injected_before
                     motion_faults_reported.update({kind: new[kind] for kind in MOTION_FAULTS})
                 # Evaluation: the emulator's own pose, not what the link reports.
-                off = np.abs(cell.controller_arm.fk(cell.state.q)[:3, 3] * 1000.0 - target_mm).max()
+                off = np.abs(cell.jrc_arm.fk(cell.state.q)[:3, 3] * 1000.0 - target_mm).max()
                 moves_off_path += int(off > ON_PATH_MM)
                 if on_move is not None:
                     on_move()
             counters = robot.station.counters.as_dict()
         finally:
             robot.close()
-    bMe_end = cell.controller_arm.fk(cell.state.q)
+    bMe_end = cell.jrc_arm.fk(cell.state.q)
     translation_error_m, rotation_error_rad = pose_error(bMe_end, transform(bMe_start[:3, :3], target_mm / 1000.0))
     accepted = Counter(emulator.executed)
     injected = emulator.faults.injected

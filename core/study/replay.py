@@ -16,6 +16,7 @@ import numpy as np
 
 from vservo.core.cell.config import load_cell
 from vservo.core.cell.scene import Cube
+from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage, ImageFeatures, ObjectRegion
 from vservo.core.perception.recording import Recording
 from vservo.core.perception.vision.pipeline import ImageFeatureExtractor, front_winding
@@ -25,7 +26,7 @@ from vservo.core.sim.render import RenderSettings
 from vservo.core.study.run import RunSettings
 
 
-def _array(value: Any, shape: tuple[int, ...]) -> np.ndarray:
+def _array(value: Any, shape: tuple[int, ...]) -> Matrix:
     """A recorded array; null (NaN when recorded) comes back as NaN."""
     return np.array(value if value is not None else np.full(shape, np.nan), dtype=float).reshape(shape)
 

@@ -24,12 +24,12 @@ import numpy as np
 
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.pose_estimation import PoseEstimationError, decompose_homography, euclidean_homography
-from vservo.core.geometry.spatial import theta_u
+from vservo.core.geometry.spatial import Matrix, theta_u
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.servo.laws.base import ControlOutput, Failure, Stage, feature_error_px, verdict_on_all_corners
 
 
-def translation_interaction(x: float, y: float, Z: float) -> tuple[np.ndarray, np.ndarray]:
+def translation_interaction(x: float, y: float, Z: float) -> tuple[Matrix, Matrix]:
     """(L_v, L_vw): e_v = (x, y, log Z) of a point moves as L_v v + L_vw w (Malis 1999)."""
     L_v = np.array([[-1.0, 0.0, x], [0.0, -1.0, y], [0.0, 0.0, -1.0]]) / Z
     L_vw = np.array([[x * y, -(1.0 + x * x), y], [1.0 + y * y, -x * y, -x], [-y, x, 0.0]])

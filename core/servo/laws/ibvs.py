@@ -15,6 +15,7 @@ import numpy as np
 
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.interaction import pixel_interaction_matrix
+from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.servo.laws.base import (
     ControlOutput,
@@ -30,7 +31,7 @@ INTERACTIONS = ("current", "desired", "mean")
 DEPTHS = ("exact", "laser", "constant")
 
 
-def corner_depths(features: ImageFeatures, desired: DesiredImage, depth: str) -> np.ndarray:
+def corner_depths(features: ImageFeatures, desired: DesiredImage, depth: str) -> Matrix:
     """Depth of each corner for L(s, Z) as the chosen source gives it."""
     if depth == "exact":
         return features.corner_depths_m
@@ -54,7 +55,7 @@ class ClassicIbvs:
         if self.depth not in DEPTHS:
             raise ValueError(f"depth must be one of {DEPTHS}, got {self.depth!r}")
 
-    def interaction_matrix(self, features: ImageFeatures, desired: DesiredImage) -> np.ndarray:
+    def interaction_matrix(self, features: ImageFeatures, desired: DesiredImage) -> Matrix:
         """The 8x6 interaction matrix the law inverts."""
         L_desired = pixel_interaction_matrix(self.camera, desired.corners_px, np.full(4, desired.depth_m))
         if self.interaction == "desired":
