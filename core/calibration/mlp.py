@@ -2,7 +2,7 @@
 to world coordinates, its normalisation, its training and its file.
 
 The network (section 2.3.1, Fig. 2-3, Appendix B): inputs the corner's pixel (u, v) and
-the end-effector position the robot controller reports (T_x, T_y, and optionally T_z);
+the end-effector position the JRC reports (T_x, T_y, and optionally T_z);
 one hidden layer of 20 tanh units (eq. 2-24); two linear outputs (eq. 2-25), the world
 (X_0, Y_0). No hand-eye transform is estimated: the mapping f of eq. 2-23 is learned.
 

@@ -127,7 +127,7 @@ class PlacementReport:
 @dataclass(frozen=True)
 class FlangeReadout:
     """The servo loop's measurement on a cell whose features come from camera frames:
-    the flange pose as the robot controller reports it, nothing projected."""
+    the flange pose as the JRC reports it, nothing projected."""
 
     robot: RobotBackend
     dof: int

@@ -15,7 +15,7 @@ and the arm stops within the control cycle under way. Motion needs an explicit e
 servo power is switched on by ``start`` or a jog and a reset never restarts a run.
 
 Subscribers get ControllerState snapshots and camera frames with the features seen in
-them; they are called from the controller's threads and must not block.
+them; they are called from the cell controller's threads and must not block.
 """
 
 from __future__ import annotations
@@ -191,7 +191,7 @@ class CellController:
     def _enable_motion(self) -> None:
         status = self.rig.robot.status()
         if status.alarm:
-            raise CommandRefused(f"the robot is in alarm: {status.detail or 'reset the alarm on the controller'}")
+            raise CommandRefused(f"the robot is in alarm: {status.detail or 'reset the alarm on the JRC'}")
         if not status.servo_on:
             self.rig.robot.servo(True)
 

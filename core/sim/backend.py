@@ -13,7 +13,7 @@ from vservo.core.sim.plant import SimulatedCell
 class SimulatedBackend:
     """The kinematic simulator as a robot: moves complete at once, in simulated time.
 
-    The plant (SimulatedCell) executes each move through the controller's nominal IK and
+    The plant (SimulatedCell) executes each move through the JRC's nominal IK and
     advances its clock by the move's duration at the commanded speed; a move the IK
     cannot reach raises UnreachableTarget and leaves the arm where it was.
     """

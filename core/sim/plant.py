@@ -2,14 +2,14 @@
 
 It holds the TRUE cell (camera intrinsics and distortion, eMc, cMl, the arm with its
 kinematic errors, repeatability and pixel noise, where the cube lies) and hands out only
-what a real cell would: joint and Cartesian readouts from the robot controller, which
+what a real cell would: joint and Cartesian readouts from the JRC, which
 computes them with its NOMINAL model, and pixel measurements of the cube corners and the
 laser spot. Nothing nominal is used to produce a measurement, and nothing true leaks
 into one, except through the ``ground_truth_*`` accessors that exist for evaluation
 (path lengths, final pose errors) and are never to be called by a control law.
 
-Moves follow the robot controller's logic: the target flange pose is turned into joints
-by the controller's nominal inverse kinematics, and the real arm ends where its true
+Moves follow the JRC's logic: the target flange pose is turned into joints
+by the JRC's nominal inverse kinematics, and the real arm ends where its true
 kinematics put those joints, plus a settling (repeatability) error.
 """
 
@@ -126,7 +126,7 @@ class Placement:
 
 @dataclass(frozen=True)
 class MoveReport:
-    """What one executed move did, as the robot controller knows it."""
+    """What one executed move did, as the JRC knows it."""
 
     duration_s: float
     q: Matrix
@@ -136,7 +136,7 @@ class MoveReport:
 class SimulatedCell:
     """The plant. ``execute`` one command at a time, ``measure`` in between.
 
-    The nominal arm is the robot controller's own model (the JRC computes joint angles
+    The nominal arm is the JRC's own model (it computes joint angles
     itself); the truth is built from the configuration's [simulation] section with the
     seeded generator, so a cell is reproducible from (config, seed).
     """
@@ -155,7 +155,7 @@ class SimulatedCell:
     # -- sensors ---------------------------------------------------------------------
 
     def measure(self, look: bool = True) -> Measurement:
-        """Read the robot controller and take one (noisy) look through the true camera.
+        """Read the JRC and take one (noisy) look through the true camera.
 
         ``look=False`` reads the robot only (a loop whose features come from camera
         images has no use for the projected ones): the camera fields are then unseen.
@@ -230,13 +230,13 @@ class SimulatedCell:
         return max(translation / speed_m_s, rotation / ROTATION_SPEED_RAD_S)
 
     def jrc_ik(self, bMe_target: Matrix) -> Matrix:
-        """The joints the robot controller computes for a flange target, from where the arm
+        """The joints the JRC computes for a flange target, from where the arm
         is, with its nominal model; raises UnreachableTarget."""
         return self.jrc_arm.ik(bMe_target, self.state.q, tolerance_m=IK_TOLERANCE_M,
                                       tolerance_rad=IK_TOLERANCE_RAD).q
 
     def move(self, bMe_target: Matrix, duration_s: float) -> MoveReport:
-        """The arm moves to the controller's joints for bMe_target in duration_s and settles."""
+        """The arm moves to the JRC's joints for bMe_target in duration_s and settles."""
         return self.move_joints(self.jrc_ik(bMe_target), duration_s)
 
     def move_joints(self, q: Matrix, duration_s: float, settle: bool = True) -> MoveReport:
