@@ -17,8 +17,9 @@ import viser
 from vservo.app import live_image
 from vservo.app.client_view import ClientView
 from vservo.app.context import AppContext
-from vservo.app.session import LiveFrame, RunTrace, SessionView
+from vservo.app.session import MOVING_PHASES, LiveFrame, RunTrace, SessionView
 from vservo.app.status import outcome_markdown, run_progress
+from vservo.core.production.assembly import Phase
 
 TWIST_NAMES = ("vx m/s", "vy m/s", "vz m/s", "wx rad/s", "wy rad/s", "wz rad/s")
 TWIST_COLOURS = ("#d62728", "#2ca02c", "#1f77b4", "#ff7f0e", "#9467bd", "#8c564b")
@@ -94,13 +95,13 @@ class AssemblePanel:
         state = view.state
         self._follow_job(state.get("job") or "demo")
         phase = state.get("phase")
-        running = phase in ("servoing", "picking", "placing")
-        words = {"servoing": f"servoing, stage {state.get('stage') or '-'}", "picking": "picking the part",
-                 "placing": "placing the part in the metal part"}
+        running = phase in MOVING_PHASES
+        words = {Phase.SERVOING: f"servoing, stage {state.get('stage') or '-'}", Phase.PICKING: "picking the part",
+                 Phase.PLACING: "placing the part in the metal part"}
         self.stage.content = (f"**{words.get(phase, phase)}** · {state.get('detail') or ''}" if running
                               else f"**{phase}** · {state.get('detail') or ''}")
         self.progress.value = run_progress(state, view.trace, self._threshold_px)
-        self.progress.color = "red" if phase in ("fault", "e-stopped") else "green" if phase == "done" else None
+        self.progress.color = "red" if phase in (Phase.FAULT, Phase.ESTOPPED) else "green" if phase == Phase.DONE else None
         self.outcome.content = outcome_markdown(state.get("last_outcome"), state.get("run_id"))
 
     def refresh_plots(self, view: SessionView) -> None:

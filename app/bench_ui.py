@@ -36,6 +36,7 @@ from vservo.app.browser import (
 from vservo.app.roles import new_token
 from vservo.app.server import IMAGE_PERIOD_S, RunningApp, ServeOptions, start_app
 from vservo.core.cell.config import CellConfig
+from vservo.core.production.assembly import Phase
 
 WATCH_IMAGE_TIMES = """() => {
     window.__imageTimes = [];
@@ -59,7 +60,7 @@ def _fps(times_ms: list[float]) -> float | None:
 def _one_run(running: RunningApp, pages: list[Any]) -> dict[str, Any]:
     operator = pages[0]
     session = running.app.session
-    if session.state.get("phase") in ("done", "fault", "e-stopped"):
+    if session.state.get("phase") in (Phase.DONE, Phase.FAULT, Phase.ESTOPPED):
         operator.get_by_role("button", name="Reset (after e-stop, fault or a finished run)").click()
         wait_for_status(operator, r"Idle")
     operator.get_by_role("button", name="Present part (simulated cell)").click()
@@ -71,15 +72,15 @@ def _one_run(running: RunningApp, pages: list[Any]) -> dict[str, Any]:
     servo_seen = False
     while time.monotonic() < deadline:
         phase = session.state.get("phase")
-        servo_seen = servo_seen or phase == "servoing"
-        if servo_seen and phase != "servoing":
+        servo_seen = servo_seen or phase == Phase.SERVOING
+        if servo_seen and phase != Phase.SERVOING:
             break  # the servo is over: the frames stop until the run ends
         time.sleep(0.02)
     else:
         raise TimeoutError("the assembly's servo did not end within the bench's time limit")
     fps = [_fps(page.evaluate("window.__imageTimes")) for page in pages]
     trace = session.view().trace
-    while session.state.get("phase") in ("picking", "placing") and time.monotonic() < deadline:
+    while session.state.get("phase") in (Phase.PICKING, Phase.PLACING) and time.monotonic() < deadline:
         time.sleep(0.05)
     return {"fps_per_page": [None if f is None else round(f, 2) for f in fps],
             "loop_hz": None if trace.cycle_rate_hz() is None else round(trace.cycle_rate_hz(), 2),

@@ -38,7 +38,7 @@ LASER_RGB = (240, 30, 30)
 PATH_RGB = (20, 160, 90)
 
 
-def part_pose_from_corners(corners_px: np.ndarray, bMe: Matrix, eMc: Matrix, camera: CameraModel,
+def part_pose_from_corners(corners_px: Matrix, bMe: Matrix, eMc: Matrix, camera: CameraModel,
                            side_m: float) -> Matrix | None:
     """bMo of the part from its four corners seen in one frame (None if not all are seen)."""
     if corners_px is None or not np.all(np.isfinite(corners_px)):
@@ -96,7 +96,7 @@ class PartTracker:
         return self.bMo
 
 
-def _wxyz(M: Matrix) -> np.ndarray:
+def _wxyz(M: Matrix) -> Matrix:
     return vtf.SO3.from_matrix(M[:3, :3]).wxyz
 
 
@@ -149,7 +149,7 @@ class CellScene:
             self.metal.append(self.server.scene.add_box(
                 f"/cell/metal_part/{index}", METAL_RGB, 2 * box.half_extents, wxyz=_wxyz(box.bMx), position=box.bMx[:3, 3]))
 
-    def update(self, state: dict, overlay: Overlay | None, path_m: np.ndarray) -> None:
+    def update(self, state: dict, overlay: Overlay | None, path_m: Matrix) -> None:
         if state.get("q"):
             self.robot.display(np.asarray(state["q"], float))
         bMe = np.asarray(state["bMe"], float)

@@ -17,7 +17,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-MOVING_PHASES = ("servoing", "picking", "placing")
+from vservo.core.geometry.spatial import Matrix
+from vservo.core.production.assembly import Phase
+
+MOVING_PHASES = (Phase.SERVOING, Phase.PICKING, Phase.PLACING)
 TRACE_LENGTH = 5000  # servo cycles kept per run (a run takes a few hundred)
 PATH_STEP_M = 0.0005  # a new path point once the flange moved this far
 
@@ -38,10 +41,10 @@ class RunTrace:
 
     run_id: int | None = None
     iterations: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
-    times_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    errors_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    twists: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
-    path_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    times_s: Matrix = field(default_factory=lambda: np.zeros(0))
+    errors_px: Matrix = field(default_factory=lambda: np.zeros(0))
+    twists: Matrix = field(default_factory=lambda: np.zeros((0, 6)))
+    path_m: Matrix = field(default_factory=lambda: np.zeros((0, 3)))
 
     def cycle_rate_hz(self) -> float | None:
         """Servo cycles per second over the run so far (controller clock); None before two cycles."""
@@ -66,7 +69,7 @@ class Session:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
-        self._state: dict = {"phase": "idle", "bMe": np.eye(4).tolist(), "time_s": float("-inf")}
+        self._state: dict = {"phase": Phase.IDLE.value, "bMe": np.eye(4).tolist(), "time_s": float("-inf")}
         self._frame: LiveFrame | None = None
         self._frames = 0
         self._states = 0
@@ -75,7 +78,7 @@ class Session:
         self._run_id: int | None = None
         self._ended_run: int | None = None
         self._rows: list[tuple[int, float, float, list[float]]] = []  # iteration, time, error, twist
-        self._path: list[np.ndarray] = []
+        self._path: list[Matrix] = []
 
     # -- written by the channel's reader -----------------------------------------------
 

@@ -14,12 +14,14 @@ import numpy as np
 
 from vservo.app.session import RunTrace
 from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
+from vservo.core.production.assembly import Outcome, Phase
 
 PHASE_WORDS = {
-    "idle": "Idle", "teaching": "Teaching", "servoing": "Servoing", "picking": "Picking", "placing": "Placing",
-    "done": "Done", "fault": "FAULT", "e-stopped": "E-STOPPED",
+    Phase.IDLE: "Idle", Phase.TEACHING: "Teaching", Phase.SERVOING: "Servoing", Phase.PICKING: "Picking",
+    Phase.PLACING: "Placing", Phase.DONE: "Done", Phase.FAULT: "FAULT", Phase.ESTOPPED: "E-STOPPED",
 }
-OUTCOME_WORDS = {"placed": "placed", "missed": "MISSED", "fault": "FAULT", "estopped": "E-STOPPED", None: "running"}
+OUTCOME_WORDS = {Outcome.PLACED: "placed", Outcome.MISSED: "MISSED", Outcome.FAULT: "FAULT", Outcome.ESTOPPED: "E-STOPPED",
+                 None: "running"}
 
 
 def _number(value: object, digits: int = 2, unit: str = "") -> str:
@@ -36,7 +38,7 @@ def status_markdown(state: dict, operator_present: bool, controller_gone: str | 
     parts = [f"**{phase}**"]
     if state.get("job"):
         parts.append(f"job `{state['job']}`")
-    if state.get("run_id") is not None and state.get("phase") not in ("idle", "teaching"):
+    if state.get("run_id") is not None and state.get("phase") not in (Phase.IDLE, Phase.TEACHING):
         parts.append(f"run {state['run_id']}")
         if state.get("stage"):
             parts.append(f"stage {state['stage']}")
@@ -58,13 +60,13 @@ def run_progress(state: dict, trace: RunTrace, threshold_px: float) -> float:
     """0..100 through the run: the servo's share follows the smallest feature error so far on a
     log scale from its first value down to the threshold; pick and place are fixed steps."""
     phase = state.get("phase")
-    if phase == "done":
+    if phase == Phase.DONE:
         return 100.0
-    if phase == "placing":
+    if phase == Phase.PLACING:
         return 88.0
-    if phase == "picking":
+    if phase == Phase.PICKING:
         return 75.0
-    if phase != "servoing" and phase not in ("fault", "e-stopped"):
+    if phase not in (Phase.SERVOING, Phase.FAULT, Phase.ESTOPPED):
         return 0.0
     errors = trace.errors_px[np.isfinite(trace.errors_px)]
     if len(errors) == 0:
@@ -88,7 +90,7 @@ def outcome_markdown(outcome: dict | None, run_id: int | None) -> str:
 
 def teach_markdown(state: dict) -> str:
     """What teaching still needs, or how to start it."""
-    if state.get("phase") != "teaching":
+    if state.get("phase") != Phase.TEACHING:
         return "Not teaching. Choose a template (or a new job) and press **Begin teaching**."
     missing = state.get("teach_missing") or []
     if missing:

@@ -1,4 +1,4 @@
-"""Synthetic features and desired images for controller tests: a square face seen by the XC55."""
+"""Synthetic features and desired images for control-law tests: a square face seen by the XC55."""
 
 import numpy as np
 

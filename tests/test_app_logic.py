@@ -19,6 +19,7 @@ from vservo.app.status import flange_text, outcome_markdown, run_progress, runs_
 from vservo.app.teach_panel import jog_step
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg
+from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController
 from vservo.core.production.channel import Reply
 from vservo.core.production.jobs import read_job_file
@@ -231,7 +232,7 @@ def test_status_progress_and_outcome_texts(recorded_run):
 
 
 def test_history_texts():
-    run = {"id": 3, "job": "demo", "outcome": "estopped", "reason": "e-stop pressed", "duration_s": 2.5,
+    run = {"id": 3, "job": "demo", "outcome": Outcome.ESTOPPED, "reason": "e-stop pressed", "duration_s": 2.5,
            "final_error_px": None, "placement_error_mm": None, "started_at": 0.0,
            "stages": [{"stage": "1A", "iterations": 30}, {"stage": "3", "iterations": 10}]}
     table = runs_table([run])

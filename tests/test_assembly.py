@@ -11,7 +11,7 @@ import pytest
 
 from vservo.app.cli import main
 from vservo.core.cell.config import load_cell
-from vservo.core.production.assembly import Phase
+from vservo.core.production.assembly import Outcome, Phase
 from vservo.core.production.cell_controller import CellController, CommandRefused
 from vservo.core.production.rig import simulated_rig
 from vservo.core.production.storage import Store
@@ -31,12 +31,12 @@ def test_demo_job_places_the_part(controller):
     run_id = controller.start("demo")
     controller.wait()
     outcome = controller.last_outcome
-    assert outcome.outcome == "placed", outcome.reason
+    assert outcome.outcome is Outcome.PLACED, outcome.reason
     assert outcome.final_error_px < 3.0
     assert outcome.placement_error_mm < 1.0  # the pocket leaves 1 mm each side
     assert not controller.rig.gripper.holding()
     record = controller.store.run(run_id)
-    assert record.outcome == "placed" and record.stages == outcome.stages
+    assert record.outcome is Outcome.PLACED and record.stages == outcome.stages
     assert controller.state.phase == Phase.DONE.value
 
 
@@ -50,7 +50,7 @@ def test_the_demo_job_places_the_part_through_the_jrc_link(tmp_path):
         controller.start("demo")
         controller.wait()
         outcome = controller.last_outcome
-        assert outcome.outcome == "placed", outcome.reason
+        assert outcome.outcome is Outcome.PLACED, outcome.reason
         assert outcome.placement_error_mm < 1.0
         moves = rig.emulator.executed
         assert len(moves) > outcome.iterations and all(m.startswith("MOVL") for m in moves)
@@ -68,7 +68,7 @@ def test_a_part_out_of_reach_of_the_cup_is_a_fault_with_the_robot_held(controlle
     controller.present_part()
     controller.start("short")
     controller.wait()
-    assert controller.last_outcome.outcome == "fault"
+    assert controller.last_outcome.outcome is Outcome.FAULT
     assert "vacuum" in controller.last_outcome.reason
     assert controller.rig.robot.status().held
     with pytest.raises(CommandRefused, match="held"):
@@ -95,9 +95,9 @@ def test_estop_stops_the_arm_within_one_cycle_and_refuses_moves_until_reset(cont
     controller.wait()
     # Each servo step is one move of one sampling period: at most the step under way ends.
     assert cell.state.time_s - time_at_estop <= period + 1e-9
-    assert controller.last_outcome.outcome == "estopped"
+    assert controller.last_outcome.outcome is Outcome.ESTOPPED
     assert controller.state.phase == Phase.ESTOPPED.value
-    assert controller.store.run(run_id).outcome == "estopped"
+    assert controller.store.run(run_id).outcome is Outcome.ESTOPPED
     q = cell.state.q.copy()
     for command in (lambda: controller.jog([0.01, 0.0, 0.0]), lambda: controller.start("demo")):
         with pytest.raises(CommandRefused, match="e-stop"):
@@ -131,7 +131,7 @@ def test_teach_a_job_then_assemble_it(controller):
     controller.present_part()
     controller.start("bolt")
     controller.wait()
-    assert controller.last_outcome.outcome == "placed", controller.last_outcome.reason
+    assert controller.last_outcome.outcome is Outcome.PLACED, controller.last_outcome.reason
 
 
 def test_capture_without_the_part_in_view_is_refused(controller):

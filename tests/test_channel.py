@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from vservo.core.cell.config import load_cell
+from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController
 from vservo.core.production.channel import APP_GONE, ChannelError, ControllerClient, ControllerServer, new_key
 from vservo.core.production.rig import simulated_rig
@@ -251,7 +252,7 @@ def test_the_last_app_leaving_during_a_run_holds_the_robot_and_the_run_says_why(
         assert controller.state.phase == "e-stopped"
         assert controller.rig.robot.status().held
         record = store.run(run_id)
-        assert record.outcome == "estopped" and record.reason == APP_GONE
+        assert record.outcome is Outcome.ESTOPPED and record.reason == APP_GONE
         assert APP_GONE in controller.state.detail
     finally:
         server.close()

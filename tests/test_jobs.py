@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from vservo.core.production.assembly import Outcome
 from vservo.core.production.jobs import JobError, job_from_dict, read_job_file, write_job_file
 from vservo.core.production.storage import DEMO_JOB, Store, StoreError, shipped_job_path
 
@@ -67,11 +68,24 @@ def test_store_keeps_jobs_images_and_runs(tmp_path, demo):
     assert len(list((tmp_path / "images").iterdir())) == 1
     run = store.start_run("a", "sim")
     assert store.run(run).outcome is None
-    store.finish_run(run, "placed", "ok", 1.5, 0.2, 3.0, [{"stage": "3", "iterations": 4}], None)
+    store.finish_run(run, Outcome.PLACED, "ok", 1.5, 0.2, 3.0, [{"stage": "3", "iterations": 4}], None)
     store.close()
     again = Store(tmp_path)
     record = again.run(run)
-    assert (record.outcome, record.final_error_px, record.stages) == ("placed", 1.5, [{"stage": "3", "iterations": 4}])
+    assert (record.outcome, record.final_error_px, record.stages) == (Outcome.PLACED, 1.5, [{"stage": "3", "iterations": 4}])
+    again.close()
+
+
+def test_runs_stored_as_estopped_by_older_versions_read_as_e_stopped(tmp_path):
+    store = Store(tmp_path)
+    old, new = store.start_run("demo", "sim"), store.start_run("demo", "sim")
+    store.finish_run(new, Outcome.ESTOPPED, "e-stop pressed", None, None, 1.0, [], None)
+    store.close()
+    with sqlite3.connect(tmp_path / "vservo.sqlite") as db:
+        db.execute("UPDATE runs SET outcome = 'estopped', reason = 'e-stop pressed' WHERE id = ?", (old,))
+        assert db.execute("SELECT outcome FROM runs WHERE id = ?", (new,)).fetchone() == ("e-stopped",)
+    again = Store(tmp_path)
+    assert again.run(old).outcome is again.run(new).outcome is Outcome.ESTOPPED
     again.close()
 
 

@@ -1,6 +1,6 @@
 """The JRC host link over a real pseudo-terminal: the framing and its test vectors, the
-data link's recovery against a scripted controller, the host commands against the
-controller emulator, every injected fault, and a short soak."""
+data link's recovery against a scripted JRC, the host commands against the
+JRC emulator, every injected fault, and a short soak."""
 
 import os
 import threading
@@ -99,7 +99,7 @@ def test_a_long_text_is_cut_into_blocks_ended_by_etb_then_etx():
     assert second[-2:] == bcc_by_hand(second[1:-2])
 
 
-def test_every_controller_error_code_has_a_clear_message():
+def test_every_jrc_error_code_has_a_clear_message():
     for code in (1010, 1011, 1012, 1013, 2010, 2020, 2030, 2040, 2050, 2060, 2070, 2100, 3010, 3040, 3070, 4040, 5110, 5200):
         assert code in ERROR_MESSAGES, code
     assert "servo power is off" in describe_error(2070)
@@ -118,10 +118,10 @@ def test_the_wire_pose_is_x_y_z_then_rx_ry_rz_about_the_fixed_base_axes():
     assert np.allclose(pose_from_wire(wire_pose(bMe)), bMe)
 
 
-# -- the data link against a scripted controller ---------------------------------------
+# -- the data link against a scripted JRC ----------------------------------------------
 
-class ScriptedController:
-    """The controller's end of a pty driven byte by byte by the test (no emulator code)."""
+class ScriptedJrc:
+    """The JRC's end of a pty driven byte by byte by the test (no emulator code)."""
 
     def __init__(self, pty: PseudoTerminal) -> None:
         self.fd = pty.master_fd
@@ -197,25 +197,25 @@ def run_host(line, device, text):
 
 
 def test_the_host_resends_on_nak_and_refuses_a_bad_bcc(config):
-    """One RPOSC the way JRC-PROTOCOL.md draws it, with a NAK from the controller and a
+    """One RPOSC the way JRC-PROTOCOL.md draws it, with a NAK from the JRC and a
     corrupted reply block the host must NAK."""
     with PseudoTerminal() as pty:
-        controller = ScriptedController(pty)
+        jrc = ScriptedJrc(pty)
         thread, result = run_host(config.jrc, pty.device, "RPOSC 0,0")
-        controller.accept_bid()
+        jrc.accept_bid()
         body = b"01,000" + bytes((STX,)) + b"RPOSC 0,0\r" + bytes((ETX,))
         command = bytes((SOH,)) + body + bcc_by_hand(body)
-        assert controller.read_block() == command
-        controller.send(bytes((NAK,)))
-        assert controller.read_block() == command  # sent again
-        controller.end_command()
-        controller.bid()
+        assert jrc.read_block() == command
+        jrc.send(bytes((NAK,)))
+        assert jrc.read_block() == command  # sent again
+        jrc.end_command()
+        jrc.bid()
         good = reply_block(b"1.000,2.000,3.000,0.00,0.00,0.00,0,0")
-        controller.send(good[:-1] + bytes(((good[-1] + 1) % 256,)))
-        controller.expect(bytes((NAK,)))
-        controller.send(good)
-        controller.expect(ACK1)
-        controller.send(bytes((EOT,)))
+        jrc.send(good[:-1] + bytes(((good[-1] + 1) % 256,)))
+        jrc.expect(bytes((NAK,)))
+        jrc.send(good)
+        jrc.expect(ACK1)
+        jrc.send(bytes((EOT,)))
         thread.join(10)
     assert result["reply"] == ("1.000", "2.000", "3.000", "0.00", "0.00", "0.00", "0", "0")
     assert result["counters"].naks_received == 1 and result["counters"].naks_sent == 1
@@ -223,14 +223,14 @@ def test_the_host_resends_on_nak_and_refuses_a_bad_bcc(config):
 
 def test_a_lost_ack_is_asked_for_with_enq_and_the_block_is_not_sent_twice(config):
     with PseudoTerminal() as pty:
-        controller = ScriptedController(pty)
+        jrc = ScriptedJrc(pty)
         thread, result = run_host(config.jrc, pty.device, "RSTATS")
-        controller.accept_bid()
-        controller.read_block()
+        jrc.accept_bid()
+        jrc.read_block()
         # No ACK1: after timer A the host asks with ENQ; ACK1 says the block arrived.
-        controller.expect(bytes((ENQ,)))
-        controller.end_command()
-        controller.reply(reply_block(b"192,64"))
+        jrc.expect(bytes((ENQ,)))
+        jrc.end_command()
+        jrc.reply(reply_block(b"192,64"))
         thread.join(10)
         assert not pty_ready(pty.master_fd, 0.1)  # nothing more: the command block went once
     assert result["reply"] == ("192", "64")
@@ -238,17 +238,17 @@ def test_a_lost_ack_is_asked_for_with_enq_and_the_block_is_not_sent_twice(config
 
 
 def test_the_host_yields_when_both_ends_bid(config):
-    """The controller bids with a late reply as the host bids: the host takes it, then bids again."""
+    """The JRC bids with a late reply as the host bids: the host takes it, then bids again."""
     with PseudoTerminal() as pty:
-        controller = ScriptedController(pty)
+        jrc = ScriptedJrc(pty)
         thread, result = run_host(config.jrc, pty.device, "RSTATS")
-        controller.expect(bytes((ENQ,)))
-        controller.reply(reply_block(b"stale"))  # contention: the controller bids too
-        controller.expect(bytes((ENQ,)))  # the host bids again
-        controller.send(ACK0)
-        controller.read_block()
-        controller.end_command()
-        controller.reply(reply_block(b"192,64"))
+        jrc.expect(bytes((ENQ,)))
+        jrc.reply(reply_block(b"stale"))  # contention: the JRC bids too
+        jrc.expect(bytes((ENQ,)))  # the host bids again
+        jrc.send(ACK0)
+        jrc.read_block()
+        jrc.end_command()
+        jrc.reply(reply_block(b"192,64"))
         thread.join(10)
     assert result["reply"] == ("192", "64")
     assert result["counters"].contentions == 1
@@ -257,10 +257,10 @@ def test_the_host_yields_when_both_ends_bid(config):
 def test_after_its_retries_the_host_ends_with_eot_and_names_the_command(config):
     line = config.jrc
     with PseudoTerminal() as pty:
-        controller = ScriptedController(pty)
+        jrc = ScriptedJrc(pty)
         thread, result = run_host(line, pty.device, "SVON 1")
         # Never answer: the host bids 1 + retry_1 times, ends with EOT, then tries HOLD 1 the same way.
-        received = controller.read(2 * (line.retry_1 + 2), timeout_s=10.0)
+        received = jrc.read(2 * (line.retry_1 + 2), timeout_s=10.0)
         thread.join(10)
     bid = bytes((ENQ,)) * (line.retry_1 + 1) + bytes((EOT,))
     assert received == bid + bid
@@ -272,31 +272,31 @@ def test_after_its_retries_the_host_ends_with_eot_and_names_the_command(config):
 def test_a_block_refused_more_than_retry_2_times_fails_the_command(config):
     line = config.jrc
     with PseudoTerminal() as pty:
-        controller = ScriptedController(pty)
+        jrc = ScriptedJrc(pty)
         thread, result = run_host(line, pty.device, "SVON 1")
-        controller.accept_bid()
+        jrc.accept_bid()
         for _ in range(line.retry_2 + 1):
-            controller.read_block()
-            controller.send(bytes((NAK,)))
-        controller.expect(bytes((EOT,)))
+            jrc.read_block()
+            jrc.send(bytes((NAK,)))
+        jrc.expect(bytes((EOT,)))
         thread.join(10)
     assert str(result["reply"]).startswith("SVON failed: block 1 of 1 refused 4 times (retry 2 = 3)")
 
 
 def test_a_reply_that_never_ends_fails_after_timer_b(config):
     with PseudoTerminal() as pty:
-        controller = ScriptedController(pty)
+        jrc = ScriptedJrc(pty)
         thread, result = run_host(config.jrc, pty.device, "RSTATS")
-        controller.accept_bid()
-        controller.read_block()
-        controller.end_command()
-        controller.bid()
-        controller.send(reply_block(b"192,64")[:6])  # cut short, then silence
+        jrc.accept_bid()
+        jrc.read_block()
+        jrc.end_command()
+        jrc.bid()
+        jrc.send(reply_block(b"192,64")[:6])  # cut short, then silence
         thread.join(10)
     assert str(result["reply"]).startswith("RSTATS failed: the text did not end within timer B (0.5 s)")
 
 
-# -- the controller emulator, byte by byte ---------------------------------------------
+# -- the JRC emulator, byte by byte ----------------------------------------------------
 
 def test_the_emulator_answers_one_transaction_as_the_protocol_draws_it(emulator, cell, config):
     port = serial.Serial(emulator.device, timeout=2.0)
@@ -317,7 +317,7 @@ def test_the_emulator_answers_one_transaction_as_the_protocol_draws_it(emulator,
     assert block[0] == SOH and block[1:8] == b"90,001" + bytes((STX,))
     assert block[-2:] == bcc_by_hand(block[1:-2])
     values = [float(v) for v in block[8:-4].decode().split(",")]
-    bMe = cell.controller_arm.fk(cell.state.q)
+    bMe = cell.jrc_arm.fk(cell.state.q)
     assert np.allclose(values[:3], bMe[:3, 3] * 1000.0, atol=0.0005)
     assert len(values) == 8
 
@@ -344,29 +344,29 @@ def test_status_servo_pose_and_moves(robot, cell):
     status = robot.status()
     assert status.servo_on and status.ready and not status.running
     bMe = robot.read_pose()
-    translation, rotation = pose_error(bMe, cell.controller_arm.fk(cell.state.q))
+    translation, rotation = pose_error(bMe, cell.jrc_arm.fk(cell.state.q))
     assert translation < 1e-6 and rotation < np.radians(0.006)  # RPOSC's 0.001 mm and 0.01 deg
 
     target = transform(t=(0.02, -0.01, 0.005)) @ bMe
     robot.move_to(target, 0.05)
     assert robot.wait_motion() is True
-    translation, _ = pose_error(cell.controller_arm.fk(cell.state.q), target)
+    translation, _ = pose_error(cell.jrc_arm.fk(cell.state.q), target)
     assert translation < 1e-6
-    before = cell.controller_arm.fk(cell.state.q)
+    before = cell.jrc_arm.fk(cell.state.q)
     robot.move_by(transform(t=(0.0, 0.0, -0.01)), 0.05)
     assert robot.wait_motion()
-    after = cell.controller_arm.fk(cell.state.q)
+    after = cell.jrc_arm.fk(cell.state.q)
     assert np.allclose(after[:3, 3] - before[:3, 3], [0.0, 0.0, -0.01], atol=1e-6)
     assert np.allclose(after[:3, :3], before[:3, :3], atol=1e-6)
 
 
-def test_refusals_carry_the_controllers_reason(robot):
+def test_refusals_carry_the_jrcs_reason(robot):
     bMe = robot.read_pose()
     with pytest.raises(JrcNotReady, match="2070 servo power is off"):
         robot.move_to(bMe, 0.05)
     robot.servo(True)
     robot.hold(True)
-    with pytest.raises(JrcNotReady, match="MOVL refused by the controller: 2050 held by the host"):
+    with pytest.raises(JrcNotReady, match="MOVL refused by the JRC: 2050 held by the host"):
         robot.move_to(bMe, 0.05)
     robot.hold(False)
     with pytest.raises(JrcCommandError, match="1010"):
@@ -375,7 +375,7 @@ def test_refusals_carry_the_controllers_reason(robot):
         robot.command("RPOSC 0")
     with pytest.raises(RobotError, match="position_steps"):
         robot.move_timed(bMe, 0.1)
-    with pytest.raises(UnreachableTarget, match="MOVL refused by the controller: 5200 data out of range"):
+    with pytest.raises(UnreachableTarget, match="MOVL refused by the JRC: 5200 data out of range"):
         robot.move_to(transform(t=(2.0, 0.0, 0.0)) @ bMe, 0.05)
 
 
@@ -389,7 +389,7 @@ def test_a_hold_stops_the_motion_where_it_is(robot, cell, emulator):
     assert robot.wait_motion() is False
     status = robot.status()
     assert status.held and not status.running and "command hold" in status.detail
-    assert pose_error(cell.controller_arm.fk(cell.state.q), target)[0] > 0.03
+    assert pose_error(cell.jrc_arm.fk(cell.state.q), target)[0] > 0.03
 
 
 def test_an_alarm_in_the_middle_of_a_move_is_reported_and_reset(robot, cell, emulator):
@@ -401,14 +401,14 @@ def test_an_alarm_in_the_middle_of_a_move_is_reported_and_reset(robot, cell, emu
     assert robot.wait_motion() is False
     status = robot.status()
     assert status.alarm and not status.servo_on and "4315 COLLISION DETECT" in status.detail
-    travelled = pose_error(cell.controller_arm.fk(cell.state.q), start)[0]
+    travelled = pose_error(cell.jrc_arm.fk(cell.state.q), start)[0]
     assert 0.0 < travelled < 0.03  # stopped part of the way
     with pytest.raises(JrcNotReady, match="2060"):
         robot.move_to(target, 0.05)
     robot.reset_alarms()
     robot.servo(True)
     robot.move_to(target, 0.05)
-    assert robot.wait_motion() and pose_error(cell.controller_arm.fk(cell.state.q), target)[0] < 1e-6
+    assert robot.wait_motion() and pose_error(cell.jrc_arm.fk(cell.state.q), target)[0] < 1e-6
     assert emulator.faults.injected["alarm"] == 1
 
 
@@ -437,14 +437,14 @@ def test_every_link_fault_is_recovered(cell, config, kind, counter):
     with jrc_link(cell, config, FaultPlan(1.0, seed=3, kinds=(kind,))) as (robot, emulator):
         poses = [robot.read_pose() for _ in range(12)]
         counters = robot.station.counters
-    bMe = cell.controller_arm.fk(cell.state.q)
+    bMe = cell.jrc_arm.fk(cell.state.q)
     assert all(pose_error(pose, bMe)[0] < 1e-6 for pose in poses)
     assert emulator.faults.injected[kind] >= 12
     if counter is not None:
         assert getattr(counters, counter) >= 12
 
 
-def test_a_silent_controller_fails_the_command_and_the_robot_is_left_held(robot, emulator):
+def test_a_silent_jrc_fails_the_command_and_the_robot_is_left_held(robot, emulator):
     robot.servo(True)
     emulator.faults.inject("timeout")
     with pytest.raises(LinkError, match=r"RPOSC failed: no ACK0 to ENQ after 4 tries .*the robot is held"):

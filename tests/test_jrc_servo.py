@@ -1,5 +1,5 @@
 """A whole assembly servo through the JRC link: the laser method on task 2, the loop
-commanding a JRC backend behind the safety layer, over a pty, to the controller emulator
+commanding a JRC backend behind the safety layer, over a pty, to the JRC emulator
 that moves the very SimulatedCell the camera looks at."""
 
 from contextlib import ExitStack

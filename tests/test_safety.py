@@ -64,7 +64,7 @@ def safe(backend_name):
 
 
 def arm_pose(cell):
-    return cell.controller_arm.fk(cell.state.q)
+    return cell.jrc_arm.fk(cell.state.q)
 
 
 def test_a_target_outside_the_workspace_is_refused_and_nothing_moves(safe):
@@ -170,7 +170,7 @@ def test_a_fed_watchdog_stays_quiet(backend_name):
 
 
 class Approach:
-    """A controller that asks for 10 mm/s along the optical axis, forever."""
+    """A control law that asks for 10 mm/s along the optical axis, forever."""
 
     name = "approach"
 

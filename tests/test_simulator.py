@@ -50,7 +50,7 @@ def test_corners_are_seen_through_the_true_camera_not_the_nominal_one():
     bMc_true = cell.ground_truth_bMe() @ truth.model.eMc
     expected = project_with_opencv(truth.model.camera, inverse(bMc_true), cell.state.scene.cube.corners_b)
     assert np.allclose(seen.corners_px, expected, atol=1e-9)
-    # What the nominal model would predict differs by pixels: the controller cannot read the truth.
+    # What the nominal model would predict differs by pixels: the control law cannot read the truth.
     config = parse_cell(data)
     bMc_nominal = seen.bMe @ config.nominal.eMc
     nominal = project_with_opencv(config.nominal.camera, inverse(bMc_nominal), cell.state.scene.cube.corners_b)
@@ -61,7 +61,7 @@ def test_the_robot_reports_its_nominal_pose_while_the_true_arm_is_elsewhere():
     data = cell_data(joint_placement_error_mm=0.5, joint_placement_error_deg=0.05)
     cell = at_teach_pose(data)
     seen = cell.measure()
-    assert np.allclose(seen.bMe, cell.controller_arm.fk(seen.q), atol=1e-12)
+    assert np.allclose(seen.bMe, cell.jrc_arm.fk(seen.q), atol=1e-12)
     translation, rotation = pose_error(seen.bMe, cell.ground_truth_bMe())
     assert 1e-4 < translation < 0.02 and rotation > 1e-5
 

@@ -54,7 +54,7 @@ class PlanarCalibration(Protocol):
         ...
 
 
-def _object_points(world_m: Matrix) -> np.ndarray:
+def _object_points(world_m: Matrix) -> Matrix:
     return np.column_stack((world_m, np.zeros(len(world_m)))).astype(np.float32)
 
 
@@ -64,7 +64,7 @@ def _camera(K: Matrix, dist: Matrix, size: tuple[int, int]) -> CameraModel:
     return CameraModel(intrinsics, Distortion(*(float(v) for v in d[:5])))
 
 
-def _pose(rvec: np.ndarray, tvec: np.ndarray) -> Matrix:
+def _pose(rvec: Matrix, tvec: Matrix) -> Matrix:
     return transform(cv2.Rodrigues(rvec)[0], np.ravel(tvec))
 
 
@@ -193,7 +193,7 @@ class PlanarHomography:
 
 # -- files -----------------------------------------------------------------------------
 
-def _camera_arrays(camera: CameraModel) -> dict[str, np.ndarray]:
+def _camera_arrays(camera: CameraModel) -> dict[str, Matrix]:
     k = camera.intrinsics
     return {"K": k.K, "distortion": camera.distortion.as_opencv(), "image_size": np.array([k.width, k.height])}
 

@@ -14,7 +14,7 @@ so the board's own pattern has to. OpenCV's sector-based detector
 (``findChessboardCornersSB`` with ``CALIB_CB_LARGER``) returns the ordered grid of inner
 corners it sees; the colour of the square diagonally beyond each corner gives the parity
 of its lattice index; what remains (the grid's orientation and a whole-number offset) is
-fixed by where the robot controller's reported pose and the NOMINAL camera model put the
+fixed by where the JRC's reported pose and the NOMINAL camera model put the
 corners. The model only has to be right to within a square (10 mm): it picks whole
 numbers, never a coordinate. Every world coordinate comes from the board's lattice, none
 from the simulator's truth. A view whose best naming leaves corners more than half a

@@ -3,7 +3,7 @@
 The camera is moved over the checkerboard, at a fixed height, to the viewpoints of a
 grid over the workspace; at each one the cell's TRUE camera takes an 8-bit image of the
 board from its TRUE pose, OpenCV finds the corners, the board names them (world
-coordinates), and each corner is paired with the end-effector pose the robot controller
+coordinates), and each corner is paired with the end-effector pose the JRC
 REPORTS (its nominal model: wrong by the arm's placement errors and repeatability, as
 on a real cell). Pixel noise, when asked for, is added to every corner found.
 
@@ -135,7 +135,7 @@ class Collector:
         self.cell = SimulatedCell(self.config, seed)
         self.board = Checkerboard.covering(workspace.x_range_m, workspace.y_range_m,
                                            self.config.simulation.scene.table_height_m)
-        self.arm = self.cell.controller_arm
+        self.arm = self.cell.jrc_arm
 
     # -- where to look --------------------------------------------------------------
 
@@ -149,7 +149,7 @@ class Collector:
         return bMc @ inverse(self.config.nominal.eMc)
 
     def reachable(self, bMe: Matrix) -> bool:
-        """Whether the controller's own IK reaches bMe (a quick screen before moving)."""
+        """Whether the JRC's own IK reaches bMe (a quick screen before moving)."""
         try:
             self.arm.ik(bMe, self.cell.state.q, restarts=2, tolerance_m=1e-7, tolerance_rad=1e-7)
         except UnreachableTarget:

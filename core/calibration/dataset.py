@@ -3,7 +3,7 @@ coordinates, with the metadata that says how they were taken.
 
 Each row is one checkerboard corner seen from one viewpoint (section 2.3.2, step 1): its
 pixel (u, v), the world (x_W, y_W) the board gives it, and the index of the viewpoint,
-whose end-effector pose bMe is the one the robot controller REPORTED there. The NN's
+whose end-effector pose bMe is the one the JRC REPORTED there. The NN's
 inputs (u, v, T_x, T_y[, T_z, tilt]) and every baseline's are derived from these.
 
 ``validate`` refuses what no calibration can use, naming the file and the fault: NaN or
@@ -49,7 +49,7 @@ class CalibrationDataset:
     pixels_px (N, 2): (u, v) of each corner, OpenCV convention.
     world_m (N, 2): (x_W, y_W) of each corner on the board (W = B on the table).
     view (N,): index of the viewpoint each corner was seen from.
-    bMe (V, 4, 4): the end-effector pose the robot controller reported at each viewpoint.
+    bMe (V, 4, 4): the end-effector pose the JRC reported at each viewpoint.
     metadata: how the data was taken (truth, noise, workspace, counts); JSON-able.
     """
 

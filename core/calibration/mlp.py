@@ -2,7 +2,7 @@
 to world coordinates, its normalisation, its training and its file.
 
 The network (section 2.3.1, Fig. 2-3, Appendix B): inputs the corner's pixel (u, v) and
-the end-effector position the robot controller reports (T_x, T_y, and optionally T_z);
+the end-effector position the JRC reports (T_x, T_y, and optionally T_z);
 one hidden layer of 20 tanh units (eq. 2-24); two linear outputs (eq. 2-25), the world
 (X_0, Y_0). No hand-eye transform is estimated: the mapping f of eq. 2-23 is learned.
 
@@ -65,7 +65,7 @@ def forward(params: torch.Tensor, x: torch.Tensor, inputs: int, hidden: int) -> 
     return (W2 @ h[:, :, None])[..., 0] + b2
 
 
-def nguyen_widrow(inputs: int, hidden: int, rng: np.random.Generator) -> np.ndarray:
+def nguyen_widrow(inputs: int, hidden: int, rng: np.random.Generator) -> Matrix:
     """Initial weights for inputs in [-1, 1] (Nguyen and Widrow 1990; Matlab's initnw)."""
     beta = 0.7 * hidden ** (1.0 / inputs)
     W1 = rng.uniform(-1.0, 1.0, (hidden, inputs))
@@ -111,7 +111,7 @@ class NNCalibration:
 
     input_set: str
     hidden: int
-    params: np.ndarray
+    params: Matrix
     normalisation: Normalisation
     trained: bool = False
     training: dict[str, Any] = field(default_factory=dict)

@@ -1,7 +1,7 @@
 """PBVS with a calibration (thesis section 2.4) and the tracking tests of chapter 3.
 
 Point-to-point positioning (eq. 2-47): the end effector moves in the plane parallel to
-the table with u = -K (wP - wS), wP the end effector's position (the robot controller's
+the table with u = -K (wP - wS), wP the end effector's position (the JRC's
 reading; W = B on the table, section 2.3.2) and wS the target's world position that the
 calibration computes from the target's pixel and that same reading. Each cycle takes a
 new look, so the law closes the loop through the camera. A target that leaves the image
@@ -21,7 +21,7 @@ Tests:
 - random points (the analogue of Table 3-4's test positions): each target is reached
   from a random viewpoint near it, off the calibration grid (a viewpoint no fit has seen).
 
-Errors are reported twice: where the robot controller says the end effector is (what
+Errors are reported twice: where the JRC says the end effector is (what
 the thesis could measure, and what the calibration is responsible for) and where it
 truly is (which adds the arm's absolute error at the target, the same for every method).
 """
@@ -154,7 +154,7 @@ def random_targets(tracker: Tracker, count: int, seed: int, x_range_m: tuple[flo
     """Random targets in the workspace and, for each, a random start viewpoint in the
     workspace within ``reach_m`` of it (so the target is in view); the arm reaches both."""
     rng = np.random.default_rng([seed, 13])
-    arm = tracker.cell.controller_arm
+    arm = tracker.cell.jrc_arm
     targets, starts = [], []
     for _ in range(500 * count):
         if len(targets) == count:

@@ -1,8 +1,8 @@
 """The cell configuration file (TOML): the nominal cell, its layout, and the simulated truth.
 
 One file describes a cell. Its nominal sections (robot, camera, hand_eye, laser,
-vacuum, motion) are what controllers and calibrations may use; ``[jrc]`` holds the
-serial line to a JRC controller and ``[safety]`` the limits on every move; ``[simulation]``
+vacuum, motion) are what control laws and calibrations may use; ``[jrc]`` holds the
+serial line to a JRC and ``[safety]`` the limits on every move; ``[simulation]``
 describes the plant the simulator plays: its seed and noise, ``[simulation.scene]``
 (where the table, cube and metal part really are) and ``[simulation.truth.*]`` tables
 that override nominal values with what the cell really is (the robustness test of
@@ -67,15 +67,15 @@ class MotionConfig:
 
 @dataclass(frozen=True)
 class JrcLineConfig:
-    """The RS-232 host link to a JRC controller (JRC-PROTOCOL.md, parameters RS030..RS038).
+    """The RS-232 host link to a JRC (JRC-PROTOCOL.md, parameters RS030..RS038).
 
-    The defaults are the controller's factory values; check them on the pendant before
+    The defaults are the JRC's factory values; check them on the pendant before
     first use. timer_a_s: how long a sender waits for the answer to a control character
     or a block (RS034); timer_b_s: how long a receiver waits for a text to end, and the
     host for a command's reply (RS035); retry_1: repeats of a control character left
     unanswered (RS036); retry_2: repeats of a text the receiver refused with NAK (RS037).
     jwait_slice_s: a wait for the end of a motion is split into JWAITs this long, so a
-    hold from the host (e-stop, watchdog) reaches the controller within one slice.
+    hold from the host (e-stop, watchdog) reaches the JRC within one slice.
     """
 
     port: str

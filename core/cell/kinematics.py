@@ -54,7 +54,7 @@ class UnreachableTarget(KinematicsError):
 class IkSolution:
     """A converged IK: q (rad), the iterations summed over all seeds tried, final errors."""
 
-    q: np.ndarray
+    q: Matrix
     iterations: int
     translation_error_m: float
     rotation_error_rad: float
@@ -96,7 +96,7 @@ class ArmKinematics:
         self.upper = model.upperPositionLimit.copy()
         self.joint_names = tuple(model.names[1:])
         self.frame_names = ("flange", *self.TOOL_FRAMES)
-        self._shoulders: dict[int, tuple[np.ndarray, np.ndarray, float, float, float]] = {}
+        self._shoulders: dict[int, tuple[Matrix, Matrix, float, float, float]] = {}
 
     def with_mount(self, mount: ToolMount) -> ArmKinematics:
         """The same arm carrying another tool mount."""
@@ -192,11 +192,11 @@ class ArmKinematics:
         return solution.translation_error_m + solution.rotation_error_rad
 
     def _levenberg_marquardt(
-        self, bMt: pin.SE3, frame_id: int, q: np.ndarray, max_iterations: int, tolerance_m: float, tolerance_rad: float
+        self, bMt: pin.SE3, frame_id: int, q: Matrix, max_iterations: int, tolerance_m: float, tolerance_rad: float
     ) -> IkSolution:
         """One damped least-squares descent from q; returns where it stopped."""
 
-        def residual(q: np.ndarray) -> tuple[np.ndarray, pin.SE3]:
+        def residual(q: Matrix) -> tuple[Matrix, pin.SE3]:
             pin.forwardKinematics(self.model, self.data, q)
             bMf = pin.updateFramePlacement(self.model, self.data, frame_id)
             return pin.log6(bMf.actInv(bMt)).vector, bMf.copy()
@@ -246,7 +246,7 @@ class ArmKinematics:
                 f"beyond the reach {reach:.3f} m of the links after it"
             )
 
-    def _shoulder(self, frame_id: int) -> tuple[np.ndarray, np.ndarray, float, float, float]:
+    def _shoulder(self, frame_id: int) -> tuple[Matrix, Matrix, float, float, float]:
         """A point on joint 1's axis, its unit direction w, the shoulder's height along
         and radius about that axis, and the reach from the shoulder to ``frame_id``: fixed
         by the model, so computed once per frame (every IK checks them)."""
@@ -272,7 +272,7 @@ class ArmKinematics:
             raise ValueError(f"unknown frame {frame!r} of arm {self.name!r}: choose one of {self.frame_names}")
         return self.model.getFrameId(self.description.flange_frame if frame == "flange" else frame)
 
-    def _joint_vector(self, q: ArrayLike) -> np.ndarray:
+    def _joint_vector(self, q: ArrayLike) -> Matrix:
         q = np.asarray(q, dtype=float)
         if q.shape != (self.dof,):
             raise ValueError(f"{self.name} expects q of shape ({self.dof},), got {q.shape}")

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-Array = NDArray[np.float64]
+from vservo.core.geometry.spatial import Matrix
 
 # Newton on the distortion model converges quadratically; this many steps is far more
 # than a realistic lens needs to reach machine precision anywhere inside the image.
@@ -35,7 +35,7 @@ _UNDISTORT_MAX_STEPS = 30
 _UNDISTORT_TOLERANCE = 1e-14
 
 
-def as_points(values: ArrayLike, dim: int, name: str = "points") -> Array:
+def as_points(values: ArrayLike, dim: int, name: str = "points") -> Matrix:
     """``values`` as an (N, dim) float array; a single (dim,) point becomes (1, dim)."""
     points = np.atleast_2d(np.asarray(values, dtype=float))
     if points.ndim != 2 or points.shape[1] != dim:
@@ -94,7 +94,7 @@ class Intrinsics:
         )
 
     @property
-    def K(self) -> Array:
+    def K(self) -> Matrix:
         """The 3x3 camera matrix [[fx, 0, u0], [0, fy, v0], [0, 0, 1]]."""
         return np.array([[self.fx, 0.0, self.u0], [0.0, self.fy, self.v0], [0.0, 0.0, 1.0]])
 
@@ -109,7 +109,7 @@ class Distortion:
     p2: float = 0.0
     k3: float = 0.0
 
-    def as_opencv(self) -> Array:
+    def as_opencv(self) -> Matrix:
         """The coefficient vector (k1, k2, p1, p2, k3) that OpenCV functions expect."""
         return np.array([self.k1, self.k2, self.p1, self.p2, self.k3])
 
@@ -130,7 +130,7 @@ class CameraModel:
         """(width, height) in pixels."""
         return self.intrinsics.width, self.intrinsics.height
 
-    def project(self, cP: ArrayLike) -> Array:
+    def project(self, cP: ArrayLike) -> Matrix:
         """Pixels (N, 2), distortion included, of points cP (N, 3) or (3,) in the camera frame.
 
         Points on or behind the camera plane (Z <= 0) have no image: their rows are NaN.
@@ -141,7 +141,7 @@ class CameraModel:
         xn = np.where(in_front, cP[:, :2] / np.where(in_front, Z, 1.0), np.nan)
         return self.normalized_to_pixel(xn)
 
-    def distort(self, xn: ArrayLike) -> Array:
+    def distort(self, xn: ArrayLike) -> Matrix:
         """Distorted normalized coordinates (N, 2) of undistorted ones xn (N, 2) or (2,).
 
         OpenCV's model, with r^2 = x^2 + y^2:
@@ -157,7 +157,7 @@ class CameraModel:
         yd = y * radial + d.p1 * (r2 + 2.0 * y * y) + 2.0 * d.p2 * x * y
         return np.column_stack((xd, yd))
 
-    def undistort(self, xd: ArrayLike) -> Array:
+    def undistort(self, xd: ArrayLike) -> Matrix:
         """Undistorted normalized coordinates (N, 2) of distorted ones xd (N, 2) or (2,).
 
         The model has no closed-form inverse: Newton's method on distort(x) = xd with the
@@ -192,20 +192,20 @@ class CameraModel:
         xn[unconverged] = np.nan
         return xn
 
-    def pixel_to_normalized(self, uv: ArrayLike) -> Array:
+    def pixel_to_normalized(self, uv: ArrayLike) -> Matrix:
         """Undistorted normalized coordinates (N, 2) of pixels uv (N, 2) or (2,)."""
         uv = as_points(uv, 2, "uv")
         k = self.intrinsics
         xd = np.column_stack(((uv[:, 0] - k.u0) / k.fx, (uv[:, 1] - k.v0) / k.fy))
         return self.undistort(xd)
 
-    def normalized_to_pixel(self, xn: ArrayLike) -> Array:
+    def normalized_to_pixel(self, xn: ArrayLike) -> Matrix:
         """Pixels (N, 2), distortion included, of undistorted normalized coordinates xn (N, 2) or (2,)."""
         xd = self.distort(xn)
         k = self.intrinsics
         return np.column_stack((k.fx * xd[:, 0] + k.u0, k.fy * xd[:, 1] + k.v0))
 
-    def ray(self, uv: ArrayLike) -> Array:
+    def ray(self, uv: ArrayLike) -> Matrix:
         """Unit viewing directions (N, 3) in the camera frame through pixels uv (N, 2) or (2,)."""
         xn = self.pixel_to_normalized(uv)
         directions = np.column_stack((xn, np.ones(len(xn))))

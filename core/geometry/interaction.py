@@ -12,14 +12,13 @@ Points are stacked feature by feature: rows 2i and 2i + 1 belong to point i.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from vservo.core.geometry.camera import CameraModel, as_points
+from vservo.core.geometry.spatial import Matrix
 
-Array = NDArray[np.float64]
 
-
-def point_interaction_matrix(xn: ArrayLike, Z: ArrayLike) -> Array:
+def point_interaction_matrix(xn: ArrayLike, Z: ArrayLike) -> Matrix:
     """L (2N, 6) of normalized image points xn (N, 2) or (2,) at depths Z (N,) or a scalar.
 
     Each point contributes the two rows
@@ -41,7 +40,7 @@ def point_interaction_matrix(xn: ArrayLike, Z: ArrayLike) -> Array:
     return L.reshape(-1, 6)
 
 
-def pixel_interaction_matrix(camera: CameraModel, uv: ArrayLike, Z: ArrayLike) -> Array:
+def pixel_interaction_matrix(camera: CameraModel, uv: ArrayLike, Z: ArrayLike) -> Matrix:
     """L (2N, 6) of pixel features uv (N, 2) or (2,) at depths Z (N,) or a scalar.
 
     diag(fx, fy) times the normalized matrix evaluated at the undistorted normalized

@@ -17,19 +17,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from vservo.core.geometry.camera import CameraModel
-from vservo.core.geometry.spatial import rot_y, transform
-
-Array = NDArray[np.float64]
+from vservo.core.geometry.spatial import Matrix, rot_y, transform
 
 # Below this sine of the angle between two lines (about 1e-6 rad) they are parallel
 # for any purpose: the crossing point would sit kilometres away.
 _PARALLEL_SIN2 = 1e-12
 
 
-def _frozen(values: ArrayLike, shape: tuple[int, ...], name: str) -> Array:
+def _frozen(values: ArrayLike, shape: tuple[int, ...], name: str) -> Matrix:
     """A read-only float copy of ``values``, so frozen dataclasses really are frozen."""
     array = np.array(values, dtype=float)
     if array.shape != shape:
@@ -45,8 +43,8 @@ class Ray:
     ``direction`` is normalised on construction, so s is a distance in metres.
     """
 
-    origin: Array
-    direction: Array
+    origin: Matrix
+    direction: Matrix
 
     def __post_init__(self) -> None:
         direction = np.asarray(self.direction, dtype=float)
@@ -56,7 +54,7 @@ class Ray:
         object.__setattr__(self, "origin", _frozen(self.origin, (3,), "origin"))
         object.__setattr__(self, "direction", _frozen(direction / norm, (3,), "direction"))
 
-    def point_at(self, s: ArrayLike) -> Array:
+    def point_at(self, s: ArrayLike) -> Matrix:
         """The point (3,) at distance s along the ray, or the points (N, 3) for s of shape (N,)."""
         s = np.asarray(s, dtype=float)
         return self.origin + s[..., np.newaxis] * self.direction
@@ -95,7 +93,7 @@ class LaserDepth:
 
     depth_m: float
     range_m: float
-    point_c: Array
+    point_c: Matrix
     ray_gap_m: float
 
 
@@ -103,7 +101,7 @@ class LaserDepth:
 class LaserPointer:
     """A laser pointer at pose cMl in the camera frame; the beam runs along L's +z axis."""
 
-    cMl: Array
+    cMl: Matrix
 
     def __post_init__(self) -> None:
         cMl = _frozen(self.cMl, (4, 4), "cMl")
@@ -125,12 +123,12 @@ class LaserPointer:
         return cls(transform(rot_y(alpha_rad - np.pi / 2.0), (baseline_m, 0.0, 0.0)))
 
     @property
-    def origin_c(self) -> Array:
+    def origin_c(self) -> Matrix:
         """Where the beam leaves the laser, in the camera frame (m)."""
         return self.cMl[:3, 3]
 
     @property
-    def direction_c(self) -> Array:
+    def direction_c(self) -> Matrix:
         """Unit direction of the beam in the camera frame."""
         return self.cMl[:3, 2]
 
@@ -139,7 +137,7 @@ class LaserPointer:
         beam_c = Ray(self.origin_c, self.direction_c)
         return beam_c if wMc is None else beam_c.transformed(wMc)
 
-    def spot_on_plane(self, n_c: ArrayLike, offset_c: float) -> Array | None:
+    def spot_on_plane(self, n_c: ArrayLike, offset_c: float) -> Matrix | None:
         """Where the beam hits the plane {p : n_c . p = offset_c}, as a point (3,) in the camera frame.
 
         None when the beam misses: it runs parallel to the plane, or the plane is behind the laser.

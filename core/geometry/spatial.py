@@ -17,6 +17,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+# vservo's one array type: float arrays of any shape. As in Eigen, a vector is a matrix
+# of one column, so poses, points, twists and Jacobians all read ``Matrix``.
 Matrix = NDArray[np.float64]
 
 
@@ -163,7 +165,7 @@ def exp_twist(twist: ArrayLike) -> Matrix:
     return transform(R, V @ v)
 
 
-def theta_u(R: ArrayLike) -> NDArray[np.float64]:
+def theta_u(R: ArrayLike) -> Matrix:
     """Rotation vector theta*u of a rotation matrix (angle in [0, pi]).
 
     The angle comes from atan2(sin, cos), which keeps full precision near 0 where an

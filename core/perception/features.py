@@ -1,6 +1,6 @@
-"""Image features: what vision hands a controller, and the taught desired image.
+"""Image features: what vision hands a control law, and the taught desired image.
 
-A controller sees one ``ImageFeatures`` per cycle and the ``DesiredImage`` taught at the
+A control law sees one ``ImageFeatures`` per cycle and the ``DesiredImage`` taught at the
 desired pose; nothing else about the cell except its nominal model. Missing features
 are NaN, never dropped, so every array keeps the feature order of the taught image.
 """
@@ -52,7 +52,7 @@ class ObjectRegion:
 
 @dataclass(frozen=True)
 class ImageFeatures:
-    """One frame's measurements as a controller receives them.
+    """One frame's measurements as a control law receives them.
 
     corners_px: the four top-face corners (4, 2) in taught order, NaN where not seen.
     laser_spot_px: (2,), NaN when the spot is not seen.

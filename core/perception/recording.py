@@ -142,7 +142,7 @@ class RunRecorder:
 
     folder: created if needed; an existing folder must be empty (a recording is never
       overwritten or appended to).
-    meta: the caller's description of the run (cell, source, controller, settings), any
+    meta: the caller's description of the run (cell, source, control law, settings), any
       ``to_jsonable`` value; stored as ``description`` in meta.json.
     fsync: sync each cycle line and frame to disk (see the module docstring).
 

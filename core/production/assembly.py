@@ -1,7 +1,7 @@
 """One-click assembly (Fig. C-3): servo on the taught image, pick the part, place it.
 
 The sequence, as the thesis's cell ran it: move to the job's start pose (the part's
-area in view), servo with the job's controller until the feature error is below the
+area in view), servo with the job's control law until the feature error is below the
 taught threshold (3 px), move the fixed taught transform eMe_pick so the vacuum cup
 meets the part, suction on (the vacuum sensor must confirm the grip), lift, move over
 the taught place pose, lower into the metal part, release, retreat.
@@ -10,7 +10,7 @@ Every motion goes through the safety layer to a RobotBackend, so the same sequen
 drives the simulator and the JRC. The run reports its phase changes and servo cycles to ``on_event``; it
 never decides on its own to move after a fault: any refusal or failure ends it with the
 robot held. An e-stop holds the robot from outside (the controller process does it at
-once); the next move is then refused and the run ends as "estopped".
+once); the next move is then refused and the run ends as e-stopped (``Outcome.ESTOPPED``).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from enum import Enum
+from enum import Enum, StrEnum
 
 import numpy as np
 
@@ -33,7 +33,7 @@ from vservo.core.robot.backend import RobotBackend, RobotError
 from vservo.core.robot.gripper import VacuumGripper
 from vservo.core.robot.safety import SafetyLayer
 from vservo.core.servo.loop import Cycle, LoopLimits, Perception, run_servo
-from vservo.core.servo.methods import LawSettings, build_controller
+from vservo.core.servo.methods import LawSettings, build_law
 from vservo.core.servo.step_policy import StepPolicy
 
 log = logging.getLogger("vservo.assembly")
@@ -52,6 +52,23 @@ class Phase(str, Enum):
     ESTOPPED = "e-stopped"
 
 
+class Outcome(StrEnum):
+    """How a run ended, as the store, the recording and ``vservo run --json`` say it.
+
+    E-stopped is spelled as the phase is; runs stored before the two were one spelling
+    said "estopped", and still read back (``Outcome("estopped")``).
+    """
+
+    PLACED = "placed"
+    MISSED = "missed"
+    FAULT = "fault"
+    ESTOPPED = Phase.ESTOPPED.value
+
+    @classmethod
+    def _missing_(cls, value: object) -> Outcome | None:
+        return cls.ESTOPPED if value == "estopped" else None
+
+
 @dataclass(frozen=True)
 class PhaseChange:
     phase: Phase
@@ -68,13 +85,13 @@ AssemblyEvent = PhaseChange | ServoCycle
 
 @dataclass(frozen=True)
 class AssemblyOutcome:
-    """How a run ended. outcome: "placed", "missed", "fault" or "estopped".
+    """How a run ended, and why.
 
     placement_error_mm is what the cell can say of where the part ended (the simulated
     cell measures it; a real cell without a gauge reports None).
     """
 
-    outcome: str
+    outcome: Outcome
     reason: str
     final_error_px: float
     placement_error_mm: float | None
@@ -110,7 +127,7 @@ class PlacementReport:
 @dataclass(frozen=True)
 class FlangeReadout:
     """The servo loop's measurement on a cell whose features come from camera frames:
-    the flange pose as the robot controller reports it, nothing projected."""
+    the flange pose as the JRC reports it, nothing projected."""
 
     robot: RobotBackend
     dof: int
@@ -151,13 +168,13 @@ def run_assembly(
     started = time.monotonic()
     servo = None
 
-    def end(outcome: str, reason: str, placement: PlacementReport | None = None) -> AssemblyOutcome:
-        if outcome in ("fault", "estopped"):
+    def end(outcome: Outcome, reason: str, placement: PlacementReport | None = None) -> AssemblyOutcome:
+        if outcome in (Outcome.FAULT, Outcome.ESTOPPED):
             try:
                 robot.hold(True)
             except RobotError as exc:  # the link itself is down: say so, the reason stands
                 reason = f"{reason}; hold could not be sent: {exc}"
-            on_event(PhaseChange(Phase.ESTOPPED if outcome == "estopped" else Phase.FAULT, reason))
+            on_event(PhaseChange(Phase.ESTOPPED if outcome is Outcome.ESTOPPED else Phase.FAULT, reason))
         else:
             on_event(PhaseChange(Phase.DONE, reason))
         log.info("assembly %s: %s", outcome, reason)
@@ -178,13 +195,13 @@ def run_assembly(
         on_event(PhaseChange(Phase.SERVOING, "moving to the start pose"))
         move(job.start_bMe)
         on_event(PhaseChange(Phase.SERVOING, f"servoing with the {job.method} method"))
-        controller = build_controller(model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
-        servo = run_servo(FlangeReadout(robot, dof), controller, job.desired, model, policy, limits,
+        law = build_law(model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
+        servo = run_servo(FlangeReadout(robot, dof), law, job.desired, model, policy, limits,
                           on_cycle=lambda cycle: on_event(ServoCycle(cycle)), perception=perception, robot=robot)
         if not servo.converged:
             if estopped():
-                return end("estopped", "e-stop pressed")
-            return end("fault", f"servo failed: {servo.failure.value if servo.failure else ''} ({servo.reason})")
+                return end(Outcome.ESTOPPED, "e-stop pressed")
+            return end(Outcome.FAULT, f"servo failed: {servo.failure.value if servo.failure else ''} ({servo.reason})")
 
         on_event(PhaseChange(Phase.PICKING, f"servo converged, feature error {servo.final_error_px:.2f} px"))
         bMe_pick = robot.read_pose() @ job.eMe_pick
@@ -193,7 +210,7 @@ def run_assembly(
         gripper.set_vacuum(True)
         if not gripper.holding():
             gripper.set_vacuum(False)
-            return end("fault", "the vacuum sensor reports no part on the cup after suction on")
+            return end(Outcome.FAULT, "the vacuum sensor reports no part on the cup after suction on")
         move(lifted(bMe_pick, job.approach_m))
 
         on_event(PhaseChange(Phase.PLACING, "carrying the part to the metal part"))
@@ -203,12 +220,12 @@ def run_assembly(
         move(lifted(job.bMe_place, job.approach_m))
     except (RobotError, UnreachableTarget) as exc:
         if estopped():
-            return end("estopped", "e-stop pressed")
-        return end("fault", f"robot: {exc}")
+            return end(Outcome.ESTOPPED, "e-stop pressed")
+        return end(Outcome.FAULT, f"robot: {exc}")
 
     placement = measure_placement()
     if placement is None:
-        return end("placed", "part released in the metal part (no placement gauge on this cell)")
+        return end(Outcome.PLACED, "part released in the metal part (no placement gauge on this cell)")
     if placement.inside:
-        return end("placed", f"part in the metal part, {placement.error_mm:.2f} mm off centre", placement)
-    return end("missed", f"part outside the pocket, {placement.error_mm:.2f} mm off centre", placement)
+        return end(Outcome.PLACED, f"part in the metal part, {placement.error_mm:.2f} mm off centre", placement)
+    return end(Outcome.MISSED, f"part outside the pocket, {placement.error_mm:.2f} mm off centre", placement)

@@ -15,7 +15,7 @@ and the arm stops within the control cycle under way. Motion needs an explicit e
 servo power is switched on by ``start`` or a jog and a reset never restarts a run.
 
 Subscribers get ControllerState snapshots and camera frames with the features seen in
-them; they are called from the controller's threads and must not block.
+them; they are called from the cell controller's threads and must not block.
 """
 
 from __future__ import annotations
@@ -33,11 +33,12 @@ from vservo.core.geometry.spatial import Matrix, exp_twist
 from vservo.core.perception.camera_source import CameraSourceError, Frame
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.perception.recording import RunRecorder
-from vservo.core.production.assembly import AssemblyEvent, AssemblyOutcome, Phase, PhaseChange, run_assembly
+from vservo.core.production.assembly import AssemblyEvent, AssemblyOutcome, Outcome, Phase, PhaseChange, run_assembly
 from vservo.core.production.jobs import Job, JobError
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.backend import MotionStopped, RobotError, apply_increment
+from vservo.core.servo.laws.base import Stage
 from vservo.core.servo.loop import cycle_record
 from vservo.core.servo.teaching import TeachError, desired_from_features
 
@@ -79,7 +80,7 @@ class ControllerState:
     detail: str = ""
     job: str | None = None
     run_id: int | None = None
-    stage: str | None = None
+    stage: Stage | None = None
     iteration: int = 0
     error_px: float | None = None
     cVc: list[float] = field(default_factory=lambda: [0.0] * 6)
@@ -190,7 +191,7 @@ class CellController:
     def _enable_motion(self) -> None:
         status = self.rig.robot.status()
         if status.alarm:
-            raise CommandRefused(f"the robot is in alarm: {status.detail or 'reset the alarm on the controller'}")
+            raise CommandRefused(f"the robot is in alarm: {status.detail or 'reset the alarm on the JRC'}")
         if not status.servo_on:
             self.rig.robot.servo(True)
 
@@ -381,19 +382,19 @@ class CellController:
             )
         except CameraSourceError as exc:
             self.rig.robot.hold(True)
-            outcome = AssemblyOutcome("fault", f"camera: {exc}", float("nan"), None, 0.0, [], 0)
+            outcome = AssemblyOutcome(Outcome.FAULT, f"camera: {exc}", float("nan"), None, 0.0, [], 0)
         except Exception as exc:  # a bug must still leave the robot held and the run on record
             log.exception("assembly run %d crashed", run_id)
             self.rig.robot.hold(True)
-            outcome = AssemblyOutcome("fault", f"internal error: {exc!r}", float("nan"), None, 0.0, [], 0)
-        if outcome.outcome == "estopped":
+            outcome = AssemblyOutcome(Outcome.FAULT, f"internal error: {exc!r}", float("nan"), None, 0.0, [], 0)
+        if outcome.outcome is Outcome.ESTOPPED:
             outcome = replace(outcome, reason=self._estop_reason)
         if recorder is not None:
             recorder.close(outcome.summary())
         self.store.finish_run(run_id, outcome.outcome, outcome.reason, outcome.final_error_px,
                               outcome.placement_error_mm, outcome.duration_s, outcome.stages,
                               str(folder) if recorder is not None else None)
-        phase = Phase.ESTOPPED if self._estop.is_set() else Phase.FAULT if outcome.outcome == "fault" else Phase.DONE
+        phase = Phase.ESTOPPED if self._estop.is_set() else Phase.FAULT if outcome.outcome is Outcome.FAULT else Phase.DONE
         self._update(phase=phase.value, detail=outcome.reason, last_outcome=outcome.summary(), **self._robot_readout())
         self.last_outcome = outcome
 

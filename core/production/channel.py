@@ -38,6 +38,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from vservo.core.geometry.spatial import Matrix
 from vservo.core.production.cell_controller import CellController, CommandRefused, ControllerState, FrameView
 from vservo.core.production.jobs import JobError
 
@@ -57,14 +58,14 @@ def new_key() -> bytes:
     return secrets.token_bytes(32)
 
 
-def _vector(value: Any, length: int, name: str) -> np.ndarray:
+def _vector(value: Any, length: int, name: str) -> Matrix:
     array = np.asarray(value, dtype=float)
     if array.shape != (length,) or not np.all(np.isfinite(array)):
         raise CommandRefused(f"{name} must be {length} finite numbers, got {value!r}")
     return array
 
 
-def _pose(value: Any) -> np.ndarray:
+def _pose(value: Any) -> Matrix:
     array = np.asarray(value, dtype=float)
     if array.shape != (4, 4) or not np.all(np.isfinite(array)):
         raise CommandRefused(f"a pose must be a 4 x 4 matrix of finite numbers, got {value!r}")
@@ -111,7 +112,7 @@ def frame_message(view: FrameView) -> tuple[dict, bytes]:
     if not ok:
         raise ChannelError("a camera frame could not be encoded")
 
-    def pixels(values: np.ndarray | None) -> list | None:
+    def pixels(values: Matrix | None) -> list | None:
         return None if values is None else np.where(np.isfinite(values), values, -1.0).round(2).tolist()
 
     meta = {

@@ -4,7 +4,7 @@ A job holds the taught desired image (features, laser depth Z*, the pose estimat
 them), the pose the assembly starts from (the part's area in view), the fixed taught
 transform from the servo's end pose to the pick pose (eMe_pick: the vacuum cup meets the
 part there), the place pose in the metal part, and the settings of the run. Poses are
-flange poses in the robot base frame, as the robot controller reports them.
+flange poses in the robot base frame, as the JRC reports them.
 
 A job file is JSON with a format tag and version: ``read_job_file`` refuses a foreign or
 broken file with a message that names the file and the field.
@@ -24,10 +24,10 @@ import numpy as np
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage
 from vservo.core.perception.recording import write_atomic
+from vservo.core.servo.methods import METHODS
 
 JOB_FORMAT = "vservo-job"
 JOB_VERSION = 1
-METHODS = ("laser", "ibvs", "pbvs", "2.5d")
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 

@@ -2,10 +2,10 @@
 
 ``simulated_rig`` assembles them on the simulated cell: the robot behind the safety
 layer (the kinematic simulator itself, or the JRC link over a pseudo-terminal to the
-controller emulator moving that same simulator), its vacuum cup, the synthetic camera
+JRC emulator moving that same simulator), its vacuum cup, the synthetic camera
 and the detectors on the NOMINAL camera and laser. The simulator's truth is reached only through ``measure_placement``
 (the gauge that says where a released part ended) and ``present_part`` (a new part
-arriving on the table), the two things a test cell provides that no controller reads.
+arriving on the table), the two things a test cell provides that no JRC reads.
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
                   jrc_time_scale: float = JRC_TIME_SCALE) -> Rig:
     """The simulated cell's devices; ``backend`` (default: the cell file's [robot]
     backend) "sim" drives the simulator directly, "jrc" through the JRC link and an
-    emulated controller on a pseudo-terminal."""
+    emulated JRC on a pseudo-terminal."""
     backend = backend or config.robot_backend
     if backend not in ROBOT_BACKENDS:
         raise ValueError(f"robot backend {backend!r}: choose one of {', '.join(ROBOT_BACKENDS)}")
@@ -111,7 +111,7 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
         camera=SimulatedCamera(cell),
         extractor=extractor,
         policy=policy,
-        dof=cell.controller_arm.dof,
+        dof=cell.jrc_arm.dof,
         measure_placement=measure_placement,
         present_part=present_part,
         cell=cell,

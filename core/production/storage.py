@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from vservo.core.perception.recording import write_atomic
+from vservo.core.production.assembly import Outcome
 from vservo.core.production.jobs import Job, JobError, job_from_json, read_job_file, validate_job_name
 
 SCHEMA_VERSION = 1
@@ -81,7 +82,7 @@ class RunRecord:
     backend: str
     started_at: float
     finished_at: float | None
-    outcome: str | None  # None while it runs (or if the process died during it)
+    outcome: Outcome | None  # None while it runs (or if the process died during it)
     reason: str | None
     final_error_px: float | None
     placement_error_mm: float | None
@@ -218,7 +219,7 @@ class Store:
     def run_folder(self, run_id: int) -> Path:
         return self.runs_dir / f"{run_id:06d}"
 
-    def finish_run(self, run_id: int, outcome: str, reason: str, final_error_px: float | None,
+    def finish_run(self, run_id: int, outcome: Outcome, reason: str, final_error_px: float | None,
                    placement_error_mm: float | None, duration_s: float, stages: list[dict], recording: str | None) -> None:
         with self._transaction() as db:
             db.execute(
@@ -250,4 +251,5 @@ def _run_record(row: tuple) -> RunRecord:
         stages = json.loads(row[10]) if row[10] else []
     except json.JSONDecodeError:
         stages = [{"stage": "unreadable stage record", "iterations": 0}]
-    return RunRecord(row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7], row[8], row[9], stages, row[11])
+    outcome = Outcome(row[5]) if row[5] is not None else None
+    return RunRecord(row[0], row[1], row[2], row[3], row[4], outcome, row[6], row[7], row[8], row[9], stages, row[11])

@@ -14,15 +14,15 @@ Recovery, for both ends of the line (a BscStation plays either):
   block whose ACK was lost is not delivered twice.
 - NAK (a bad BCC, or a receiver that refuses): the sender repeats the block, up to
   retry 2 times.
-- both ends bid at once: the host yields (``yields=True``), takes the controller's
-  message, then bids again; the controller never yields.
+- both ends bid at once: the host yields (``yields=True``), takes the JRC's
+  message, then bids again; the JRC never yields.
 - after its retries the sender ends with EOT and raises LinkError naming the cause; a
   receiver that sees EOT before the last block, or no end of text within timer B,
   raises LinkError too. Bytes that are no answer (line noise, late duplicates) are
   skipped; the BCC of a block is read by position, as it may look like a control
   character.
 
-Fault injection (the controller emulator's) hooks in through LinkFaults; the host runs
+Fault injection (the JRC emulator's) hooks in through LinkFaults; the host runs
 without it.
 """
 
@@ -140,7 +140,7 @@ class ByteChannel:
 
 
 class LinkFaults(Protocol):
-    """The fault injection of a controller emulator, at the data link."""
+    """The fault injection of a JRC emulator, at the data link."""
 
     def outgoing(self, data: bytes, what: str) -> bytes | None:
         """The bytes really sent for ``data`` (what: ack, nak, enq, eot, block): the same,

@@ -1,7 +1,7 @@
-"""The JRC controller over RS-232: a RobotBackend speaking the Yaskawa host commands.
+"""The JRC over RS-232: a RobotBackend speaking the Yaskawa host commands.
 
 Each method is one or two host commands (JRC-PROTOCOL.md): a ``01,000`` message sent
-over the BSC link (core/robot/bsc.py) and the controller's reply, ``90,000`` with a
+over the BSC link (core/robot/bsc.py) and the JRC's reply, ``90,000`` with a
 status code or ``90,001`` with data. The commands used: RPOSC (pose), RSTATS (status),
 RALARM (alarm text), RESET and CANCEL, SVON, HOLD, MOVL (linear move to a Cartesian
 target), IMOV (incremental linear move), JWAIT (wait for the end of the motion).
@@ -44,7 +44,7 @@ DATA_REPLY = "90,001"
 
 # Status codes of a 90,000 reply, after the host-control manuals of the ERC/MRC/XRC family.
 ERROR_MESSAGES = {
-    1010: "command error: the controller does not know this command",
+    1010: "command error: the JRC does not know this command",
     1011: "too many operands",
     1012: "too few operands",
     1013: "an operand is out of range",
@@ -55,9 +55,9 @@ ERROR_MESSAGES = {
     2050: "held by the host (HOLD 1): release it with HOLD 0",
     2060: "an alarm or error is active: read it (RALARM) and reset it",
     2070: "servo power is off",
-    2080: "the controller is in the wrong mode (teach or play)",
+    2080: "the JRC is in the wrong mode (teach or play)",
     2090: "another function is using the file",
-    2100: "command remote is not set: select remote mode on the controller",
+    2100: "command remote is not set: select remote mode on the JRC",
     2110: "this data cannot be accessed",
     3010: "turn servo power on first",
     3040: "home positioning has not been done",
@@ -98,10 +98,10 @@ def describe_error(code: int) -> str:
 
 
 class JrcCommandError(RobotError):
-    """The controller answered a command with an error code."""
+    """The JRC answered a command with an error code."""
 
     def __init__(self, command: str, code: int) -> None:
-        super().__init__(f"{command} refused by the controller: {describe_error(code)}")
+        super().__init__(f"{command} refused by the JRC: {describe_error(code)}")
         self.command, self.code = command, code
 
 
@@ -110,7 +110,7 @@ class JrcNotReady(JrcCommandError, RobotNotReady):
 
 
 class JrcOutOfRange(JrcCommandError, UnreachableTarget):
-    """A move refused as out of range: the controller cannot reach the target."""
+    """A move refused as out of range: the JRC cannot reach the target."""
 
 
 def wire_pose(bMe: Matrix) -> list[float]:
@@ -148,13 +148,13 @@ def open_serial(line: JrcLineConfig, port: str) -> serial.SerialBase:
 
 @dataclass(frozen=True)
 class Reply:
-    """A controller's answer: the values of a data reply (none for a status reply)."""
+    """A JRC's answer: the values of a data reply (none for a status reply)."""
 
     values: tuple[str, ...]
 
 
 class JrcBackend:
-    """A JRC controller on a serial port, with the line settings of the cell file's [jrc].
+    """A JRC on a serial port, with the line settings of the cell file's [jrc].
 
     ``port`` overrides the configured one (an emulator's pseudo-terminal, say). Every
     method is safe to call from several threads (the loop, an e-stop, the watchdog):
@@ -176,14 +176,14 @@ class JrcBackend:
     # -- the link --------------------------------------------------------------------
 
     def open(self) -> None:
-        """Open the port, without a word to the controller yet."""
+        """Open the port, without a word to the JRC yet."""
         with self._lock:
             if self._serial is None:
                 self._serial = open_serial(self.line, self.port)
                 self._station = BscStation(ByteChannel(self._serial), self.line, yields=True)
 
     def connect(self) -> None:
-        """Open the port and ask the controller for its status: fails clearly if nothing answers."""
+        """Open the port and ask the JRC for its status: fails clearly if nothing answers."""
         self.open()
         try:
             self.status()
@@ -242,7 +242,7 @@ class JrcBackend:
             try:
                 code = int(text)
             except ValueError:
-                raise RobotError(f"{name}: the controller's status reply {text!r} is not a code") from None
+                raise RobotError(f"{name}: the JRC's status reply {text!r} is not a code") from None
             if code == 0:
                 return Reply(())
             error = JrcNotReady if code in NOT_READY_CODES else JrcOutOfRange if code == OUT_OF_RANGE else JrcCommandError
@@ -264,7 +264,7 @@ class JrcBackend:
         )
 
     def alarm_text(self) -> str:
-        """The controller's current alarms (RALARM), e.g. '4315 COLLISION DETECT'."""
+        """The JRC's current alarms (RALARM), e.g. '4315 COLLISION DETECT'."""
         values = self.command("RALARM").values
         pairs = [f"{code} {text}".strip() for code, text in zip(values[::2], values[1::2]) if code not in ("", "0")]
         return "; ".join(pairs) or "no alarm code"
@@ -274,9 +274,9 @@ class JrcBackend:
         try:
             numbers = [float(v) for v in values[:8]]
         except ValueError:
-            raise RobotError(f"RPOSC: the controller's reply {values!r} is not a pose") from None
+            raise RobotError(f"RPOSC: the JRC's reply {values!r} is not a pose") from None
         if len(numbers) < 8:
-            raise RobotError(f"RPOSC: the controller's reply {values!r} has fewer than 8 values")
+            raise RobotError(f"RPOSC: the JRC's reply {values!r} has fewer than 8 values")
         self._posture = int(numbers[6])
         return pose_from_wire(numbers[:6])
 
@@ -312,7 +312,7 @@ class JrcBackend:
 
         JWAIT answers 0 when the motion is done, -1 when it was stopped (hold, alarm,
         servo off), and 2010 (robot operating) when its time ran out with the robot still
-        moving (the last is inferred: check it on the real controller). A motion still
+        moving (the last is inferred: check it on the real JRC). A motion still
         running after timeout_s is held and reported.
         """
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
@@ -347,7 +347,7 @@ class JrcBackend:
         except ValueError:
             numbers = []
         if len(numbers) != count:
-            raise RobotError(f"{text.split()[0]}: the controller's reply {values!r} is not {count} integer(s)")
+            raise RobotError(f"{text.split()[0]}: the JRC's reply {values!r} is not {count} integer(s)")
         return numbers
 
     @staticmethod

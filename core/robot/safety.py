@@ -1,7 +1,7 @@
 """The safety layer: every move of every backend passes its checks first.
 
 It wraps any RobotBackend and is one itself, so the loop and the app drive a guarded
-robot exactly as they would drive a bare one. Before a move reaches the controller it
+robot exactly as they would drive a bare one. Before a move reaches the JRC it
 checks, in order: a latched stop (e-stop or watchdog), the requested speed, that the
 target is a finite pose, that the flange and every tool frame (camera, laser, vacuum
 cup) stay inside the workspace box, the size of the step from where the robot is, and
@@ -118,7 +118,7 @@ class Watchdog:
 class SafetyLayer:
     """A RobotBackend that checks every move against ``limits`` before ``robot`` sees it.
 
-    ``arm`` is the NOMINAL arm (the model the controller uses) for the joint-limit check;
+    ``arm`` is the NOMINAL arm (the model the JRC uses) for the joint-limit check;
     ``q_seed`` seeds its first IK (later ones start from the previous solution).
     """
 

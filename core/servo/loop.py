@@ -1,7 +1,7 @@
 """The look-and-move loop: measure, control, convert, command, and watch for failure.
 
 One cycle (ARCHITECTURE.md): the cell's measurement becomes image features (laser depth
-from the NOMINAL laser and camera), the controller turns them into a camera twist cVc,
+from the NOMINAL laser and camera), the control law turns them into a camera twist cVc,
 the nominal eVc carries it to the flange, the step policy makes it a robot command from
 the flange pose the robot reports, and the robot backend (the simulator, or the JRC
 link, usually behind the safety layer) carries it out. The loop watches what a cell
@@ -31,7 +31,7 @@ from vservo.core.perception.features import DesiredImage, ImageFeatures, polygon
 from vservo.core.perception.measurement import Measurement, features_from_measurement
 from vservo.core.robot.backend import RobotBackend, RobotError, carry_out
 from vservo.core.robot.safety import SafetyLayer, Watchdog
-from vservo.core.servo.laws.base import Controller, ControlOutput, Failure
+from vservo.core.servo.laws.base import ControlLaw, ControlOutput, Failure, Stage
 from vservo.core.servo.step_policy import StepPolicy
 
 log = logging.getLogger("vservo.servo")
@@ -48,7 +48,7 @@ class LoopLimits:
     spot_hold_cycles: for how many cycles a laser spot that vanished (hidden behind the
       part's edge as it climbs onto it) is taken to be where it was last seen.
     lost_hold_cycles: for how many consecutive cycles the loop holds the robot (zero
-      twist, no command) while the controller finds its features lost (a frame or two
+      twist, no command) while the law finds its features lost (a frame or two
       in which a detector misses them) before it stops with the features lost.
     """
 
@@ -86,9 +86,9 @@ class ServoOutcome:
         return self.cycles[-1].output.error_px if self.cycles else float("nan")
 
     @property
-    def stages(self) -> list[dict[str, int | str]]:
+    def stages(self) -> list[dict[str, int | Stage]]:
         """Consecutive stages in the order they ran, with their iteration counts."""
-        runs: list[dict[str, int | str]] = []
+        runs: list[dict[str, int | Stage]] = []
         for cycle in self.cycles:
             if runs and runs[-1]["stage"] == cycle.output.stage:
                 runs[-1]["iterations"] += 1
@@ -144,7 +144,7 @@ def corner_area_px2(corners_px: Matrix) -> float:
 
 def run_servo(
     cell: MeasurementSource,
-    controller: Controller,
+    law: ControlLaw,
     desired: DesiredImage,
     model: CellModel,
     policy: StepPolicy,
@@ -154,7 +154,7 @@ def run_servo(
     *,
     robot: RobotBackend,
 ) -> ServoOutcome:
-    """Servo to the desired image with ``controller``; ``model`` is the nominal cell.
+    """Servo to the desired image with the control law ``law``; ``model`` is the nominal cell.
 
     ``cell`` is the camera side: its measurements feed ``perception``, by default the
     simulator's projected points. ``robot`` carries out the moves; it must be connected
@@ -165,20 +165,20 @@ def run_servo(
     if watchdog is not None:
         watchdog.arm()
     try:
-        return _servo(cell, controller, desired, model, policy, limits, on_cycle, perception, robot, watchdog)
+        return _servo(cell, law, desired, model, policy, limits, on_cycle, perception, robot, watchdog)
     finally:
         if watchdog is not None:
             watchdog.disarm()
 
 
-def _servo(cell: MeasurementSource, controller: Controller, desired: DesiredImage, model: CellModel, policy: StepPolicy,
+def _servo(cell: MeasurementSource, law: ControlLaw, desired: DesiredImage, model: CellModel, policy: StepPolicy,
            limits: LoopLimits, on_cycle: Callable[[Cycle], None] | None, perception: Perception, robot: RobotBackend,
            watchdog: Watchdog | None) -> ServoOutcome:
     eVc = twist_transform(model.eMc)
     desired_area = corner_area_px2(desired.corners_px)
     first_area = float("nan")
     cycles: list[Cycle] = []
-    stage: str | None = None
+    stage: Stage | None = None
     last_spot: ImageFeatures | None = None  # the last frame that saw the laser spot
     spot_hidden_for = 0
     lost_for = 0  # consecutive cycles held with the features lost
@@ -199,7 +199,7 @@ def _servo(cell: MeasurementSource, controller: Controller, desired: DesiredImag
         else:
             spot_hidden_for += 1
         features = hold_spot(seen, last_spot if spot_hidden_for <= limits.spot_hold_cycles else None)
-        output = controller.step(features, desired, stage)
+        output = law.step(features, desired, stage)
         lost_for = lost_for + 1 if output.failure is Failure.FEATURES_LOST else 0
         hold = 0 < lost_for <= limits.lost_hold_cycles
         if hold:

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 from vservo.core.cell.config import CellModel
 from vservo.core.geometry.spatial import inverse
-from vservo.core.servo.laws.base import Controller
+from vservo.core.servo.laws.base import ControlLaw
 from vservo.core.servo.laws.hybrid import Hybrid25D
 from vservo.core.servo.laws.ibvs import ClassicIbvs
 from vservo.core.servo.laws.laser_ibvs import LaserIbvs
@@ -32,7 +32,7 @@ class LawSettings:
     final_threshold_px: float = 1.0
 
 
-def build_controller(model: CellModel, settings: LawSettings) -> Controller:
+def build_law(model: CellModel, settings: LawSettings) -> ControlLaw:
     """The control law of ``settings.method`` on the nominal cell ``model``."""
     camera, gain, final = model.camera, settings.gain, settings.final_threshold_px
     if settings.method == "laser":

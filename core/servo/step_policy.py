@@ -1,4 +1,4 @@
-"""Step policies: how a controller's end-effector twist becomes one robot command.
+"""Step policies: how a control law's end-effector twist becomes one robot command.
 
 A velocity-controlled robot integrates the twist over the control period. The JRC of
 the thesis cannot: it takes one Cartesian target at a time and ignores a new one until

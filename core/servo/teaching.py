@@ -1,6 +1,6 @@
 """Teaching the desired image (Fig. C-2): from the features seen at the taught pose.
 
-What teaching stores is what a controller may use: the taught features, the laser depth
+What teaching stores is what a control law may use: the taught features, the laser depth
 Z* measured there, and the part's pose estimated from the taught corners with the
 NOMINAL camera (PBVS and the 2.5D normal need it). Nothing here reads a simulator.
 """

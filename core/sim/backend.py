@@ -13,7 +13,7 @@ from vservo.core.sim.plant import SimulatedCell
 class SimulatedBackend:
     """The kinematic simulator as a robot: moves complete at once, in simulated time.
 
-    The plant (SimulatedCell) executes each move through the controller's nominal IK and
+    The plant (SimulatedCell) executes each move through the JRC's nominal IK and
     advances its clock by the move's duration at the commanded speed; a move the IK
     cannot reach raises UnreachableTarget and leaves the arm where it was.
     """
@@ -45,7 +45,7 @@ class SimulatedBackend:
 
     def read_pose(self) -> Matrix:
         self._require_connection()
-        return self.cell.controller_arm.fk(self.cell.state.q)
+        return self.cell.jrc_arm.fk(self.cell.state.q)
 
     def servo(self, on: bool) -> None:
         self._require_connection()

@@ -1,16 +1,16 @@
-"""An emulator of the JRC controller's side of the host link, on the kinematic simulator.
+"""An emulator of the JRC's side of the host link, on the kinematic simulator.
 
 It answers the host commands of JRC-PROTOCOL.md over a real serial device (a
 pseudo-terminal it creates, or a given port) with its own controller state: servo power,
 the three holds (pendant, external, command), an alarm, and one motion at a time. The
 robot is a SimulatedCell, the same plant the simulated camera looks at: a MOVL or IMOV
-target goes through the controller's nominal IK, and the arm travels there in joint
-space at the commanded speed (or the controller's rotation rate when the rotation takes
+target goes through the JRC's nominal IK, and the arm travels there in joint
+space at the commanded speed (or the JRC's rotation rate when the rotation takes
 longer), reporting running until it arrives. A hold, servo off or an alarm stops the
 motion where it is and discards the rest of it: the host decides how to go on.
 
 Time: the plant's clock runs ``time_scale`` times faster than the wall clock, so tests
-need not wait real seconds; JWAIT's time is controller (plant) time. The plant is only
+need not wait real seconds; JWAIT's time is JRC (plant) time. The plant is only
 touched while a command is handled, when the host is waiting for the reply, so a host
 thread may read the same SimulatedCell between commands without a lock.
 
@@ -21,7 +21,7 @@ transmissions, a block accepted without its ACK (missing ACK), a good block refu
 with NAK, a silence that outlasts the host's retries (timeout), or an alarm or a
 pendant hold in the middle of the next motion.
 
-Inferred behaviour (no public JRC document; check on the real controller): JWAIT answers
+Inferred behaviour (no public JRC document; check on the real JRC): JWAIT answers
 0 when the motion ended, -1 when it was stopped, and status 2010 when its time ran out
 with the robot still moving; IMOV takes MOVL's operands with increments; RALARM answers
 ``code,text`` pairs; a target out of reach is refused with 5200.
@@ -83,7 +83,7 @@ class FaultPlan:
     rate: float = 0.0
     seed: int = 0
     kinds: tuple[str, ...] = FAULT_KINDS
-    pendant_hold_s: float = 1.0  # controller time an injected pendant hold lasts
+    pendant_hold_s: float = 1.0  # JRC time an injected pendant hold lasts
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.rate <= 1.0:
@@ -169,7 +169,7 @@ class FaultInjector:
 
 @dataclass
 class Motion:
-    """One linear move under way, in joint space, in controller (plant) time."""
+    """One linear move under way, in joint space, in JRC (plant) time."""
 
     q_start: Matrix
     q_end: Matrix
@@ -184,9 +184,9 @@ class Motion:
 
 
 class JrcEmulator:
-    """The controller side of the link, on ``cell``; start it on a pseudo-terminal or a port.
+    """The JRC side of the link, on ``cell``; start it on a pseudo-terminal or a port.
 
-    ``executed`` lists the motion commands the controller accepted, in order: the proof
+    ``executed`` lists the motion commands the JRC accepted, in order: the proof
     that no move was lost or carried out twice.
     """
 
@@ -279,7 +279,7 @@ class JrcEmulator:
             except LinkError as exc:
                 log.info("reply lost: %s", exc)
 
-    # -- the controller ----------------------------------------------------------------
+    # -- the JRC -----------------------------------------------------------------------
 
     def handle(self, request: Message) -> Message:
         """One host command in, its reply out."""
@@ -325,7 +325,7 @@ class JrcEmulator:
         frame, external = _integers(fields)
         if frame != 0 or external not in (0, 1):
             raise _Refused(1013)  # base coordinates only
-        x, y, z, rx, ry, rz = wire_pose(self.cell.controller_arm.fk(self.cell.state.q))
+        x, y, z, rx, ry, rz = wire_pose(self.cell.jrc_arm.fk(self.cell.state.q))
         values = f"{x:.3f},{y:.3f},{z:.3f},{rx:.2f},{ry:.2f},{rz:.2f},0,0" + (",0" * 6 if external else "")
         return _data(values)
 
@@ -379,10 +379,10 @@ class JrcEmulator:
         if speed > (MAX_SPEED_MM_S if speed_kind == 0 else MAX_ROTATION_SPEED_DEG_S):
             raise _Refused(OUT_OF_RANGE)
         self._refuse_unless_ready()
-        bMe = self.cell.controller_arm.fk(self.cell.state.q)
+        bMe = self.cell.jrc_arm.fk(self.cell.state.q)
         target = target_of(bMe, pose_from_wire(numbers[3:9]))
         try:
-            q_end = self.cell.controller_ik(target)
+            q_end = self.cell.jrc_ik(target)
         except UnreachableTarget:
             raise _Refused(OUT_OF_RANGE) from None
         translation, rotation = pose_error(bMe, target)
@@ -413,7 +413,7 @@ class JrcEmulator:
             raise _Refused(ROBOT_OPERATING)
 
     def _advance(self) -> float:
-        """Bring the plant up to now (controller time); returns the controller time passed."""
+        """Bring the plant up to now (JRC time); returns the JRC time passed."""
         now = time.monotonic()
         dt = (now - self._last_real_s) * self.time_scale
         self._last_real_s = now

@@ -1,15 +1,15 @@
-"""The simulated cell: the plant that vservo's controllers and calibrations act on.
+"""The simulated cell: the plant that vservo's control laws and calibrations act on.
 
 It holds the TRUE cell (camera intrinsics and distortion, eMc, cMl, the arm with its
 kinematic errors, repeatability and pixel noise, where the cube lies) and hands out only
-what a real cell would: joint and Cartesian readouts from the robot controller, which
+what a real cell would: joint and Cartesian readouts from the JRC, which
 computes them with its NOMINAL model, and pixel measurements of the cube corners and the
 laser spot. Nothing nominal is used to produce a measurement, and nothing true leaks
 into one, except through the ``ground_truth_*`` accessors that exist for evaluation
-(path lengths, final pose errors) and are never to be called by a controller.
+(path lengths, final pose errors) and are never to be called by a control law.
 
-Moves follow the robot controller's logic: the target flange pose is turned into joints
-by the controller's nominal inverse kinematics, and the real arm ends where its true
+Moves follow the JRC's logic: the target flange pose is turned into joints
+by the JRC's nominal inverse kinematics, and the real arm ends where its true
 kinematics put those joints, plus a settling (repeatability) error.
 """
 
@@ -126,7 +126,7 @@ class Placement:
 
 @dataclass(frozen=True)
 class MoveReport:
-    """What one executed move did, as the robot controller knows it."""
+    """What one executed move did, as the JRC knows it."""
 
     duration_s: float
     q: Matrix
@@ -136,26 +136,26 @@ class MoveReport:
 class SimulatedCell:
     """The plant. ``execute`` one command at a time, ``measure`` in between.
 
-    The nominal arm is the robot controller's own model (the JRC computes joint angles
+    The nominal arm is the JRC's own model (it computes joint angles
     itself); the truth is built from the configuration's [simulation] section with the
     seeded generator, so a cell is reproducible from (config, seed).
     """
 
     def __init__(self, config: CellConfig, seed: int | None = None) -> None:
         self.rng = np.random.default_rng(config.simulation.seed if seed is None else seed)
-        self.controller_arm = ArmKinematics(load_arm(config.arm), config.nominal.mount)
-        if config.home_q.shape != (self.controller_arm.dof,):
+        self.jrc_arm = ArmKinematics(load_arm(config.arm), config.nominal.mount)
+        if config.home_q.shape != (self.jrc_arm.dof,):
             raise ValueError(
                 f"{config.source}: robot.home_joints_deg has {config.home_q.size} values, "
-                f"the {config.arm} arm has {self.controller_arm.dof} joints"
+                f"the {config.arm} arm has {self.jrc_arm.dof} joints"
             )
-        self.truth = CellTruth.from_config(config, self.controller_arm, self.rng)
+        self.truth = CellTruth.from_config(config, self.jrc_arm, self.rng)
         self.state = PlantState(0.0, config.home_q.copy(), np.eye(4), config.simulation.scene)
 
     # -- sensors ---------------------------------------------------------------------
 
     def measure(self, look: bool = True) -> Measurement:
-        """Read the robot controller and take one (noisy) look through the true camera.
+        """Read the JRC and take one (noisy) look through the true camera.
 
         ``look=False`` reads the robot only (a loop whose features come from camera
         images has no use for the projected ones): the camera fields are then unseen.
@@ -163,7 +163,7 @@ class SimulatedCell:
         if not look:
             q = self.state.q.copy()
             unseen = np.full(2, np.nan)
-            return Measurement(self.state.time_s, q, self.controller_arm.fk(q), np.full((4, 2), np.nan), unseen,
+            return Measurement(self.state.time_s, q, self.jrc_arm.fk(q), np.full((4, 2), np.nan), unseen,
                                ObjectRegion(0.0, unseen), np.full(4, np.nan), unseen)
         bMc = self.ground_truth_bMe() @ self.truth.model.eMc
         cMb = inverse(bMc)
@@ -191,7 +191,7 @@ class SimulatedCell:
 
         q = self.state.q.copy()
         return Measurement(
-            self.state.time_s, q, self.controller_arm.fk(q), corners_px, spot_px, region, corners_c[:, 2].copy(), reference_px
+            self.state.time_s, q, self.jrc_arm.fk(q), corners_px, spot_px, region, corners_c[:, 2].copy(), reference_px
         )
 
     def _visible_spot_b(self, bMc: Matrix) -> Matrix | None:
@@ -215,7 +215,7 @@ class SimulatedCell:
 
     def execute(self, command: RobotCommand) -> MoveReport:
         """Carry out one command (see vservo.core.servo.step_policy); raises UnreachableTarget unmoved."""
-        bMe = self.controller_arm.fk(self.state.q)
+        bMe = self.jrc_arm.fk(self.state.q)
         if isinstance(command, VelocityCommand):
             return self.move(command.target(bMe), command.dt_s)
         if isinstance(command, PositionCommand):
@@ -226,18 +226,18 @@ class SimulatedCell:
     def travel_time_s(self, bMe_target: Matrix, speed_m_s: float) -> float:
         """How long a linear move from here to bMe_target takes at speed_m_s (or at the
         controller's rotation rate, when the rotation takes longer)."""
-        translation, rotation = pose_error(self.controller_arm.fk(self.state.q), bMe_target)
+        translation, rotation = pose_error(self.jrc_arm.fk(self.state.q), bMe_target)
         return max(translation / speed_m_s, rotation / ROTATION_SPEED_RAD_S)
 
-    def controller_ik(self, bMe_target: Matrix) -> Matrix:
-        """The joints the robot controller computes for a flange target, from where the arm
+    def jrc_ik(self, bMe_target: Matrix) -> Matrix:
+        """The joints the JRC computes for a flange target, from where the arm
         is, with its nominal model; raises UnreachableTarget."""
-        return self.controller_arm.ik(bMe_target, self.state.q, tolerance_m=IK_TOLERANCE_M,
+        return self.jrc_arm.ik(bMe_target, self.state.q, tolerance_m=IK_TOLERANCE_M,
                                       tolerance_rad=IK_TOLERANCE_RAD).q
 
     def move(self, bMe_target: Matrix, duration_s: float) -> MoveReport:
-        """The arm moves to the controller's joints for bMe_target in duration_s and settles."""
-        return self.move_joints(self.controller_ik(bMe_target), duration_s)
+        """The arm moves to the JRC's joints for bMe_target in duration_s and settles."""
+        return self.move_joints(self.jrc_ik(bMe_target), duration_s)
 
     def move_joints(self, q: Matrix, duration_s: float, settle: bool = True) -> MoveReport:
         """The arm reaches joints q after duration_s; ``settle=False`` passes through q
@@ -246,7 +246,7 @@ class SimulatedCell:
         eMe_settle = self._settle() if settle else np.eye(4)
         self.state = replace(self.state, time_s=self.state.time_s + duration_s, q=q, eMe_settle=eMe_settle)
         self._carry_held_part()
-        return MoveReport(duration_s, q.copy(), self.controller_arm.fk(q))
+        return MoveReport(duration_s, q.copy(), self.jrc_arm.fk(q))
 
     def pass_time(self, seconds: float) -> None:
         """Time passes with the arm standing still (a host's sampling period, a pause)."""
@@ -334,25 +334,25 @@ class SimulatedCell:
     def set_joints(self, q: Matrix) -> MoveReport:
         """Move straight to a joint configuration (set-up of a scenario, not a servo step)."""
         q = np.asarray(q, dtype=float)
-        if not self.controller_arm.within_limits(q):
+        if not self.jrc_arm.within_limits(q):
             raise ValueError(f"joints {np.rad2deg(q).round(2).tolist()} deg are outside the joint limits")
         self.state = replace(self.state, q=q.copy(), eMe_settle=self._settle())
         self._carry_held_part()
-        return MoveReport(0.0, q.copy(), self.controller_arm.fk(q))
+        return MoveReport(0.0, q.copy(), self.jrc_arm.fk(q))
 
     def place_camera(self, cMo: Matrix) -> None:
         """Scenario set-up: put the TRUE camera at cMo from the true cube, as an operator
         jogging the arm until the view is right would (teaching, a task's initial pose).
 
         Solved with the true arm, so it is exact even when the nominal model is wrong;
-        a controller never calls it.
+        a control law never calls it.
         """
         bMc = self.state.scene.cube.bMo @ inverse(np.asarray(cMo, dtype=float))
         bMe = bMc @ inverse(self.truth.model.eMc)
         q = self.truth.arm.ik(bMe, self.state.q).q
         self.state = replace(self.state, q=q, eMe_settle=np.eye(4))
 
-    # -- evaluation only: what no controller may read --------------------------------
+    # -- evaluation only: what no control law may read -------------------------------
 
     def ground_truth_bMe(self) -> Matrix:
         """The true flange pose."""

@@ -1,6 +1,6 @@
 """A pseudo-terminal pair in raw mode: a serial line without hardware (ENVIRONMENT.md).
 
-The controller emulator keeps the master end; the host opens the slave's device path
+The JRC emulator keeps the master end; the host opens the slave's device path
 with pyserial, as it would open /dev/ttyS0. The slave is put in raw mode before anything
 is written (the default line discipline echoes bytes and turns CR into newlines, which
 corrupts BSC blocks), and its descriptor stays open for the pair's lifetime so the
@@ -38,7 +38,7 @@ class FdPort:
 
 
 class PseudoTerminal:
-    """``device`` is the path the host opens; ``port`` the controller's end."""
+    """``device`` is the path the host opens; ``port`` the JRC's end."""
 
     def __init__(self) -> None:
         self.master_fd, self.slave_fd = os.openpty()

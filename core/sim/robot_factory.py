@@ -12,7 +12,7 @@ from vservo.core.sim.plant import SimulatedCell
 def robot_from_config(config: CellConfig, cell: SimulatedCell | None = None, port: str | None = None) -> SafetyLayer:
     """The cell's robot behind its safety layer, not yet connected.
 
-    backend = "sim" drives ``cell`` (required); "jrc" the controller on ``port``, by
+    backend = "sim" drives ``cell`` (required); "jrc" the JRC on ``port``, by
     default the cell file's [jrc] port.
     """
     if config.robot_backend == "sim":

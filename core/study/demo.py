@@ -15,6 +15,7 @@ import numpy as np
 
 from vservo.core.cell.config import CellConfig
 from vservo.core.geometry.spatial import (
+    Matrix,
     Pose6,
     inverse,
     matrix_from_pose,
@@ -34,13 +35,13 @@ TEACH_cMo = matrix_from_pose(Pose6(0.011, -0.01, 0.162, np.pi, 0.0, -np.pi))
 DEMO_cVc = np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.1])
 
 
-def _mm_deg(bMx: np.ndarray) -> list[float]:
+def _mm_deg(bMx: Matrix) -> list[float]:
     return (np.round(pose_to_mm_deg(pose_from_matrix(bMx)), 2) + 0.0).tolist()  # + 0.0: no "-0.0"
 
 
 def run_demo(config: CellConfig, seed: int | None = None, steps: int = 5) -> dict[str, Any]:
     cell = SimulatedCell(config, seed)
-    arm = cell.controller_arm
+    arm = cell.jrc_arm
     nominal = config.nominal
     report: list[dict[str, Any]] = []
 

@@ -1,7 +1,7 @@
 """``vservo bench jrc``: how long the host link takes per command, against the wire.
 
-Over a pseudo-terminal to the controller emulator, it times RPOSC (read the pose) and
-MOVL (start a linear move) round trips, from the host's ENQ to the controller's EOT,
+Over a pseudo-terminal to the JRC emulator, it times RPOSC (read the pose) and
+MOVL (start a linear move) round trips, from the host's ENQ to the JRC's EOT,
 and counts the bytes each moves in both directions. The wire time of those bytes at the
 cell's baud rate (start, data, parity and stop bits per byte) is what a real RS-232 line
 cannot beat; a pseudo-terminal is not baud-limited, so the emulator can also pace every

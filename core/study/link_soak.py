@@ -1,6 +1,6 @@
 """The link soak: thousands of incremental moves over a pseudo-terminal with faults injected.
 
-The host (a JrcBackend) sends IMOV after IMOV to the controller emulator, which injects
+The host (a JrcBackend) sends IMOV after IMOV to the JRC emulator, which injects
 faults of every kind at the given rate. A fault the link recovers from leaves no trace
 but its counters; one it cannot (a silence beyond the retries, an alarm or a pendant
 hold in the middle of a move) is reported as a RobotError, and the soak then does what
@@ -9,7 +9,7 @@ the alarm, release the command hold, turn servo power on, read where the robot i
 send an IMOV for whatever of the move is missing.
 
 What it proves: no move lost (the final pose is the start plus the sum of the commanded
-increments), none carried out twice (every command the controller accepted was sent
+increments), none carried out twice (every command the JRC accepted was sent
 once), every fault either recovered or reported. A fault of the link (corrupted BCC,
 dropped or delayed bytes, missing ACK, NAK, a silence) counts as recovered when the host
 command it struck still returned its reply, as reported when that command raised; an
@@ -39,7 +39,7 @@ SPEED_M_S = 0.05
 MAX_STEP_MM = 2.0
 PULL_BACK = 0.05  # each increment pulls a twentieth of the way back to the start, so the walk stays near it
 AT_TARGET_MM = 0.002  # RPOSC's 0.001 mm resolution, and the IK's 1e-4 mm
-# The controller's IK leaves up to 1e-4 mm per move, and IMOV starts from where the arm is:
+# The JRC's IK leaves up to 1e-4 mm per move, and IMOV starts from where the arm is:
 # over thousands of moves the flange may drift this far from the exact sum.
 ON_PATH_MM = 0.02
 MAX_RECOVERY_ATTEMPTS = 30
@@ -157,7 +157,7 @@ def run_soak(config: CellConfig, moves: int = 2000, fault_rate: float = 0.05, se
         try:
             soak = _Soak(robot, emulator)
             soak.recover(robot.read_pose()[:3, 3] * 1000.0)  # servo on, wherever the arm is
-            bMe_start = cell.controller_arm.fk(cell.state.q)  # evaluation: the emulator's own pose
+            bMe_start = cell.jrc_arm.fk(cell.state.q)  # evaluation: the emulator's own pose
             target_mm = bMe_start[:3, 3] * 1000.0
             for increment in increments:
                 target_mm = target_mm + increment
@@ -171,14 +171,14 @@ def run_soak(config: CellConfig, moves: int = 2000, fault_rate: float = 0.05, se
                     new = emulator.faults.injected - injected_before
                     motion_faults_reported.update({kind: new[kind] for kind in MOTION_FAULTS})
                 # Evaluation: the emulator's own pose, not what the link reports.
-                off = np.abs(cell.controller_arm.fk(cell.state.q)[:3, 3] * 1000.0 - target_mm).max()
+                off = np.abs(cell.jrc_arm.fk(cell.state.q)[:3, 3] * 1000.0 - target_mm).max()
                 moves_off_path += int(off > ON_PATH_MM)
                 if on_move is not None:
                     on_move()
             counters = robot.station.counters.as_dict()
         finally:
             robot.close()
-    bMe_end = cell.controller_arm.fk(cell.state.q)
+    bMe_end = cell.jrc_arm.fk(cell.state.q)
     translation_error_m, rotation_error_rad = pose_error(bMe_end, transform(bMe_start[:3, :3], target_mm / 1000.0))
     accepted = Counter(emulator.executed)
     injected = emulator.faults.injected

@@ -1,8 +1,8 @@
-"""``vservo replay``: play a recorded run back through the vision and the controller.
+"""``vservo replay``: play a recorded run back through the vision and the control law.
 
 Two checks an integrator runs on a recording from the field or from the simulator:
 the detectors, run again on every recorded frame, find the corners the run found; and
-the controller, given every recorded cycle's features, takes the same stage and
+the control law, given every recorded cycle's features, takes the same stage and
 commands the same twist. A difference means the software or its settings changed since
 the recording, or the recording is not what it claims.
 """
@@ -16,15 +16,17 @@ import numpy as np
 
 from vservo.core.cell.config import load_cell
 from vservo.core.cell.scene import Cube
+from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage, ImageFeatures, ObjectRegion
 from vservo.core.perception.recording import Recording
 from vservo.core.perception.vision.pipeline import ImageFeatureExtractor, front_winding
-from vservo.core.servo.methods import build_controller
+from vservo.core.servo.laws.base import Stage
+from vservo.core.servo.methods import build_law
 from vservo.core.sim.render import RenderSettings
 from vservo.core.study.run import RunSettings
 
 
-def _array(value: Any, shape: tuple[int, ...]) -> np.ndarray:
+def _array(value: Any, shape: tuple[int, ...]) -> Matrix:
     """A recorded array; null (NaN when recorded) comes back as NaN."""
     return np.array(value if value is not None else np.full(shape, np.nan), dtype=float).reshape(shape)
 
@@ -60,7 +62,7 @@ def replay(folder: str | Path, cell_path: str | Path | None = None) -> dict[str,
     settings = RunSettings(**{**settings_record, "record_to": None})
     desired = _desired(description["desired"])
     model = load_cell(cell_path).nominal
-    controller = build_controller(model, settings.law)
+    law = build_law(model, settings.law)
     extractor = ImageFeatureExtractor(model.camera, model.laser, front_winding(Cube(np.eye(4)).corners_o))
 
     corner_differences, twist_differences = [], []
@@ -76,10 +78,10 @@ def replay(folder: str | Path, cell_path: str | Path | None = None) -> dict[str,
                 corner_differences.append(float(np.abs(seen.corners_px[both] - recorded.corners_px[both]).max()))
             if recorded.all_corners_visible:
                 previous_corners = recorded.corners_px
-        output = controller.step(recorded, desired, previous_stage)
+        output = law.step(recorded, desired, previous_stage)
         twist_differences.append(float(np.abs(output.cVc - _array(cycle["cVc"], (6,))).max()))
         stage_mismatches += output.stage != cycle["stage"]
-        previous_stage = cycle["stage"]
+        previous_stage = Stage(cycle["stage"])
 
     return {
         "recording": str(folder),

@@ -3,7 +3,7 @@
 The run follows the thesis's procedure on the simulated cell: the camera is put at the
 task's desired pose and the desired image is taught from what it sees (features, laser
 depth Z*, a pose estimate for the methods that need one); the camera is put at the
-initial pose; the controller servoes with the NOMINAL cell model. Only the evaluation
+initial pose; the control law servoes with the NOMINAL cell model. Only the evaluation
 (end-effector path, final pose error) reads the simulator's truth.
 """
 
@@ -22,8 +22,9 @@ from vservo.core.perception.features import DesiredImage
 from vservo.core.perception.recording import RunRecorder
 from vservo.core.perception.vision.pipeline import CameraPerception, ImageFeatureExtractor, front_winding
 from vservo.core.robot.backend import RobotBackend
+from vservo.core.servo.laws.base import Stage
 from vservo.core.servo.loop import Cycle, LoopLimits, Perception, ProjectedPerception, ServoOutcome, cycle_record, run_servo
-from vservo.core.servo.methods import LawSettings, build_controller
+from vservo.core.servo.methods import LawSettings, build_law
 from vservo.core.servo.step_policy import IntegratedVelocity, StepPolicy
 from vservo.core.servo.teaching import desired_from_features
 from vservo.core.sim.backend import SimulatedBackend
@@ -59,7 +60,7 @@ class RunSettings:
 
 def perception_for(cell: SimulatedCell, model: CellModel, settings: RunSettings, camera: FrameSource | None = None
                    ) -> Perception:
-    """The features the run's controller sees: projected points, or detections in rendered
+    """The features the run's control law sees: projected points, or detections in rendered
     frames (of ``camera``, by default the cell's simulated camera with ``settings.render``)."""
     if settings.features == "projected":
         return ProjectedPerception(model.camera, model.laser)
@@ -85,7 +86,7 @@ class RunTrace:
     laser_px: Matrix  # (T, 2)
     cVc: Matrix  # (T, 6)
     error_px: Matrix  # (T,)
-    stages: tuple[str, ...]
+    stages: tuple[Stage, ...]
     bMe_position_true: Matrix  # (T + 1, 3): the end-effector path, after every move
     pose_error_true: Matrix  # (T, 2): the camera's translation m, rotation rad to its desired pose
 
@@ -172,7 +173,7 @@ def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: i
 
     outcome = run_servo(
         cell,
-        build_controller(model, settings.law),
+        build_law(model, settings.law),
         desired,
         model,
         policy or IntegratedVelocity(settings.dt_s),

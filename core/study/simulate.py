@@ -5,11 +5,9 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 from vservo.core.cell.config import parse_cell, read_cell_data
 from vservo.core.cell.kinematics import ArmKinematics
-from vservo.core.geometry.spatial import matrix_from_pose
+from vservo.core.geometry.spatial import Matrix, matrix_from_pose
 from vservo.core.study.run import RunResult, RunSettings, run_task
 from vservo.core.study.tasks import ServoTask, find_placement, robustness_cell, servo_task
 from vservo.robot_models.loader import load_arm
@@ -21,8 +19,8 @@ def simulate(
     method: str = "laser",
     robust: bool = False,
     seed: int | None = None,
-    initial: np.ndarray | None = None,
-    desired: np.ndarray | None = None,
+    initial: Matrix | None = None,
+    desired: Matrix | None = None,
     gain: float = 1.0,
     max_iterations: int = 3000,
     dt_s: float = 0.1,
@@ -43,7 +41,7 @@ def simulate(
     return run_task(config, task, settings, seed)
 
 
-def _scene_task(task: ServoTask, initial: np.ndarray | None, desired: np.ndarray | None, config) -> ServoTask:
+def _scene_task(task: ServoTask, initial: Matrix | None, desired: Matrix | None, config) -> ServoTask:
     """The task with its poses replaced, placed where the arm can serve it."""
     initial_cMo = matrix_from_pose(initial) if initial is not None else task.initial_cMo
     desired_cMo = matrix_from_pose(desired) if desired is not None else task.desired_cMo

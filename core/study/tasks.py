@@ -26,15 +26,15 @@ servos: task 3 lies where the arm can follow both the laser method and 2.5D (0.3
 laser servo's path stays feasible (0.40 .. 0.44 m at 285 deg; every other method stops
 at the first frame, which lacks a corner).
 
-The robustness test (Table 5-3) is task 2 servoed by a controller whose camera, laser and
+The robustness test (Table 5-3) is task 2 servoed by a control law whose camera, laser and
 hand-eye models differ from the cell's. The table gives an "actual" and an "applied"
 value of each; the thesis's own result fixes which is which. In the robustness run the
 laser spot no longer travels parallel to the image's u axis (section 5.2.2, Fig. 5-5 a).
-The spot's image path is that of the physical beam, whatever the controller believes: the
+The spot's image path is that of the physical beam, whatever the control law believes: the
 actual beam [30 0 0 0 -10 0] lies in the camera's x-z plane and keeps the spot on the row
 v = v0, only the applied beam [30 10 10 0 -12 2] takes it off. So the applied values are
 what the simulated cell is, and the actual ones (the ideal simulation's camera and laser)
-what the controller keeps. Read the other way round the spot stays on its row and the run
+what the control law keeps. Read the other way round the spot stays on its row and the run
 diverges: stages 1 and 2 leave the camera looking at the part from about 30 deg off the
 desired direction (task 2's initial viewing direction, which neither stage 1's turn in
 place nor stage 2's approach changes), and stage 3's constant interaction matrix, built
@@ -206,9 +206,9 @@ TASKS: dict[int, ServoTask] = {
     ),
 }
 
-# Table 5-3 (mm, deg, px), read as the module's docstring says: the controller keeps the
+# Table 5-3 (mm, deg, px), read as the module's docstring says: the control law keeps the
 # actual values, the simulated cell has the applied ones.
-ROBUSTNESS_NOMINAL = {  # the actual values: what the controller believes
+ROBUSTNESS_NOMINAL = {  # the actual values: what the control law believes
     "camera": {"focal_length_mm": 6.0, "principal_point_px": [320.0, 240.0]},
     "laser": {"cMl": [30.0, 0.0, 0.0, 0.0, -10.0, 0.0]},
     "hand_eye": {"eMc": [-20.0, 20.0, 20.0, 5.0, 5.0, 5.0]},

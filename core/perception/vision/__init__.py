@@ -18,5 +18,5 @@ Pixel convention (OpenCV): the pixel at row r, column c has its centre at (u, v)
 outlines and straight-edge location by the partial-area effect;
 ``vservo.core.perception.vision.least_squares`` the bounded model fits; ``vservo.core.perception.vision.bands`` the
 three-level edge of a side face seen almost edge-on along a side of the top face;
-``vservo.core.perception.vision.pipeline`` turns a frame into a controller's features.
+``vservo.core.perception.vision.pipeline`` turns a frame into a control law's features.
 """

@@ -1,10 +1,10 @@
-"""From one camera image to the features a controller sees (sections 4.3, 4.4, 5.3).
+"""From one camera image to the features a control law sees (sections 4.3, 4.4, 5.3).
 
 The laser spot by a fixed-level threshold, the four top-face corners (ordered by the
 part's orientation mark, or by the last frame's corners when the mark is hidden), the
 visible object region by image moments, and the spot's depth triangulated with the
 NOMINAL laser and camera. A detector that fails leaves its features NaN with a reason;
-the controller decides what it can do without them, the loop never sees an exception.
+the control law decides what it can do without them, the loop never sees an exception.
 """
 
 from __future__ import annotations

@@ -1,17 +1,19 @@
-"""What every visual servo controller shares: its output, its verdicts, its safeguards.
+"""What every control law shares: its output, its stages, its verdicts, its safeguards.
 
-A controller is a small immutable object holding its settings and the NOMINAL camera;
+A control law is a small immutable object holding its settings and the NOMINAL camera;
 ``step(features, desired, stage)`` maps one frame's features to a camera twist cVc
 (v, w in the camera frame) and the stage to use next cycle. The loop carries the stage,
-so a controller holds no hidden state and any cycle can be replayed on its own.
-Following ViSP, a controller that cannot act returns a zero twist with a failure, and
+so a law holds no hidden state and any cycle can be replayed on its own.
+Every law regulates an error e = s - s* (current features minus desired ones) with
+v = -lambda L+ e (eq. 4-14), the convention of ViSP, so one sign reads the same in every law.
+Following ViSP, a law that cannot act returns a zero twist with a failure, and
 the loop stops the robot.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
+from enum import Enum, StrEnum
 from typing import Protocol
 
 import numpy as np
@@ -36,6 +38,24 @@ class Failure(str, Enum):
     ROBOT_STOPPED = "robot_stopped"  # refused by the safety layer, held, in alarm, or the link failed
 
 
+class Stage(StrEnum):
+    """The stage a control law is in; the loop carries it from one cycle to the next.
+
+    The switching IBVS with laser runs stages 1.A, 1.B, 2 and 3 (section 4.4; 1.C is no
+    stage of its own but the translation that goes with every turn of stage 1). Every
+    other law has one stage, named after it. A StrEnum, so that recordings, stored runs
+    and texts show the thesis's names ("1A", "ibvs") and old recordings read back.
+    """
+
+    ALIGN_1A = "1A"  # turn the corners onto the imaginary features (eqs. 4-26 .. 4-29)
+    CENTRE_1B = "1B"  # turn the visible region's centroid onto the laser spot (eq. 4-36)
+    APPROACH_2 = "2"  # translate on corners and spot at the laser depth (eqs. 4-39 .. 4-49)
+    FINISH_3 = "3"  # classic IBVS at the desired features (eqs. 4-50, 4-51)
+    IBVS = "ibvs"
+    PBVS = "pbvs"
+    HYBRID_25D = "2.5d"
+
+
 @dataclass(frozen=True)
 class ControlOutput:
     """One control step.
@@ -49,7 +69,7 @@ class ControlOutput:
     """
 
     cVc: Matrix
-    stage: str
+    stage: Stage
     error_px: float
     stage_error: float
     converged: bool = False
@@ -57,14 +77,16 @@ class ControlOutput:
     note: str = ""
 
     @classmethod
-    def stop(cls, stage: str, error_px: float, failure: Failure, note: str) -> ControlOutput:
+    def stop(cls, stage: Stage, error_px: float, failure: Failure, note: str) -> ControlOutput:
         return cls(np.zeros(6), stage, error_px, float("nan"), failure=failure, note=note)
 
 
-class Controller(Protocol):
+class ControlLaw(Protocol):
+    """A visual servo control law: one frame's features to a camera twist, e = s - s*."""
+
     name: str
 
-    def step(self, features: ImageFeatures, desired: DesiredImage, stage: str | None) -> ControlOutput: ...
+    def step(self, features: ImageFeatures, desired: DesiredImage, stage: Stage | None) -> ControlOutput: ...
 
 
 class SingularJacobian(ValueError):
@@ -92,7 +114,7 @@ def feature_error_px(features: ImageFeatures, desired: DesiredImage) -> float:
     return float(np.linalg.norm(desired.corners_px - features.corners_px))
 
 
-def verdict_on_all_corners(name: str, features: ImageFeatures, error_px: float, final_threshold_px: float
+def verdict_on_all_corners(stage: Stage, features: ImageFeatures, error_px: float, final_threshold_px: float
                            ) -> ControlOutput | None:
     """The verdict a law on the four corners reaches before computing anything, or None.
 
@@ -101,7 +123,7 @@ def verdict_on_all_corners(name: str, features: ImageFeatures, error_px: float, 
     """
     if not features.all_corners_visible:
         lost = int((~features.corners_visible).sum())
-        return ControlOutput.stop(name, error_px, Failure.FEATURES_LOST, f"{lost} of 4 corners not seen")
+        return ControlOutput.stop(stage, error_px, Failure.FEATURES_LOST, f"{lost} of 4 corners not seen")
     if error_px <= final_threshold_px:
-        return ControlOutput(np.zeros(6), name, error_px, error_px, converged=True)
+        return ControlOutput(np.zeros(6), stage, error_px, error_px, converged=True)
     return None

@@ -24,12 +24,12 @@ import numpy as np
 
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.pose_estimation import PoseEstimationError, decompose_homography, euclidean_homography
-from vservo.core.geometry.spatial import theta_u
+from vservo.core.geometry.spatial import Matrix, theta_u
 from vservo.core.perception.features import DesiredImage, ImageFeatures
-from vservo.core.servo.laws.base import ControlOutput, Failure, feature_error_px, verdict_on_all_corners
+from vservo.core.servo.laws.base import ControlOutput, Failure, Stage, feature_error_px, verdict_on_all_corners
 
 
-def translation_interaction(x: float, y: float, Z: float) -> tuple[np.ndarray, np.ndarray]:
+def translation_interaction(x: float, y: float, Z: float) -> tuple[Matrix, Matrix]:
     """(L_v, L_vw): e_v = (x, y, log Z) of a point moves as L_v v + L_vw w (Malis 1999)."""
     L_v = np.array([[-1.0, 0.0, x], [0.0, -1.0, y], [0.0, 0.0, -1.0]]) / Z
     L_vw = np.array([[x * y, -(1.0 + x * x), y], [1.0 + y * y, -x * y, -x], [-y, x, 0.0]])
@@ -43,9 +43,9 @@ class Hybrid25D:
     final_threshold_px: float = 1.0
     name: str = "2.5d"
 
-    def step(self, features: ImageFeatures, desired: DesiredImage, stage: str | None) -> ControlOutput:
+    def step(self, features: ImageFeatures, desired: DesiredImage, stage: Stage | None) -> ControlOutput:
         error_px = feature_error_px(features, desired)
-        verdict = verdict_on_all_corners(self.name, features, error_px, self.final_threshold_px)
+        verdict = verdict_on_all_corners(Stage.HYBRID_25D, features, error_px, self.final_threshold_px)
         if verdict is not None:
             return verdict
 
@@ -56,7 +56,7 @@ class Hybrid25D:
         try:
             motion = decompose_homography(euclidean_homography(desired_xn, current_xn), desired_xn, normal_hint)
         except PoseEstimationError as exc:
-            return ControlOutput.stop(self.name, error_px, Failure.SINGULAR_JACOBIAN, f"no homography: {exc}")
+            return ControlOutput.stop(Stage.HYBRID_25D, error_px, Failure.SINGULAR_JACOBIAN, f"no homography: {exc}")
 
         m_star = np.append(desired_xn.mean(axis=0), 1.0)
         p = motion.H @ m_star
@@ -68,4 +68,4 @@ class Hybrid25D:
         w = -self.gain * theta_u(motion.cRcd.T)
         L_v, L_vw = translation_interaction(x, y, Z)
         v = -np.linalg.solve(L_v, self.gain * e_v + L_vw @ w)
-        return ControlOutput(np.concatenate([v, w]), self.name, error_px, error_px)
+        return ControlOutput(np.concatenate([v, w]), Stage.HYBRID_25D, error_px, error_px)

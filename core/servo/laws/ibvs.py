@@ -15,11 +15,13 @@ import numpy as np
 
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.interaction import pixel_interaction_matrix
+from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.servo.laws.base import (
     ControlOutput,
     Failure,
     SingularJacobian,
+    Stage,
     checked_pinv,
     feature_error_px,
     verdict_on_all_corners,
@@ -29,7 +31,7 @@ INTERACTIONS = ("current", "desired", "mean")
 DEPTHS = ("exact", "laser", "constant")
 
 
-def corner_depths(features: ImageFeatures, desired: DesiredImage, depth: str) -> np.ndarray:
+def corner_depths(features: ImageFeatures, desired: DesiredImage, depth: str) -> Matrix:
     """Depth of each corner for L(s, Z) as the chosen source gives it."""
     if depth == "exact":
         return features.corner_depths_m
@@ -53,7 +55,7 @@ class ClassicIbvs:
         if self.depth not in DEPTHS:
             raise ValueError(f"depth must be one of {DEPTHS}, got {self.depth!r}")
 
-    def interaction_matrix(self, features: ImageFeatures, desired: DesiredImage) -> np.ndarray:
+    def interaction_matrix(self, features: ImageFeatures, desired: DesiredImage) -> Matrix:
         """The 8x6 interaction matrix the law inverts."""
         L_desired = pixel_interaction_matrix(self.camera, desired.corners_px, np.full(4, desired.depth_m))
         if self.interaction == "desired":
@@ -61,18 +63,18 @@ class ClassicIbvs:
         L_current = pixel_interaction_matrix(self.camera, features.corners_px, corner_depths(features, desired, self.depth))
         return L_current if self.interaction == "current" else 0.5 * (L_current + L_desired)
 
-    def step(self, features: ImageFeatures, desired: DesiredImage, stage: str | None) -> ControlOutput:
+    def step(self, features: ImageFeatures, desired: DesiredImage, stage: Stage | None) -> ControlOutput:
         error_px = feature_error_px(features, desired)
-        verdict = verdict_on_all_corners(self.name, features, error_px, self.final_threshold_px)
+        verdict = verdict_on_all_corners(Stage.IBVS, features, error_px, self.final_threshold_px)
         if verdict is not None:
             return verdict
         if self.interaction != "desired" and self.depth != "constant":
             depths = corner_depths(features, desired, self.depth)
             if not np.all(np.isfinite(depths) & (depths > 0)):
-                return ControlOutput.stop(self.name, error_px, Failure.FEATURES_LOST, f"no {self.depth} depth")
+                return ControlOutput.stop(Stage.IBVS, error_px, Failure.FEATURES_LOST, f"no {self.depth} depth")
         try:
             L_pinv = checked_pinv(self.interaction_matrix(features, desired))
         except SingularJacobian as exc:
-            return ControlOutput.stop(self.name, error_px, Failure.SINGULAR_JACOBIAN, str(exc))
+            return ControlOutput.stop(Stage.IBVS, error_px, Failure.SINGULAR_JACOBIAN, str(exc))
         e = (features.corners_px - desired.corners_px).ravel()
-        return ControlOutput(-self.gain * L_pinv @ e, self.name, error_px, error_px)
+        return ControlOutput(-self.gain * L_pinv @ e, Stage.IBVS, error_px, error_px)

@@ -1,6 +1,6 @@
 """The switching IBVS with a laser pointer (thesis section 4.4, Appendix C).
 
-Three sub-controllers, switched on image errors:
+Three stages, each a law of its own, switched on image errors:
 
 - Stage 1.A (all corners seen): turn the camera (3 rotational DOF) until the corners sit
   on the imaginary desired features, the desired corners shifted by the current laser
@@ -33,9 +33,12 @@ least-squares w_z of eq. 4-29 is exactly zero, and only this turns the camera ro
 Fig. 5-1 shows. And the laser spot is rigid with the camera, so a
 rotation does not move the spot in the image, it moves the object. Stages 1.B and 2
 therefore turn the camera so that the object centroid c moves onto the spot,
-J^r(c) w = K (f^l - c); the thesis writes the same goal as the spot moving onto the
+J^r(c) w = -K (c - f^l); the thesis writes the same goal as the spot moving onto the
 centroid, with the lit point taken as stationary on the part. Taken literally, with the
 signs of eqs. 4-36 and 4-48, the two terms would push the centroid away from the spot.
+
+Every stage writes its error as current minus desired, e = s - s*, and commands
+-K J+ e, the convention of every law here (ViSP's); the thesis writes s* - s with +K.
 """
 
 from __future__ import annotations
@@ -48,9 +51,8 @@ from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.interaction import pixel_interaction_matrix
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage, ImageFeatures
-from vservo.core.servo.laws.base import ControlOutput, Failure, SingularJacobian, checked_pinv, feature_error_px
+from vservo.core.servo.laws.base import ControlOutput, Failure, SingularJacobian, Stage, checked_pinv, feature_error_px
 
-STAGE_1A, STAGE_1B, STAGE_2, STAGE_3 = "1A", "1B", "2", "3"
 # Rotation-only Jacobians do not depend on depth; any positive value fills the slot.
 _ANY_DEPTH = 1.0
 
@@ -88,7 +90,7 @@ def imaginary_features(desired: DesiredImage, features: ImageFeatures) -> Matrix
 
 @dataclass(frozen=True)
 class LaserIbvs:
-    """Settings of the switching controller; gains and thresholds of section 5.2."""
+    """Settings of the switching law; gains and thresholds of section 5.2."""
 
     camera: CameraModel
     cTe: Matrix  # position of the flange E in the camera frame (stage 1.C)
@@ -102,16 +104,16 @@ class LaserIbvs:
     final_threshold_px: float = 1.0
     name: str = "laser"
 
-    def step(self, features: ImageFeatures, desired: DesiredImage, stage: str | None) -> ControlOutput:
+    def step(self, features: ImageFeatures, desired: DesiredImage, stage: Stage | None) -> ControlOutput:
         error_px = feature_error_px(features, desired)
         try:
-            if stage in (None, STAGE_1A, STAGE_1B):
+            if stage in (None, Stage.ALIGN_1A, Stage.CENTRE_1B):
                 return self._stage_1(features, desired, error_px)
-            if stage == STAGE_2:
+            if stage == Stage.APPROACH_2:
                 return self._stage_2(features, desired, error_px, note="")
             return self._stage_3(features, desired, error_px, note="")
         except SingularJacobian as exc:
-            return ControlOutput.stop(stage or STAGE_1A, error_px, Failure.SINGULAR_JACOBIAN, str(exc))
+            return ControlOutput.stop(stage or Stage.ALIGN_1A, error_px, Failure.SINGULAR_JACOBIAN, str(exc))
 
     def _with_compensation(self, w: Matrix) -> Matrix:
         """Stage 1.C: v = cTe x w keeps the flange in place while the camera turns (eq. 4-38)."""
@@ -119,13 +121,13 @@ class LaserIbvs:
 
     def _stage_1(self, features: ImageFeatures, desired: DesiredImage, error_px: float) -> ControlOutput:
         if not features.laser_visible:
-            return ControlOutput.stop(STAGE_1A, error_px, Failure.FEATURES_LOST, "laser spot not seen")
+            return ControlOutput.stop(Stage.ALIGN_1A, error_px, Failure.FEATURES_LOST, "laser spot not seen")
         if not features.all_corners_visible:
             return self._stage_1b(features, error_px)
 
         # Stage 1.A: imaginary features, Fig. 4-5, at the scale of the current pattern.
         f_id = imaginary_features(desired, features)
-        e = (f_id - features.corners_px).ravel()
+        e = (features.corners_px - f_id).ravel()
         stage_error = float(np.linalg.norm(e))
         if stage_error <= self.f0_px:
             return self._stage_2(features, desired, error_px, note=f"1A -> 2: ||f_id - f|| = {stage_error:.2f} px")
@@ -134,24 +136,25 @@ class LaserIbvs:
         # An image pattern turns at -w_z (x right, y down), hence the sign.
         J = rotational_jacobian(self.camera, features.corners_px)
         w_z = -self.k_rotation_1a * image_rotation(features.corners_px, f_id)
-        w_xy = checked_pinv(J[:, :2]) @ (self.k_rotation_1a * e - J[:, 2] * w_z)
+        # J_xy w_xy + J_z w_z = -K_l e (eq. 4-29), solved for what w_z leaves.
+        w_xy = -checked_pinv(J[:, :2]) @ (self.k_rotation_1a * e + J[:, 2] * w_z)
         w = np.array([w_xy[0], w_xy[1], w_z])
-        return ControlOutput(self._with_compensation(w), STAGE_1A, error_px, stage_error)
+        return ControlOutput(self._with_compensation(w), Stage.ALIGN_1A, error_px, stage_error)
 
     def _stage_1b(self, features: ImageFeatures, error_px: float) -> ControlOutput:
         region = features.region
         if not region.seen:
-            return ControlOutput.stop(STAGE_1B, error_px, Failure.FEATURES_LOST, "object not in the image")
-        e = features.laser_spot_px - region.centroid_px
+            return ControlOutput.stop(Stage.CENTRE_1B, error_px, Failure.FEATURES_LOST, "object not in the image")
+        e = region.centroid_px - features.laser_spot_px
         J = rotational_jacobian(self.camera, region.centroid_px)[:, :2]  # w_x, w_y only (eq. 4-31)
-        w_xy = self.k_rotation_1b * checked_pinv(J) @ e
+        w_xy = -self.k_rotation_1b * checked_pinv(J) @ e
         w = np.array([w_xy[0], w_xy[1], 0.0])
-        return ControlOutput(self._with_compensation(w), STAGE_1B, error_px, float(np.linalg.norm(e)))
+        return ControlOutput(self._with_compensation(w), Stage.CENTRE_1B, error_px, float(np.linalg.norm(e)))
 
     def _stage_2(self, features: ImageFeatures, desired: DesiredImage, error_px: float, note: str) -> ControlOutput:
         if not (features.all_corners_visible and features.laser_visible):
-            return ControlOutput.stop(STAGE_2, error_px, Failure.FEATURES_LOST, "corners or laser spot lost in stage 2")
-        laser_error = desired.laser_spot_px - features.laser_spot_px
+            return ControlOutput.stop(Stage.APPROACH_2, error_px, Failure.FEATURES_LOST, "corners or laser spot lost in stage 2")
+        laser_error = features.laser_spot_px - desired.laser_spot_px
         laser_error_px = float(np.linalg.norm(laser_error))
         if laser_error_px <= self.f0_laser_px:
             switch = f"2 -> 3: ||f_d^l - f^l|| = {laser_error_px:.2f} px"
@@ -159,19 +162,20 @@ class LaserIbvs:
 
         # Translation: corners and laser spot as stationary points at the laser depth (4-42).
         points = np.vstack([features.corners_px, features.laser_spot_px])
-        e_t = np.concatenate([(desired.corners_px - features.corners_px).ravel(), laser_error])
-        v = self.k_translation * checked_pinv(translational_jacobian(self.camera, points, features.laser_depth_m)) @ e_t
+        e_t = np.concatenate([(features.corners_px - desired.corners_px).ravel(), laser_error])
+        v = -self.k_translation * checked_pinv(translational_jacobian(self.camera, points, features.laser_depth_m)) @ e_t
         # Rotation: keep the spot on the centroid of the corners (4-47, 4-48).
         centroid = features.corners_px.mean(axis=0)
-        w = self.k_rotation * checked_pinv(rotational_jacobian(self.camera, centroid)) @ (features.laser_spot_px - centroid)
-        return ControlOutput(np.concatenate([v, w]), STAGE_2, error_px, laser_error_px, note=note)
+        e_r = centroid - features.laser_spot_px
+        w = -self.k_rotation * checked_pinv(rotational_jacobian(self.camera, centroid)) @ e_r
+        return ControlOutput(np.concatenate([v, w]), Stage.APPROACH_2, error_px, laser_error_px, note=note)
 
     def _stage_3(self, features: ImageFeatures, desired: DesiredImage, error_px: float, note: str) -> ControlOutput:
         if not features.all_corners_visible:
-            return ControlOutput.stop(STAGE_3, error_px, Failure.FEATURES_LOST, "corners lost in stage 3")
+            return ControlOutput.stop(Stage.FINISH_3, error_px, Failure.FEATURES_LOST, "corners lost in stage 3")
         if error_px <= self.final_threshold_px:
-            return ControlOutput(np.zeros(6), STAGE_3, error_px, error_px, converged=True, note=note)
+            return ControlOutput(np.zeros(6), Stage.FINISH_3, error_px, error_px, converged=True, note=note)
         # Constant interaction matrix at the desired features and depth (4-50, 4-51).
         L_desired = pixel_interaction_matrix(self.camera, desired.corners_px, desired.depth_m)
-        e = (desired.corners_px - features.corners_px).ravel()
-        return ControlOutput(self.k_final * checked_pinv(L_desired) @ e, STAGE_3, error_px, error_px, note=note)
+        e = (features.corners_px - desired.corners_px).ravel()
+        return ControlOutput(-self.k_final * checked_pinv(L_desired) @ e, Stage.FINISH_3, error_px, error_px, note=note)

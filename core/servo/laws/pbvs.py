@@ -22,7 +22,7 @@ from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points, pose_from_posit
 from vservo.core.geometry.spatial import Matrix, inverse, theta_u
 from vservo.core.perception.features import DesiredImage, ImageFeatures
-from vservo.core.servo.laws.base import ControlOutput, Failure, feature_error_px, verdict_on_all_corners
+from vservo.core.servo.laws.base import ControlOutput, Failure, Stage, feature_error_px, verdict_on_all_corners
 
 POSE_ESTIMATORS = ("pnp", "posit")
 
@@ -50,16 +50,16 @@ class Pbvs:
         image = np.vstack([features.corners_px, features.reference_px])
         return pose_from_posit(image, np.vstack([model.corners_o, model.reference_b]), self.camera)
 
-    def step(self, features: ImageFeatures, desired: DesiredImage, stage: str | None) -> ControlOutput:
+    def step(self, features: ImageFeatures, desired: DesiredImage, stage: Stage | None) -> ControlOutput:
         error_px = feature_error_px(features, desired)
-        verdict = verdict_on_all_corners(self.name, features, error_px, self.final_threshold_px)
+        verdict = verdict_on_all_corners(Stage.PBVS, features, error_px, self.final_threshold_px)
         if verdict is not None:
             return verdict
         try:
             cMo = self.estimate_cMo(features)
         except PoseEstimationError as exc:
-            return ControlOutput.stop(self.name, error_px, Failure.FEATURES_LOST, f"no pose: {exc}")
+            return ControlOutput.stop(Stage.PBVS, error_px, Failure.FEATURES_LOST, f"no pose: {exc}")
         cdMc = desired.cdMo @ inverse(cMo)
         v = -self.gain * cdMc[:3, :3].T @ cdMc[:3, 3]
         w = -self.gain * theta_u(cdMc[:3, :3])
-        return ControlOutput(np.concatenate([v, w]), self.name, error_px, error_px)
+        return ControlOutput(np.concatenate([v, w]), Stage.PBVS, error_px, error_px)

@@ -9,19 +9,10 @@ import pytest
 from tests.servo_fixtures import CAMERA, CORNERS_O, DESIRED_SPOT, DESIRED_cMo, desired_image, features, project, rotate_about
 from vservo.core.geometry.camera import CameraModel, Intrinsics
 from vservo.core.geometry.spatial import exp_twist, inverse, matrix_from_pose, transform, twist_transform
-from vservo.core.servo.laws.base import Failure, SingularJacobian, checked_pinv
+from vservo.core.servo.laws.base import Failure, SingularJacobian, Stage, checked_pinv
 from vservo.core.servo.laws.hybrid import Hybrid25D, translation_interaction
 from vservo.core.servo.laws.ibvs import ClassicIbvs
-from vservo.core.servo.laws.laser_ibvs import (
-    STAGE_1A,
-    STAGE_1B,
-    STAGE_2,
-    STAGE_3,
-    LaserIbvs,
-    image_rotation,
-    rotational_jacobian,
-    translational_jacobian,
-)
+from vservo.core.servo.laws.laser_ibvs import LaserIbvs, image_rotation, rotational_jacobian, translational_jacobian
 from vservo.core.servo.laws.pbvs import Pbvs
 from vservo.core.sim.plant import visible_region
 
@@ -85,30 +76,30 @@ def test_half_turn_makes_current_feature_ibvs_retreat():
     assert v[2] < 0.0  # backwards, away from the part
     assert abs(v[2]) > 1e3 * max(np.abs(v[:2]).max(), np.abs(w).max())
     # The laser method turns instead: its stage 1.A commands a rotation about the optical axis.
-    turn = laser_controller().step(current, desired, None)
-    assert turn.stage == STAGE_1A
+    turn = laser_law().step(current, desired, None)
+    assert turn.stage == Stage.ALIGN_1A
     assert abs(turn.cVc[5]) > 10 * np.abs(turn.cVc[:5]).max()
 
 
-def laser_controller(**settings):
+def laser_law(**settings):
     return LaserIbvs(CAMERA, cTe=np.zeros(3), **settings)
 
 
 def test_stage_1a_starts_and_switches_to_2_on_the_imaginary_features():
     desired = desired_image()
-    controller = laser_controller()
+    law = laser_law()
     # The part seen turned by 0.5 rad about the spot: far from the imaginary features.
     turned = features(rotate_about(desired.corners_px, DESIRED_SPOT, 0.5))
-    first = controller.step(turned, desired, None)
-    assert first.stage == STAGE_1A and not first.converged and first.failure is None
-    assert first.stage_error > controller.f0_px
+    first = law.step(turned, desired, None)
+    assert first.stage == Stage.ALIGN_1A and not first.converged and first.failure is None
+    assert first.stage_error > law.f0_px
     assert np.allclose(first.cVc[:3], 0.0)  # rotation only (cTe = 0: no compensation)
 
     # The corners on the imaginary features, the spot 40 px away from its desired place: 1.A -> 2.
     shift = np.array([-40.0, 0.0])
     at_imaginary = features(desired.corners_px + shift, spot_px=DESIRED_SPOT + shift)
-    second = controller.step(at_imaginary, desired, STAGE_1A)
-    assert second.stage == STAGE_2 and "1A -> 2" in second.note
+    second = law.step(at_imaginary, desired, Stage.ALIGN_1A)
+    assert second.stage == Stage.APPROACH_2 and "1A -> 2" in second.note
 
 
 def test_stage_1a_turns_the_pattern_the_right_way():
@@ -117,7 +108,7 @@ def test_stage_1a_turns_the_pattern_the_right_way():
     for angle in (0.4, -0.4, np.pi - 0.01):
         cMo = transform(matrix_from_pose([0, 0, 0, angle, 0, 0])[:3, :3]) @ DESIRED_cMo
         current = features(project(cMo))
-        out = laser_controller().step(current, desired, None)
+        out = laser_law().step(current, desired, None)
         after = features(project(moved(cMo, out.cVc, 0.05)))
         assert abs(image_rotation(after.corners_px, desired.corners_px)) < abs(
             image_rotation(current.corners_px, desired.corners_px)
@@ -131,21 +122,21 @@ def test_stage_1b_turns_the_visible_region_onto_the_spot_with_two_dof():
     corners = np.where(CAMERA.in_view(projected)[:, None], projected, np.nan)
     assert np.isnan(corners).any() and not np.isnan(corners).all()
     seen = features(corners, region=visible_region(projected, CAMERA.image_size))
-    out = laser_controller().step(seen, desired, None)
-    assert out.stage == STAGE_1B and out.cVc[5] == 0.0 and np.allclose(out.cVc[:3], 0.0)
+    out = laser_law().step(seen, desired, None)
+    assert out.stage == Stage.CENTRE_1B and out.cVc[5] == 0.0 and np.allclose(out.cVc[:3], 0.0)
     # The centroid's rotational velocity points from the centroid to the spot (eq. 4-36 read as THESIS-NOTES).
     centroid = seen.region.centroid_px
     velocity = rotational_jacobian(CAMERA, centroid) @ out.cVc[3:]
     assert velocity @ (DESIRED_SPOT - centroid) > 0.9 * np.linalg.norm(velocity) * np.linalg.norm(DESIRED_SPOT - centroid)
     # Once every corner is seen again, 1.B hands over to 1.A.
-    assert laser_controller().step(features(desired.corners_px + 30.0), desired, STAGE_1B).stage == STAGE_1A
+    assert laser_law().step(features(desired.corners_px + 30.0), desired, Stage.CENTRE_1B).stage == Stage.ALIGN_1A
 
 
 def test_stage_1c_keeps_the_flange_in_place_while_the_camera_turns():
     eMc = matrix_from_pose([0.02, -0.03, 0.05, 0.1, 0.2, -0.1])
-    controller = LaserIbvs(CAMERA, cTe=inverse(eMc)[:3, 3])
+    law = LaserIbvs(CAMERA, cTe=inverse(eMc)[:3, 3])
     desired = desired_image()
-    out = controller.step(features(rotate_about(desired.corners_px, DESIRED_SPOT, 0.5)), desired, None)
+    out = law.step(features(rotate_about(desired.corners_px, DESIRED_SPOT, 0.5)), desired, None)
     eVe = twist_transform(eMc) @ out.cVc
     assert np.linalg.norm(out.cVc[:3]) > 1e-3  # the camera translates ...
     assert np.allclose(eVe[:3], 0.0, atol=1e-12)  # ... so that the flange only turns (eq. 4-38)
@@ -153,14 +144,14 @@ def test_stage_1c_keeps_the_flange_in_place_while_the_camera_turns():
 
 def test_stage_2_switches_to_3_at_the_laser_threshold_and_3_converges():
     desired = desired_image()
-    controller = laser_controller()
+    law = laser_law()
     near = features(desired.corners_px + [3.0, -2.0], spot_px=DESIRED_SPOT + [4.0, 0.0])
-    out = controller.step(near, desired, STAGE_2)
-    assert out.stage == STAGE_3 and "2 -> 3" in out.note
+    out = law.step(near, desired, Stage.APPROACH_2)
+    assert out.stage == Stage.FINISH_3 and "2 -> 3" in out.note
     far = features(desired.corners_px * 0.8 + 60, spot_px=DESIRED_SPOT + [30.0, 0.0], depth=0.2)
-    stay = controller.step(far, desired, STAGE_2)
-    assert stay.stage == STAGE_2 and stay.stage_error == pytest.approx(30.0)
-    done = controller.step(features(desired.corners_px + 0.2), desired, STAGE_3)
+    stay = law.step(far, desired, Stage.APPROACH_2)
+    assert stay.stage == Stage.APPROACH_2 and stay.stage_error == pytest.approx(30.0)
+    done = law.step(features(desired.corners_px + 0.2), desired, Stage.FINISH_3)
     assert done.converged and np.allclose(done.cVc, 0.0)
 
 
@@ -168,44 +159,44 @@ def test_stage_2_rotation_keeps_the_spot_on_the_centroid():
     desired = desired_image()
     corners = desired.corners_px * 0.7 + [110.0, 60.0]
     spot = DESIRED_SPOT + [30.0, 0.0]
-    out = laser_controller().step(features(corners, spot_px=spot, depth=0.25), desired, STAGE_2)
+    out = laser_law().step(features(corners, spot_px=spot, depth=0.25), desired, Stage.APPROACH_2)
     centroid = corners.mean(axis=0)
     velocity = rotational_jacobian(CAMERA, centroid) @ out.cVc[3:]
     assert velocity @ (spot - centroid) > 0.9 * np.linalg.norm(velocity) * np.linalg.norm(spot - centroid)
 
 
-@pytest.mark.parametrize("stage", [STAGE_2, STAGE_3])
+@pytest.mark.parametrize("stage", [Stage.APPROACH_2, Stage.FINISH_3])
 def test_a_lost_corner_after_stage_1_stops_with_zero_twist(stage):
     desired = desired_image()
     corners = desired.corners_px + 20.0
     corners[2] = np.nan
-    out = laser_controller().step(features(corners, spot_px=DESIRED_SPOT + [30.0, 0.0]), desired, stage)
+    out = laser_law().step(features(corners, spot_px=DESIRED_SPOT + [30.0, 0.0]), desired, stage)
     assert out.failure is Failure.FEATURES_LOST and np.array_equal(out.cVc, np.zeros(6))
 
 
 def test_no_spot_stops_the_laser_method():
     desired = desired_image()
-    out = laser_controller().step(features(desired.corners_px + 40.0, spot_px=[np.nan, np.nan], depth=np.nan), desired, None)
+    out = laser_law().step(features(desired.corners_px + 40.0, spot_px=[np.nan, np.nan], depth=np.nan), desired, None)
     assert out.failure is Failure.FEATURES_LOST and "laser" in out.note
 
 
-@pytest.mark.parametrize("controller", [ClassicIbvs(CAMERA), Pbvs(CAMERA), Hybrid25D(CAMERA)])
-def test_every_baseline_needs_all_four_corners_and_stops_at_the_final_threshold(controller):
+@pytest.mark.parametrize("law", [ClassicIbvs(CAMERA), Pbvs(CAMERA), Hybrid25D(CAMERA)])
+def test_every_baseline_needs_all_four_corners_and_stops_at_the_final_threshold(law):
     desired = desired_image()
     corners = desired.corners_px + 15.0
     corners[0] = np.nan
-    assert controller.step(features(corners), desired, None).failure is Failure.FEATURES_LOST
-    done = controller.step(features(desired.corners_px + 0.3), desired, None)
+    assert law.step(features(corners), desired, None).failure is Failure.FEATURES_LOST
+    done = law.step(features(desired.corners_px + 0.3), desired, None)
     assert done.converged and np.array_equal(done.cVc, np.zeros(6))
 
 
-@pytest.mark.parametrize("controller", [ClassicIbvs(CAMERA), Pbvs(CAMERA), Hybrid25D(CAMERA), laser_controller()])
-def test_a_small_step_reduces_the_feature_error(controller):
+@pytest.mark.parametrize("law", [ClassicIbvs(CAMERA), Pbvs(CAMERA), Hybrid25D(CAMERA), laser_law()])
+def test_a_small_step_reduces_the_feature_error(law):
     """Every law, one step from a nearby pose (turned and shifted), moves the corners closer."""
     desired = desired_image()
     cMo = matrix_from_pose([0.015, -0.005, 0.175, np.pi - 0.1, 0.05, -np.pi + 0.05])
-    stage = STAGE_3 if isinstance(controller, LaserIbvs) else None
-    out = controller.step(features(project(cMo), depth=0.175, corner_depths=(CORNERS_O @ cMo[:3, :3].T + cMo[:3, 3])[:, 2]),
+    stage = Stage.FINISH_3 if isinstance(law, LaserIbvs) else None
+    out = law.step(features(project(cMo), depth=0.175, corner_depths=(CORNERS_O @ cMo[:3, :3].T + cMo[:3, 3])[:, 2]),
                           desired, stage)
     after = project(moved(cMo, out.cVc, 0.1))
     assert np.linalg.norm(after - desired.corners_px) < 0.95 * np.linalg.norm(project(cMo) - desired.corners_px)
@@ -220,7 +211,7 @@ def test_stage_3_tolerates_the_intrinsics_errors_of_table_5_3(swap):
     desired = desired_image()
     desired = replace(desired, corners_px=project(DESIRED_cMo, camera=seeing))
     cMo = matrix_from_pose([0.015, -0.005, 0.175, np.pi - 0.1, 0.05, -np.pi + 0.05])
-    out = LaserIbvs(believed, cTe=np.zeros(3)).step(features(project(cMo, camera=seeing)), desired, STAGE_3)
+    out = LaserIbvs(believed, cTe=np.zeros(3)).step(features(project(cMo, camera=seeing)), desired, Stage.FINISH_3)
     before = project(cMo, camera=seeing) - desired.corners_px
     after = project(moved(cMo, out.cVc, 0.1), camera=seeing) - desired.corners_px
     # A tenth of the correction with the right model; the wrong one shortens the step.
