@@ -96,7 +96,7 @@ def test_pbvs_moves_the_camera_along_a_straight_line(runs):
 
 @dataclass(frozen=True)
 class Stalled:
-    """A controller that asks for nothing: its error never falls."""
+    """A control law that asks for nothing: its error never falls."""
 
     name: str = "stalled"
 
@@ -119,7 +119,7 @@ def test_the_loop_names_no_progress_and_the_iteration_limit(cell_config):
 
 @dataclass(frozen=True)
 class Broken:
-    """A controller whose law breaks down: it returns NaN."""
+    """A control law that breaks down: it returns NaN."""
 
     name: str = "broken"
 
@@ -153,7 +153,7 @@ def test_a_short_occlusion_of_the_spot_does_not_stop_the_run(runs):
 
 
 def test_the_robustness_test_converges_with_the_spot_off_its_row(runs):
-    """Table 5-3: task 2 converges with the miscalibrated controller, on a longer path (section
+    """Table 5-3: task 2 converges with the miscalibrated model, on a longer path (section
     5.2.2), and the laser spot leaves its image row as the thesis sees in Fig. 5-5 (a)."""
     robust = simulate(task_number=2, method="laser", robust=True)
     ideal = runs[2, "laser"]
