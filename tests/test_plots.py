@@ -9,22 +9,17 @@ import cv2
 import numpy as np
 import pytest
 
+from vservo.core.study.canvas import PALETTE, grid, write_png
+from vservo.core.study.chart_axes import Axes, format_tick, nice_ticks, tick_labels
 from vservo.core.study.plots import (
-    PALETTE,
-    Axes,
     Series,
     Series3,
-    format_tick,
-    grid,
     image_trajectory_plot,
     image_trajectory_plot_with_axes,
     line_plot,
     line_plot_with_axes,
-    nice_ticks,
     path_3d_plot,
     path_3d_plot_with_view,
-    tick_labels,
-    write_png,
 )
 
 # Colors no decoration uses (axes, grid and text are gray levels; the palette is tab10).

@@ -17,7 +17,10 @@ from tests.reference import homogeneous
 from vservo.core.cell.scene import Cube, MetalPart, Scene
 from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics, sony_xc55
 from vservo.core.geometry.laser import Ray
-from vservo.core.sim.render import FaultKind, FrameFault, RenderSettings, SceneRenderer, rasterize, smear_kernel
+from vservo.core.sim.raster import rasterize
+from vservo.core.sim.render import SceneRenderer
+from vservo.core.sim.render_settings import RenderSettings
+from vservo.core.sim.sensor import FaultKind, FrameFault, smear_kernel
 
 TABLE_Z = 0.0
 SIDE = 0.020
@@ -611,7 +614,7 @@ def test_default_camera_renders_the_task_1_desired_view():
 
 def test_rasterize_a_polygon_outside_the_window_gives_float_zeros():
     """No edge piece in the window: numpy's bincount would hand back integers."""
-    from vservo.core.sim.render import rasterize
+    from vservo.core.sim.raster import rasterize
 
     above = np.array([[1.0, 1.0], [1.0, 3.0], [4.0, 3.0], [4.0, 1.0]])
     coverage = rasterize([above], np.array([[1.0, 0.5]]), 0, 10, 6, 4)

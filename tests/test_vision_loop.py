@@ -18,7 +18,8 @@ from vservo.core.servo.laws.base import Failure
 from vservo.core.servo.loop import LoopLimits
 from vservo.core.sim.camera import SimulatedCamera
 from vservo.core.sim.plant import SimulatedCell
-from vservo.core.sim.render import FrameFault, RenderSettings
+from vservo.core.sim.render_settings import RenderSettings
+from vservo.core.sim.sensor import FrameFault
 from vservo.core.study.replay import replay
 from vservo.core.study.run import RunSettings, run_task
 from vservo.core.study.tasks import TASKS

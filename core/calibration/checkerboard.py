@@ -36,7 +36,7 @@ import numpy as np
 
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.spatial import Matrix, inverse
-from vservo.core.sim.render import rasterize
+from vservo.core.sim.raster import rasterize
 
 # Chords per square edge: a distorted edge of ~27 px becomes 8 chords of ~3 px, whose
 # sagitta is far below a thousandth of a pixel for any realistic lens.

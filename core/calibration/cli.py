@@ -1,4 +1,5 @@
-"""``vservo calibrate ...``: the calibration workflow on the command line (see workflow.py)."""
+"""``vservo calibrate ...``: the calibration workflow on the command line (see workflow.py),
+and ``vservo bench calibration``."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from typing import Any
 from vservo.core.calibration.collection import TRUTHS, Workspace
 from vservo.core.calibration.dataset import INPUT_SETS
 from vservo.core.calibration.tracking import TrackingSettings
+from vservo.core.command_line import BenchCommand, print_result
 
 
 def _number(kind: type, low: float, strict: bool) -> Any:
@@ -126,6 +128,18 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             beside = f"   thesis {thesis['x_mm']} / {thesis['y_mm']} / {thesis['xy_mm']}" if thesis else ""
             print(f"  {name:<20}{errors['x_mm']:>9} /{errors['y_mm']:>9} /{errors['xy_mm']:>9}, {errors['max_xy_mm']:>9}{beside}")
     return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from vservo.core.calibration.bench import bench_calibration
+
+    print_result(bench_calibration(_config(args), seed=args.seed), args.json)
+    return 0
+
+
+def add_calibration_bench(bench: BenchCommand) -> None:
+    """Register ``vservo bench calibration``."""
+    bench.add("calibration", "Levenberg-Marquardt training time on 16,000 samples", _cmd_bench)
 
 
 def add_calibrate_command(commands: argparse._SubParsersAction) -> None:

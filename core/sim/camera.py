@@ -11,7 +11,9 @@ import numpy as np
 
 from vservo.core.perception.camera_source import BaseSource, Frame, Size
 from vservo.core.sim.plant import SimulatedCell
-from vservo.core.sim.render import FrameFault, RenderSettings, SceneRenderer
+from vservo.core.sim.render import SceneRenderer
+from vservo.core.sim.render_settings import RenderSettings
+from vservo.core.sim.sensor import FrameFault
 
 
 class SimulatedCamera(BaseSource):

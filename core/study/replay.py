@@ -22,7 +22,7 @@ from vservo.core.perception.recording import Recording
 from vservo.core.perception.vision.pipeline import ImageFeatureExtractor, front_winding
 from vservo.core.servo.laws.base import Stage
 from vservo.core.servo.methods import build_law
-from vservo.core.sim.render import RenderSettings
+from vservo.core.sim.render_settings import RenderSettings
 from vservo.core.study.run import RunSettings
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from vservo.core.cell.config import CellConfig, parse_cell, read_cell_bytes, read_cell_data
 from vservo.core.progress import Progress
 from vservo.core.servo.methods import METHODS
-from vservo.core.study import plots, provenance
+from vservo.core.study import canvas, plots, provenance
 from vservo.core.study.montecarlo import run_montecarlo
 from vservo.core.study.run import RunResult, RunSettings, run_task
 from vservo.core.study.tasks import (
@@ -38,7 +38,7 @@ LASER_COLOR = (0, 0, 200)
 # -- figures -----------------------------------------------------------------------------
 
 
-def image_trajectory(result: RunResult, title: str) -> plots.Image:
+def image_trajectory(result: RunResult, title: str) -> canvas.Image:
     """Corner and laser-spot trajectories on the image plane (Figs. 5-1a .. 5-5a, 5-7)."""
     trace = result.trace
     series = [
@@ -55,7 +55,7 @@ def image_trajectory(result: RunResult, title: str) -> plots.Image:
     )
 
 
-def camera_velocity(result: RunResult) -> plots.Image:
+def camera_velocity(result: RunResult) -> canvas.Image:
     t, cVc = result.trace.time_s, result.trace.cVc
     linear = plots.line_plot(
         [plots.Series(name, t, cVc[:, i]) for i, name in enumerate(("vx", "vy", "vz"))],
@@ -65,10 +65,10 @@ def camera_velocity(result: RunResult) -> plots.Image:
         [plots.Series(name, t, cVc[:, 3 + i]) for i, name in enumerate(("wx", "wy", "wz"))],
         "camera rotational velocity", "time (s)", "rad/s", size=(480, 300),
     )
-    return plots.grid([linear, angular], columns=1)
+    return canvas.grid([linear, angular], columns=1)
 
 
-def pose_errors(result: RunResult) -> plots.Image:
+def pose_errors(result: RunResult) -> canvas.Image:
     t, errors = result.trace.time_s, result.trace.pose_error_true
     translation = plots.line_plot(
         [plots.Series("translation", t, errors[:, 0])], "end-effector position error", "time (s)", "m", size=(480, 300)
@@ -76,10 +76,10 @@ def pose_errors(result: RunResult) -> plots.Image:
     rotation = plots.line_plot(
         [plots.Series("rotation", t, errors[:, 1])], "end-effector orientation error", "time (s)", "rad", size=(480, 300)
     )
-    return plots.grid([translation, rotation], columns=1)
+    return canvas.grid([translation, rotation], columns=1)
 
 
-def feature_errors(result: RunResult) -> plots.Image:
+def feature_errors(result: RunResult) -> canvas.Image:
     trace = result.trace
     errors = trace.corners_px - result.desired.corners_px
     series = []
@@ -89,13 +89,13 @@ def feature_errors(result: RunResult) -> plots.Image:
     return plots.line_plot(series, "image feature errors", "time (s)", "pixel", size=(640, 400))
 
 
-def path_3d(results: dict[str, RunResult], title: str) -> plots.Image:
+def path_3d(results: dict[str, RunResult], title: str) -> canvas.Image:
     return plots.path_3d_plot(
         [plots.Series3(label, result.trace.bMe_position_true) for label, result in results.items()], title
     )
 
 
-def run_figure(result: RunResult, title: str, full: bool) -> plots.Image:
+def run_figure(result: RunResult, title: str, full: bool) -> canvas.Image:
     """Figs. 5-1 (image, pose and feature errors) and 5-2/5-3/5-5 (with velocities and path)."""
     panels = [image_trajectory(result, "(a) image trajectory")]
     if full:
@@ -103,7 +103,7 @@ def run_figure(result: RunResult, title: str, full: bool) -> plots.Image:
     panels += [pose_errors(result), feature_errors(result)]
     if full:
         panels.append(path_3d({result.method: result}, "end-effector path"))
-    return plots.grid(panels, columns=3 if full else 2, caption=title)
+    return canvas.grid(panels, columns=3 if full else 2, caption=title)
 
 
 def write_figures(results: dict[tuple[int, str], RunResult], robust: RunResult, out: Path) -> list[Path]:
@@ -111,7 +111,7 @@ def write_figures(results: dict[tuple[int, str], RunResult], robust: RunResult, 
         "fig_5_1_task1_laser.png": run_figure(results[1, "laser"], "Fig. 5-1 analogue: task 1, IBVS with laser", False),
         "fig_5_2_task2_laser.png": run_figure(results[2, "laser"], "Fig. 5-2 analogue: task 2, IBVS with laser", True),
         "fig_5_3_task3_laser.png": run_figure(results[3, "laser"], "Fig. 5-3 analogue: task 3, IBVS with laser", True),
-        "fig_5_4_task4_laser.png": plots.grid(
+        "fig_5_4_task4_laser.png": canvas.grid(
             [image_trajectory(results[4, "laser"], "image trajectory")], 1, "Fig. 5-4 analogue: task 4, IBVS with laser"
         ),
         "fig_5_5_robustness_task2.png": run_figure(robust, "Fig. 5-5 analogue: robustness test on task 2", True),
@@ -123,7 +123,7 @@ def write_figures(results: dict[tuple[int, str], RunResult], robust: RunResult, 
             {method: results[3, method] for method in ("laser", "2.5d")}, "Fig. 5-8 analogue: end-effector paths, task 3"
         ),
     }
-    return [plots.write_png(out / name, image) for name, image in figures.items()]
+    return [canvas.write_png(out / name, image) for name, image in figures.items()]
 
 
 # -- report --------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ from vservo.core.servo.teaching import desired_from_features
 from vservo.core.sim.backend import SimulatedBackend
 from vservo.core.sim.camera import SimulatedCamera
 from vservo.core.sim.plant import SimulatedCell
-from vservo.core.sim.render import RenderSettings
+from vservo.core.sim.render_settings import RenderSettings
 from vservo.core.study.tasks import ServoTask
 
 

@@ -36,7 +36,9 @@ from vservo.core.perception.vision.spot import detect_laser_spot
 from vservo.core.servo.loop import Cycle
 from vservo.core.sim.camera import SimulatedCamera
 from vservo.core.sim.plant import SimulatedCell
-from vservo.core.sim.render import FrameFault, RenderSettings, SceneRenderer
+from vservo.core.sim.render import SceneRenderer
+from vservo.core.sim.render_settings import RenderSettings
+from vservo.core.sim.sensor import FrameFault
 from vservo.core.study.run import RunSettings, run_task
 from vservo.core.study.tasks import TASKS
 

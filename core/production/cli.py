@@ -1,0 +1,112 @@
+"""``vservo run`` and ``vservo controller``: one headless assembly, and the controller process."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import threading
+
+from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
+from vservo.core.command_line import print_result
+from vservo.core.production.storage import default_data_dir
+
+BACKEND_HELP = ("the robot: sim drives the simulator directly, jrc through the JRC link to an emulated JRC "
+                "on a pseudo-terminal (default: the cell file's [robot] backend)")
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from vservo.core.production.assembly import Outcome
+    from vservo.core.production.cell_controller import CellController, CommandRefused, run_job_once
+    from vservo.core.production.rig import simulated_rig
+    from vservo.core.production.storage import Store
+
+    store = Store(args.data or default_data_dir())
+    controller = CellController(simulated_rig(load_cell(args.cell), args.seed, args.backend), store, seed=args.seed or 0)
+    try:
+        summary = run_job_once(controller, args.job)
+    except CommandRefused as exc:
+        print(f"vservo run: error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        controller.close()
+        store.close()
+    print_result(summary, args.json)
+    return 0 if summary["outcome"] == Outcome.PLACED else 1
+
+
+def _cmd_controller(args: argparse.Namespace) -> int:
+    import signal
+
+    from vservo.core.production.cell_controller import CellController
+    from vservo.core.production.channel import KEY_ENVIRONMENT, ControllerServer
+    from vservo.core.production.rig import simulated_rig
+    from vservo.core.production.storage import Store
+
+    key = os.environ.get(KEY_ENVIRONMENT, "")
+    try:
+        authkey = bytes.fromhex(key)
+    except ValueError:
+        authkey = b""
+    if len(authkey) < 16:
+        print(f"vservo controller: error: set {KEY_ENVIRONMENT} to the channel key (32+ hex digits); "
+              "`vservo serve` does this for you", file=sys.stderr)
+        return 2
+    store = Store(args.data or default_data_dir())
+    controller = CellController(simulated_rig(load_cell(args.cell), args.seed, args.backend), store,
+                                seed=args.seed or 0, cycle_period_s=args.cycle_period)
+    server = ControllerServer(controller, authkey, port=args.port)
+    stop = threading.Event()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda *_: stop.set())
+    if args.exit_with_parent:
+        threading.Thread(target=_stop_when_orphaned, args=(os.getppid(), stop), name="parent-watch", daemon=True).start()
+    print(json.dumps({"controller": {"host": server.address[0], "port": server.address[1],
+                                     "backend": controller.rig.robot.name}}), flush=True)
+    stop.wait()
+    server.close()
+    controller.close()  # holds the robot if a run is under way
+    store.close()
+    return 0
+
+
+def _stop_when_orphaned(parent_pid: int, stop: threading.Event, period_s: float = 0.5) -> None:
+    """Set ``stop`` once this process's parent is no longer ``parent_pid``.
+
+    A parent killed outright (SIGKILL, a crash) sends no signal; its children are handed
+    to init, which changes their parent id. Polling it works for every way to die.
+    """
+    while not stop.wait(period_s):
+        if os.getppid() != parent_pid:
+            print(f"vservo controller: the process that started it ({parent_pid}) is gone: holding the robot "
+                  "and stopping", file=sys.stderr, flush=True)
+            stop.set()
+
+
+def add_production_commands(commands: argparse._SubParsersAction) -> None:
+    """Register ``vservo run`` and ``vservo controller`` on the top-level subcommands."""
+    run = commands.add_parser(
+        "run", help="one headless assembly of a taught job on the simulated cell (exit 0 when placed)"
+    )
+    run.add_argument("--job", required=True, help="job name (the shipped 'demo' is always there)")
+    run.add_argument("--data", metavar="DIR", help="data folder with the jobs and runs (default $VSERVO_DATA or "
+                     "~/.local/share/vservo)")
+    run.add_argument("--seed", type=int, default=None, help="seed of the simulated cell and of the part's arrival")
+    run.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
+    run.add_argument("--json", action="store_true", help="one JSON object")
+    run.set_defaults(run=_cmd_run)
+
+    controller = commands.add_parser(
+        "controller", help="the controller process: owns the cell, serves the app over an authenticated local channel"
+    )
+    controller.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (default: any free one)")
+    controller.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
+    controller.add_argument("--seed", type=int, default=None, help="seed of the simulated cell")
+    controller.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
+    controller.add_argument("--cycle-period", type=float, default=0.05, metavar="S",
+                            help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
+    controller.add_argument("--exit-with-parent", action="store_true",
+                            help="hold the robot and exit when the process that started this one is gone "
+                                 "(`vservo serve` sets it: a killed app leaves no controller holding the cell)")
+    controller.set_defaults(run=_cmd_controller)
