@@ -238,7 +238,7 @@ def differences(runs: dict[str, dict[str, Any]], robust: dict[str, Any]) -> list
     if runs["2/pbvs"]["converged"]:
         notes.append(
             "Task 2, PBVS: the corners stay in the image here (Fig. 5-7 analogue), where the thesis saw them leave "
-            "it. With Table 5-1 read as THESIS-NOTES section 6 says (object frame at a corner of the face), the "
+            "it. With Table 5-1 read as docs/thesis-notes.md section 6 says (object frame at a corner of the face), the "
             "camera centre's straight line keeps the part in view; the printed poses do not reproduce Fig. 5-7."
         )
     for task in (1, 3):
