@@ -3,7 +3,7 @@ the README screenshot.
 
 ``ServeProcess`` runs ``vservo serve`` as a real process on a free port and stops it with
 SIGTERM; ``launch_chromium`` starts the system's Chromium (/usr/bin/chromium) through
-Playwright with the flags that work headless as root (design/ENVIRONMENT.md); the page
+Playwright with the flags that work headless as root (docs/architecture.md, "Tests"); the page
 helpers find viser's elements by their labels and read the status line.
 """
 

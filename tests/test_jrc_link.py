@@ -84,7 +84,7 @@ def bcc_by_hand(body: bytes) -> bytes:
 # -- framing ---------------------------------------------------------------------------
 
 def test_the_bcc_of_the_protocol_test_vector():
-    """JRC-PROTOCOL.md: header 02,030, text SYSTEM CR, ETB: the sum from '0' through ETB is
+    """docs/robot-link.md: header 02,030, text SYSTEM CR, ETB: the sum from '0' through ETB is
     0x032C, sent as 0x2C 0x03."""
     assert block_check(b"02,030" + bytes((STX,)) + b"SYSTEM\r" + bytes((ETB,))) == bytes((0x2C, 0x03))
 
@@ -197,7 +197,7 @@ def run_host(line, device, text):
 
 
 def test_the_host_resends_on_nak_and_refuses_a_bad_bcc(config):
-    """One RPOSC the way JRC-PROTOCOL.md draws it, with a NAK from the JRC and a
+    """One RPOSC the way docs/robot-link.md draws it, with a NAK from the JRC and a
     corrupted reply block the host must NAK."""
     with PseudoTerminal() as pty:
         jrc = ScriptedJrc(pty)

@@ -124,7 +124,8 @@ def test_stage_1b_turns_the_visible_region_onto_the_spot_with_two_dof():
     seen = features(corners, region=visible_region(projected, CAMERA.image_size))
     out = laser_law().step(seen, desired, None)
     assert out.stage == Stage.CENTRE_1B and out.cVc[5] == 0.0 and np.allclose(out.cVc[:3], 0.0)
-    # The centroid's rotational velocity points from the centroid to the spot (eq. 4-36 read as THESIS-NOTES).
+    # The centroid's rotational velocity points from the centroid to the spot
+    # (eq. 4-36 as docs/thesis-notes.md section 5 reads it).
     centroid = seen.region.centroid_px
     velocity = rotational_jacobian(CAMERA, centroid) @ out.cVc[3:]
     assert velocity @ (DESIRED_SPOT - centroid) > 0.9 * np.linalg.norm(velocity) * np.linalg.norm(DESIRED_SPOT - centroid)

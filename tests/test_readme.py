@@ -1,5 +1,7 @@
-"""README.md starts with the two set-up commands, and CI runs the test one."""
+"""README.md starts with the two set-up commands, CI runs the test one, and the README stays
+short: at most 150 lines, the rest in docs/, every docs/ link pointing at a file."""
 
+import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -7,7 +9,9 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def readme_commands() -> list[str]:
     text = (ROOT / "README.md").read_text()
-    block = text.split("```bash\n", 1)[1].split("```", 1)[0]
+    title, rest = text.split("```bash\n", 1)
+    assert [line for line in title.splitlines() if line.strip()] == ["# vservo"], "only the title comes before the commands"
+    block = rest.split("```", 1)[0]
     return [line for line in block.splitlines() if line.strip()]
 
 
@@ -27,3 +31,14 @@ def test_torch_is_pinned_to_the_local_cpu_build():
     constraints = (ROOT / "constraints.txt").read_text().splitlines()
     assert "torch==2.13.0" in constraints
     assert any(line.startswith("viser==") for line in constraints)
+
+
+def test_readme_is_at_most_150_lines():
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 150
+
+
+def test_every_docs_link_in_the_readme_points_to_a_file():
+    links = re.findall(r"\]\((docs/[^)#\s]+)", (ROOT / "README.md").read_text())
+    assert links, "the README links into docs/"
+    missing = [link for link in links if not (ROOT / link).is_file()]
+    assert missing == []

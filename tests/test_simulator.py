@@ -76,7 +76,7 @@ def test_laser_spot_is_where_the_true_beam_meets_the_cube():
     distance = beam.intersect_plane(top[:3, 2], float(top[:3, 2] @ top[:3, 3]))
     expected = project_with_opencv(cell.truth.model.camera, inverse(bMc), beam.point_at(distance)[None, :])[0]
     assert np.allclose(seen.laser_spot_px, expected, atol=1e-9)
-    assert np.allclose(seen.laser_spot_px, [327.2, 240.0], atol=0.1)  # THESIS-NOTES section 4
+    assert np.allclose(seen.laser_spot_px, [327.2, 240.0], atol=0.1)  # docs/thesis-notes.md section 4
 
 
 def test_nominal_triangulation_is_exact_only_when_the_laser_is_calibrated():

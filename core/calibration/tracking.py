@@ -14,7 +14,7 @@ noise asked for.
 Tests:
 - the sinusoid of eq. 3-1, 41 points X = 200 .. 400 mm in 5 mm steps, Y = A sin(10 pi X)
   with X in METRES (as printed, in mm, the sine has a 0.2 mm period and aliases at a
-  5 mm step: THESIS-NOTES section 7), tracked point after point, 10 s per point. The
+  5 mm step: docs/thesis-notes.md section 7), tracked point after point, 10 s per point. The
   UPJ's tool-down shell at 300 mm over the table is about 130 mm thick, so the
   thesis's A = 100 mm cannot be reached anywhere: the curve is laid with its X along
   the base's y axis, centred at x = -450 mm, and A = 40 mm by default;

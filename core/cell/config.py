@@ -67,7 +67,7 @@ class MotionConfig:
 
 @dataclass(frozen=True)
 class JrcLineConfig:
-    """The RS-232 host link to a JRC (JRC-PROTOCOL.md, parameters RS030..RS038).
+    """The RS-232 host link to a JRC (docs/robot-link.md, parameters RS030..RS038).
 
     The defaults are the JRC's factory values; check them on the pendant before
     first use. timer_a_s: how long a sender waits for the answer to a control character

@@ -5,7 +5,7 @@ ray-casts against (the laser spot, occlusion of corners); it is also the nominal
 an operator configures. Geometry is a set of oriented boxes, enough for a table-top
 assembly cell and exact to intersect.
 
-Object frame O (THESIS-NOTES section 6): it sits at one corner of the cube's top face,
+Object frame O (docs/thesis-notes.md section 6): it sits at one corner of the cube's top face,
 the face spans +x and +y of O from 0 to the side length, and +z of O points out of the
 face, so the cube's body lies at -side <= z <= 0. The four features are the top-face
 corners in the order (0, 0), (s, 0), (s, s), (0, s).

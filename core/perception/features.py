@@ -101,7 +101,7 @@ class DesiredImage:
     """What teaching stores (Fig. C-2): the desired features and what follows from them.
 
     depth_m is Z*, the laser depth at the taught pose, which approximates the depth of
-    every corner (a planar part of small height, THESIS-NOTES section 5). cdMo is the
+    every corner (a planar part of small height, docs/thesis-notes.md section 5). cdMo is the
     object pose in the desired camera frame estimated from the taught corners with the
     nominal camera (PBVS and the 2.5D normal need it); corner_depths_m are the depths
     of the corners in that estimate.

@@ -1,4 +1,4 @@
-"""Jobs and runs in SQLite, images and recordings on disk beside it (ARCHITECTURE.md).
+"""Jobs and runs in SQLite, images and recordings on disk beside it (docs/architecture.md, "Storage").
 
 The data folder holds ``vservo.sqlite`` (the jobs, every assembly attempt), ``images/``
 (each job's desired image, PNG) and ``runs/`` (a recording per run). A job's row and

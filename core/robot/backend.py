@@ -1,6 +1,6 @@
 """The one interface through which the loop and the app move a robot.
 
-A backend is what a robot controller offers a host (JRC-PROTOCOL.md): read the flange
+A backend is what a robot controller offers a host (docs/robot-link.md): read the flange
 pose it computes with its own model, servo power, linear moves to Cartesian targets
 (absolute and incremental) that it executes on its own, the end of a motion, hold and
 alarms. The kinematic simulator and the JRC link implement it alike, so the loop, the

@@ -1,6 +1,6 @@
 """The data link of the Yaskawa host-control protocol: BSC-like blocks over RS-232.
 
-JRC-PROTOCOL.md describes it. A message (a header such as ``01,000`` and a CR-ended
+docs/robot-link.md describes it. A message (a header such as ``01,000`` and a CR-ended
 text) travels as one exchange: the sender bids with ENQ and the receiver answers ACK0;
 each block follows, ``SOH header STX text ETX|ETB BCC`` for the first and
 ``STX text ETX|ETB BCC`` for the others, and is answered with ACK1, ACK0, ACK1 ... in

@@ -1,6 +1,6 @@
 """The JRC over RS-232: a RobotBackend speaking the Yaskawa host commands.
 
-Each method is one or two host commands (JRC-PROTOCOL.md): a ``01,000`` message sent
+Each method is one or two host commands (docs/robot-link.md): a ``01,000`` message sent
 over the BSC link (core/robot/bsc.py) and the JRC's reply, ``90,000`` with a
 status code or ``90,001`` with data. The commands used: RPOSC (pose), RSTATS (status),
 RALARM (alarm text), RESET and CANCEL, SVON, HOLD, MOVL (linear move to a Cartesian

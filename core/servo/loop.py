@@ -1,6 +1,6 @@
 """The look-and-move loop: measure, control, convert, command, and watch for failure.
 
-One cycle (ARCHITECTURE.md): the cell's measurement becomes image features (laser depth
+One cycle (docs/architecture.md): the cell's measurement becomes image features (laser depth
 from the NOMINAL laser and camera), the control law turns them into a camera twist cVc,
 the nominal eVc carries it to the flange, the step policy makes it a robot command from
 the flange pose the robot reports, and the robot backend (the simulator, or the JRC

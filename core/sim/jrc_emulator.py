@@ -1,6 +1,6 @@
 """An emulator of the JRC's side of the host link, on the kinematic simulator.
 
-It answers the host commands of JRC-PROTOCOL.md over a real serial device (a
+It answers the host commands of docs/robot-link.md over a real serial device (a
 pseudo-terminal it creates, or a given port) with its own controller state: servo power,
 the three holds (pendant, external, command), an alarm, and one motion at a time. The
 robot is a SimulatedCell, the same plant the simulated camera looks at: a MOVL or IMOV

@@ -1,4 +1,4 @@
-"""A pseudo-terminal pair in raw mode: a serial line without hardware (ENVIRONMENT.md).
+"""A pseudo-terminal pair in raw mode: a serial line without hardware (docs/robot-link.md, "The emulator").
 
 The JRC emulator keeps the master end; the host opens the slave's device path
 with pyserial, as it would open /dev/ttyS0. The slave is put in raw mode before anything

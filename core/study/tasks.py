@@ -1,5 +1,5 @@
 """The servo tasks of the thesis's simulation study (Tables 5-1, 5-2) and the robustness
-test (Table 5-3), as THESIS-NOTES section 6 reads them.
+test (Table 5-3), as docs/thesis-notes.md section 6 reads them.
 
 A task is an initial and a desired pose of the cube frame O in the camera frame C
 (cMo, Table 5-1's convention: X, Y, Z in m, R = Rz(phi) Ry(theta) Rx(psi)). The cube's

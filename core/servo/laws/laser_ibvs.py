@@ -19,7 +19,7 @@ Three stages, each a law of its own, switched on image errors:
 - Stage 3: classic IBVS with the constant interaction matrix at the desired features and
   depth (eqs. 4-50, 4-51) until ||f_d - f|| is below the final threshold.
 
-Interpretation (THESIS-NOTES section 5). Fig. 4-5 shifts the desired corners to the
+Interpretation (docs/thesis-notes.md section 5). Fig. 4-5 shifts the desired corners to the
 current spot; from 0.42 m the part's image is less than half the desired size and no
 rotation can make the corners match that, so ||f_id - f|| would never fall below f0.
 The imaginary features therefore also take the current pattern's scale (about the
