@@ -42,7 +42,7 @@ class CalibrationFailed(RuntimeError):
 
 
 def bar_fraction(line: str) -> float | None:
-    """How far a progress bar line (core/progress.py) is, 0..1; None for other lines."""
+    """How far a progress bar line (core/terminal/progress.py) is, 0..1; None for other lines."""
     match = _BAR.search(line)
     if match is None:
         return None

@@ -15,13 +15,13 @@ from vservo.core.calibration.cli import add_calibrate_command, add_calibration_b
 from vservo.core.cell.cli import add_info_command
 from vservo.core.cell.config import ROBOT_BACKENDS, ConfigError, load_cell
 from vservo.core.cell.kinematics import KinematicsError
-from vservo.core.command_line import BenchCommand, Parser, positive, print_result
 from vservo.core.perception.cli import add_detect_command
 from vservo.core.production.cli import BACKEND_HELP, add_production_commands
 from vservo.core.production.storage import StoreError, default_data_dir
 from vservo.core.robot.backend import RobotError
 from vservo.core.sim.cli import add_jrc_emulator_command
 from vservo.core.study.cli import add_jrc_bench, add_study_commands, add_vision_bench
+from vservo.core.terminal.command_line import BenchCommand, Parser, positive, print_result
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:

@@ -12,10 +12,10 @@ study        the thesis's tasks, Monte Carlo, reports, figures, benches
 
 A layer imports only layers above it in this list (tests/test_layers.py checks it on
 the import graph), so nothing in perception, servo or robot sees the simulator and
-production never depends on the study. Two modules import nothing of vservo and serve
-every layer: progress.py, a terminal progress bar, and command_line.py, what the layers'
-own cli.py modules share (each registers its commands on the parser that
-vservo.app.cli builds).
+production never depends on the study. Under all of them, terminal/ holds what every
+layer's command line shares (each layer registers its commands from its own cli.py on
+the parser that vservo.app.cli builds) and the progress bar; it imports nothing else of
+vservo.
 """
 
 if __name__ != "vservo.core":  # a second copy under another name would split every class and enum in two

@@ -1,10 +1,11 @@
 """The layers of vservo.core, checked on the import graph of the installed package.
 
 core/ holds one folder per layer, lowest first (core/__init__.py): a module imports only
-its own layer and the layers before it, so perception, servo and robot never see the
-simulator and production never depends on the study; nothing under core imports the app;
-and there is no import cycle anywhere in vservo. Every import counts: at module level,
-inside a function, and under TYPE_CHECKING (a cycle of type hints is still a cycle).
+its own layer and the layers before it (terminal/ lies under them all and imports no
+layer), so perception, servo and robot never see the simulator and production never
+depends on the study; nothing under core imports the app; and there is no import cycle
+anywhere in vservo. Every import counts: at module level, inside a function, and under
+TYPE_CHECKING (a cycle of type hints is still a cycle).
 """
 
 from __future__ import annotations
@@ -54,10 +55,10 @@ def import_graph(modules: dict[str, Path]) -> Graph:
 
 def layer_of(module: str) -> int | None:
     """The rank of a module of vservo.core: its layer's place in LAYERS, -1 for the core
-    package itself and progress.py (imports nothing, serves every layer); None elsewhere."""
-    if module in ("vservo.core", "vservo.core.progress"):
-        return -1
+    package itself and terminal/ (the base every layer may use); None elsewhere."""
     parts = module.split(".")
+    if module == "vservo.core" or parts[:3] == ["vservo", "core", "terminal"]:
+        return -1
     if parts[:2] != ["vservo", "core"] or len(parts) < 3 or parts[2] not in LAYERS:
         return None
     return LAYERS.index(parts[2])
@@ -74,8 +75,8 @@ def layer_violations(graph: Graph) -> list[str]:
                 found.append(f"{module} imports {target}: nothing under core imports the app")
             elif (rank := layer_of(module)) is not None and (target_rank := layer_of(target)) is not None \
                     and target_rank > rank:
-                below = LAYERS[target_rank]
-                found.append(f"{module} imports {target}: {LAYERS[rank] if rank >= 0 else module} may not import {below}")
+                importer = LAYERS[rank] if rank >= 0 else "terminal"
+                found.append(f"{module} imports {target}: {importer} may not import {LAYERS[target_rank]}")
     return found
 
 
@@ -121,6 +122,7 @@ def test_the_checks_catch_what_they_are_for():
         "vservo.core.production.assembly": {"vservo.core.study.run"},
         "vservo.core.cell.config": {"vservo.app.server"},
         "vservo.core.geometry.spatial": set(),
+        "vservo.core.terminal.progress": {"vservo.core.geometry.spatial"},
         "vservo.app.server": {"vservo.app.teach_panel"},
         "vservo.app.teach_panel": {"vservo.app.server"},
     }
@@ -129,7 +131,8 @@ def test_the_checks_catch_what_they_are_for():
     assert any("robot.jrc imports vservo.core.sim" in line for line in lines)
     assert any("production.assembly imports vservo.core.study.run" in line for line in lines)
     assert any("core.cell.config imports vservo.app.server" in line for line in lines)
-    assert len(lines) == 4
+    assert any("terminal.progress imports vservo.core.geometry.spatial" in line for line in lines)
+    assert len(lines) == 5
     assert import_cycles(broken) == [["vservo.app.server", "vservo.app.teach_panel"]]
 
 

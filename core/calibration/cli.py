@@ -11,7 +11,7 @@ from typing import Any
 from vservo.core.calibration.collection import TRUTHS, Workspace
 from vservo.core.calibration.dataset import INPUT_SETS
 from vservo.core.calibration.tracking import TrackingSettings
-from vservo.core.command_line import BenchCommand, print_result
+from vservo.core.terminal.command_line import BenchCommand, print_result
 
 
 def _number(kind: type, low: float, strict: bool) -> Any:

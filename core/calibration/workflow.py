@@ -45,7 +45,7 @@ from vservo.core.calibration.tracking import (
     tracking_summary,
 )
 from vservo.core.cell.config import CellConfig
-from vservo.core.progress import Progress
+from vservo.core.terminal.progress import Progress
 
 CLASSICAL = ("free_hand_eye", "axxb", "planar_homography")
 NN_FILES = {"planar": "nn", "height": "nn_height", "pose": "nn_pose"}

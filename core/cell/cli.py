@@ -9,8 +9,8 @@ import numpy as np
 
 from vservo.core.cell.config import CellConfig, load_cell
 from vservo.core.cell.kinematics import ArmKinematics
-from vservo.core.command_line import print_result
 from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
+from vservo.core.terminal.command_line import print_result
 from vservo.robot_models.loader import load_arm
 
 

@@ -7,7 +7,7 @@ import argparse
 import numpy as np
 
 from vservo.core.cell.config import load_cell
-from vservo.core.command_line import print_result
+from vservo.core.terminal.command_line import print_result
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:

@@ -9,8 +9,8 @@ import sys
 import threading
 
 from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
-from vservo.core.command_line import print_result
 from vservo.core.production.storage import default_data_dir
+from vservo.core.terminal.command_line import print_result
 
 BACKEND_HELP = ("the robot: sim drives the simulator directly, jrc through the JRC link to an emulated JRC "
                 "on a pseudo-terminal (default: the cell file's [robot] backend)")

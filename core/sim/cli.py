@@ -7,7 +7,7 @@ import sys
 import threading
 
 from vservo.core.cell.config import load_cell
-from vservo.core.command_line import fraction, positive
+from vservo.core.terminal.command_line import fraction, positive
 
 
 def _cmd_jrc_emulator(args: argparse.Namespace) -> int:

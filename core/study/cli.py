@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 
 from vservo.core.cell.config import load_cell
-from vservo.core.command_line import BenchCommand, fraction, positive, print_result
 from vservo.core.geometry.spatial import Matrix
+from vservo.core.terminal.command_line import BenchCommand, fraction, positive, print_result
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -76,9 +76,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_montecarlo(args: argparse.Namespace) -> int:
-    from vservo.core.progress import Progress
     from vservo.core.study.montecarlo import run_montecarlo
     from vservo.core.study.run import RunSettings
+    from vservo.core.terminal.progress import Progress
 
     config = load_cell(args.cell)
     progress = Progress(args.n, f"montecarlo {args.method}")
@@ -127,8 +127,8 @@ def _cmd_bench_vision(args: argparse.Namespace) -> int:
 def _cmd_bench_jrc(args: argparse.Namespace) -> int:
     config = load_cell(args.cell)
     if args.soak:
-        from vservo.core.progress import Progress
         from vservo.core.study.link_soak import run_soak
+        from vservo.core.terminal.progress import Progress
 
         progress = Progress(args.soak, "soak")
         result = run_soak(config, args.soak, args.fault_rate, args.seed, args.time_scale, args.timer_a, args.timer_b,

@@ -16,7 +16,6 @@ from typing import Any
 import numpy as np
 
 from vservo.core.cell.config import CellConfig, parse_cell, read_cell_bytes, read_cell_data
-from vservo.core.progress import Progress
 from vservo.core.servo.methods import METHODS
 from vservo.core.study import canvas, plots, provenance
 from vservo.core.study.montecarlo import run_montecarlo
@@ -29,6 +28,7 @@ from vservo.core.study.tasks import (
     distance_to_thesis_set,
     robustness_cell,
 )
+from vservo.core.terminal.progress import Progress
 
 MONTECARLO_METHODS = ("laser", "ibvs", "2.5d")
 CORNER_COLORS = ((180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214))  # BGR, one per corner

@@ -1,8 +1,7 @@
 """What every layer's commands share: the parser, argument types, the result printer, ``bench``.
 
 Each layer with commands registers them from its own ``cli.py`` on the subcommands that
-``vservo.app.cli.build_parser`` creates. Like progress.py, this module imports nothing of
-vservo, so that every layer may use it.
+``vservo.app.cli.build_parser`` creates.
 """
 
 from __future__ import annotations
