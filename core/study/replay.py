@@ -62,7 +62,7 @@ def replay(folder: str | Path, cell_path: str | Path | None = None) -> dict[str,
     settings = RunSettings(**{**settings_record, "record_to": None})
     desired = _desired(description["desired"])
     model = load_cell(cell_path).nominal
-    law = build_law(model, settings.law)
+    law = build_law(model, settings)
     extractor = ImageFeatureExtractor(model.camera, model.laser, front_winding(Cube(np.eye(4)).corners_o))
 
     corner_differences, twist_differences = [], []

@@ -35,27 +35,15 @@ from vservo.core.study.tasks import ServoTask
 
 
 @dataclass(frozen=True)
-class RunSettings:
-    """What a study run may change; the defaults are the thesis's (all gains 1)."""
+class RunSettings(LawSettings):
+    """What a study run may change: the control law's settings and the run's own; the
+    defaults are the thesis's (all gains 1)."""
 
-    method: str = "laser"
-    gain: float = 1.0
     dt_s: float = 0.1
     max_iterations: int = 3000
-    k_rotation: float = 1.0  # K2 of the laser method (eq. 4-49)
-    ibvs_interaction: str = "current"
-    ibvs_depth: str = "exact"
-    pbvs_pose: str = "pnp"
-    final_threshold_px: float = 1.0
     features: str = "projected"  # or "rendered": detected in the simulated camera's images
     render: RenderSettings = RenderSettings()
     record_to: str | None = None  # a folder for the run's recording (frames and cycles)
-
-    @property
-    def law(self) -> LawSettings:
-        """The control law's part of the settings."""
-        return LawSettings(self.method, self.gain, self.k_rotation, self.ibvs_interaction, self.ibvs_depth,
-                           self.pbvs_pose, self.final_threshold_px)
 
 
 def perception_for(cell: SimulatedCell, model: CellModel, settings: RunSettings, camera: FrameSource | None = None
@@ -173,7 +161,7 @@ def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: i
 
     outcome = run_servo(
         cell,
-        build_law(model, settings.law),
+        build_law(model, settings),
         desired,
         model,
         policy or IntegratedVelocity(settings.dt_s),
