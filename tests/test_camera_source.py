@@ -313,3 +313,51 @@ def test_image_folder_errors(tmp_path: Path) -> None:
     assert source.read().timestamp_s == 100.0
     with pytest.raises(CameraSourceError, match=r"b\.png.*10x10.*64x48"):
         source.read()
+
+
+class ManualClock:
+    """A clock that moves only when the source sleeps (or the test sets it)."""
+
+    def __init__(self, now: float) -> None:
+        self.now = now
+        self.slept: list[float] = []
+
+    def __call__(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.slept.append(seconds)
+        self.now += seconds
+
+
+def test_read_after_waits_out_the_latency_and_discards_the_buffer(video: Path) -> None:
+    """Over a real capture: the wait to t + latency, then buffer_frames frames discarded."""
+    clock = ManualClock(100.0)
+    with VideoCaptureSource(str(video), exposure_latency_s=0.1, buffer_frames=2, clock=clock, sleep=clock.sleep) as source:
+        motion_ended_s = 99.98  # 20 ms ago: 80 ms of the latency are still to come
+        frame = source.read_after(motion_ended_s)
+        assert clock.slept == [pytest.approx(0.08)]
+        assert bar_index(frame.image) == 2 and frame.index == 2  # frames 0 and 1 waited in the buffer
+        assert frame.timestamp_s == pytest.approx(motion_ended_s)  # read at t + latency: exposed at t
+
+        clock.now = 101.0  # the latency has passed since this motion ended: no wait
+        frame = source.read_after(100.5)
+        assert len(clock.slept) == 1
+        assert bar_index(frame.image) == 5 and frame.timestamp_s == pytest.approx(100.9)
+
+        with pytest.raises(CameraSourceError, match=r"video file .*0\.500 s ahead of the source's clock"):
+            source.read_after(101.5)
+        with pytest.raises(SourceLost, match="end of video file"):  # 6 and 7 discarded, then the end
+            source.read_after(101.0)
+
+
+def test_read_after_without_latency_or_buffer_is_the_next_frame(video: Path) -> None:
+    with VideoCaptureSource(str(video), clock=fake_clock(), sleep=pytest.fail) as source:
+        assert [bar_index(source.read_after(0.0).image) for _ in range(3)] == [0, 1, 2]
+
+
+def test_an_image_folder_reads_after_any_time_its_next_image(tmp_path: Path) -> None:
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / f"{i:02d}.png"), np.full((4, 6), 10 * i, np.uint8))
+    with ImageFolderSource(tmp_path, timestamps=[0.0, 0.1]) as source:
+        assert [source.read_after(5.0).index for _ in range(2)] == [0, 1]

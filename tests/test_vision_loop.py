@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+import time
 
 import cv2
 import numpy as np
@@ -193,3 +194,5 @@ def test_a_simulated_camera_is_a_frame_source(cell_config):
         assert isinstance(first, Frame) and (first.index, second.index) == (0, 1)
         assert first.image.shape == (480, 640) and camera.image_size == (640, 480)
         assert not np.array_equal(first.image, second.image)  # fresh noise every frame
+        # The current view, whichever clock the robot's motion ended on (the host's for the JRC link).
+        assert camera.read_after(time.monotonic()).index == 2

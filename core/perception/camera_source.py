@@ -7,10 +7,16 @@ always monochrome 8-bit (H, W) arrays, the camera of the cell being monochrome: 
 frames are converted to grey and 16-bit frames keep their high byte (``to_mono8``).
 
 Timestamps depend on the source: a live source (camera, stream, video file played as if
-live) stamps each frame with a monotonic clock when ``read`` gets it, playback of a
-recording (``vservo.core.perception.recording.PlaybackSource``) gives the recorded time and a simulated
-source the simulation time. Only differences between the timestamps of one source mean
-anything. Sizes are (width, height) in pixels, as OpenCV and ``CameraModel`` give them;
+live) stamps each frame with a monotonic clock when ``read`` gets it, less its
+``exposure_latency_s``, playback of a recording
+(``vservo.core.perception.recording.PlaybackSource``) gives the recorded time and a
+simulated source the simulation time. Only differences between the timestamps of one
+source mean anything.
+
+``read_after(t_s)`` is what the look-and-move loop calls: a frame exposed after the
+robot's last motion ended at ``t_s`` on the robot's clock, never one that waited in a
+buffer through the motion (docs/vision.md, "No stale frames", says how each source kind
+guarantees it). Sizes are (width, height) in pixels, as OpenCV and ``CameraModel`` give them;
 ``Frame.image`` has the numpy shape (height, width).
 
 Sources are not thread-safe: one consumer reads each source.
@@ -46,11 +52,12 @@ class SourceLost(CameraSourceError):
 
 @dataclass(frozen=True, eq=False)
 class Frame:
-    """One monochrome image and when it was taken.
+    """One monochrome image and when it was exposed.
 
     image: uint8 array of shape (height, width).
-    timestamp_s: seconds; a monotonic clock for live sources, the recorded time for
-      playback, the simulation time for a simulated source.
+    timestamp_s: seconds; for live sources a monotonic clock when the frame was read less
+      the source's exposure latency, the recorded time for playback, the simulation time
+      for a simulated source.
     index: the source's frame counter, 0 for its first frame.
     Frames compare by identity (``eq=False``): comparing the pixels is the caller's choice.
     """
@@ -91,6 +98,11 @@ class FrameSource(Protocol):
 
     def read(self) -> Frame:
         """The next frame; raises SourceLost when the source cannot deliver anymore."""
+        ...
+
+    def read_after(self, t_s: float) -> Frame:
+        """A frame exposed at or after ``t_s``, a time on the robot's clock (``clock_s``):
+        the end of the last motion, so the frame shows where the robot stopped."""
         ...
 
     def close(self) -> None:
@@ -216,8 +228,15 @@ class VideoCaptureSource(BaseSource):
       before each attempt; then SourceLost. A video file is never reopened for a failed
       read: its end raises SourceLost("end of video file ..."), or rewinds with ``loop``.
     loop: replay a video file from its start when it ends (files only).
-    clock / sleep: the timestamp clock and the wait between reconnections, injectable
-      so tests neither wait nor depend on the time of day.
+    exposure_latency_s: from the middle of a frame's exposure to ``read`` returning it
+      when nothing waits in a buffer (exposure, transfer, encoding, network, decoding);
+      a frame is stamped with the time it was read less this latency.
+    buffer_frames: the most frames that can wait between the camera and ``read`` (the
+      driver's queue, the stream's and the decoder's buffers): ``read_after`` discards
+      this many before it keeps one.
+    clock / sleep: the timestamp clock, the wait between reconnections and the wait for
+      a fresh frame, injectable so tests neither wait nor depend on the time of day. The
+      clock must be the robot's (``time.monotonic`` for the JRC link) for ``read_after``.
     opener: makes a capture from the spec, ``cv2.VideoCapture`` by default; tests inject
       fakes that fail and recover.
 
@@ -235,6 +254,8 @@ class VideoCaptureSource(BaseSource):
         reconnect_attempts: int = 3,
         reconnect_delay_s: float = 0.5,
         loop: bool = False,
+        exposure_latency_s: float = 0.0,
+        buffer_frames: int = 0,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
         opener: Callable[[int | str], CaptureLike] | None = None,
@@ -245,6 +266,10 @@ class VideoCaptureSource(BaseSource):
             raise ValueError(f"reconnect_attempts must be an integer >= 0, got {reconnect_attempts!r}")
         if not (reconnect_delay_s >= 0.0 and math.isfinite(reconnect_delay_s)):
             raise ValueError(f"reconnect_delay_s must be finite and >= 0, got {reconnect_delay_s!r}")
+        if not (exposure_latency_s >= 0.0 and math.isfinite(exposure_latency_s)):
+            raise ValueError(f"exposure_latency_s must be finite and >= 0, got {exposure_latency_s!r}")
+        if isinstance(buffer_frames, bool) or not isinstance(buffer_frames, int) or buffer_frames < 0:
+            raise ValueError(f"buffer_frames must be an integer >= 0, got {buffer_frames!r}")
         self.spec = spec
         self.is_file = is_video_file(spec)
         if loop and not self.is_file:
@@ -253,6 +278,8 @@ class VideoCaptureSource(BaseSource):
         self.reconnect_attempts = reconnect_attempts
         self.reconnect_delay_s = float(reconnect_delay_s)
         self.loop = loop
+        self.exposure_latency_s = float(exposure_latency_s)
+        self.buffer_frames = buffer_frames
         self._clock = clock
         self._sleep = sleep
         self._opener: Callable[[int | str], CaptureLike] = opener if opener is not None else cv2.VideoCapture
@@ -332,7 +359,7 @@ class VideoCaptureSource(BaseSource):
         image = self._read_once()
         if image is None:
             image = self._rewind() if self.is_file else self._reconnect()
-        timestamp = float(self._clock())
+        timestamp = float(self._clock()) - self.exposure_latency_s
         mono = to_mono8(image)
         height, width = mono.shape
         if self.expected_size is not None and (width, height) != self.expected_size:
@@ -344,6 +371,35 @@ class VideoCaptureSource(BaseSource):
         frame = Frame(mono, timestamp, self._next_index)
         self._next_index += 1
         return frame
+
+    def read_after(self, t_s: float) -> Frame:
+        """A frame exposed at or after ``t_s`` (this source's clock, which must be the robot's).
+
+        The capture's frames carry no exposure time we can trust (CAP_PROP_POS_MSEC is a
+        position in the stream, not a time on our clock), so freshness follows from two
+        settings instead. A frame exposed at or after t_s reaches the buffer no earlier
+        than t_s + exposure_latency_s; so once the clock has passed that moment, the
+        buffer holds only older frames, at most ``buffer_frames`` of them. Waiting until
+        then, discarding ``buffer_frames`` frames and keeping the next is therefore
+        enough, whatever the frame rate. A buffer that was not full costs a frame period
+        per surplus discard; after a motion, when nothing read the camera, it is full.
+
+        Raises CameraSourceError when t_s is ahead of the clock (the robot's clock and
+        this source's are not the same one), SourceLost as ``read`` does.
+        """
+        self._check_open()
+        now = float(self._clock())
+        if t_s > now:
+            raise CameraSourceError(
+                f"{self._describe()}: asked for a frame exposed after {t_s:.3f} s, {t_s - now:.3f} s ahead of "
+                "the source's clock: the camera source must run on the robot's clock"
+            )
+        wait = t_s + self.exposure_latency_s - now
+        if wait > 0.0:
+            self._sleep(wait)
+        for _ in range(self.buffer_frames):
+            self.read()
+        return self.read()
 
     def _rewind(self) -> np.ndarray:
         """The first frame again at the end of a looping file; SourceLost without ``loop``."""
@@ -459,3 +515,8 @@ class ImageFolderSource(BaseSource):
         frame = Frame(image, timestamp, self._next)
         self._next += 1
         return frame
+
+    def read_after(self, t_s: float) -> Frame:
+        """The next image: a still has no exposure time on the robot's clock, and a dry run
+        on a folder checks the vision, not the timing."""
+        return self.read()

@@ -479,6 +479,11 @@ class PlaybackSource(BaseSource):
         self._delivered += 1
         return frame
 
+    def read_after(self, t_s: float) -> Frame:
+        """The next recorded frame: a recording holds the frames its run used, each already
+        fresh when it was recorded."""
+        return self.read()
+
     def close(self) -> None:
         self._frames.close()
         super().close()

@@ -104,21 +104,25 @@ class MotionStopped(RobotError):
     """A motion ended before its target: held, in alarm or without servo power."""
 
 
-def carry_out(robot: RobotBackend, command: RobotCommand, bMe: Matrix) -> None:
+def carry_out(robot: RobotBackend, command: RobotCommand, bMe: Matrix) -> float:
     """Carry out one step policy command from the flange pose bMe and wait for its end.
 
     A velocity step moves for its control period. A position step (the JRC style,
     section 5.3) moves to its target, waits for the end of the motion, then for the rest
     of the sampling period, so the next target is sent one period after this one.
+    Returns the robot's clock when the motion ended (before that rest): a frame exposed
+    since then shows where the robot stopped.
     Raises MotionStopped when the robot stops short (hold, alarm, servo off).
     """
     started_s = robot.clock_s()
     if isinstance(command, VelocityCommand):
         robot.move_timed(command.target(bMe), command.dt_s)
         _wait_for_the_end(robot)
-    else:
-        move_and_wait(robot, command.bMe_target, command.speed_m_s)
-        robot.dwell(command.period_s - (robot.clock_s() - started_s))
+        return robot.clock_s()
+    move_and_wait(robot, command.bMe_target, command.speed_m_s)
+    ended_s = robot.clock_s()
+    robot.dwell(command.period_s - (ended_s - started_s))
+    return ended_s
 
 
 def move_and_wait(robot: RobotBackend, bMe_target: Matrix, speed_m_s: float) -> None:

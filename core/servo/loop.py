@@ -112,7 +112,11 @@ class Perception(Protocol):
 
     uses_projection: bool
 
-    def perceive(self, measurement: Measurement) -> ImageFeatures: ...
+    def perceive(self, measurement: Measurement, motion_ended_s: float) -> ImageFeatures:
+        """The features seen in a view exposed at or after ``motion_ended_s``, the robot's
+        clock when its last motion ended (look-and-move: never a view from before or
+        during that motion)."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -123,7 +127,8 @@ class ProjectedPerception:
     laser: LaserPointer
     uses_projection: bool = True
 
-    def perceive(self, measurement: Measurement) -> ImageFeatures:
+    def perceive(self, measurement: Measurement, motion_ended_s: float) -> ImageFeatures:
+        # The measurement is the plant at this moment: fresh whenever the motion ended.
         return features_from_measurement(measurement, self.camera, self.laser)
 
 
@@ -183,6 +188,9 @@ def _servo(cell: MeasurementSource, law: ControlLaw, desired: DesiredImage, mode
     spot_hidden_for = 0
     lost_for = 0  # consecutive cycles held with the features lost
     recent_errors: deque[float] = deque(maxlen=limits.progress_window + 1)  # of the current stage
+    # The robot stands still when the loop starts (its caller waited for the last move),
+    # so the first frame must merely be newer than now; later ones newer than each move.
+    motion_ended_s = robot.clock_s()
 
     def finish(converged: bool, failure: Failure | None, reason: str) -> ServoOutcome:
         if failure is not None:
@@ -191,7 +199,7 @@ def _servo(cell: MeasurementSource, law: ControlLaw, desired: DesiredImage, mode
 
     for iteration in range(limits.max_iterations):
         measurement = cell.measure(look=perception.uses_projection)
-        seen = perception.perceive(measurement)
+        seen = perception.perceive(measurement, motion_ended_s)
         if watchdog is not None:
             watchdog.feed("camera")
         if seen.laser_visible:
@@ -239,7 +247,7 @@ def _servo(cell: MeasurementSource, law: ControlLaw, desired: DesiredImage, mode
             # The cycle's one reading of the flange (on a real cell FlangeReadout took it
             # from the robot): a second read would cost another RPOSC on the JRC.
             bMe = measurement.bMe
-            carry_out(robot, policy.command(bMe, eVc @ output.cVc), bMe)
+            motion_ended_s = carry_out(robot, policy.command(bMe, eVc @ output.cVc), bMe)
         except UnreachableTarget as exc:
             return finish(False, Failure.UNREACHABLE, str(exc))
         except RobotError as exc:

@@ -37,3 +37,9 @@ class SimulatedCamera(BaseSource):
         frame = Frame(image, self.cell.state.time_s, self._index)
         self._index += 1
         return frame
+
+    def read_after(self, t_s: float) -> Frame:
+        """The current view: rendered at the moment of reading, it is exposed after any
+        motion that has ended, whichever clock ``t_s`` is on (the plant's for the
+        simulated robot, the host's for the JRC link to the emulator)."""
+        return self.read()

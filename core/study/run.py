@@ -62,7 +62,8 @@ def teach(cell: SimulatedCell, cdMo_true: Matrix, model: CellModel, perception: 
     """Teach the desired image at the true pose cdMo_true (Fig. C-2), with the nominal model."""
     perception = perception or ProjectedPerception(model.camera, model.laser)
     cell.place_camera(cdMo_true)
-    return desired_from_features(perception.perceive(cell.measure()), model.camera, cell.state.scene.cube.side_m)
+    seen = perception.perceive(cell.measure(), cell.state.time_s)  # a view of the camera just placed
+    return desired_from_features(seen, model.camera, cell.state.scene.cube.side_m)
 
 
 @dataclass(frozen=True)

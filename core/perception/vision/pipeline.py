@@ -116,8 +116,10 @@ class CameraPerception:
         self.last_frame: Frame | None = None
         self.uses_projection = False
 
-    def perceive(self, measurement: object = None) -> ImageFeatures:
-        self.last_frame = frame = self.source.read()
+    def perceive(self, measurement: object, motion_ended_s: float) -> ImageFeatures:
+        """The features of the first frame the source exposed at or after ``motion_ended_s``
+        (the robot's clock): never a frame that waited in a buffer through the motion."""
+        self.last_frame = frame = self.source.read_after(motion_ended_s)
         features, self.last_report = self.extractor.extract(frame.image, self.previous_corners_px)
         if features.all_corners_visible:
             self.previous_corners_px = features.corners_px
