@@ -59,7 +59,7 @@ class QueuedCamera(BaseSource):
 
     def read_after(self, t_s: float) -> Frame:
         # The frame a read exposes is newer than t_s, so the queue's length plus one
-        # reads always find one: the bound never trips unless read_after is wrong.
+        # reads always find one: the bound trips only for a t_s ahead of the plant's clock.
         for _ in range(len(self.queue) + 1):
             frame = self.read()
             if frame.timestamp_s >= t_s:

@@ -11,13 +11,13 @@ live) stamps each frame with a monotonic clock when ``read`` gets it, less its
 ``exposure_latency_s``, playback of a recording
 (``vservo.core.perception.recording.PlaybackSource``) gives the recorded time and a
 simulated source the simulation time. Only differences between the timestamps of one
-source mean anything.
+source mean anything. Sizes are (width, height) in pixels, as OpenCV and ``CameraModel``
+give them; ``Frame.image`` has the numpy shape (height, width).
 
 ``read_after(t_s)`` is what the look-and-move loop calls: a frame exposed after the
 robot's last motion ended at ``t_s`` on the robot's clock, never one that waited in a
 buffer through the motion (docs/vision.md, "No stale frames", says how each source kind
-guarantees it). Sizes are (width, height) in pixels, as OpenCV and ``CameraModel`` give them;
-``Frame.image`` has the numpy shape (height, width).
+guarantees it).
 
 Sources are not thread-safe: one consumer reads each source.
 """
@@ -228,12 +228,13 @@ class VideoCaptureSource(BaseSource):
       before each attempt; then SourceLost. A video file is never reopened for a failed
       read: its end raises SourceLost("end of video file ..."), or rewinds with ``loop``.
     loop: replay a video file from its start when it ends (files only).
-    exposure_latency_s: from the middle of a frame's exposure to ``read`` returning it
-      when nothing waits in a buffer (exposure, transfer, encoding, network, decoding);
-      a frame is stamped with the time it was read less this latency.
+    exposure_latency_s: the longest time from a frame's exposure until ``read`` can
+      return it (exposure, transfer, encoding, network, decoding); a frame is stamped
+      with the time it was read less this latency.
     buffer_frames: the most frames that can wait between the camera and ``read`` (the
       driver's queue, the stream's and the decoder's buffers): ``read_after`` discards
-      this many before it keeps one.
+      this many before it keeps one. Both are upper bounds: too large costs time, too
+      small lets a stale frame through.
     clock / sleep: the timestamp clock, the wait between reconnections and the wait for
       a fresh frame, injectable so tests neither wait nor depend on the time of day. The
       clock must be the robot's (``time.monotonic`` for the JRC link) for ``read_after``.
@@ -377,9 +378,10 @@ class VideoCaptureSource(BaseSource):
 
         The capture's frames carry no exposure time we can trust (CAP_PROP_POS_MSEC is a
         position in the stream, not a time on our clock), so freshness follows from two
-        settings instead. A frame exposed at or after t_s reaches the buffer no earlier
-        than t_s + exposure_latency_s; so once the clock has passed that moment, the
-        buffer holds only older frames, at most ``buffer_frames`` of them. Waiting until
+        settings instead. No read returns a frame exposed at or after t_s before
+        t_s + exposure_latency_s; so once the clock has passed that moment, the frames
+        a read can return at once are older ones, at most ``buffer_frames`` of them, and
+        any frame after them arrived later, exposed at or after t_s. Waiting until
         then, discarding ``buffer_frames`` frames and keeping the next is therefore
         enough, whatever the frame rate. A buffer that was not full costs a frame period
         per surplus discard; after a motion, when nothing read the camera, it is full.
