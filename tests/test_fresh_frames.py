@@ -11,11 +11,15 @@ time of every frame the loop used with the end of the motion before it.
 
 from collections import deque
 
+import numpy as np
 import pytest
 
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import transform
 from vservo.core.perception.camera_source import BaseSource, CameraSourceError, Frame, Size
+from vservo.core.production.cell_controller import CellController
+from vservo.core.production.rig import simulated_rig
+from vservo.core.production.storage import Store
 from vservo.core.servo.loop import Cycle
 from vservo.core.sim.backend import SimulatedBackend
 from vservo.core.sim.camera import SimulatedCamera
@@ -123,3 +127,22 @@ def test_every_cycle_uses_a_frame_exposed_after_the_previous_motion_ended(cell_c
     assert len(used) == result.outcome.iterations > 10
     stale = [(i, exposed, still) for i, (exposed, still) in enumerate(used) if exposed < still]
     assert not stale, f"{len(stale)} of {len(used)} cycles used a frame exposed before the motion ended: {stale[:3]}"
+
+
+def test_the_desired_image_is_captured_from_where_the_jog_stopped(cell_config, tmp_path):
+    rig = simulated_rig(cell_config, seed=3)
+    rig.camera = camera = QueuedCamera(rig.cell)
+    store = Store(tmp_path / "data")
+    controller = CellController(rig, store, seed=3)
+    try:
+        demo = store.load_job("demo")
+        controller.begin_teach()
+        controller.move_to(demo.start_bMe)
+        controller.move_to(demo.taught_bMe)  # the queue still holds views of the start pose
+        stopped_s = rig.robot.clock_s()
+        desired = controller.capture_desired()
+    finally:
+        controller.close()
+        store.close()
+    assert camera.last_read.timestamp_s >= stopped_s
+    np.testing.assert_allclose(desired.corners_px, demo.desired.corners_px, atol=0.05)

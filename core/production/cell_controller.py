@@ -158,12 +158,19 @@ class CellController:
         q = self.rig.cell.state.q.tolist() if self.rig.cell is not None else []
         return {"bMe": bMe.tolist(), "q": q, "holding_part": self.rig.gripper.holding()}
 
-    def look(self) -> tuple[Frame, ImageFeatures]:
-        """Grab one frame, detect in it and publish it (the live view while no run owns the camera)."""
+    def look(self, fresh: bool = False) -> tuple[Frame, ImageFeatures]:
+        """Grab one frame, detect in it and publish it (the live view while no run owns the camera).
+
+        fresh: a frame exposed after this moment, never one a camera's buffer held through
+          the last jog (docs/vision.md, "No stale frames"). Between commands the robot
+          stands still, so such a frame shows where it stopped: what a capture needs, at
+          the cost of the camera's latency, which the live view does not pay.
+        """
         with self._lock:
             if self.running:
                 raise CommandRefused("the assembly run owns the camera")
-            frame = self.rig.camera.read()
+            camera = self.rig.camera
+            frame = camera.read_after(self.rig.robot.clock_s()) if fresh else camera.read()
         features, _ = self.rig.extractor.extract(frame.image)
         self._publish_frame(FrameView(frame, features.corners_px, features.laser_spot_px, self._desired, None))
         return frame, features
@@ -250,7 +257,7 @@ class CellController:
         """Take the desired image here (Fig. C-2): the four corners and the laser spot must be seen."""
         with self._lock:
             self._require(Phase.TEACHING)
-            frame, features = self.look()
+            frame, features = self.look(fresh=True)
             try:
                 desired = desired_from_features(features, self.rig.config.nominal.camera, part_side_m)
             except TeachError as exc:
