@@ -6,7 +6,8 @@ queue of a fixed length before a read gets it, one frame period per read, as a c
 buffer and a stream's delay hold frames. A plain read after a move therefore returns a
 view from before the move. The robot is the simulator, which notes its clock whenever it
 stands still (connected, or at the end of each motion); the test compares the exposure
-time of every frame the loop used with the end of the motion before it.
+time of every frame the loop used with the end of the motion before it, and the frame a
+taught desired image came from with the end of the jog before the capture.
 """
 
 from collections import deque
