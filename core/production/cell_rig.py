@@ -42,7 +42,8 @@ def real_rig(config: CellConfig) -> Rig:
     if not isinstance(policy, DividedPositionStep):
         raise ConfigError(f"{config.source}: the JRC takes position steps; set [motion] mode = \"position_steps\"")
     model = config.nominal
-    camera = open_camera(config.camera_source, model.camera.intrinsics.image_size_px)
+    intrinsics = model.camera.intrinsics
+    camera = open_camera(config.camera_source, (intrinsics.width, intrinsics.height))
     jrc = JrcBackend(config.jrc)
     vacuum = config.vacuum_device
     gripper: VacuumGripper = (JrcVacuum(jrc, vacuum.suction_output, vacuum.grip_input)
