@@ -34,19 +34,20 @@ SIM_FOLDER = Path(resources.files("vservo.core.sim"))
 # it and the package's empty __init__ are loaded by every `vservo` command.
 SIMULATOR_MODULES = {f"vservo.core.sim.{path.stem}" for path in SIM_FOLDER.glob("*.py")} - {
     "vservo.core.sim.__init__", "vservo.core.sim.cli"}
-VACUUM_IO = 'device = "jrc_io"\nsuction_output = 27013\ngrip_input = 20\n'
+VACUUM_IO = '"jrc_io"\nsuction_output = 27013\ngrip_input = 20'
 
 
 def real_cell_text(port: str, camera_source: str, vacuum: str = VACUUM_IO) -> str:
-    """The shipped cell as a real one: the JRC on ``port``, the camera and vacuum given."""
+    """The shipped cell as a real one: the JRC on ``port``, the camera source (the value of
+    [camera.source] kind and its keys) and the vacuum device (likewise) given."""
     text = resources.files("vservo.static").joinpath("cell.toml").read_text()
-    keys = {"backend": '"jrc"', "port": f'"{port}"', "sampling_period_s": "0.05",
-            **{key: str(value) for key, value in TEST_LINE.items()}}
+    # The vacuum's device before the camera's kind, which may bring a capture's own device key.
+    keys = {"backend": '"jrc"', "port": f'"{port}"', "sampling_period_s": "0.05", "device": vacuum,
+            "kind": camera_source, **{key: str(value) for key, value in TEST_LINE.items()}}
     for key, value in keys.items():
         text, count = re.subn(rf"^{key} = .*$", f"{key} = {value}", text, flags=re.MULTILINE)
         assert count == 1, key
-    text = text.replace("[vacuum]\n", f"[vacuum]\n{vacuum}")
-    return text + f"\n[camera.source]\n{camera_source}\n"
+    return text
 
 
 def loaded_modules(importtime_log: str) -> set[str]:
@@ -81,7 +82,7 @@ def test_a_real_cell_assembles_through_the_jrc_and_an_image_folder_without_loadi
     wiring = VacuumDeviceConfig("jrc_io", suction_output=27013, grip_input=20)
     with JrcEmulator(cell, shipped.jrc, time_scale=TIME_SCALE, vacuum=wiring) as emulator:
         cell_file = tmp_path / "real-cell.toml"
-        cell_file.write_text(real_cell_text(emulator.device, 'kind = "folder"\npath = "frames"'))
+        cell_file.write_text(real_cell_text(emulator.device, '"folder"\npath = "frames"'))
         config = load_cell(cell_file)
         assert config.vacuum_device == wiring
         run = subprocess.run(
@@ -114,12 +115,12 @@ def test_a_real_cells_camera_is_checked_when_the_rig_is_built(tmp_path):
     frames.mkdir()
     cv2.imwrite(str(frames / "0000.png"), np.zeros((600, 800), np.uint8))
     cell_file = tmp_path / "cell.toml"
-    cell_file.write_text(real_cell_text("/dev/null", 'kind = "folder"\npath = "frames"', vacuum='device = "none"\n'))
+    cell_file.write_text(real_cell_text("/dev/null", '"folder"\npath = "frames"', vacuum='"none"'))
     with pytest.raises(ConfigError, match=r"0000.png' is 800x600, the camera's image_size_px is 640x480"):
         build_rig(load_cell(cell_file))
     with pytest.raises(ConfigError, match="not by the 'sim' backend"):
         build_rig(load_cell(cell_file), backend="sim")
-    cell_file.write_text(real_cell_text("/dev/null", f'kind = "capture"\ndevice = "{tmp_path / "none.avi"}"',
-                                        vacuum='device = "none"\n'))
+    cell_file.write_text(real_cell_text("/dev/null", f'"capture"\ndevice = "{tmp_path / "none.avi"}"',
+                                        vacuum='"none"'))
     with pytest.raises(CameraSourceError, match="none.avi.*no such file"):
         build_rig(load_cell(cell_file))
