@@ -26,8 +26,9 @@ def short_timer_cell(**sections):
 
 @contextmanager
 def jrc_link(cell, config, faults=FaultPlan(), time_scale=TIME_SCALE):
-    """(a connected JrcBackend, the emulator of ``cell`` it talks to over a pty)."""
-    with JrcEmulator(cell, config.jrc, faults, time_scale) as emulator:
+    """(a connected JrcBackend, the emulator of ``cell`` it talks to over a pty, its I/O
+    wired as the cell file's [vacuum] says)."""
+    with JrcEmulator(cell, config.jrc, faults, time_scale, vacuum=config.vacuum_device) as emulator:
         robot = JrcBackend(config.jrc, emulator.device)
         robot.connect()
         try:

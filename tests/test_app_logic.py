@@ -23,7 +23,7 @@ from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController
 from vservo.core.production.channel import Reply
 from vservo.core.production.jobs import read_job_file
-from vservo.core.production.rig import simulated_rig
+from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import DEMO_JOB, Store, shipped_job_path
 
 # -- roles -------------------------------------------------------------------------------------

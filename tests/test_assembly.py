@@ -13,7 +13,7 @@ from vservo.app.cli import main
 from vservo.core.cell.config import load_cell
 from vservo.core.production.assembly import Outcome, Phase
 from vservo.core.production.cell_controller import CellController, CommandRefused
-from vservo.core.production.rig import simulated_rig
+from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
 
 

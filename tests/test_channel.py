@@ -12,7 +12,7 @@ from vservo.core.cell.config import load_cell
 from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController
 from vservo.core.production.channel import APP_GONE, ChannelError, ControllerClient, ControllerServer, new_key
-from vservo.core.production.rig import simulated_rig
+from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.safety import SafetyLayer
 from vservo.core.sim.backend import SimulatedBackend

@@ -1,5 +1,6 @@
 """The cell configuration file: defaults of the thesis, truth overrides, errors that name the key."""
 
+import re
 import tomllib
 from importlib import resources
 
@@ -108,6 +109,29 @@ def test_truth_overrides_change_the_truth_only():
          ["safety.workspace_max_mm", "[-700.0, 400.0, 450.0]", "must exceed workspace_min_mm"]),
         (lambda d: d["safety"].update(max_step_mm=float("inf")), ["safety.max_step_mm", "finite"]),
         (lambda d: d["safety"].update(watchdog_s=-2.0), ["safety.watchdog_s", "-2.0", "positive"]),
+        (lambda d: d["camera"].update(source={"kind": "webcam"}), ["camera.source.kind", "'webcam'",
+                                                                    "simulated, capture, folder"]),
+        (lambda d: d["camera"].update(source={"kind": "capture"}), ["missing key camera.source.device"]),
+        (lambda d: d["camera"].update(source={"kind": "capture", "device": -1}), ["camera.source.device", "-1"]),
+        (lambda d: d["camera"].update(source={"kind": "capture", "device": 0, "reconnect_attempts": -2}),
+         ["camera.source.reconnect_attempts", "-2", ">= 0"]),
+        (lambda d: d["camera"].update(source={"kind": "folder", "path": "frames", "device": 0}),
+         ["unknown key camera.source.device"]),
+        (lambda d: d["simulation"].update(truth={"camera": {"source": {"kind": "capture"}}}),
+         ["unknown key camera.source"]),
+        (lambda d: d["vacuum"].update(device="suction-cup"), ["vacuum.device", "'suction-cup'",
+                                                               "simulated, jrc_io, none"]),
+        (lambda d: (d["robot"].update(backend="jrc"), d["vacuum"].update(device="jrc_io", suction_output=27010)),
+         ["missing key vacuum.grip_input"]),
+        (lambda d: (d["robot"].update(backend="jrc"),
+                    d["vacuum"].update(device="jrc_io", suction_output=27018, grip_input=20)),
+         ["vacuum.suction_output", "27018", "bit, is 0..7"]),
+        (lambda d: d["vacuum"].update(device="jrc_io", suction_output=27010, grip_input=20),
+         ["vacuum.device = 'jrc_io'", "robot.backend", "'sim'"]),
+        (lambda d: d["camera"].update(source={"kind": "capture", "device": 0}),
+         ["robot.backend = 'sim'", "'capture'", "jrc"]),
+        (lambda d: (d["robot"].update(backend="jrc"), d["camera"].update(source={"kind": "folder", "path": "f"})),
+         ["vacuum.device = 'simulated'", "'folder'", "jrc_io"]),
     ],
 )
 def test_a_bad_value_is_reported_with_its_key_and_value(edit, names):
@@ -137,3 +161,31 @@ def test_a_cell_file_on_disk_round_trips(tmp_path):
     cell = load_cell(path)
     assert cell.source == str(path)
     assert cell.nominal.camera.intrinsics.fx == pytest.approx(6.02 / 0.0074)
+
+
+def test_a_real_cell_names_its_camera_and_its_vacuum_on_the_jrcs_io(tmp_path):
+    """[camera.source] and the [vacuum] device: a relative folder is read from the cell file's folder."""
+    text = resources.files("vservo.static").joinpath("cell.toml").read_text()
+    for key, value in (("backend", '"jrc"'), ("device", '"jrc_io"\nsuction_output = 27013\ngrip_input = 20'),
+                       ("kind", '"folder"\npath = "frames"')):
+        text, count = re.subn(rf"^{key} = .*$", f"{key} = {value}", text, flags=re.MULTILINE)
+        assert count == 1, key
+    path = tmp_path / "real.toml"
+    path.write_text(text)
+    cell = load_cell(path)
+    assert cell.real and cell.camera_source.kind == "folder" and cell.camera_source.path == tmp_path / "frames"
+    assert (cell.vacuum_device.device, cell.vacuum_device.suction_output, cell.vacuum_device.grip_input) == (
+        "jrc_io", 27013, 20)
+    # The wiring keys are no part of the model: the nominal and true cells are as before.
+    assert np.allclose(cell.nominal.eMv, load_cell().nominal.eMv)
+    capture = parse_cell({**default_data(), "robot": {**default_data()["robot"], "backend": "jrc"},
+                          "vacuum": {"device": "none"},
+                          "camera": {"source": {"kind": "capture", "device": "rtsp://cell-camera/stream",
+                                                "reconnect_attempts": 5, "reconnect_delay_s": 1.0}}}, "capture.toml")
+    assert capture.camera_source.device == "rtsp://cell-camera/stream" and capture.camera_source.reconnect_attempts == 5
+    assert capture.vacuum_device.device == "none"
+
+
+def test_the_shipped_cell_is_the_simulated_one():
+    cell = load_cell()
+    assert not cell.real and cell.camera_source.kind == "simulated" and cell.vacuum_device.device == "simulated"

@@ -12,7 +12,7 @@ import serial
 
 from tests.jrc_fixtures import TEST_LINE, TIME_SCALE, jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
 from vservo.core.cell.kinematics import UnreachableTarget
-from vservo.core.geometry.spatial import Pose6, matrix_from_pose, pose_error, rot_x, transform
+from vservo.core.geometry.spatial import Pose6, inverse, matrix_from_pose, pose_error, rot_x, transform
 from vservo.core.robot.backend import RobotError
 from vservo.core.robot.bsc import (
     ACK0,
@@ -40,6 +40,7 @@ from vservo.core.robot.jrc import (
     pose_from_wire,
     wire_pose,
 )
+from vservo.core.robot.jrc_vacuum import JrcVacuum
 from vservo.core.sim.jrc_emulator import FAULT_KINDS, FaultPlan, JrcEmulator
 from vservo.core.sim.plant import SimulatedCell
 from vservo.core.sim.pseudo_terminal import PseudoTerminal
@@ -460,6 +461,50 @@ def test_the_emulator_refuses_bad_fault_plans():
         FaultPlan(1.5)
     with pytest.raises(ValueError, match="unknown fault kinds"):
         FaultPlan(0.1, kinds=("gremlins",))
+
+
+# -- I/O: the vacuum cup on the JRC's signals --------------------------------------------
+
+VACUUM_IO = {"device": "jrc_io", "suction_output": 27013, "grip_input": 20}
+
+
+def test_the_cup_on_the_jrcs_io_switches_suction_and_reads_its_pressure_switch(cell):
+    """Suction is bit 3 of network input byte 27010, which the emulator's ladder copies to the
+    valve; the pressure switch is input 20. The byte's other signals keep their state."""
+    config = short_timer_cell(robot={"backend": "jrc"}, vacuum=VACUUM_IO)
+    with jrc_link(cell, config) as (robot, emulator):
+        cup = JrcVacuum(robot, 27013, 20)
+        emulator.network_inputs[27010] = 0b1000_0001  # two signals the cell's ladder uses for something else
+        cup.set_vacuum(True)
+        assert emulator.network_inputs[27010] == 0b1000_1001
+        assert not cup.holding() and not cell.holding_part  # nothing under the cup
+        cup.set_vacuum(False)
+        assert emulator.network_inputs[27010] == 0b1000_0001
+
+        side = cell.state.scene.cube.side_m
+        bMv = cell.ground_truth_bMe() @ cell.truth.model.eMv
+        cell.place_cube(bMv @ inverse(transform(rot_x(np.pi), (side / 2, side / 2, 0.0))))  # the part on the cup
+        cup.set_vacuum(True)
+        assert cell.holding_part and cup.holding() and robot.read_io(20) == [1]
+        cup.set_vacuum(False)
+        assert not cell.holding_part and not cup.holding() and robot.read_io(20) == [0]
+
+
+def test_io_commands_take_whole_bytes_and_write_only_the_wired_network_input(cell):
+    config = short_timer_cell(robot={"backend": "jrc"}, vacuum=VACUUM_IO)
+    with jrc_link(cell, config) as (robot, emulator):
+        robot.write_io(27010, [5])
+        assert robot.read_io(27010, 2) == [5, 0]
+        for text in ("IOREAD 27013,8", "IOREAD 27010,4", "IOWRITE 27010,8,256", "IOWRITE 27010,16,1"):
+            with pytest.raises(JrcCommandError) as refused:
+                robot.command(text)
+            assert refused.value.code == 1013, text
+        with pytest.raises(JrcCommandError, match="2110"):
+            robot.write_io(30000, [1])  # no ladder reads this byte
+    with jrc_link(cell, short_timer_cell()) as (robot, emulator):  # a cell whose cup is not on the I/O
+        with pytest.raises(JrcCommandError, match="2110"):
+            robot.write_signal(27013, True)
+        assert robot.read_signal(20) is False
 
 
 # -- the soak --------------------------------------------------------------------------

@@ -8,9 +8,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from vservo.core.calibration.collection import TRUTHS, Workspace
 from vservo.core.calibration.dataset import INPUT_SETS
-from vservo.core.calibration.tracking import TrackingSettings
 from vservo.core.terminal.command_line import BenchCommand, print_result
 
 
@@ -70,7 +68,18 @@ def _config(args: argparse.Namespace):
     return load_cell(args.cell)
 
 
+def _truth(text: str) -> str:
+    # Collection runs on the simulator: it is imported when the command runs, never
+    # by the parser, so that `vservo controller` on a real cell loads none of it.
+    from vservo.core.calibration.collection import TRUTHS
+
+    if text not in TRUTHS:
+        raise argparse.ArgumentTypeError(f"invalid choice {text!r} (choose from {', '.join(TRUTHS)})")
+    return text
+
+
 def _cmd_collect(args: argparse.Namespace) -> int:
+    from vservo.core.calibration.collection import Workspace
     from vservo.core.calibration.workflow import CollectPlan, collect
 
     defaults = Workspace()
@@ -104,6 +113,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
+    from vservo.core.calibration.tracking import TrackingSettings
     from vservo.core.calibration.workflow import track
 
     settings = TrackingSettings(gain=args.gain, seconds_per_point=args.seconds_per_point)
@@ -158,7 +168,7 @@ def add_calibrate_command(commands: argparse._SubParsersAction) -> None:
         return parser
 
     collect = step("collect", "move the camera over the checkerboard and record the corners and robot readings")
-    collect.add_argument("--truth", choices=TRUTHS, default="realistic",
+    collect.add_argument("--truth", type=_truth, default="realistic",
                          help="ideal (the nominal cell exactly), realistic (lens, camera mount and arm errors) or cell "
                          "(the cell file's [simulation]); default realistic")
     collect.add_argument("--noise-px", type=_number(float, 0.0, False), default=None,

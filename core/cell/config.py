@@ -1,7 +1,9 @@
 """The cell configuration file (TOML): the nominal cell, its layout, and the simulated truth.
 
 One file describes a cell. Its nominal sections (robot, camera, hand_eye, laser,
-vacuum, motion) are what control laws and calibrations may use; ``[jrc]`` holds the
+vacuum, motion) are what control laws and calibrations may use; ``[camera.source]``
+and the ``[vacuum]`` device keys say which devices the controller drives (the
+simulator's, or a real camera and the vacuum on the JRC's I/O); ``[jrc]`` holds the
 serial line to a JRC and ``[safety]`` the limits on every move; ``[simulation]``
 describes the plant the simulator plays: its seed and noise, ``[simulation.scene]``
 (where the table, cube and metal part really are) and ``[simulation.truth.*]`` tables
@@ -39,6 +41,8 @@ class ConfigError(ValueError):
 
 
 ROBOT_BACKENDS = ("sim", "jrc")  # the kinematic simulator, the JRC link
+CAMERA_SOURCES = ("simulated", "capture", "folder")  # the simulator's renderer, OpenCV VideoCapture, still images
+VACUUM_DEVICES = ("simulated", "jrc_io", "none")  # the simulator's cup, the JRC's I/O, no cup
 
 @dataclass(frozen=True)
 class CellModel:
@@ -52,6 +56,47 @@ class CellModel:
     @property
     def mount(self) -> ToolMount:
         return ToolMount(eMc=self.eMc, eMl=self.eMc @ self.laser.cMl, eMv=self.eMv)
+
+
+@dataclass(frozen=True)
+class CameraSourceConfig:
+    """[camera.source]: where the controller's frames come from.
+
+    kind "simulated": the simulated cell's renderer. "capture": OpenCV's VideoCapture on
+    ``device`` (a device index, a video file, a stream URL or a GStreamer pipeline),
+    reopened up to ``reconnect_attempts`` times ``reconnect_delay_s`` apart when a live
+    source stops delivering; ``loop`` replays a video file. "folder": the images of
+    ``path`` matching ``pattern``, in name order (a dry run). Every frame must have
+    [camera] image_size_px, the size the intrinsics were calibrated at.
+    """
+
+    kind: str
+    device: int | str | None = None
+    reconnect_attempts: int = 3
+    reconnect_delay_s: float = 0.5
+    loop: bool = False
+    path: Path | None = None
+    pattern: str = "*.png"
+
+    @property
+    def real(self) -> bool:
+        """Frames from a device outside the simulator."""
+        return self.kind != "simulated"
+
+
+@dataclass(frozen=True)
+class VacuumDeviceConfig:
+    """The [vacuum] device: the simulator's cup, the JRC's I/O, or no cup.
+
+    For "jrc_io" (docs/robot-link.md, I/O): ``suction_output`` is the network input the
+    host writes, which a ladder line on the controller copies to the valve's output;
+    ``grip_input`` the input the cup's pressure switch is wired to. Both are byte.bit
+    addresses: the last decimal digit is the bit (0..7), the rest the byte.
+    """
+
+    device: str
+    suction_output: int | None = None
+    grip_input: int | None = None
 
 
 @dataclass(frozen=True)
@@ -146,6 +191,13 @@ class CellConfig:
     robot_backend: str  # "sim" (the kinematic simulator) or "jrc" (the serial link)
     jrc: JrcLineConfig
     safety: SafetyConfig
+    camera_source: CameraSourceConfig = CameraSourceConfig("simulated")
+    vacuum_device: VacuumDeviceConfig = VacuumDeviceConfig("simulated")
+
+    @property
+    def real(self) -> bool:
+        """A real cell: its camera is not the simulator's (and, checked on load, neither are its robot and cup)."""
+        return self.camera_source.real
 
 
 class _Table:
@@ -273,6 +325,81 @@ def _cell_model(root: _Table) -> CellModel:
     return CellModel(camera=camera, eMc=eMc, laser=LaserPointer(cMl), eMv=eMv)
 
 
+def _camera_source(t: _Table, base_dir: Path | None) -> CameraSourceConfig:
+    """[camera.source]: only the keys of its kind are accepted, so a stray one is an error."""
+    kind = t.choice("kind", CAMERA_SOURCES, "simulated")
+    if kind == "capture":
+        device = t._raw("device", None)
+        if isinstance(device, bool) or not isinstance(device, (int, str)) or device == "" or (
+                isinstance(device, int) and device < 0):
+            raise t.fail("device", device, "must be a device index >= 0, or a video file, stream URL or pipeline")
+        attempts = t.integer("reconnect_attempts", 3)
+        if attempts < 0:
+            raise t.fail("reconnect_attempts", attempts, "must be >= 0")
+        source = CameraSourceConfig(
+            kind, device=device, reconnect_attempts=attempts,
+            reconnect_delay_s=t.number("reconnect_delay_s", 0.5, check=_non_negative, why="must be >= 0"),
+            loop=t.flag("loop", False),
+        )
+    elif kind == "folder":
+        path = Path(t.text("path"))
+        # A relative folder is read from the cell file's folder, where a dry run keeps its frames.
+        if not path.is_absolute() and base_dir is not None:
+            path = base_dir / path
+        source = CameraSourceConfig(kind, path=path, pattern=t.text("pattern", "*.png"))
+    else:
+        source = CameraSourceConfig(kind)
+    t.finish()
+    return source
+
+
+def _io_address(t: _Table, key: str) -> int:
+    value = t.integer(key)
+    if value < 0 or value % 10 > 7:
+        raise t.fail(key, value, "must be a byte.bit I/O address >= 0 whose last digit, the bit, is 0..7")
+    return value
+
+
+def _vacuum_device(t: _Table) -> VacuumDeviceConfig:
+    device = t.choice("device", VACUUM_DEVICES, "simulated")
+    if device == "jrc_io":
+        vacuum = VacuumDeviceConfig(device, _io_address(t, "suction_output"), _io_address(t, "grip_input"))
+    else:
+        vacuum = VacuumDeviceConfig(device)
+    t.finish()
+    return vacuum
+
+
+# The keys of the model tables that say how a device is wired rather than what the cell
+# is: the control laws never read them and [simulation.truth.*] cannot override them.
+_WIRING_KEYS = {"camera": ("source",), "vacuum": ("device", "suction_output", "grip_input")}
+
+
+def _split_wiring(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    """(the file without the wiring keys, the wiring keys of each model table)."""
+    model, wiring = dict(data), {}
+    for name, keys in _WIRING_KEYS.items():
+        table = data.get(name, {})
+        if isinstance(table, dict):
+            model[name] = {k: v for k, v in table.items() if k not in keys}
+            wiring[name] = {k: v for k, v in table.items() if k in keys}
+    return model, wiring
+
+
+def _check_devices(config: CellConfig) -> None:
+    """The devices of one cell must belong together: a real camera films a real robot."""
+    source, backend, vacuum = config.source, config.robot_backend, config.vacuum_device.device
+    if config.real and backend != "jrc":
+        raise ConfigError(f"{source}: robot.backend = {backend!r}: a cell with camera.source.kind = "
+                          f"{config.camera_source.kind!r} drives a real robot: set backend = \"jrc\"")
+    if config.real and vacuum == "simulated":
+        raise ConfigError(f"{source}: vacuum.device = 'simulated': a cell with camera.source.kind = "
+                          f"{config.camera_source.kind!r} has no simulator: choose \"jrc_io\" or \"none\"")
+    if vacuum == "jrc_io" and backend != "jrc":
+        raise ConfigError(f"{source}: vacuum.device = 'jrc_io': the vacuum on the JRC's I/O needs robot.backend = "
+                          f"\"jrc\", not {backend!r}")
+
+
 def _scene(t: _Table) -> Scene:
     table_height = t.number("table_height_mm", 0.0) / 1000.0
     cube = Cube(t.pose("object_pose", None), t.number("cube_side_mm", 20.0, check=_positive,
@@ -378,15 +505,17 @@ def _simulation(t: _Table, truth: CellModel) -> SimulationConfig:
     return simulation
 
 
-def parse_cell(data: dict[str, Any], source: str = "<cell>") -> CellConfig:
+def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | None = None) -> CellConfig:
     """Build a CellConfig from parsed TOML, validating every key.
 
     The truth is parsed by the same code as the nominal model, from the nominal tables
     with the [simulation.truth.*] overrides laid over them, so an error in an override
-    is reported under the nominal key it overrides.
+    is reported under the nominal key it overrides. ``base_dir``: the folder relative
+    paths in the file are read from (the cell file's own).
     """
     from vservo.robot_models.loader import ARM_NAMES
 
+    data, wiring = _split_wiring(data)
     root = _Table(data, "", source)
     robot = root.table("robot")
     arm = robot.choice("arm", ARM_NAMES, "upj")
@@ -403,7 +532,12 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>") -> CellConfig:
     jrc = _jrc(root.table("jrc"))
     safety = _safety(root.table("safety"))
     root.finish()
-    return CellConfig(source, arm, home_q, nominal, motion, simulation, backend, jrc, safety)
+    camera_source = _camera_source(_Table(wiring.get("camera", {}), "camera", source).table("source"), base_dir)
+    vacuum_device = _vacuum_device(_Table(wiring.get("vacuum", {}), "vacuum", source))
+    config = CellConfig(source, arm, home_q, nominal, motion, simulation, backend, jrc, safety, camera_source,
+                        vacuum_device)
+    _check_devices(config)
+    return config
 
 
 def read_cell_bytes(path: str | Path | None = None) -> tuple[bytes, str]:
@@ -427,4 +561,5 @@ def read_cell_data(path: str | Path | None = None) -> tuple[dict[str, Any], str]
 
 def load_cell(path: str | Path | None = None) -> CellConfig:
     """Load a cell file; ``None`` loads the default cell shipped in ``static/``."""
-    return parse_cell(*read_cell_data(path))
+    data, source = read_cell_data(path)
+    return parse_cell(data, source, None if path is None else Path(path).parent)

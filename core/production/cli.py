@@ -12,18 +12,18 @@ from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
 from vservo.core.production.storage import default_data_dir
 from vservo.core.terminal.command_line import print_result
 
-BACKEND_HELP = ("the robot: sim drives the simulator directly, jrc through the JRC link to an emulated JRC "
-                "on a pseudo-terminal (default: the cell file's [robot] backend)")
+BACKEND_HELP = ("the simulated cell's robot: sim drives the simulator directly, jrc through the JRC link to an "
+                "emulated JRC on a pseudo-terminal (default: the cell file's [robot] backend; a real cell's is its JRC)")
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from vservo.core.production.assembly import Outcome
     from vservo.core.production.cell_controller import CellController, CommandRefused, run_job_once
-    from vservo.core.production.rig import simulated_rig
+    from vservo.core.production.cell_rig import build_rig
     from vservo.core.production.storage import Store
 
     store = Store(args.data or default_data_dir())
-    controller = CellController(simulated_rig(load_cell(args.cell), args.seed, args.backend), store, seed=args.seed or 0)
+    controller = CellController(build_rig(load_cell(args.cell), args.seed, args.backend), store, seed=args.seed or 0)
     try:
         summary = run_job_once(controller, args.job)
     except CommandRefused as exc:
@@ -40,8 +40,8 @@ def _cmd_controller(args: argparse.Namespace) -> int:
     import signal
 
     from vservo.core.production.cell_controller import CellController
+    from vservo.core.production.cell_rig import build_rig
     from vservo.core.production.channel import KEY_ENVIRONMENT, ControllerServer
-    from vservo.core.production.rig import simulated_rig
     from vservo.core.production.storage import Store
 
     key = os.environ.get(KEY_ENVIRONMENT, "")
@@ -54,7 +54,7 @@ def _cmd_controller(args: argparse.Namespace) -> int:
               "`vservo serve` does this for you", file=sys.stderr)
         return 2
     store = Store(args.data or default_data_dir())
-    controller = CellController(simulated_rig(load_cell(args.cell), args.seed, args.backend), store,
+    controller = CellController(build_rig(load_cell(args.cell), args.seed, args.backend), store,
                                 seed=args.seed or 0, cycle_period_s=args.cycle_period)
     server = ControllerServer(controller, authkey, port=args.port)
     stop = threading.Event()
@@ -87,7 +87,7 @@ def _stop_when_orphaned(parent_pid: int, stop: threading.Event, period_s: float 
 def add_production_commands(commands: argparse._SubParsersAction) -> None:
     """Register ``vservo run`` and ``vservo controller`` on the top-level subcommands."""
     run = commands.add_parser(
-        "run", help="one headless assembly of a taught job on the simulated cell (exit 0 when placed)"
+        "run", help="one headless assembly of a taught job on the cell of --cell (exit 0 when placed)"
     )
     run.add_argument("--job", required=True, help="job name (the shipped 'demo' is always there)")
     run.add_argument("--data", metavar="DIR", help="data folder with the jobs and runs (default $VSERVO_DATA or "

@@ -20,7 +20,7 @@ import numpy as np
 from vservo.core.cell.config import CellConfig, load_cell
 from vservo.core.geometry.spatial import Pose6, inverse, matrix_from_pose, rot_x, transform
 from vservo.core.production.jobs import Job, write_job_file
-from vservo.core.production.rig import simulated_rig
+from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.robot.backend import apply_increment
 from vservo.core.servo.teaching import desired_from_features
 

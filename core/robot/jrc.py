@@ -4,7 +4,8 @@ Each method is one or two host commands (docs/robot-link.md): a ``01,000`` messa
 over the BSC link (core/robot/bsc.py) and the JRC's reply, ``90,000`` with a
 status code or ``90,001`` with data. The commands used: RPOSC (pose), RSTATS (status),
 RALARM (alarm text), RESET and CANCEL, SVON, HOLD, MOVL (linear move to a Cartesian
-target), IMOV (incremental linear move), JWAIT (wait for the end of the motion).
+target), IMOV (incremental linear move), JWAIT (wait for the end of the motion),
+IOREAD and IOWRITE (the I/O signals a vacuum cup is wired to; their forms are inferred).
 
 Units and angles at the wire: X, Y, Z in mm, Rx, Ry, Rz in degrees, base coordinates.
 Rx, Ry, Rz are taken as fixed-axis rotations about the base X, then Y, then Z, so
@@ -85,6 +86,16 @@ D1_RUNNING = 1 << 3
 D2_PENDANT_HOLD, D2_EXTERNAL_HOLD, D2_COMMAND_HOLD = 1 << 1, 1 << 2, 1 << 3
 D2_HOLDS = {D2_PENDANT_HOLD: "pendant hold", D2_EXTERNAL_HOLD: "external hold", D2_COMMAND_HOLD: "command hold"}
 D2_ALARM, D2_ERROR, D2_SERVO_ON = 1 << 4, 1 << 5, 1 << 6
+
+
+SIGNALS_PER_BYTE = 8
+
+
+def io_byte(address: int) -> tuple[int, int]:
+    """(the byte's first address, the bit) of a byte.bit I/O address: 27013 is bit 3 of 27010..27017."""
+    if isinstance(address, bool) or not isinstance(address, int) or address < 0 or address % 10 >= SIGNALS_PER_BYTE:
+        raise ValueError(f"I/O address {address!r}: a byte.bit address >= 0 whose last digit, the bit, is 0..7")
+    return address - address % 10, address % 10
 
 
 def describe_error(code: int) -> str:
@@ -330,6 +341,34 @@ class JrcBackend:
                     raise RobotError(f"the motion has not ended after {timeout_s:g} s: the robot is held") from None
                 continue
             return done == 0
+
+    # -- I/O (docs/robot-link.md, "I/O"; the command forms are inferred) -------------------
+
+    def read_io(self, address: int, n_bytes: int = 1) -> list[int]:
+        """IOREAD: ``n_bytes`` bytes of signals from the byte at ``address`` (bit 0), as 0..255 values."""
+        values = self._integers(f"IOREAD {address},{n_bytes * SIGNALS_PER_BYTE}", n_bytes)
+        if not all(0 <= v <= 0xFF for v in values):
+            raise RobotError(f"IOREAD {address}: the JRC's reply {values!r} is not bytes")
+        return values
+
+    def write_io(self, address: int, values: list[int]) -> None:
+        """IOWRITE: bytes of signals from the byte at ``address`` (network inputs only)."""
+        data = ",".join(str(v) for v in values)
+        self.command(f"IOWRITE {address},{len(values) * SIGNALS_PER_BYTE},{data}")
+
+    def read_signal(self, address: int) -> bool:
+        """One input or output signal at a byte.bit address."""
+        byte, bit = io_byte(address)
+        (value,) = self.read_io(byte)
+        return bool(value >> bit & 1)
+
+    def write_signal(self, address: int, on: bool) -> None:
+        """Switch one network input: its byte is read, changed in that bit only and written
+        back, under the link's lock, so the byte's other signals keep their state."""
+        byte, bit = io_byte(address)
+        with self._lock:
+            (value,) = self.read_io(byte)
+            self.write_io(byte, [value | 1 << bit if on else value & ~(1 << bit)])
 
     def clock_s(self) -> float:
         return time.monotonic()

@@ -18,7 +18,7 @@ def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
 
     config = load_cell(args.cell)
     emulator = JrcEmulator(SimulatedCell(config), config.jrc, FaultPlan(args.fault_rate, args.seed), args.time_scale,
-                           pace=args.pace)
+                           pace=args.pace, vacuum=config.vacuum_device)
     if args.port:
         emulator.start_on_port(args.port)
     else:

@@ -9,6 +9,11 @@ space at the commanded speed (or the JRC's rotation rate when the rotation takes
 longer), reporting running until it arrives. A hold, servo off or an alarm stops the
 motion where it is and discards the rest of it: the host decides how to go on.
 
+I/O: given the cell's vacuum wiring (the cell file's [vacuum] with device = "jrc_io"),
+it does what a real cell's ladder and pressure switch do: IOWRITE to the suction network input
+switches the simulated cup, and IOREAD of the grip input answers whether the cup holds
+the part. Other bytes read 0 and refuse IOWRITE (2110): this JRC has no other wiring.
+
 Time: the plant's clock runs ``time_scale`` times faster than the wall clock, so tests
 need not wait real seconds; JWAIT's time is JRC (plant) time. The plant is only
 touched while a command is handled, when the host is waiting for the reply, so a host
@@ -24,7 +29,9 @@ pendant hold in the middle of the next motion.
 Inferred behaviour (no public JRC document; check on the real JRC): JWAIT answers
 0 when the motion ended, -1 when it was stopped, and status 2010 when its time ran out
 with the robot still moving; IMOV takes MOVL's operands with increments; RALARM answers
-``code,text`` pairs; a target out of reach is refused with 5200.
+``code,text`` pairs; a target out of reach is refused with 5200; IOREAD addr,n answers
+n/8 bytes as decimal values, IOWRITE addr,n,d1.. takes them, n a multiple of 8 and addr
+a byte's bit 0 (else 1013).
 """
 
 from __future__ import annotations
@@ -38,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 import serial
 
-from vservo.core.cell.config import JrcLineConfig
+from vservo.core.cell.config import JrcLineConfig, VacuumDeviceConfig
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, pose_error
 from vservo.core.robot.backend import apply_increment
@@ -54,7 +61,9 @@ from vservo.core.robot.jrc import (
     HOST_COMMAND,
     OUT_OF_RANGE,
     ROBOT_OPERATING,
+    SIGNALS_PER_BYTE,
     STATUS_REPLY,
+    io_byte,
     open_serial,
     pose_from_wire,
     wire_pose,
@@ -72,6 +81,7 @@ EMULATED_ALARM = (4315, "COLLISION DETECT (EMULATED)")
 # RSTATS d1: play mode and command remote, as a cell under host control runs.
 D1_PLAY, D1_REMOTE = 1 << 6, 1 << 7
 MOTION_FIELDS = 17
+NOT_ACCESSIBLE = 2110
 JWAIT_TICK_S = 0.002
 IDLE_POLL_S = 0.05
 
@@ -187,14 +197,17 @@ class JrcEmulator:
     """The JRC side of the link, on ``cell``; start it on a pseudo-terminal or a port.
 
     ``executed`` lists the motion commands the JRC accepted, in order: the proof
-    that no move was lost or carried out twice.
+    that no move was lost or carried out twice. ``vacuum``: the cell file's [vacuum] device; when
+    it is "jrc_io", the cup is wired to the I/O at its addresses.
     """
 
     def __init__(self, cell: SimulatedCell, line: JrcLineConfig, faults: FaultPlan = FaultPlan(),
-                 time_scale: float = 1.0, pace: bool = False) -> None:
+                 time_scale: float = 1.0, pace: bool = False, vacuum: VacuumDeviceConfig | None = None) -> None:
         if not time_scale > 0.0:
             raise ValueError(f"time scale {time_scale!r} must be positive")
         self.cell, self.line, self.time_scale, self.pace = cell, line, time_scale, pace
+        self.vacuum = vacuum if vacuum is not None and vacuum.device == "jrc_io" else None
+        self.network_inputs: dict[int, int] = {}  # byte address -> the value the host wrote
         self.faults = FaultInjector(faults, line)
         self.executed: list[str] = []
         self.exchanges = 0
@@ -365,6 +378,35 @@ class JrcEmulator:
             return _status(ROBOT_OPERATING)
         return _data("-1" if self.last_motion_stopped else "0")
 
+    # -- I/O ---------------------------------------------------------------------------
+
+    def _cmd_ioread(self, fields: list[str]) -> Message:
+        _count(fields, 2, 2)
+        address, count = _integers(fields)
+        n_bytes = _io_bytes(address, count)
+        return _data(",".join(str(self._io_value(address + 10 * i)) for i in range(n_bytes)))
+
+    def _cmd_iowrite(self, fields: list[str]) -> Message:
+        _count(fields, 3, 2 + 64)
+        address, count, *values = _integers(fields)
+        if len(values) != _io_bytes(address, count) or not all(0 <= v <= 0xFF for v in values):
+            raise _Refused(1013)
+        if self.vacuum is None or len(values) != 1 or address != io_byte(self.vacuum.suction_output)[0]:
+            raise _Refused(NOT_ACCESSIBLE)
+        self.network_inputs[address] = values[0]
+        # The ladder line: the suction network input drives the valve's output.
+        _, bit = io_byte(self.vacuum.suction_output)
+        self.cell.vacuum(bool(values[0] >> bit & 1))
+        return _status(0)
+
+    def _io_value(self, byte: int) -> int:
+        value = self.network_inputs.get(byte, 0)
+        if self.vacuum is not None:
+            grip_byte, bit = io_byte(self.vacuum.grip_input)
+            if byte == grip_byte:  # the pressure switch
+                value = value | 1 << bit if self.cell.holding_part else value & ~(1 << bit)
+        return value
+
     # -- motion ------------------------------------------------------------------------
 
     def _start_motion(self, name: str, fields: list[str], target_of) -> Message:
@@ -478,6 +520,13 @@ def _integers(fields: list[str]) -> list[int]:
         return [int(f) for f in fields]
     except ValueError:
         raise _Refused(5170) from None
+
+
+def _io_bytes(address: int, count: int) -> int:
+    """How many bytes an I/O command's address and signal count span; 1013 unless whole bytes."""
+    if address < 0 or address % 10 != 0 or count <= 0 or count % SIGNALS_PER_BYTE:
+        raise _Refused(1013)
+    return count // SIGNALS_PER_BYTE
 
 
 def _switch(fields: list[str]) -> list[bool]:

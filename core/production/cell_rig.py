@@ -1,0 +1,79 @@
+"""The rig a cell file names: the real cell's devices, or the simulated cell's.
+
+On a real cell (a camera that is not the simulator's; its robot and vacuum are checked
+with it when the file is loaded) the rig is the JRC on ``[jrc] port`` behind the safety
+layer, the camera of ``[camera.source]``, the vacuum cup on the JRC's I/O or none, and
+the detectors on the NOMINAL camera and laser. Nothing of the simulator is imported
+then, and no gauge says where a released part ended: the placement is reported unknown
+(None). The simulated cell's rig (core/production/simulated_rig.py) is imported only
+when the file names the simulated camera.
+"""
+
+from __future__ import annotations
+
+from vservo.core.cell.config import CameraSourceConfig, CellConfig, ConfigError
+from vservo.core.cell.kinematics import ArmKinematics
+from vservo.core.perception.camera_source import FrameSource, ImageFolderSource, VideoCaptureSource, read_mono8
+from vservo.core.production.rig import Rig, extractor_for
+from vservo.core.robot.gripper import NoVacuum, VacuumGripper
+from vservo.core.robot.jrc import JrcBackend
+from vservo.core.robot.jrc_vacuum import JrcVacuum
+from vservo.core.robot.safety import SafetyLayer
+from vservo.core.servo.step_policy import DividedPositionStep, step_policy_from_config
+from vservo.robot_models.loader import load_arm
+
+
+def build_rig(config: CellConfig, seed: int | None = None, backend: str | None = None) -> Rig:
+    """The devices the cell file names. ``seed`` and ``backend`` (an override of [robot]
+    backend) apply to the simulated cell; a real cell has one robot, the JRC."""
+    if not config.real:
+        from vservo.core.production.simulated_rig import simulated_rig
+
+        return simulated_rig(config, seed, backend)
+    if backend not in (None, "jrc"):
+        raise ConfigError(f"{config.source}: a real cell (camera.source.kind = {config.camera_source.kind!r}) "
+                          f"is driven by its JRC, not by the {backend!r} backend")
+    return real_rig(config)
+
+
+def real_rig(config: CellConfig) -> Rig:
+    """The real cell's devices: the JRC, the camera of [camera.source], the cup on the JRC's I/O."""
+    policy = step_policy_from_config(config.motion)
+    if not isinstance(policy, DividedPositionStep):
+        raise ConfigError(f"{config.source}: the JRC takes position steps; set [motion] mode = \"position_steps\"")
+    model = config.nominal
+    intrinsics = model.camera.intrinsics
+    camera = open_camera(config.camera_source, (intrinsics.width, intrinsics.height))
+    jrc = JrcBackend(config.jrc)
+    vacuum = config.vacuum_device
+    gripper: VacuumGripper = (JrcVacuum(jrc, vacuum.suction_output, vacuum.grip_input)
+                              if vacuum.device == "jrc_io" else NoVacuum())
+    return Rig(
+        config=config,
+        robot=SafetyLayer.from_config(jrc, config),
+        gripper=gripper,
+        camera=camera,
+        extractor=extractor_for(config),
+        policy=policy,
+        dof=ArmKinematics(load_arm(config.arm), model.mount).dof,
+        # No gauge on a real cell: where the part ended is unknown to the controller.
+        measure_placement=lambda: None,
+    )
+
+
+def open_camera(source: CameraSourceConfig, size: tuple[int, int]) -> FrameSource:
+    """The camera of [camera.source] (kind "capture" or "folder"), delivering frames of ``size``
+    (width, height), the size the intrinsics were calibrated at."""
+    if source.kind == "capture":
+        return VideoCaptureSource(source.device, expected_size=size, reconnect_attempts=source.reconnect_attempts,
+                                  reconnect_delay_s=source.reconnect_delay_s, loop=source.loop)
+    if source.kind == "folder":
+        folder = ImageFolderSource(source.path, source.pattern)
+        # The folder checks its images against its first one; the first is checked here.
+        height, width = read_mono8(folder.paths[0]).shape
+        if (width, height) != size:
+            folder.close()
+            raise ConfigError(f"camera.source.path: image {str(folder.paths[0])!r} is {width}x{height}, the camera's "
+                              f"image_size_px is {size[0]}x{size[1]} (width x height)")
+        return folder
+    raise ValueError(f"camera source {source.kind!r} is not a device: the simulated camera comes with the simulated rig")

@@ -1,0 +1,97 @@
+"""The simulated cell's rig: the simulator's devices behind the same interfaces as a real cell's.
+
+The robot behind the safety layer (the kinematic simulator itself, or the JRC link over a
+pseudo-terminal to the JRC emulator moving that same simulator), its vacuum cup (the
+simulator's, or through the emulator's I/O when the cell file wires it there), the
+synthetic camera and the detectors on the NOMINAL camera and laser. The simulator's
+truth is reached only through ``measure_placement`` (the gauge that says where a
+released part ended) and ``present_part`` (a new part arriving on the table), the two
+things a test cell provides that no JRC reads.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from vservo.core.cell.config import ROBOT_BACKENDS, CellConfig
+from vservo.core.geometry.spatial import inverse, rot_z, transform
+from vservo.core.production.assembly import PlacementReport
+from vservo.core.production.rig import Rig, extractor_for
+from vservo.core.robot.gripper import NoVacuum, VacuumGripper
+from vservo.core.robot.jrc import JrcBackend
+from vservo.core.robot.jrc_vacuum import JrcVacuum
+from vservo.core.robot.safety import SafetyLayer
+from vservo.core.servo.step_policy import DividedPositionStep, step_policy_from_config
+from vservo.core.sim.backend import SimulatedBackend
+from vservo.core.sim.camera import SimulatedCamera
+from vservo.core.sim.jrc_emulator import JrcEmulator
+from vservo.core.sim.plant import SimulatedCell
+from vservo.core.sim.vacuum import SimulatedVacuum
+
+# How far a new part may lie from where the job was taught: the servo's job is to
+# absorb exactly this (the thesis's parts arrive by hand or on a feeder).
+PART_OFFSET_M = 0.015
+PART_YAW_RAD = np.deg2rad(20.0)
+
+# The emulated JRC moves this many times faster than a real one, and the host's sampling
+# period shrinks as much: a 2 s step of the thesis's cell takes 50 ms on screen.
+JRC_TIME_SCALE = 40.0
+
+
+def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | None = None,
+                  jrc_time_scale: float = JRC_TIME_SCALE) -> Rig:
+    """The simulated cell's devices; ``backend`` (default: the cell file's [robot]
+    backend) "sim" drives the simulator directly, "jrc" through the JRC link and an
+    emulated JRC on a pseudo-terminal."""
+    backend = backend or config.robot_backend
+    if backend not in ROBOT_BACKENDS:
+        raise ValueError(f"robot backend {backend!r}: choose one of {', '.join(ROBOT_BACKENDS)}")
+    cell = SimulatedCell(config, seed)
+    taught_bMo = config.simulation.scene.cube.bMo
+
+    def measure_placement() -> PlacementReport:
+        placement = cell.ground_truth_placement()
+        return PlacementReport(placement.inside, 1000.0 * placement.error_m)
+
+    def present_part(rng: np.random.Generator) -> None:
+        """A new part on the table near where the job was taught, at a random offset and turn."""
+        offset = rng.uniform(-PART_OFFSET_M, PART_OFFSET_M, 2)
+        yaw = rng.uniform(-PART_YAW_RAD, PART_YAW_RAD)
+        side = cell.state.scene.cube.side_m
+        centre = transform(t=(side / 2, side / 2, 0.0))
+        bMo = transform(t=(*offset, 0.0)) @ taught_bMo @ centre @ transform(rot_z(yaw)) @ inverse(centre)
+        cell.vacuum(False)
+        cell.place_cube(bMo)
+
+    policy = step_policy_from_config(config.motion)
+    emulator = None
+    vacuum = config.vacuum_device
+    gripper: VacuumGripper = NoVacuum() if vacuum.device == "none" else SimulatedVacuum(cell)
+    if backend == "sim":
+        if vacuum.device == "jrc_io":
+            raise ValueError(f"{config.source}: vacuum.device = 'jrc_io' needs the JRC: use the jrc backend")
+        robot = SafetyLayer.from_config(SimulatedBackend(cell), config)
+    else:
+        if not isinstance(policy, DividedPositionStep):
+            raise ValueError(f"{config.source}: the JRC takes position steps; set [motion] mode = \"position_steps\"")
+        emulator = JrcEmulator(cell, config.jrc, time_scale=jrc_time_scale, vacuum=vacuum)
+        jrc = JrcBackend(config.jrc, emulator.start_on_pty())
+        robot = SafetyLayer.from_config(jrc, config)
+        if vacuum.device == "jrc_io":
+            gripper = JrcVacuum(jrc, vacuum.suction_output, vacuum.grip_input)
+        policy = replace(policy, sampling_period_s=policy.sampling_period_s / jrc_time_scale)
+    return Rig(
+        config=config,
+        robot=robot,
+        gripper=gripper,
+        camera=SimulatedCamera(cell),
+        extractor=extractor_for(config),
+        policy=policy,
+        dof=cell.jrc_arm.dof,
+        measure_placement=measure_placement,
+        present_part=present_part,
+        cell=cell,
+        emulator=emulator,
+    )
