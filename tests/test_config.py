@@ -115,6 +115,10 @@ def test_truth_overrides_change_the_truth_only():
         (lambda d: d["camera"].update(source={"kind": "capture", "device": -1}), ["camera.source.device", "-1"]),
         (lambda d: d["camera"].update(source={"kind": "capture", "device": 0, "reconnect_attempts": -2}),
          ["camera.source.reconnect_attempts", "-2", ">= 0"]),
+        (lambda d: d["camera"].update(source={"kind": "capture", "device": 0, "buffer_frames": -1}),
+         ["camera.source.buffer_frames", "-1", ">= 0"]),
+        (lambda d: d["camera"].update(source={"kind": "capture", "device": 0, "exposure_latency_s": -0.1}),
+         ["camera.source.exposure_latency_s", "-0.1", ">= 0"]),
         (lambda d: d["camera"].update(source={"kind": "folder", "path": "frames", "device": 0}),
          ["unknown key camera.source.device"]),
         (lambda d: d["simulation"].update(truth={"camera": {"source": {"kind": "capture"}}}),
@@ -181,8 +185,10 @@ def test_a_real_cell_names_its_camera_and_its_vacuum_on_the_jrcs_io(tmp_path):
     capture = parse_cell({**default_data(), "robot": {**default_data()["robot"], "backend": "jrc"},
                           "vacuum": {"device": "none"},
                           "camera": {"source": {"kind": "capture", "device": "rtsp://cell-camera/stream",
-                                                "reconnect_attempts": 5, "reconnect_delay_s": 1.0}}}, "capture.toml")
+                                                "reconnect_attempts": 5, "reconnect_delay_s": 1.0,
+                                                "exposure_latency_s": 0.12, "buffer_frames": 4}}}, "capture.toml")
     assert capture.camera_source.device == "rtsp://cell-camera/stream" and capture.camera_source.reconnect_attempts == 5
+    assert capture.camera_source.exposure_latency_s == 0.12 and capture.camera_source.buffer_frames == 4
     assert capture.vacuum_device.device == "none"
 
 

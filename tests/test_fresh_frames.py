@@ -19,7 +19,7 @@ from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import transform
 from vservo.core.perception.camera_source import BaseSource, CameraSourceError, Frame, Size
 from vservo.core.production.cell_controller import CellController
-from vservo.core.production.rig import simulated_rig
+from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
 from vservo.core.servo.loop import Cycle
 from vservo.core.sim.backend import SimulatedBackend

@@ -65,7 +65,10 @@ class CameraSourceConfig:
     kind "simulated": the simulated cell's renderer. "capture": OpenCV's VideoCapture on
     ``device`` (a device index, a video file, a stream URL or a GStreamer pipeline),
     reopened up to ``reconnect_attempts`` times ``reconnect_delay_s`` apart when a live
-    source stops delivering; ``loop`` replays a video file. "folder": the images of
+    source stops delivering; ``loop`` replays a video file; ``exposure_latency_s`` and
+    ``buffer_frames`` bound how late a frame is read and how many the stream queues, so
+    that a servo cycle waits out the one and discards the other (docs/vision.md, "No
+    stale frames"). "folder": the images of
     ``path`` matching ``pattern``, in name order (a dry run). Every frame must have
     [camera] image_size_px, the size the intrinsics were calibrated at.
     """
@@ -75,6 +78,8 @@ class CameraSourceConfig:
     reconnect_attempts: int = 3
     reconnect_delay_s: float = 0.5
     loop: bool = False
+    exposure_latency_s: float = 0.0
+    buffer_frames: int = 0
     path: Path | None = None
     pattern: str = "*.png"
 
@@ -336,10 +341,15 @@ def _camera_source(t: _Table, base_dir: Path | None) -> CameraSourceConfig:
         attempts = t.integer("reconnect_attempts", 3)
         if attempts < 0:
             raise t.fail("reconnect_attempts", attempts, "must be >= 0")
+        buffered = t.integer("buffer_frames", 0)
+        if buffered < 0:
+            raise t.fail("buffer_frames", buffered, "must be >= 0")
         source = CameraSourceConfig(
             kind, device=device, reconnect_attempts=attempts,
             reconnect_delay_s=t.number("reconnect_delay_s", 0.5, check=_non_negative, why="must be >= 0"),
             loop=t.flag("loop", False),
+            exposure_latency_s=t.number("exposure_latency_s", 0.0, check=_non_negative, why="must be >= 0"),
+            buffer_frames=buffered,
         )
     elif kind == "folder":
         path = Path(t.text("path"))

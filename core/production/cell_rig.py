@@ -66,7 +66,8 @@ def open_camera(source: CameraSourceConfig, size: tuple[int, int]) -> FrameSourc
     (width, height), the size the intrinsics were calibrated at."""
     if source.kind == "capture":
         return VideoCaptureSource(source.device, expected_size=size, reconnect_attempts=source.reconnect_attempts,
-                                  reconnect_delay_s=source.reconnect_delay_s, loop=source.loop)
+                                  reconnect_delay_s=source.reconnect_delay_s, loop=source.loop,
+                                  exposure_latency_s=source.exposure_latency_s, buffer_frames=source.buffer_frames)
     if source.kind == "folder":
         folder = ImageFolderSource(source.path, source.pattern)
         # The folder checks its images against its first one; the first is checked here.
