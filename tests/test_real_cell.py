@@ -24,6 +24,9 @@ from vservo.core.geometry.spatial import inverse
 from vservo.core.perception.camera_source import CameraSourceError
 from vservo.core.production.cell_rig import build_rig
 from vservo.core.production.storage import Store
+from vservo.core.robot.jrc import JrcBackend
+from vservo.core.robot.jrc_vacuum import JrcVacuum
+from vservo.core.robot.safety import SafetyLayer
 from vservo.core.sim.camera import SimulatedCamera
 from vservo.core.sim.jrc_emulator import JrcEmulator
 from vservo.core.sim.plant import SimulatedCell
@@ -104,6 +107,23 @@ def test_the_simulated_cell_file_still_builds_the_simulated_rig():
     rig = build_rig(load_cell(), seed=1)
     try:
         assert rig.cell is not None and rig.present_part is not None and rig.measure_placement() is not None
+    finally:
+        rig.close()
+
+
+def test_a_real_cell_file_chooses_the_jrc_behind_the_safety_layer_and_the_cup_on_its_io(tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    cv2.imwrite(str(frames / "0000.png"), np.zeros((480, 640), np.uint8))
+    cell_file = tmp_path / "cell.toml"
+    cell_file.write_text(real_cell_text("/dev/ttyUSB3", '"folder"\npath = "frames"'))
+    rig = build_rig(load_cell(cell_file))  # nothing is opened but the camera: the port waits for connect()
+    try:
+        assert isinstance(rig.robot, SafetyLayer) and isinstance(rig.robot.robot, JrcBackend)
+        assert rig.robot.robot.port == "/dev/ttyUSB3" and rig.robot.name == "jrc"
+        assert isinstance(rig.gripper, JrcVacuum)
+        assert (rig.gripper.suction_output, rig.gripper.grip_input) == (27013, 20)
+        assert rig.measure_placement() is None  # no gauge on a real cell
     finally:
         rig.close()
 

@@ -12,7 +12,6 @@ import pytest
 
 from tests.jrc_fixtures import jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
 from vservo.core.geometry.spatial import pose_error, rot_z, transform
-from vservo.core.robot.jrc import JrcBackend
 from vservo.core.robot.safety import (
     BeyondJointLimits,
     OutsideWorkspace,
@@ -27,7 +26,6 @@ from vservo.core.servo.loop import LoopLimits, run_servo
 from vservo.core.servo.step_policy import DividedPositionStep
 from vservo.core.sim.backend import SimulatedBackend
 from vservo.core.sim.plant import SimulatedCell
-from vservo.core.sim.robot_factory import robot_from_config
 from vservo.core.study.run import teach
 from vservo.core.study.tasks import TASKS
 
@@ -191,13 +189,3 @@ def test_the_loop_stops_with_the_safety_layers_reason(backend_name):
         assert outcome.failure is Failure.ROBOT_STOPPED and "exceeds the maximum 0.1 mm" in outcome.reason
         assert outcome.iterations == 1 and np.array_equal(arm_pose(cell), before)
         assert not robot.watchdog.armed  # the loop armed it for the run only
-
-
-def test_the_cell_file_chooses_the_backend_behind_the_safety_layer():
-    config = short_timer_cell()
-    robot = robot_from_config(config, SimulatedCell(config))
-    assert isinstance(robot, SafetyLayer) and isinstance(robot.robot, SimulatedBackend)
-    with pytest.raises(ValueError, match="backend = 'sim' needs the simulated cell"):
-        robot_from_config(config)
-    jrc = robot_from_config(short_timer_cell(robot={"backend": "jrc"}), port="/dev/ttyUSB3")
-    assert isinstance(jrc.robot, JrcBackend) and jrc.robot.port == "/dev/ttyUSB3" and jrc.name == "jrc"
