@@ -70,10 +70,12 @@ class AssemblePanel:
         with self.tab:
             job = view.control(gui.add_dropdown("Job", names, initial_value="demo" if "demo" in names else names[0],
                                                 order=11))
-            present = view.control(gui.add_button("Present part (simulated cell)", icon=viser.Icon.BOX, order=12,
-                                                  hint="A new part arrives near where the job was taught"))
+            if self.app.session.state.get("can_present_part"):  # only where the cell has a part feeder
+                present = view.control(gui.add_button("Present part", icon=viser.Icon.BOX, order=12,
+                                                      hint="A new part arrives near where the job was taught"))
+                present.on_click(lambda _: self.app.send(view, "Present part", "present_part",
+                                                         "a new part is on the table"))
             start = view.control(gui.add_button("Start", icon=viser.Icon.PLAYER_PLAY, color="green", order=13))
-        present.on_click(lambda _: self.app.send(view, "Present part", "present_part", "a new part is on the table"))
         start.on_click(lambda _: self.app.send(view, "Start", "start", job=job.value))
         view.handles["assemble_job"] = job
 

@@ -63,7 +63,7 @@ def _one_run(running: RunningApp, pages: list[Any]) -> dict[str, Any]:
     if session.state.get("phase") in (Phase.DONE, Phase.FAULT, Phase.ESTOPPED):
         operator.get_by_role("button", name="Reset (after e-stop, fault or a finished run)").click()
         wait_for_status(operator, r"Idle")
-    operator.get_by_role("button", name="Present part (simulated cell)").click()
+    operator.get_by_role("button", name="Present part", exact=True).click()
     wait_for_status(operator, r"a new part is on the table")
     for page in pages:
         page.evaluate(WATCH_IMAGE_TIMES)

@@ -19,7 +19,7 @@ from vservo.core.perception.cli import add_detect_command
 from vservo.core.production.cli import BACKEND_HELP, add_production_commands
 from vservo.core.production.storage import StoreError, default_data_dir
 from vservo.core.robot.backend import RobotError
-from vservo.core.sim.cli import add_jrc_emulator_command
+from vservo.core.sim.cli import add_jrc_emulator_command, add_virtual_cell_command
 from vservo.core.study.cli import add_jrc_bench, add_study_commands, add_vision_bench
 from vservo.core.terminal.command_line import BenchCommand, Parser, positive, print_result
 
@@ -100,6 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_info_command(commands)
     add_detect_command(commands)
     add_jrc_emulator_command(commands)
+    add_virtual_cell_command(commands)
     add_calibrate_command(commands)
     add_production_commands(commands)
     add_study_commands(commands)

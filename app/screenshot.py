@@ -32,7 +32,7 @@ def take_screenshot(path: Path, seed: int = 0) -> Path:
                 browser = launch_chromium(playwright)
                 (page,) = open_pages(browser, running.url, [(1600, 1000)])
                 take_control(page, options.token)
-                page.get_by_role("button", name="Present part (simulated cell)").click()
+                page.get_by_role("button", name="Present part", exact=True).click()
                 wait_for_status(page, r"a new part is on the table")
                 page.get_by_role("button", name="Start", exact=True).click()
                 wait_for_status(page, r"Servoing .*cycle (1[2-9]\d)", timeout_s=120)

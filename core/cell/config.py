@@ -192,12 +192,15 @@ class CellConfig:
     home_q: Matrix
     nominal: CellModel
     motion: MotionConfig
-    simulation: SimulationConfig
+    simulation: SimulationConfig | None  # None: the file describes no simulated plant (a real cell's may not)
     robot_backend: str  # "sim" (the kinematic simulator) or "jrc" (the serial link)
     jrc: JrcLineConfig
     safety: SafetyConfig
     camera_source: CameraSourceConfig = CameraSourceConfig("simulated")
     vacuum_device: VacuumDeviceConfig = VacuumDeviceConfig("simulated")
+    # [fixture] url: a test cell's part feeder and gauge (the virtual cell's), which can
+    # present a new part; None on a production cell, where parts arrive by hand or conveyor.
+    fixture_url: str | None = None
 
     @property
     def real(self) -> bool:
@@ -361,6 +364,18 @@ def _camera_source(t: _Table, base_dir: Path | None) -> CameraSourceConfig:
         source = CameraSourceConfig(kind)
     t.finish()
     return source
+
+
+def _fixture_url(t: _Table) -> str | None:
+    """[fixture] url: the http:// address of a test cell's fixture, if the cell has one."""
+    if "url" not in t._data:
+        t.finish()
+        return None
+    url = t.text("url")
+    if not url.startswith(("http://", "https://")):
+        raise t.fail("url", url, "must be an http:// address (the fixture's JSON port)")
+    t.finish()
+    return url.rstrip("/")
 
 
 def _io_address(t: _Table, key: str) -> int:
@@ -538,14 +553,16 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     truth_data = simulation_data.get("truth", {}) if isinstance(simulation_data, dict) else {}
     truth = _cell_model(_Table(_truth_tables(data, truth_data, source), "", f"{source} [simulation.truth]"))
     motion = _motion(root.table("motion"))
-    simulation = _simulation(root.table("simulation"), truth)
+    # A controller's file for a real cell may leave the plant out: only a simulator reads it.
+    simulation = _simulation(root.table("simulation"), truth) if "simulation" in data else None
     jrc = _jrc(root.table("jrc"))
     safety = _safety(root.table("safety"))
+    fixture_url = _fixture_url(root.table("fixture"))
     root.finish()
     camera_source = _camera_source(_Table(wiring.get("camera", {}), "camera", source).table("source"), base_dir)
     vacuum_device = _vacuum_device(_Table(wiring.get("vacuum", {}), "vacuum", source))
     config = CellConfig(source, arm, home_q, nominal, motion, simulation, backend, jrc, safety, camera_source,
-                        vacuum_device)
+                        vacuum_device, fixture_url)
     _check_devices(config)
     return config
 

@@ -28,12 +28,13 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, exp_twist
 from vservo.core.perception.camera_source import CameraSourceError, Frame
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.perception.recording import RunRecorder
 from vservo.core.production.assembly import AssemblyEvent, AssemblyOutcome, Outcome, Phase, PhaseChange, run_assembly
+from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job, JobError
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store
@@ -41,6 +42,7 @@ from vservo.core.robot.backend import MotionStopped, RobotError, apply_increment
 from vservo.core.servo.laws.base import Stage
 from vservo.core.servo.loop import cycle_record
 from vservo.core.servo.teaching import TeachError, desired_from_features
+from vservo.robot_models.loader import load_arm
 
 log = logging.getLogger("vservo.controller")
 
@@ -89,6 +91,7 @@ class ControllerState:
     holding_part: bool = False
     robot: str = ""
     backend: str = ""
+    can_present_part: bool = False  # the cell can put a new part on the table (simulated, or a test fixture)
     teach_missing: list[str] = field(default_factory=list)
     last_outcome: dict | None = None
     time_s: float = 0.0
@@ -119,7 +122,12 @@ class CellController:
         self.rng = np.random.default_rng(seed)
         self.cycle_period_s = cycle_period_s  # a floor on the servo cycle, so a fast simulator can be watched
         self._lock = threading.RLock()  # one command at a time; the camera and robot are shared
-        self._state = ControllerState(backend=rig.robot.name, robot=rig.config.arm)
+        self._state = ControllerState(backend=rig.robot.name, robot=rig.config.arm,
+                                      can_present_part=rig.present_part is not None)
+        # The joints drawn in 3D: a real JRC reports the flange pose; the nominal model's
+        # inverse kinematics, from the last joints shown, turns it into an arm to draw.
+        self._arm = ArmKinematics(load_arm(rig.config.arm), rig.config.nominal.mount)
+        self._shown_q = rig.config.home_q.copy()
         self._draft: TeachDraft | None = None
         self._estop = threading.Event()
         self._estop_reason = "e-stop pressed"
@@ -152,11 +160,34 @@ class CellController:
         for subscriber in list(self.frame_subscribers):
             subscriber(view)
 
+    def _hold_after_fault(self) -> str:
+        """Hold the robot after a run failed outside the assembly's own checks; what to add
+        to the reason when even that fails (the link is gone with the fault)."""
+        try:
+            self.rig.robot.hold(True)
+        except RobotError as exc:
+            log.error("hold after a fault failed: %s", exc)
+            return f"; hold could not be sent: {exc}"
+        return ""
+
     def _robot_readout(self, bMe: Matrix | None = None) -> dict:
         """Flange pose (read from the robot unless given), joints and vacuum sensor for the state."""
-        bMe = self.rig.robot.read_pose() if bMe is None else bMe
-        q = self.rig.cell.state.q.tolist() if self.rig.cell is not None else []
-        return {"bMe": bMe.tolist(), "q": q, "holding_part": self.rig.gripper.holding()}
+        try:
+            bMe = self.rig.robot.read_pose() if bMe is None else bMe
+            holding = self.rig.gripper.holding()
+        except RobotError as exc:  # the link is down: the state says so, the last readout stands
+            log.warning("robot readout failed: %s", exc)
+            return {}
+        return {"bMe": bMe.tolist(), "q": self._joints_shown(bMe).tolist(), "holding_part": holding}
+
+    def _joints_shown(self, bMe: Matrix) -> Matrix:
+        if self.rig.cell is not None:  # the simulated cell's plant: its true joints
+            return self.rig.cell.state.q
+        try:
+            self._shown_q = self._arm.ik(bMe, self._shown_q, tolerance_m=1e-6, tolerance_rad=1e-5, restarts=0).q
+        except UnreachableTarget:
+            log.debug("no joints found for the reported flange pose; the 3D arm keeps its last pose")
+        return self._shown_q
 
     def look(self, fresh: bool = False) -> tuple[Frame, ImageFeatures]:
         """Grab one frame, detect in it and publish it (the live view while no run owns the camera).
@@ -320,12 +351,16 @@ class CellController:
             self._update(phase=Phase.IDLE.value, detail="teaching cancelled", teach_missing=[])
 
     def present_part(self) -> None:
-        """Simulated cell only: a new part arrives near where the job was taught."""
+        """A new part near where the job was taught, where the cell can: the simulated
+        cell, or a test cell's fixture."""
         with self._lock:
             self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
             if self.rig.present_part is None:
-                raise CommandRefused("parts arrive by hand on a real cell")
-            self.rig.present_part(self.rng)
+                raise CommandRefused("this cell has no part fixture: parts arrive by hand")
+            try:
+                self.rig.present_part(self.rng)
+            except FixtureError as exc:
+                raise CommandRefused(str(exc)) from None
             self._update(detail="a new part is on the table", **self._robot_readout())
 
     # -- assembly ------------------------------------------------------------------------
@@ -388,12 +423,12 @@ class CellController:
                 estopped=self._estop.is_set,
             )
         except CameraSourceError as exc:
-            self.rig.robot.hold(True)
-            outcome = AssemblyOutcome(Outcome.FAULT, f"camera: {exc}", float("nan"), None, 0.0, [], 0)
+            outcome = AssemblyOutcome(Outcome.FAULT, f"camera: {exc}{self._hold_after_fault()}", float("nan"), None,
+                                      0.0, [], 0)
         except Exception as exc:  # a bug must still leave the robot held and the run on record
             log.exception("assembly run %d crashed", run_id)
-            self.rig.robot.hold(True)
-            outcome = AssemblyOutcome(Outcome.FAULT, f"internal error: {exc!r}", float("nan"), None, 0.0, [], 0)
+            outcome = AssemblyOutcome(Outcome.FAULT, f"internal error: {exc!r}{self._hold_after_fault()}",
+                                      float("nan"), None, 0.0, [], 0)
         if outcome.outcome is Outcome.ESTOPPED:
             outcome = replace(outcome, reason=self._estop_reason)
         if recorder is not None:

@@ -3,7 +3,8 @@
 On a real cell (a camera that is not the simulator's; its robot and vacuum are checked
 with it when the file is loaded) the rig is the JRC on ``[jrc] port`` behind the safety
 layer, the camera of ``[camera.source]``, the vacuum cup on the JRC's I/O or none, and
-the detectors on the NOMINAL camera and laser. Nothing of the simulator is imported
+the detectors on the NOMINAL camera and laser, and a test cell's fixture
+(``[fixture] url``) to present new parts if it has one. Nothing of the simulator is imported
 then, and no gauge says where a released part ended: the placement is reported unknown
 (None). The simulated cell's rig (core/production/simulated_rig.py) is imported only
 when the file names the simulated camera.
@@ -14,6 +15,7 @@ from __future__ import annotations
 from vservo.core.cell.config import CameraSourceConfig, CellConfig, ConfigError
 from vservo.core.cell.kinematics import ArmKinematics
 from vservo.core.perception.camera_source import FrameSource, ImageFolderSource, VideoCaptureSource, read_mono8
+from vservo.core.production.fixture import FixtureClient
 from vservo.core.production.rig import Rig, extractor_for
 from vservo.core.robot.gripper import NoVacuum, VacuumGripper
 from vservo.core.robot.jrc import JrcBackend
@@ -58,6 +60,7 @@ def real_rig(config: CellConfig) -> Rig:
         dof=ArmKinematics(load_arm(config.arm), model.mount).dof,
         # No gauge on a real cell: where the part ended is unknown to the controller.
         measure_placement=lambda: None,
+        present_part=FixtureClient(config.fixture_url).present_part if config.fixture_url else None,
     )
 
 

@@ -16,7 +16,6 @@ from dataclasses import replace
 import numpy as np
 
 from vservo.core.cell.config import ROBOT_BACKENDS, CellConfig
-from vservo.core.geometry.spatial import inverse, rot_z, transform
 from vservo.core.production.assembly import PlacementReport
 from vservo.core.production.rig import Rig, extractor_for
 from vservo.core.robot.gripper import NoVacuum, VacuumGripper
@@ -27,13 +26,9 @@ from vservo.core.servo.step_policy import DividedPositionStep, step_policy_from_
 from vservo.core.sim.backend import SimulatedBackend
 from vservo.core.sim.camera import SimulatedCamera
 from vservo.core.sim.jrc_emulator import JrcEmulator
+from vservo.core.sim.part_feeder import present_part as feed_part
 from vservo.core.sim.plant import SimulatedCell
 from vservo.core.sim.vacuum import SimulatedVacuum
-
-# How far a new part may lie from where the job was taught: the servo's job is to
-# absorb exactly this (the thesis's parts arrive by hand or on a feeder).
-PART_OFFSET_M = 0.015
-PART_YAW_RAD = np.deg2rad(20.0)
 
 # The emulated JRC moves this many times faster than a real one, and the host's sampling
 # period shrinks as much: a 2 s step of the thesis's cell takes 50 ms on screen.
@@ -56,14 +51,7 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
         return PlacementReport(placement.inside, 1000.0 * placement.error_m)
 
     def present_part(rng: np.random.Generator) -> None:
-        """A new part on the table near where the job was taught, at a random offset and turn."""
-        offset = rng.uniform(-PART_OFFSET_M, PART_OFFSET_M, 2)
-        yaw = rng.uniform(-PART_YAW_RAD, PART_YAW_RAD)
-        side = cell.state.scene.cube.side_m
-        centre = transform(t=(side / 2, side / 2, 0.0))
-        bMo = transform(t=(*offset, 0.0)) @ taught_bMo @ centre @ transform(rot_z(yaw)) @ inverse(centre)
-        cell.vacuum(False)
-        cell.place_cube(bMo)
+        feed_part(cell, taught_bMo, rng)
 
     policy = step_policy_from_config(config.motion)
     emulator = None

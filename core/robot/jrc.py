@@ -24,6 +24,7 @@ alarms and servo off) with the code's meaning.
 from __future__ import annotations
 
 import logging
+import termios
 import threading
 import time
 from dataclasses import dataclass
@@ -153,7 +154,7 @@ def open_serial(line: JrcLineConfig, port: str) -> serial.SerialBase:
             rtscts=line.rtscts,
             timeout=0.005,  # a short poll: the link keeps its own deadlines
         )
-    except (serial.SerialException, ValueError) as exc:
+    except (serial.SerialException, ValueError, OSError, termios.error) as exc:
         raise RobotError(f"cannot open the serial port {port}: {exc}") from exc
 
 
@@ -225,12 +226,15 @@ class JrcBackend:
         with self._lock:
             station = self.station
             self.last_command = text
-            station.channel.discard_input()
             try:
+                station.channel.discard_input()
                 station.send(Message(HOST_COMMAND, text + "\r"))
                 reply = station.receive(reply_wait_s or self.line.timer_b_s, f"the reply to {name}")
             except LinkError as exc:  # the station has ended the exchange with EOT
                 raise LinkError(f"{name} failed: {exc}; {self._hold_after_failure(name)}") from exc
+            except (OSError, serial.SerialException) as exc:  # the port itself is gone (unplugged, closed)
+                raise LinkError(f"{name} failed: the serial port {self.port} is lost ({exc}); no hold could be "
+                                "sent: the robot may still be moving") from exc
         return self._parse(name, reply)
 
     def _hold_after_failure(self, failed: str) -> str:

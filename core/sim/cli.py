@@ -1,10 +1,14 @@
-"""``vservo jrc-emulator``: the JRC's side of the host link, on the simulated cell."""
+"""``vservo jrc-emulator`` (the JRC's side of the host link, on the simulated cell) and
+``vservo virtual-cell`` (the simulated cell as its own process, behind a real cell's interfaces)."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+import tempfile
 import threading
+from pathlib import Path
 
 from vservo.core.cell.config import load_cell
 from vservo.core.terminal.command_line import fraction, positive
@@ -53,3 +57,53 @@ def add_jrc_emulator_command(commands: argparse._SubParsersAction) -> None:
                           help="the simulated robot runs this many times faster than real time (default 1)")
     emulator.add_argument("--pace", action="store_true", help="send and receive bytes at the baud rate")
     emulator.set_defaults(run=_cmd_jrc_emulator)
+
+
+def _cmd_virtual_cell(args: argparse.Namespace) -> int:
+    import signal
+
+    from vservo.core.sim.virtual_cell import Released, VirtualCell, VirtualCellSettings, load_virtual_cell_tables
+
+    tables, source = load_virtual_cell_tables(args.cell, args.truth)
+    settings = VirtualCellSettings(time_scale=args.time_scale, fps=args.fps, exposure_latency_s=args.latency)
+
+    def print_released(released: Released) -> None:
+        print(json.dumps(released.as_dict()), flush=True)
+
+    stopped = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stopped.set())
+    with tempfile.TemporaryDirectory(prefix="vservo-virtual-cell-") as folder, \
+            VirtualCell(tables, source, args.seed, settings, on_released=print_released) as virtual:
+        cell_file = virtual.write_cell_file(Path(args.out) if args.out else Path(folder) / "cell.toml")
+        print(json.dumps({"cell_file": str(cell_file), "jrc_port": virtual.jrc_port, "camera_url": virtual.camera.url,
+                          "fixture": virtual.fixture.url}), flush=True)
+        print(f"virtual cell from {source}: JRC on {virtual.jrc_port} (time scale {args.time_scale:g}), camera "
+              f"{virtual.camera.url}, fixture {virtual.fixture.url}; run the product with --cell {cell_file}; "
+              "Ctrl-C or SIGTERM stops it", file=sys.stderr, flush=True)
+        stopped.wait()
+    return 0
+
+
+def add_virtual_cell_command(commands: argparse._SubParsersAction) -> None:
+    """Register ``vservo virtual-cell`` on the top-level subcommands."""
+    virtual = commands.add_parser(
+        "virtual-cell", help="the simulated cell as its own process: a JRC on a pseudo-terminal, a camera stream, "
+        "a part fixture",
+        description="Runs the simulated cell behind the interfaces a real cell has: the JRC emulator on a new "
+        "pseudo-terminal (the vacuum cup on its I/O), the camera as an MJPEG stream OpenCV opens by URL, and a "
+        "fixture (HTTP, JSON) that presents parts and gauges where a released part ended. It writes a cell file "
+        "for the controller and prints one JSON line with cell_file, jrc_port, camera_url and fixture, then one "
+        "line per released part. Runs until Ctrl-C or SIGTERM.",
+    )
+    virtual.add_argument("--truth", metavar="FILE", help="a cell file whose [simulation.truth.*] tables say how the "
+                         "cell really differs from the nominal one (default: the --cell file's own)")
+    virtual.add_argument("--seed", type=int, default=None, help="seed of the plant, its camera and its parts")
+    virtual.add_argument("--out", metavar="FILE", help="where to write the controller's cell file (default: a "
+                         "temporary folder removed on exit)")
+    virtual.add_argument("--time-scale", type=positive(float), default=40.0,
+                         help="the JRC and the plant run this many times faster than a real cell (default 40)")
+    virtual.add_argument("--fps", type=positive(float), default=30.0, help="camera frames per second (default 30)")
+    virtual.add_argument("--latency", type=positive(float), default=0.05, metavar="S",
+                         help="camera latency from exposure to sending a frame, in s (default 0.05)")
+    virtual.set_defaults(run=_cmd_virtual_cell)

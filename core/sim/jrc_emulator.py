@@ -225,6 +225,9 @@ class JrcEmulator:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_real_s = time.monotonic()
+        # The plant is shared: the serving thread moves it, and a virtual cell's camera
+        # and fixture read or change it from theirs. Whoever touches it holds this lock.
+        self.lock = threading.RLock()
 
     # -- running -----------------------------------------------------------------------
 
@@ -296,6 +299,16 @@ class JrcEmulator:
 
     def handle(self, request: Message) -> Message:
         """One host command in, its reply out."""
+        with self.lock:
+            return self._handle(request)
+
+    def advance(self) -> None:
+        """Bring the plant up to now: a camera looking at it between commands sees the arm
+        where the motion under way has taken it."""
+        with self.lock:
+            self._advance()
+
+    def _handle(self, request: Message) -> Message:
         self._advance()
         if request.header != HOST_COMMAND:
             return _status(1010)
@@ -372,7 +385,11 @@ class JrcEmulator:
             raise _Refused(5170) from None
         waited_s = 0.0
         while self.motion is not None and (wait_s < 0 or waited_s < wait_s) and not self._stop.is_set():
-            time.sleep(JWAIT_TICK_S)
+            self.lock.release()  # handle() holds it once: while the JRC waits, a camera may look
+            try:
+                time.sleep(JWAIT_TICK_S)
+            finally:
+                self.lock.acquire()
             waited_s += self._advance()
         if self.motion is not None:
             return _status(ROBOT_OPERATING)

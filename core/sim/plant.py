@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from vservo.core.cell.config import CellConfig, CellModel
+from vservo.core.cell.config import CellConfig, CellModel, ConfigError
 from vservo.core.cell.kinematics import ArmKinematics
 from vservo.core.cell.scene import Scene
 from vservo.core.geometry.spatial import Matrix, exp_twist, inverse, pose_error, rot_z, transform
@@ -142,6 +142,8 @@ class SimulatedCell:
     """
 
     def __init__(self, config: CellConfig, seed: int | None = None) -> None:
+        if config.simulation is None:
+            raise ConfigError(f"{config.source}: no [simulation] table: this file describes no plant to simulate")
         self.rng = np.random.default_rng(config.simulation.seed if seed is None else seed)
         self.jrc_arm = ArmKinematics(load_arm(config.arm), config.nominal.mount)
         if config.home_q.shape != (self.jrc_arm.dof,):

@@ -1,0 +1,43 @@
+"""A test cell's fixture, reached over its JSON port: it presents new parts.
+
+A production cell has none: parts arrive by hand or on a conveyor. A test cell (the
+virtual cell of ``vservo virtual-cell``) has a fixture that puts a new part on the table
+on request and gauges where a released part ended; the controller uses only the first,
+so that one-click runs each get a part, and measures placement itself, by vision. The
+cell file names the fixture with ``[fixture] url``.
+"""
+
+from __future__ import annotations
+
+import json
+import urllib.error
+import urllib.request
+
+import numpy as np
+
+
+class FixtureError(RuntimeError):
+    """The fixture did not do what was asked; the message says what and why."""
+
+
+class FixtureClient:
+    def __init__(self, url: str, timeout_s: float = 5.0) -> None:
+        self.url, self.timeout_s = url.rstrip("/"), timeout_s
+
+    def present_part(self, rng: np.random.Generator) -> dict:
+        """A new part on the table; ``rng`` draws the seed of where it lands, so a run's
+        ``--seed`` decides the part's arrival here as on the simulated cell."""
+        return self._request("POST", "/part", {"seed": int(rng.integers(2**31))})
+
+    def _request(self, method: str, path: str, body: dict | None = None) -> dict:
+        data = None if body is None else json.dumps(body).encode()
+        request = urllib.request.Request(self.url + path, data=data, method=method,
+                                         headers={"Content-Type": "application/json"})
+        try:
+            with urllib.request.urlopen(request, timeout=self.timeout_s) as response:
+                return json.loads(response.read() or b"{}")
+        except urllib.error.HTTPError as exc:
+            raise FixtureError(f"fixture {self.url}: {method} {path} refused ({exc.code}): "
+                               f"{exc.read().decode(errors='replace').strip()}") from None
+        except (urllib.error.URLError, OSError, json.JSONDecodeError) as exc:
+            raise FixtureError(f"fixture {self.url}: {method} {path} failed: {exc}") from None

@@ -1,0 +1,283 @@
+"""The virtual cell: the simulated cell as its own process, behind a real cell's interfaces.
+
+The controller reaches it only as it reaches hardware, through the cell file it writes:
+
+- the robot: the JRC emulator on a pseudo-terminal (``[jrc] port``), the only thing that
+  moves the plant; the vacuum cup on the emulator's I/O (``[vacuum] device = "jrc_io"``);
+- the camera: an MJPEG stream over HTTP that OpenCV opens by URL
+  (``[camera.source] device``), exposed on a steady frame clock and sent a camera's
+  latency later;
+- the fixture (``[fixture] url``): a JSON port that presents a new part and gauges where
+  a released part truly ended, what a test cell has and the product never needs.
+
+The plant plays the TRUE cell: the ``--cell`` file's [simulation] with the ``--truth``
+file's [simulation.truth.*] laid over it. The cell file written for the controller holds
+the nominal sections only, so nothing of the truth reaches it.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vservo.core.cell.cell_file import dumps_cell
+from vservo.core.cell.config import CellConfig, ConfigError, VacuumDeviceConfig, parse_cell, read_cell_data
+from vservo.core.perception.recording import write_atomic
+from vservo.core.sim.camera_stream import CameraStream
+from vservo.core.sim.jrc_emulator import JrcEmulator
+from vservo.core.sim.part_feeder import present_part
+from vservo.core.sim.plant import SimulatedCell
+from vservo.core.sim.render import SceneRenderer
+from vservo.core.sim.render_settings import RenderSettings
+
+log = logging.getLogger("vservo.virtual_cell")
+
+# The cup's wiring when the --cell file does not put it on the JRC's I/O: the first
+# network input for suction, the first external input for the pressure switch.
+DEFAULT_VACUUM_IO = VacuumDeviceConfig("jrc_io", suction_output=27010, grip_input=20)
+
+
+@dataclass(frozen=True)
+class VirtualCellSettings:
+    """time_scale: the emulated JRC and the plant run this many times faster than a real
+    cell (the controller's sampling period in the written cell file shrinks as much).
+    fps, exposure_latency_s, jpeg_quality: the camera stream's. latency_margin_s: what the
+    written cell file adds to the camera's latency for the network and the decoder, so
+    that its ``exposure_latency_s`` is an upper bound."""
+
+    time_scale: float = 40.0
+    fps: float = 30.0
+    exposure_latency_s: float = 0.05
+    latency_margin_s: float = 0.05
+    jpeg_quality: int = 95
+    release_poll_s: float = 0.01
+
+
+@dataclass(frozen=True)
+class Released:
+    """A part the cup let go, gauged: inside the pocket, and its centre's offset from the pocket's."""
+
+    inside: bool
+    placement_error_mm: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"event": "released", "inside": self.inside, "placement_error_mm": round(self.placement_error_mm, 4)}
+
+
+def with_truth(cell_tables: dict[str, Any], truth_file: dict[str, Any] | None) -> dict[str, Any]:
+    """The cell's tables with the truth file's [simulation.truth.*] in place of its own."""
+    tables = copy.deepcopy(cell_tables)
+    if truth_file is not None:
+        truth = truth_file.get("simulation", {}).get("truth")
+        if not isinstance(truth, dict) or not truth:
+            raise ConfigError("the truth file has no [simulation.truth.*] tables: it says nothing about the true cell")
+        tables.setdefault("simulation", {})["truth"] = copy.deepcopy(truth)
+    return tables
+
+
+def controller_tables(cell_tables: dict[str, Any], *, jrc_port: str, camera_url: str, fixture_url: str,
+                      vacuum: VacuumDeviceConfig, settings: VirtualCellSettings) -> dict[str, Any]:
+    """The cell file the controller gets: the nominal cell, wired to this virtual cell's devices."""
+    tables = {k: copy.deepcopy(v) for k, v in cell_tables.items() if k != "simulation"}
+    tables.setdefault("robot", {})["backend"] = "jrc"
+    # Linux drops a pseudo-terminal's parity bit and then refuses it on the next opening,
+    # so the virtual JRC's line runs without parity (pendant RS032 allows none).
+    tables.setdefault("jrc", {}).update(port=jrc_port, parity="none")
+    camera = tables.setdefault("camera", {})
+    camera["source"] = {
+        "kind": "capture",
+        "device": camera_url,
+        "exposure_latency_s": round(settings.exposure_latency_s + settings.latency_margin_s, 4),
+        "buffer_frames": 0,
+        "reconnect_attempts": 3,
+        "reconnect_delay_s": 0.5,
+    }
+    tables.setdefault("vacuum", {}).update(device="jrc_io", suction_output=vacuum.suction_output,
+                                           grip_input=vacuum.grip_input)
+    motion = tables.setdefault("motion", {})
+    motion["sampling_period_s"] = float(motion.get("sampling_period_s", 2.0)) / settings.time_scale
+    tables["fixture"] = {"url": fixture_url}
+    return tables
+
+
+class VirtualCell:
+    """The plant, its JRC, its camera stream and its fixture; ``start`` brings them up."""
+
+    def __init__(self, tables: dict[str, Any], source: str, seed: int | None = None,
+                 settings: VirtualCellSettings = VirtualCellSettings(),
+                 on_released: Callable[[Released], None] = lambda released: None) -> None:
+        self.tables, self.source, self.settings, self.on_released = tables, source, settings, on_released
+        self.config: CellConfig = parse_cell(tables, source)
+        self.cell = SimulatedCell(self.config, seed)
+        self.taught_bMo = self.config.simulation.scene.cube.bMo
+        self.vacuum = self.config.vacuum_device if self.config.vacuum_device.device == "jrc_io" else DEFAULT_VACUUM_IO
+        self.emulator = JrcEmulator(self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum)
+        self.renderer = SceneRenderer(self.cell.truth.model.camera, RenderSettings())
+        self.camera_rng = np.random.default_rng(self.cell.rng.integers(2**31))
+        self.camera = CameraStream(self._render, fps=settings.fps, exposure_latency_s=settings.exposure_latency_s,
+                                   jpeg_quality=settings.jpeg_quality)
+        self.fixture = _FixtureServer(self)
+        self.released: list[Released] = []
+        self._stop = threading.Event()
+        self._watch: threading.Thread | None = None
+
+    # -- running -----------------------------------------------------------------------
+
+    def start(self) -> None:
+        self.jrc_port = self.emulator.start_on_pty()
+        self.camera.start()
+        self.fixture.start()
+        self._watch = threading.Thread(target=self._watch_releases, name="release-gauge", daemon=True)
+        self._watch.start()
+
+    def close(self) -> None:
+        """Stop everything; safe to call twice."""
+        self._stop.set()
+        if self._watch is not None:
+            self._watch.join()
+            self._watch = None
+        self.fixture.close()
+        self.camera.close()
+        self.emulator.stop()
+
+    def __enter__(self) -> VirtualCell:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def write_cell_file(self, path: str | Path) -> Path:
+        """The controller's cell file for this running virtual cell."""
+        path = Path(path)
+        tables = controller_tables(self.tables, jrc_port=self.jrc_port, camera_url=self.camera.url,
+                                   fixture_url=self.fixture.url, vacuum=self.vacuum, settings=self.settings)
+        header = (f"The virtual cell's devices (vservo virtual-cell, from {self.source}), written "
+                  f"{time.strftime('%Y-%m-%d %H:%M:%S')}.\nValid while that process runs: its JRC port, camera "
+                  "stream and fixture go with it.")
+        write_atomic(path, dumps_cell(tables, header).encode("utf-8"))
+        return path
+
+    # -- the plant's sensors and fixture ---------------------------------------------------
+
+    def _render(self) -> np.ndarray:
+        """The TRUE view now: the plant brought up to this moment, rendered outside the lock."""
+        with self.emulator.lock:
+            self.emulator.advance()
+            bMc, spot_b = self.cell.ground_truth_view()
+            scene = self.cell.state.scene
+        return self.renderer.render(scene, bMc, spot_b, self.camera_rng)
+
+    def present_part(self, seed: int | None) -> dict[str, float]:
+        rng = np.random.default_rng(seed) if seed is not None else self.cell.rng
+        with self.emulator.lock:
+            if self.emulator.motion is not None:
+                raise RuntimeError("the arm is moving: a part is presented only while it stands still")
+            bMo = present_part(self.cell, self.taught_bMo, rng)
+        return _planar_pose(bMo)
+
+    def part_pose(self) -> dict[str, float]:
+        with self.emulator.lock:
+            return _planar_pose(self.cell.state.scene.cube.bMo)
+
+    def _watch_releases(self) -> None:
+        """Gauge each part the cup lets go, as it comes to rest."""
+        was_holding = False
+        while not self._stop.wait(self.settings.release_poll_s):
+            with self.emulator.lock:
+                holding = self.cell.holding_part
+                placement = None if holding or not was_holding else self.cell.ground_truth_placement()
+            was_holding = holding
+            if placement is not None:
+                released = Released(bool(placement.inside), 1000.0 * placement.error_m)
+                self.released.append(released)
+                self.on_released(released)
+
+
+def _planar_pose(bMo: np.ndarray) -> dict[str, float]:
+    """A part's pose on the table: its frame's origin in mm and its turn about the vertical."""
+    return {"x_mm": round(1000.0 * float(bMo[0, 3]), 4), "y_mm": round(1000.0 * float(bMo[1, 3]), 4),
+            "z_mm": round(1000.0 * float(bMo[2, 3]), 4),
+            "yaw_deg": round(float(np.degrees(np.arctan2(bMo[1, 0], bMo[0, 0]))), 4)}
+
+
+class _FixtureServer:
+    """The fixture's JSON port: POST /part presents a part ({"seed": n} optional), GET /part
+    says where the part truly is, GET /released lists the gauged releases."""
+
+    def __init__(self, virtual: VirtualCell, host: str = "127.0.0.1") -> None:
+        self.server = ThreadingHTTPServer((host, 0), _handler_for(virtual))
+        self.server.daemon_threads = True
+        self.url = f"http://{host}:{self.server.server_address[1]}"
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self.server.serve_forever, name="fixture", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self.server.shutdown()
+            self._thread.join()
+            self._thread = None
+        self.server.server_close()
+
+
+def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
+    class FixtureHandler(BaseHTTPRequestHandler):
+        def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+            if self.path == "/part":
+                self._reply(200, {"part": virtual.part_pose()})
+            elif self.path == "/released":
+                self._reply(200, {"released": [r.as_dict() for r in virtual.released]})
+            elif self.path == "/":
+                self._reply(200, {"fixture": "vservo virtual cell", "endpoints": ["POST /part", "GET /part",
+                                                                                   "GET /released"]})
+            else:
+                self._reply(404, {"error": f"no such endpoint: GET {self.path}"})
+
+        def do_POST(self) -> None:  # noqa: N802
+            if self.path != "/part":
+                self._reply(404, {"error": f"no such endpoint: POST {self.path}"})
+                return
+            try:
+                length = int(self.headers.get("Content-Length") or 0)
+                body = json.loads(self.rfile.read(length) or b"{}") if length <= 4096 else None
+                seed = body.get("seed") if isinstance(body, dict) else None
+                if body is None or not isinstance(body, dict) or not (seed is None or isinstance(seed, int)):
+                    raise ValueError('the body is {"seed": <integer>} or empty')
+                self._reply(200, {"part": virtual.present_part(seed)})
+            except (ValueError, json.JSONDecodeError) as exc:
+                self._reply(400, {"error": str(exc)})
+            except RuntimeError as exc:
+                self._reply(409, {"error": str(exc)})
+
+        def _reply(self, status: int, body: dict) -> None:
+            data = json.dumps(body).encode()
+            self.send_response(status)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+
+        def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 (http.server's signature)
+            log.debug("fixture: " + format, *args)
+
+    return FixtureHandler
+
+
+def load_virtual_cell_tables(cell: str | None, truth: str | None) -> tuple[dict[str, Any], str]:
+    """The --cell file's tables (the shipped cell by default) with the --truth file's truth."""
+    tables, source = read_cell_data(cell)
+    truth_data = read_cell_data(truth)[0] if truth is not None else None
+    return with_truth(tables, truth_data), source if truth is None else f"{source} with the truth of {truth}"
