@@ -9,7 +9,6 @@ controller process, which has no gauge, reports by vision.
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import tomllib
@@ -21,34 +20,10 @@ import cv2
 import pytest
 
 from tests.test_real_cell import SIMULATOR_MODULES, loaded_modules
+from tests.virtual_cell_process import ROOT, VirtualCellProcess
 from vservo.core.cell.cell_file import dumps_cell
 from vservo.core.cell.config import ConfigError, load_cell, read_cell_data
 from vservo.core.sim.virtual_cell import with_truth
-
-ROOT = Path(__file__).resolve().parent.parent
-
-
-class VirtualCellProcess:
-    """`vservo virtual-cell` in a child process, with the JSON lines it prints."""
-
-    def __init__(self, *args: str) -> None:
-        self.process = subprocess.Popen([sys.executable, "-m", "vservo.app.cli", "virtual-cell", *args],
-                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
-        line = self.process.stdout.readline()
-        if not line:
-            raise AssertionError(f"the virtual cell did not start: {self.process.stderr.read()}")
-        self.addresses = json.loads(line)
-
-    def next_event(self) -> dict:
-        return json.loads(self.process.stdout.readline())
-
-    def stop(self) -> int:
-        self.process.send_signal(signal.SIGTERM)
-        try:
-            return self.process.wait(timeout=20)
-        finally:
-            self.process.stdout.close()
-            self.process.stderr.close()
 
 
 def fixture_request(url: str, method: str = "GET", body: bytes | None = None) -> tuple[int, dict]:
