@@ -93,9 +93,11 @@ def teach_markdown(state: dict) -> str:
     if state.get("phase") != Phase.TEACHING:
         return "Not teaching. Choose a template (or a new job) and press **Begin teaching**."
     missing = state.get("teach_missing") or []
+    optional = state.get("teach_optional") or []
+    also = (" Optional: " + ", ".join(optional) + ".") if optional else ""
     if missing:
-        return "Still to teach: " + ", ".join(missing) + "."
-    return "Everything is taught: name the job and **Save**."
+        return "Still to teach: " + ", ".join(missing) + "." + also
+    return "Everything is taught: name the job and **Save**." + also
 
 
 def runs_table(runs: Sequence[dict], limit: int = 15) -> str:

@@ -4,8 +4,9 @@ Per browser (operator only): begin teaching from scratch or from a stored job (i
 and settings are kept until taught again); go to the template's taught view or start
 pose; jog in Cartesian steps of a chosen size, in the base or the tool frame, or drag a
 3D gizmo on the flange (the arm moves when the gizmo is let go); capture the desired
-image; set the start, pick and place poses where the arm is; threshold, gain and approach
-height; name and save. Shared: what is still missing before the job can be saved.
+image; set the start, pick and place poses where the arm is; capture the check view (the
+placed part seen from over the metal part; optional); threshold, gain, approach height and
+placement tolerance; name and save. Shared: what is still missing before the job can be saved.
 """
 
 from __future__ import annotations
@@ -76,10 +77,14 @@ class TeachPanel:
                 start = c(gui.add_button("Set start pose here"))
                 pick = c(gui.add_button("Set pick pose here (cup on the part)"))
                 place = c(gui.add_button("Set place pose here (part in the metal part)"))
+                check = c(gui.add_button("Capture check view (part placed)", icon=viser.Icon.CAMERA))
+                gui.add_markdown("Check view: the part in the metal part, the camera over it seeing its four corners; "
+                                 "runs measure the placement from here (optional: without it, placement unknown).")
             with gui.add_folder("Settings", order=6):
                 threshold = c(gui.add_number("Threshold (px)", 3.0, min=0.1, max=50.0, step=0.1))
                 gain = c(gui.add_number("Gain", 1.0, min=0.05, max=5.0, step=0.05))
                 approach = c(gui.add_number("Approach height (mm)", 40.0, min=5.0, max=200.0, step=1.0))
+                tolerance = c(gui.add_number("Placement tolerance (mm)", 1.0, min=0.05, max=20.0, step=0.05))
                 apply = c(gui.add_button("Apply settings"))
             with gui.add_folder("Save", order=7):
                 name = c(gui.add_text("Job name", ""))
@@ -99,6 +104,7 @@ class TeachPanel:
                 if detail is not None:  # the template's settings, to keep or change
                     threshold.value, gain.value = float(detail["threshold_px"]), float(detail["gain"])
                     approach.value = 1000.0 * float(detail["approach_m"])
+                    tolerance.value = float(detail.get("placement_tolerance_mm", 1.0))  # absent in version 1
             send(view, "Begin teaching", "begin_teach", done=began, template=template_name())
 
         def on_go_to(event: Any) -> None:
@@ -138,8 +144,10 @@ class TeachPanel:
         start.on_click(lambda _: send(view, "Set start pose", "set_start_pose", "start pose set"))
         pick.on_click(lambda _: send(view, "Set pick pose", "set_pick_pose", "pick pose set"))
         place.on_click(lambda _: send(view, "Set place pose", "set_place_pose", "place pose set"))
+        check.on_click(lambda _: send(view, "Capture check view", "capture_check_view", "check view captured"))
         apply.on_click(lambda _: send(view, "Apply settings", "set_settings", "settings applied",
-                                      threshold_px=threshold.value, gain=gain.value, approach_m=approach.value / 1000.0))
+                                      threshold_px=threshold.value, gain=gain.value, approach_m=approach.value / 1000.0,
+                                      placement_tolerance_mm=tolerance.value))
         save.on_click(on_save)
         cancel.on_click(lambda _: send(view, "Cancel teaching", "cancel_teach", "teaching cancelled"))
 

@@ -37,6 +37,12 @@ def test_a_job_survives_the_file_round_trip(tmp_path, demo):
         (lambda d: d["desired"].update(corners_px=[[1, 2]]), "corners_px: shape (1, 2), expected (4, 2)"),
         (lambda d: d.update(start_bMe=(2 * np.eye(4)).tolist()), "start_bMe: not a rigid transform"),
         (lambda d: d.update(name="../etc"), "job name '../etc'"),
+        (lambda d: d.pop("placement_tolerance_mm"), "placement_tolerance_mm: missing"),
+        (lambda d: d.update(placement_tolerance_mm=0), "placement_tolerance_mm: 0 must be positive"),
+        (lambda d: d.update(check=[1, 2]), "job.json: check: not a job"),
+        (lambda d: d["check"].update(corners_px=[[1, 2]] * 3), "check: corners_px: shape (3, 2), expected (4, 2)"),
+        (lambda d: d["check"].update(check_bMe=(2 * np.eye(4)).tolist()), "check: check_bMe: not a rigid transform"),
+        (lambda d: d["check"].pop("check_bMe"), "check: check_bMe: missing"),
     ],
 )
 def test_a_broken_job_is_refused_naming_the_field(demo, change, message):
@@ -44,6 +50,17 @@ def test_a_broken_job_is_refused_naming_the_field(demo, change, message):
     change(data)
     with pytest.raises(JobError, match=message.replace("(", r"\(").replace(")", r"\)")):
         job_from_dict(data, "job.json")
+
+
+def test_a_version_1_job_reads_as_a_job_without_a_check_view(demo):
+    data = json.loads(json.dumps(demo.as_dict()))
+    data["version"] = 1
+    for added in ("check", "placement_tolerance_mm"):  # what version 2 added
+        data.pop(added)
+    job = job_from_dict(data, "old.json")
+    assert job.check is None and job.placement_tolerance_mm == 1.0
+    assert job.as_dict()["version"] == 2 and job.as_dict()["check"] is None
+    assert job_from_dict(job.as_dict(), "again.json").check is None
 
 
 def test_unreadable_job_files(tmp_path):
@@ -66,6 +83,18 @@ def test_store_keeps_jobs_images_and_runs(tmp_path, demo):
     assert store.load_job("a").threshold_px == 2.0
     assert int(store.job_image("a")[0, 0]) == 78
     assert len(list((tmp_path / "images").iterdir())) == 1
+    assert store.job_image("a", check=True) is None  # saved without a check image
+    store.save_job(replace(demo, name="a"), image, image + 2)
+    assert int(store.job_image("a", check=True)[0, 0]) == 79 and int(store.job_image("a")[0, 0]) == 77
+    assert len(list((tmp_path / "images").iterdir())) == 2  # the new pair; the old image removed
+    store.save_job(replace(demo, name="a", threshold_px=2.5))  # no new images: both kept
+    assert int(store.job_image("a", check=True)[0, 0]) == 79
+    with pytest.raises(StoreError, match="check image is saved with its desired image"):
+        store.save_job(replace(demo, name="b"), None, image)
+    assert store.job_image(DEMO_JOB, check=True).shape == (480, 640)  # the shipped demo's
+    store.delete_job("a")
+    assert not list((tmp_path / "images").iterdir())
+    store.save_job(replace(demo, name="a", threshold_px=2.0), image + 1)
     run = store.start_run("a", "sim")
     assert store.run(run).outcome is None
     store.finish_run(run, Outcome.PLACED, "ok", 1.5, 0.2, 3.0, [{"stage": "3", "iterations": 4}], None)

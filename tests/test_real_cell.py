@@ -62,8 +62,9 @@ def loaded_modules(importtime_log: str) -> set[str]:
 @pytest.mark.usefixtures("no_leaked_threads")
 def test_a_real_cell_assembles_through_the_jrc_and_an_image_folder_without_loading_the_simulator(tmp_path):
     """`vservo run` on a real cell file: the JRC (an emulator on a pty) moves the arm, the
-    camera is an image folder, the cup is on the JRC's I/O; the run places the part, with
-    its placement unknown (no gauge on a real cell), and its process imported no module of
+    camera is an image folder, the cup is on the JRC's I/O; the run places the part, its
+    placement measured by the camera from the check pose (the folder's frame shows the part
+    as taught) and no gauge figure (a real cell has none), and its process imported no module of
     the simulator (``python -X importtime`` lists every module a process imports)."""
     store = Store(tmp_path / "data")
     demo = store.load_job("demo")
@@ -96,7 +97,8 @@ def test_a_real_cell_assembles_through_the_jrc_and_an_image_folder_without_loadi
     assert run.returncode == 0, (run.stdout, errors)
     summary = json.loads(run.stdout)
     assert summary["outcome"] == "placed", summary
-    assert summary["placement_error_mm"] is None and "no placement gauge" in summary["reason"]
+    assert summary["gauge_placement_error_mm"] is None and summary["gauge_inside"] is None
+    assert summary["placement_error_mm"] < 1.0 and "seen" in summary["reason"]
     assert not cell.holding_part and any(move.startswith("MOVL") for move in emulator.executed)
     modules = loaded_modules(run.stderr)
     assert "vservo.core.production.cell_rig" in modules and "vservo.core.robot.jrc_vacuum" in modules

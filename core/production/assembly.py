@@ -4,7 +4,10 @@ The sequence, as the thesis's cell ran it: move to the job's start pose (the par
 area in view), servo with the job's control law until the feature error is below the
 taught threshold (3 px), move the fixed taught transform eMe_pick so the vacuum cup
 meets the part, suction on (the vacuum sensor must confirm the grip), lift, move over
-the taught place pose, lower into the metal part, release, retreat.
+the taught place pose, lower into the metal part, release, retreat. When the job has a
+check view, move to its check pose and measure the placement from a frame exposed after
+that move (core/production/placement_check.py): the part is placed when it is seen within
+the job's tolerance, missed beyond it or when it is not seen at all.
 
 Every motion goes through the safety layer to a RobotBackend, so the same sequence
 drives the simulator and the JRC. The run reports its phase changes and servo cycles to ``on_event``; it
@@ -29,6 +32,7 @@ from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import ObjectRegion
 from vservo.core.perception.measurement import Measurement
 from vservo.core.production.jobs import Job
+from vservo.core.production.placement_check import PlacementCheck, check_placement
 from vservo.core.robot.backend import RobotBackend, RobotError
 from vservo.core.robot.gripper import VacuumGripper
 from vservo.core.robot.safety import SafetyLayer
@@ -87,8 +91,11 @@ AssemblyEvent = PhaseChange | ServoCycle
 class AssemblyOutcome:
     """How a run ended, and why.
 
-    placement_error_mm is what the cell can say of where the part ended (the simulated
-    cell measures it; a real cell without a gauge reports None).
+    placement_error_mm is where the part ended as the camera saw it from the job's check
+    pose (None when the job has no check view or the run did not get that far; NaN when
+    the part was not found there). The gauge figures are a test cell's own measure of the
+    same (the simulated cell's truth), None on a cell without one: they decide the
+    outcome only for a job without a check view.
     """
 
     outcome: Outcome
@@ -98,6 +105,8 @@ class AssemblyOutcome:
     duration_s: float
     stages: list[dict]
     iterations: int
+    gauge_placement_error_mm: float | None = None
+    gauge_inside: bool | None = None
 
     def summary(self) -> dict:
         """The JSON object of ``vservo run --json``."""
@@ -106,6 +115,8 @@ class AssemblyOutcome:
             "reason": self.reason,
             "final_error_px": _rounded(self.final_error_px),
             "placement_error_mm": _rounded(self.placement_error_mm),
+            "gauge_placement_error_mm": _rounded(self.gauge_placement_error_mm),
+            "gauge_inside": self.gauge_inside,
             "duration_s": round(self.duration_s, 3),
             "iterations": self.iterations,
             "stages": self.stages,
@@ -168,7 +179,8 @@ def run_assembly(
     started = time.monotonic()
     servo = None
 
-    def end(outcome: Outcome, reason: str, placement: PlacementReport | None = None) -> AssemblyOutcome:
+    def end(outcome: Outcome, reason: str, seen: PlacementCheck | None = None,
+            gauge: PlacementReport | None = None) -> AssemblyOutcome:
         if outcome in (Outcome.FAULT, Outcome.ESTOPPED):
             try:
                 robot.hold(True)
@@ -182,10 +194,12 @@ def run_assembly(
             outcome=outcome,
             reason=reason,
             final_error_px=servo.final_error_px if servo else float("nan"),
-            placement_error_mm=placement.error_mm if placement else None,
+            placement_error_mm=seen.error_mm if seen else None,
             duration_s=time.monotonic() - started,
             stages=servo.stages if servo else [],
             iterations=servo.iterations if servo else 0,
+            gauge_placement_error_mm=gauge.error_mm if gauge else None,
+            gauge_inside=gauge.inside if gauge else None,
         )
 
     def move(target: Matrix, speed: float = speed_m_s) -> None:
@@ -218,14 +232,33 @@ def run_assembly(
         move(job.bMe_place, speed_m_s / 2)
         gripper.set_vacuum(False)
         move(lifted(job.bMe_place, job.approach_m))
+        seen = None
+        if job.check is not None:
+            on_event(PhaseChange(Phase.PLACING, "looking at the placed part from the check pose"))
+            move(job.check.check_bMe)
+            # A frame exposed after the move ended: the part as it lies, seen from where it was taught.
+            features = perception.perceive(FlangeReadout(robot, dof).measure(), robot.clock_s())
+            seen = check_placement(job.check, features.corners_px, model.camera, job.part_side_m)
     except (RobotError, UnreachableTarget) as exc:
         if estopped():
             return end(Outcome.ESTOPPED, "e-stop pressed")
         return end(Outcome.FAULT, f"robot: {exc}")
 
-    placement = measure_placement()
-    if placement is None:
-        return end(Outcome.PLACED, "part released in the metal part (no placement gauge on this cell)")
-    if placement.inside:
-        return end(Outcome.PLACED, f"part in the metal part, {placement.error_mm:.2f} mm off centre", placement)
-    return end(Outcome.MISSED, f"part outside the pocket, {placement.error_mm:.2f} mm off centre", placement)
+    gauge = measure_placement()
+    if seen is None:  # no check view: the gauge decides where a cell has one
+        if gauge is None:
+            return end(Outcome.PLACED, "part released in the metal part (no check view in this job, "
+                                       "no placement gauge on this cell: placement unknown)")
+        if gauge.inside:
+            return end(Outcome.PLACED, f"part in the metal part, {gauge.error_mm:.2f} mm off centre (gauge)",
+                       gauge=gauge)
+        return end(Outcome.MISSED, f"part outside the pocket, {gauge.error_mm:.2f} mm off centre (gauge)",
+                   gauge=gauge)
+    if not seen.found:
+        return end(Outcome.MISSED, "part not found at the check pose", seen, gauge)
+    tolerance = job.placement_tolerance_mm
+    if seen.error_mm <= tolerance:
+        return end(Outcome.PLACED, f"part seen {seen.error_mm:.2f} mm from its taught place "
+                                   f"(tolerance {tolerance:g} mm)", seen, gauge)
+    return end(Outcome.MISSED, f"part seen {seen.error_mm:.2f} mm from its taught place, beyond the "
+                               f"{tolerance:g} mm tolerance", seen, gauge)

@@ -36,6 +36,7 @@ from vservo.core.perception.recording import RunRecorder
 from vservo.core.production.assembly import AssemblyEvent, AssemblyOutcome, Outcome, Phase, PhaseChange, run_assembly
 from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job, JobError
+from vservo.core.production.placement_check import CheckView
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.backend import MotionStopped, RobotError, apply_increment
@@ -67,11 +68,18 @@ class TeachDraft:
     threshold_px: float = 3.0
     gain: float = 1.0
     approach_m: float = 0.04
+    check: CheckView | None = None
+    placement_tolerance_mm: float = 1.0
 
     def missing(self) -> list[str]:
+        """What the job cannot be saved without."""
         names = {"desired": "the desired image", "start_bMe": "the start pose", "eMe_pick": "the pick pose",
                  "bMe_place": "the place pose"}
         return [text for key, text in names.items() if getattr(self, key) is None]
+
+    def optional_missing(self) -> list[str]:
+        """What the job can be saved without, at a cost the operator should know."""
+        return ["the check view (without it, runs report placement unknown)"] if self.check is None else []
 
 
 @dataclass(frozen=True)
@@ -93,6 +101,7 @@ class ControllerState:
     backend: str = ""
     can_present_part: bool = False  # the cell can put a new part on the table (simulated, or a test fixture)
     teach_missing: list[str] = field(default_factory=list)
+    teach_optional: list[str] = field(default_factory=list)
     last_outcome: dict | None = None
     time_s: float = 0.0
 
@@ -136,6 +145,7 @@ class CellController:
         self._trail: list[Matrix] = []
         self._desired: DesiredImage | None = None  # drawn over the live image
         self._desired_image: np.ndarray | None = None
+        self._check_image: np.ndarray | None = None
         self.last_outcome: AssemblyOutcome | None = None
         self.state_subscribers: list[Callable[[ControllerState], None]] = []
         self.frame_subscribers: list[Callable[[FrameView], None]] = []
@@ -274,15 +284,18 @@ class CellController:
             draft = TeachDraft()
             if template:
                 job = self.store.load_job(template)
+                # The images are captured again (the check view's goes with the desired one).
                 draft = TeachDraft(template, None, None, job.start_bMe, job.eMe_pick, job.bMe_place,
-                                   job.threshold_px, job.gain, job.approach_m)
+                                   job.threshold_px, job.gain, job.approach_m,
+                                   placement_tolerance_mm=job.placement_tolerance_mm)
             self._draft = draft
+            self._check_image = None
             self._update(phase=Phase.TEACHING.value, detail="jog to the desired view and capture it",
-                         teach_missing=draft.missing())
+                         teach_missing=draft.missing(), teach_optional=draft.optional_missing())
 
     def _set_draft(self, detail: str, **changes) -> None:
         self._draft = replace(self._draft, **changes)
-        self._update(detail=detail, teach_missing=self._draft.missing())
+        self._update(detail=detail, teach_missing=self._draft.missing(), teach_optional=self._draft.optional_missing())
 
     def capture_desired(self, part_side_m: float = 0.020) -> DesiredImage:
         """Take the desired image here (Fig. C-2): the four corners and the laser spot must be seen."""
@@ -298,6 +311,21 @@ class CellController:
             self._set_draft(f"desired image captured, laser depth {1000 * desired.depth_m:.1f} mm",
                             desired=desired, taught_bMe=self.rig.robot.read_pose())
             return desired
+
+    def capture_check_view(self) -> CheckView:
+        """Take the check view here: the part placed in the metal part, the camera over it
+        seeing its four top-face corners. After each run the arm comes back here and the
+        part's displacement from these corners is its placement error."""
+        with self._lock:
+            self._require(Phase.TEACHING)
+            frame, features = self.look(fresh=True)
+            if not features.all_corners_visible:
+                raise CommandRefused("the check view must show the part's four top-face corners: put the part in "
+                                     "the metal part and the camera over it")
+            check = CheckView(check_bMe=self.rig.robot.read_pose(), corners_px=features.corners_px)
+            self._check_image = frame.image
+            self._set_draft("check view captured", check=check)
+            return check
 
     def set_start_pose(self) -> None:
         with self._lock:
@@ -318,13 +346,18 @@ class CellController:
             self._require(Phase.TEACHING)
             self._set_draft("place pose set here", bMe_place=self.rig.robot.read_pose())
 
-    def set_settings(self, threshold_px: float, gain: float, approach_m: float) -> None:
+    def set_settings(self, threshold_px: float, gain: float, approach_m: float,
+                     placement_tolerance_mm: float | None = None) -> None:
+        """The run's settings; the placement tolerance is kept unless given."""
         with self._lock:
             self._require(Phase.TEACHING)
-            for name, value in (("threshold_px", threshold_px), ("gain", gain), ("approach_m", approach_m)):
+            tolerance = self._draft.placement_tolerance_mm if placement_tolerance_mm is None else placement_tolerance_mm
+            for name, value in (("threshold_px", threshold_px), ("gain", gain), ("approach_m", approach_m),
+                                ("placement_tolerance_mm", tolerance)):
                 if not (np.isfinite(value) and value > 0):
                     raise CommandRefused(f"{name} must be a positive number, got {value!r}")
-            self._set_draft("settings changed", threshold_px=threshold_px, gain=gain, approach_m=approach_m)
+            self._set_draft("settings changed", threshold_px=threshold_px, gain=gain, approach_m=approach_m,
+                            placement_tolerance_mm=tolerance)
 
     def save_job(self, name: str, description: str = "", part_side_m: float = 0.020) -> Job:
         with self._lock:
@@ -336,19 +369,20 @@ class CellController:
                 job = Job(name=name, description=description, part_side_m=part_side_m, desired=draft.desired,
                           taught_bMe=draft.taught_bMe, start_bMe=draft.start_bMe, eMe_pick=draft.eMe_pick,
                           bMe_place=draft.bMe_place, approach_m=draft.approach_m, threshold_px=draft.threshold_px,
-                          gain=draft.gain)
+                          gain=draft.gain, check=draft.check, placement_tolerance_mm=draft.placement_tolerance_mm)
             except JobError as exc:
                 raise CommandRefused(str(exc)) from exc
-            self.store.save_job(job, self._desired_image)
+            self.store.save_job(job, self._desired_image, self._check_image if draft.check is not None else None)
             self._draft = None
-            self._update(phase=Phase.IDLE.value, detail=f"job {name!r} saved", job=name, teach_missing=[])
+            self._update(phase=Phase.IDLE.value, detail=f"job {name!r} saved", job=name, teach_missing=[],
+                         teach_optional=[])
             return job
 
     def cancel_teach(self) -> None:
         with self._lock:
             self._require(Phase.TEACHING)
             self._draft = None
-            self._update(phase=Phase.IDLE.value, detail="teaching cancelled", teach_missing=[])
+            self._update(phase=Phase.IDLE.value, detail="teaching cancelled", teach_missing=[], teach_optional=[])
 
     def present_part(self) -> None:
         """A new part near where the job was taught, where the cell can: the simulated

@@ -4,7 +4,8 @@
 integrator teaches a job (Fig. C-2): jog the arm until the camera sees the part as it
 should at the end of a servo, capture the desired image there; jog the cup onto the
 part and store that motion as the pick transform; jog the held part into the metal
-part and store the place pose; choose a start pose with the part in view. The jogging
+part and store the place pose; put the part in the pocket and capture the check view
+over it (where a run looks at the part it placed); choose a start pose with the part in view. The jogging
 here is computed from the shipped cell's layout, as the integrator's eyes would guide
 it; the features and the laser depth come from the camera, as on the real cell.
 """
@@ -20,9 +21,10 @@ import numpy as np
 from vservo.core.cell.config import CellConfig, load_cell
 from vservo.core.geometry.spatial import Pose6, inverse, matrix_from_pose, rot_x, transform
 from vservo.core.production.jobs import Job, write_job_file
+from vservo.core.production.placement_check import CheckView
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.robot.backend import apply_increment
-from vservo.core.servo.teaching import desired_from_features
+from vservo.core.servo.teaching import TeachError, desired_from_features
 
 # The camera 162 mm above the part's top face, its corners around the laser spot (the
 # desired view of Table 5-2's second set).
@@ -35,7 +37,8 @@ START_OFFSET = transform(t=(0.02, 0.0, 0.0)) @ matrix_from_pose(Pose6(0.0, 0.0, 
 PICK_PRESS_M = 0.003
 
 
-def teach_demo_job(config: CellConfig) -> tuple[Job, np.ndarray]:
+def teach_demo_job(config: CellConfig) -> tuple[Job, np.ndarray, np.ndarray]:
+    """The demo job, its desired image and its check image."""
     rig = simulated_rig(config)
     cell, robot, model = rig.cell, rig.robot, config.nominal
     scene = cell.state.scene
@@ -44,7 +47,7 @@ def teach_demo_job(config: CellConfig) -> tuple[Job, np.ndarray]:
     robot.servo(True)
 
     bMe_view = scene.cube.bMo @ inverse(DESIRED_cMo) @ inverse(model.eMc)
-    robot.move_to(bMe_view, 0.05)
+    robot.move_linear(bMe_view, 0.05)
     frame = rig.camera.read()
     features, _ = rig.extractor.extract(frame.image)
     desired = desired_from_features(features, model.camera, side)
@@ -57,6 +60,20 @@ def teach_demo_job(config: CellConfig) -> tuple[Job, np.ndarray]:
     bMo_placed = scene.metal_part.bMp @ transform(t=(-side / 2, -side / 2, side))
     bMe_place = bMo_placed @ inverse(scene.cube.bMo) @ bMe_pick
 
+    # The check view: the part put in the pocket by hand, the camera over it as in the
+    # desired view (so it sees the part as large and as square as the servo did), then
+    # the part put back on the table for the pick.
+    bMo_table = scene.cube.bMo.copy()
+    cell.place_cube(bMo_placed)
+    check_bMe = bMo_placed @ inverse(DESIRED_cMo) @ inverse(model.eMc)
+    robot.move_linear(check_bMe, 0.05)
+    check_frame = rig.camera.read_after(robot.clock_s())
+    check_features, _ = rig.extractor.extract(check_frame.image)
+    if not check_features.all_corners_visible:
+        raise TeachError("the check view does not show the part's four top-face corners")
+    check = CheckView(check_bMe=robot.read_pose(), corners_px=check_features.corners_px)
+    cell.place_cube(bMo_table)
+
     start_bMe = apply_increment(bMe_view, START_OFFSET)
     job = Job(
         name="demo",
@@ -67,16 +84,19 @@ def teach_demo_job(config: CellConfig) -> tuple[Job, np.ndarray]:
         start_bMe=start_bMe,
         eMe_pick=inverse(taught_bMe) @ bMe_pick,
         bMe_place=bMe_place,
+        check=check,
     )
-    return job, frame.image
+    rig.close()
+    return job, frame.image, check_frame.image
 
 
 def main(argv: list[str] | None = None) -> int:
-    folder = Path(argv[0] if argv else Path(__file__).resolve().parent.parent / "static" / "jobs")
-    job, image = teach_demo_job(load_cell())
+    folder = Path(argv[0] if argv else Path(__file__).resolve().parents[2] / "static" / "jobs")
+    job, image, check_image = teach_demo_job(load_cell())
     write_job_file(job, folder / "demo.json")
     cv2.imwrite(str(folder / "demo.png"), image)
-    print(f"wrote {folder / 'demo.json'} and demo.png")
+    cv2.imwrite(str(folder / "demo.check.png"), check_image)
+    print(f"wrote {folder / 'demo.json'}, demo.png and demo.check.png")
     return 0
 
 

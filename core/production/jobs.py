@@ -3,11 +3,14 @@
 A job holds the taught desired image (features, laser depth Z*, the pose estimated from
 them), the pose the assembly starts from (the part's area in view), the fixed taught
 transform from the servo's end pose to the pick pose (eMe_pick: the vacuum cup meets the
-part there), the place pose in the metal part, and the settings of the run. Poses are
+part there), the place pose in the metal part, the check view the placement is measured
+from (core/production/placement_check.py; optional: without it a run reports its placement
+unknown), and the settings of the run. Poses are
 flange poses in the robot base frame, as the JRC reports them.
 
 A job file is JSON with a format tag and version: ``read_job_file`` refuses a foreign or
-broken file with a message that names the file and the field.
+broken file with a message that names the file and the field. Version 1 files (before
+the check view) still read, as jobs without a check view.
 """
 
 from __future__ import annotations
@@ -24,10 +27,12 @@ import numpy as np
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage
 from vservo.core.perception.recording import write_atomic
+from vservo.core.production.placement_check import CheckView
 from vservo.core.servo.methods import METHODS
 
 JOB_FORMAT = "vservo-job"
-JOB_VERSION = 1
+JOB_VERSION = 2
+READABLE_VERSIONS = (1, JOB_VERSION)
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
@@ -41,6 +46,9 @@ class Job:
 
     threshold_px: servo until the feature error is below this (Fig. C-3: 3 px).
     approach_m: how far above the pick and place poses the cup approaches and retreats.
+    check: where the placed part is looked at after the release; None: placement unknown.
+    placement_tolerance_mm: a run whose part is seen farther than this from its taught
+      place ends missed (the shipped metal part's pocket leaves 1 mm each side).
     """
 
     name: str
@@ -55,6 +63,8 @@ class Job:
     gain: float = 1.0
     description: str = ""
     taught_bMe: Matrix = field(default_factory=lambda: np.eye(4))  # where the desired image was taken
+    check: CheckView | None = None
+    placement_tolerance_mm: float = 1.0
 
     def __post_init__(self) -> None:
         validate_job_name(self.name)
@@ -82,6 +92,11 @@ class Job:
             "start_bMe": self.start_bMe.tolist(),
             "eMe_pick": self.eMe_pick.tolist(),
             "bMe_place": self.bMe_place.tolist(),
+            "placement_tolerance_mm": self.placement_tolerance_mm,
+            "check": None if self.check is None else {
+                "check_bMe": self.check.check_bMe.tolist(),
+                "corners_px": self.check.corners_px.tolist(),
+            },
         }
 
 
@@ -140,8 +155,10 @@ def job_from_dict(data: Any, source: str) -> Job:
     f = _Fields(data, source)
     if f.data.get("format") != JOB_FORMAT:
         raise JobError(f"{source}: not a vservo job file (format {f.data.get('format')!r}, expected {JOB_FORMAT!r})")
-    if f.data.get("version") != JOB_VERSION:
-        raise JobError(f"{source}: job format version {f.data.get('version')!r}; this vservo reads version {JOB_VERSION}")
+    version = f.data.get("version")
+    if version not in READABLE_VERSIONS:
+        raise JobError(f"{source}: job format version {version!r}; this vservo reads versions "
+                       f"{', '.join(map(str, READABLE_VERSIONS))}")
     method = f.get("method")
     if method not in METHODS:
         raise f.fail("method", f"{method!r} is not one of {', '.join(METHODS)}")
@@ -172,7 +189,17 @@ def job_from_dict(data: Any, source: str) -> Job:
         start_bMe=f.pose("start_bMe"),
         eMe_pick=f.pose("eMe_pick"),
         bMe_place=f.pose("bMe_place"),
+        **(_check_fields(f, source) if version >= 2 else {}),
     )
+
+
+def _check_fields(f: _Fields, source: str) -> dict[str, Any]:
+    """What version 2 added: the placement tolerance and the check view (null: none taught)."""
+    check = f.get("check")
+    if check is not None:
+        view = _Fields(check, f"{source}: check")
+        check = CheckView(check_bMe=view.pose("check_bMe"), corners_px=view.array("corners_px", (4, 2)))
+    return {"placement_tolerance_mm": f.number("placement_tolerance_mm"), "check": check}
 
 
 def job_from_json(text: str, source: str) -> Job:

@@ -1,9 +1,10 @@
 """Jobs and runs in SQLite, images and recordings on disk beside it (docs/architecture.md, "Storage").
 
 The data folder holds ``vservo.sqlite`` (the jobs, every assembly attempt), ``images/``
-(each job's desired image, PNG) and ``runs/`` (a recording per run). A job's row and
-its image are written so that a crash leaves the old job or the new one: the image goes
-to a new file first, the row's transaction then points at it. A row that cannot be
+(each job's desired image, PNG, and its check view's image beside it as
+``<name>.check.png``) and ``runs/`` (a recording per run). A job's row and its images are
+written so that a crash leaves the old job or the new one: the images go to new files
+first, the row's transaction then points at them. A row that cannot be
 read (a corrupt or hand-edited record) is listed with what is wrong with it, never
 silently dropped, and nothing else is lost.
 
@@ -142,15 +143,20 @@ class Store:
 
     # -- jobs ------------------------------------------------------------------------
 
-    def save_job(self, job: Job, image: np.ndarray | None = None) -> None:
-        """Save (or replace) a job and its desired image."""
+    def save_job(self, job: Job, image: np.ndarray | None = None, check_image: np.ndarray | None = None) -> None:
+        """Save (or replace) a job, its desired image and the image of its check view.
+
+        The check image is named after the desired image it goes with: a new desired
+        image replaces both, a job saved without one keeps both.
+        """
+        if check_image is not None and image is None:
+            raise StoreError(f"job {job.name!r}: a check image is saved with its desired image, not alone")
         image_name = None
         if image is not None:
-            ok, png = cv2.imencode(".png", image)
-            if not ok:
-                raise StoreError(f"job {job.name!r}: the desired image cannot be encoded as PNG")
             image_name = f"{job.name}-{time.time_ns()}.png"
-            write_atomic(self.images / image_name, png.tobytes())
+            if check_image is not None:
+                write_atomic(self.images / _check_name(image_name), _png(job, check_image, "check"))
+            write_atomic(self.images / image_name, _png(job, image, "desired"))
         with self._transaction() as db:
             old = db.execute("SELECT image FROM jobs WHERE name = ?", (job.name,)).fetchone()
             db.execute(
@@ -158,7 +164,11 @@ class Store:
                 (job.name, json.dumps(job.as_dict()), image_name or (old[0] if old else None), time.time()),
             )
         if image_name and old and old[0]:
-            (self.images / old[0]).unlink(missing_ok=True)
+            self._remove_images(old[0])
+
+    def _remove_images(self, image_name: str) -> None:
+        (self.images / image_name).unlink(missing_ok=True)
+        (self.images / _check_name(image_name)).unlink(missing_ok=True)
 
     def load_job(self, name: str) -> Job:
         validate_job_name(name)
@@ -170,8 +180,8 @@ class Store:
             raise JobError(f"no job named {name!r} (jobs: {', '.join(e.name for e in self.list_jobs()) or 'none'})")
         return job_from_json(row[0], f"job {name!r} in {self.root / 'vservo.sqlite'}")
 
-    def job_image(self, name: str) -> np.ndarray | None:
-        """The job's desired image, or None if it has none."""
+    def job_image(self, name: str, check: bool = False) -> np.ndarray | None:
+        """The job's desired image (``check``: its check view's image), or None if it has none."""
         with self._lock:
             row = self._db.execute("SELECT image FROM jobs WHERE name = ?", (name,)).fetchone()
         if row is None and name == DEMO_JOB:
@@ -180,9 +190,13 @@ class Store:
             return None
         else:
             path = self.images / row[0]
+        if check:
+            path = path.with_name(_check_name(path.name))
+            if not path.exists():
+                return None
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if image is None:
-            raise StoreError(f"job {name!r}: its desired image {path} is missing or unreadable")
+            raise StoreError(f"job {name!r}: its {'check' if check else 'desired'} image {path} is missing or unreadable")
         return image
 
     def list_jobs(self) -> list[JobEntry]:
@@ -207,7 +221,7 @@ class Store:
                 raise JobError(f"no job named {name!r}")
             db.execute("DELETE FROM jobs WHERE name = ?", (name,))
         if row[0]:
-            (self.images / row[0]).unlink(missing_ok=True)
+            self._remove_images(row[0])
 
     # -- runs ------------------------------------------------------------------------
 
@@ -240,6 +254,18 @@ class Store:
         if row is None:
             raise StoreError(f"no run {run_id}")
         return _run_record(row)
+
+
+def _check_name(image_name: str) -> str:
+    """The check image's file name beside its desired image's: demo.png -> demo.check.png."""
+    return image_name.removesuffix(".png") + ".check.png"
+
+
+def _png(job: Job, image: np.ndarray, what: str) -> bytes:
+    ok, png = cv2.imencode(".png", image)
+    if not ok:
+        raise StoreError(f"job {job.name!r}: the {what} image cannot be encoded as PNG")
+    return png.tobytes()
 
 
 def _finite_or_none(value: float | None) -> float | None:
