@@ -36,6 +36,17 @@ STREAM_PATH = "/stream.mjpg"
 SEND_BUFFER_BYTES = 64 * 1024
 
 
+def encode_jpeg(image: np.ndarray, quality: int) -> bytes:
+    """One frame as the stream sends it: an 8-bit monochrome (H, W) image as a JPEG."""
+    if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8 or image.size == 0:
+        what = f"{image.dtype} array of shape {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
+        raise ValueError(f"a camera frame is a non-empty uint8 (height, width) image, got {what}")
+    ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError(f"OpenCV could not encode a {image.shape[1]}x{image.shape[0]} frame as JPEG")
+    return jpeg.tobytes()
+
+
 class CameraStream:
     """An MJPEG camera on ``host``:``port`` (0: any free port), serving ``render()``'s view.
 
@@ -128,16 +139,6 @@ class CameraStream:
 
     # -- the camera ---------------------------------------------------------------------
 
-    def _encode(self) -> bytes:
-        image = self.render()
-        if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8 or image.size == 0:
-            what = f"{image.dtype} array of shape {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
-            raise ValueError(f"render must return a non-empty uint8 (height, width) image, got {what}")
-        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
-        if not ok:
-            raise RuntimeError(f"OpenCV could not encode a {image.shape[1]}x{image.shape[0]} frame as JPEG")
-        return jpeg.tobytes()
-
     def _expose(self) -> None:
         """The frame clock: expose frame k at t_0 + k / fps, send it exposure_latency_s later.
 
@@ -159,7 +160,7 @@ class CameraStream:
                 self._wait_until(t_exposure)
                 if self._stop.is_set():
                     break
-                in_flight.append((t_exposure + self.exposure_latency_s, self._encode()))
+                in_flight.append((t_exposure + self.exposure_latency_s, encode_jpeg(self.render(), self.jpeg_quality)))
                 k = max(k + 1, math.floor((time.monotonic() - t0) / period) + 1)
         except BaseException as exc:  # a broken render ends the stream; clients see it end
             log.error("camera stream at %s stopped: %s", self.url, exc)
