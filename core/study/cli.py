@@ -215,7 +215,7 @@ def add_stream_bench(bench: BenchCommand) -> None:
     stream = bench.add("stream", "corner and spot differences and latency of frames through an MJPEG stream",
                        _cmd_bench_stream)
     stream.add_argument("--views", type=positive(int), default=24, help="stream: views of the cell (default 24)")
-    stream.add_argument("--quality", type=_jpeg_quality, default=95, help="stream: JPEG quality 0..100 (default 95)")
+    stream.add_argument("--quality", type=_jpeg_quality, default=100, help="stream: JPEG quality 0..100 (default 100)")
 
 
 def _jpeg_quality(text: str) -> int:

@@ -112,7 +112,7 @@ def _compare(config: CellConfig, direct: np.ndarray, streamed: np.ndarray) -> tu
     return tuple(float(d) for d in corner_diff), bool(np.array_equal(found_direct, found_streamed)), spot_diff
 
 
-def bench_stream(config: CellConfig, views: int = 24, quality: int = 95, seed: int = 0) -> dict[str, Any]:
+def bench_stream(config: CellConfig, views: int = 24, quality: int = 100, seed: int = 0) -> dict[str, Any]:
     """Serve ``views`` rendered views through an MJPEG stream at JPEG ``quality`` and
     compare the features extracted from the rendered and the streamed images."""
     if isinstance(views, bool) or not isinstance(views, int) or views < 1:
