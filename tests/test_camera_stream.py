@@ -131,3 +131,59 @@ def test_bad_settings_are_named() -> None:
         CameraStream(NumberedScene(), jpeg_quality=101)
     with pytest.raises(ValueError, match="exposure_latency_s"):
         CameraStream(NumberedScene(), exposure_latency_s=-0.1)
+
+
+def read_part(stream_file) -> bytes:
+    """The next JPEG of a multipart/x-mixed-replace body."""
+    length = None
+    while (line := stream_file.readline()) not in (b"\r\n", b""):
+        if line.lower().startswith(b"content-length:"):
+            length = int(line.split(b":")[1])
+    assert length is not None, "a part without Content-Length"
+    jpeg = stream_file.read(length)
+    stream_file.readline()  # the CRLF after the JPEG
+    return jpeg
+
+
+def test_a_slow_client_is_sent_the_newest_frame_not_a_backlog() -> None:
+    """Frames of 320x240 noise (about 80 kB each, so the kernel's buffers hold only a few):
+    a client that stops reading for half a second gets, after what the buffers held, a
+    frame exposed late in its pause, and far fewer frames than the camera sent."""
+    scene = NumberedScene()
+    rng = np.random.default_rng(0)
+
+    def noisy() -> np.ndarray:
+        image = rng.integers(0, 256, (240, 320), dtype=np.uint8)
+        image[:BLOCK, : BLOCK * BITS] = scene()
+        return image
+
+    with CameraStream(noisy, fps=50, exposure_latency_s=0.0) as stream:
+        port = int(stream.url.split(":")[2].split("/")[0])
+        with socket.create_connection(("127.0.0.1", port)) as client:
+            client.sendall(b"GET /stream.mjpg HTTP/1.0\r\n\r\n")
+            body = client.makefile("rb")
+            while body.readline() != b"\r\n":  # the response's headers
+                pass
+            read_part(body)
+            paused_s = time.monotonic()
+            time.sleep(0.5)
+            received = 1
+            exposures = []
+            while len(exposures) < 8 and not (exposures and exposures[-1] > paused_s + 0.25):
+                image = cv2.imdecode(np.frombuffer(read_part(body), np.uint8), cv2.IMREAD_GRAYSCALE)
+                exposures.append(scene.exposure_of(image[:BLOCK, : BLOCK * BITS]))
+                received += 1
+            sent = stream.frames_sent
+    # What the buffers held came first (a few frames exposed just after the pause began),
+    # then a frame from its second half: the frames between were skipped, not queued.
+    assert exposures[-1] > paused_s + 0.25, [round(t - paused_s, 3) for t in exposures]
+    assert received < sent - 10  # about 25 frames were sent while it slept
+
+
+def test_a_render_of_the_wrong_kind_ends_the_stream_and_says_why(caplog: pytest.LogCaptureFixture) -> None:
+    with CameraStream(lambda: np.zeros((48, 64), np.float32)) as stream:
+        capture = cv2.VideoCapture(stream.url)
+        opened = capture.isOpened()
+        capture.release()
+    assert not opened
+    assert "non-empty uint8 (height, width) image, got float32 array of shape (48, 64)" in caplog.text

@@ -31,8 +31,8 @@ log = logging.getLogger("vservo.sim.camera_stream")
 
 BOUNDARY = "vservoframe"
 STREAM_PATH = "/stream.mjpg"
-# Room for about one frame in the kernel per client: enough to keep the link busy, too
-# little to hold a backlog of stale frames.
+# Room for a frame or two in the kernel per client (Linux doubles it): enough to keep the
+# link busy, too little to hold a backlog of stale frames.
 SEND_BUFFER_BYTES = 64 * 1024
 
 
@@ -164,7 +164,7 @@ class CameraStream:
                     break
                 in_flight.append((t_exposure + self.exposure_latency_s, encode_jpeg(self.render(), self.jpeg_quality)))
                 k = max(k + 1, math.floor((time.monotonic() - t0) / period) + 1)
-        except BaseException as exc:  # a broken render ends the stream; clients see it end
+        except Exception as exc:  # a broken render ends the stream; clients see it end
             log.error("camera stream at %s stopped: %s", self.url, exc)
             self._stop.set()
             with self._sent:
@@ -192,6 +192,18 @@ class CameraStream:
             return self._frame_number, self._jpeg
 
     # -- the server ---------------------------------------------------------------------
+
+    def connect(self, connection: socket.socket) -> bool:
+        """Count a client in, so that ``close`` can cut it off; False once closing."""
+        with self._sent:
+            if self._stop.is_set():
+                return False
+            self._connections.add(connection)
+            return True
+
+    def disconnect(self, connection: socket.socket) -> None:
+        with self._sent:
+            self._connections.discard(connection)
 
     def _handler_class(self) -> type[BaseHTTPRequestHandler]:
         stream = self
@@ -225,10 +237,8 @@ class _StreamHandler(BaseHTTPRequestHandler):
             self.send_error(404, f"the camera serves {STREAM_PATH} only")
             return
         camera = self.camera
-        with camera._sent:
-            if camera._stop.is_set():
-                return
-            camera._connections.add(self.request)
+        if not camera.connect(self.request):
+            return
         try:
             self.send_response(200)
             self.send_header("Content-Type", f"multipart/x-mixed-replace; boundary={BOUNDARY}")
@@ -247,5 +257,4 @@ class _StreamHandler(BaseHTTPRequestHandler):
         except OSError:  # the client went away, or close() disconnected it
             pass
         finally:
-            with camera._sent:
-                camera._connections.discard(self.request)
+            camera.disconnect(self.request)
