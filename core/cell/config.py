@@ -65,10 +65,11 @@ class CameraSourceConfig:
     kind "simulated": the simulated cell's renderer. "capture": OpenCV's VideoCapture on
     ``device`` (a device index, a video file, a stream URL or a GStreamer pipeline),
     reopened up to ``reconnect_attempts`` times ``reconnect_delay_s`` apart when a live
-    source stops delivering; ``loop`` replays a video file; ``exposure_latency_s`` and
-    ``buffer_frames`` bound how late a frame is read and how many the stream queues, so
-    that a servo cycle waits out the one and discards the other (docs/vision.md, "No
-    stale frames"). "folder": the images of
+    source stops delivering; ``loop`` replays a video file; ``exposure_latency_s`` bounds
+    how late a frame arrives after its exposure, so that a servo cycle takes the first
+    frame that arrived that long after the motion ended, and ``buffer_frames`` is how many
+    more it discards for a pipeline that holds frames inside (docs/vision.md, "No stale
+    frames"). "folder": the images of
     ``path`` matching ``pattern``, in name order (a dry run). Every frame must have
     [camera] image_size_px, the size the intrinsics were calibrated at.
     """

@@ -6,9 +6,9 @@ deliver anymore; ``close()`` releases it; a source is a context manager. Frames 
 always monochrome 8-bit (H, W) arrays, the camera of the cell being monochrome: colour
 frames are converted to grey and 16-bit frames keep their high byte (``to_mono8``).
 
-Timestamps depend on the source: a live source (camera, stream, video file played as if
-live) stamps each frame with a monotonic clock when ``read`` gets it, less its
-``exposure_latency_s``, playback of a recording
+Timestamps depend on the source: a live source (camera, stream) stamps each frame with
+a monotonic clock when the frame arrives, less its ``exposure_latency_s``, a video file
+when ``read`` gets the frame, playback of a recording
 (``vservo.core.perception.recording.PlaybackSource``) gives the recorded time and a
 simulated source the simulation time. Only differences between the timestamps of one
 source mean anything. Sizes are (width, height) in pixels, as OpenCV and ``CameraModel``
@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -39,6 +40,9 @@ from numpy.typing import NDArray
 log = logging.getLogger("vservo.camera")
 
 Size = tuple[int, int]  # (width, height) in pixels
+
+# How long closing a live source waits for its reader's read in progress to return.
+CLOSE_WAIT_S = 2.0
 
 
 class CameraSourceError(RuntimeError):
@@ -55,7 +59,7 @@ class Frame:
     """One monochrome image and when it was exposed.
 
     image: uint8 array of shape (height, width).
-    timestamp_s: seconds; for live sources a monotonic clock when the frame was read less
+    timestamp_s: seconds; for live sources a monotonic clock when the frame arrived less
       the source's exposure latency, the recorded time for playback, the simulation time
       for a simulated source.
     index: the source's frame counter, 0 for its first frame.
@@ -228,18 +232,25 @@ class VideoCaptureSource(BaseSource):
       before each attempt; then SourceLost. A video file is never reopened for a failed
       read: its end raises SourceLost("end of video file ..."), or rewinds with ``loop``.
     loop: replay a video file from its start when it ends (files only).
-    exposure_latency_s: the longest time from a frame's exposure until ``read`` can
-      return it (exposure, transfer, encoding, network, decoding); a frame is stamped
-      with the time it was read less this latency.
-    buffer_frames: the most frames that can wait between the camera and ``read`` (the
-      driver's queue, the stream's and the decoder's buffers): ``read_after`` discards
-      this many before it keeps one. Both are upper bounds: too large costs time, too
-      small lets a stale frame through.
-    clock / sleep: the timestamp clock, the wait between reconnections and the wait for
-      a fresh frame, injectable so tests neither wait nor depend on the time of day. The
-      clock must be the robot's (``time.monotonic`` for the JRC link) for ``read_after``.
+    exposure_latency_s: the longest time from a frame's exposure until it arrives here
+      (exposure, readout, encoding, network, decoding); a live frame is stamped with the
+      time it arrived less this latency.
+    buffer_frames: frames ``read_after`` still discards once a frame arrived late enough,
+      for a pipeline that holds frames inside even while it is read continuously (0 for
+      a plain camera or stream: see ``read_after``).
+    clock / sleep: the timestamp clock and the wait between reconnections, injectable so
+      tests neither wait nor depend on the time of day. The clock must be the robot's
+      (``time.monotonic`` for the JRC link) for ``read_after``; by default the wait ends
+      early when the source is closed.
     opener: makes a capture from the spec, ``cv2.VideoCapture`` by default; tests inject
       fakes that fail and recover.
+
+    A live source (device, stream) is read continuously by a thread of its own, which
+    keeps only the newest frame and the time it arrived: the driver's and the stream's
+    buffers are drained as fast as they fill, so a frame is never older on arrival than
+    the pipeline's latency, and a consumer that reads slowly sees fewer frames, never old
+    ones. That thread owns the capture (reading, reconnecting, releasing it). A video file
+    is read in the caller's thread, one frame per read: its frames are not live.
 
     A spec that cannot be opened at all raises CameraSourceError at construction, without
     retries: a wrong index or path is a set-up error, not a dropped connection. Opening a
@@ -258,7 +269,7 @@ class VideoCaptureSource(BaseSource):
         exposure_latency_s: float = 0.0,
         buffer_frames: int = 0,
         clock: Callable[[], float] = time.monotonic,
-        sleep: Callable[[float], None] = time.sleep,
+        sleep: Callable[[float], None] | None = None,
         opener: Callable[[int | str], CaptureLike] | None = None,
     ) -> None:
         if isinstance(spec, bool) or not isinstance(spec, (int, str)) or spec == "" or (isinstance(spec, int) and spec < 0):
@@ -282,16 +293,26 @@ class VideoCaptureSource(BaseSource):
         self.exposure_latency_s = float(exposure_latency_s)
         self.buffer_frames = buffer_frames
         self._clock = clock
-        self._sleep = sleep
+        self._stopping = threading.Event()
+        self._sleep: Callable[[float], object] = sleep if sleep is not None else self._stopping.wait
         self._opener: Callable[[int | str], CaptureLike] = opener if opener is not None else cv2.VideoCapture
         self._next_index = 0
         self._last_size: Size | None = None
         self._lost: str | None = None  # why the source is gone, once it is
-        self._cap: CaptureLike | None = None
         cap, why = self._open()
         if cap is None:
             raise CameraSourceError(f"cannot open {self._describe()}: {why}")
-        self._cap = cap
+        self._cap: CaptureLike | None = cap
+        self._reported_size = _reported_size(cap)
+        # A live source's newest frame, the clock when it arrived, and its arrival number;
+        # the number of the last one handed out. Guarded by _arrived.
+        self._arrived = threading.Condition()
+        self._newest: tuple[np.ndarray, float, int] | None = None
+        self._taken = 0
+        self._reader: threading.Thread | None = None
+        if not self.is_file:
+            self._reader = threading.Thread(target=self._read_continuously, name=f"capture {spec}", daemon=True)
+            self._reader.start()
 
     def __repr__(self) -> str:
         return f"VideoCaptureSource({self.spec!r})"
@@ -337,30 +358,18 @@ class VideoCaptureSource(BaseSource):
                 self._cap = None
 
     def _lose(self, why: str) -> SourceLost:
-        self._lost = why
         self._release()
+        with self._arrived:
+            self._lost = why
+            self._arrived.notify_all()
         return SourceLost(why)
 
     @property
     def image_size(self) -> Size | None:
-        if self._last_size is not None:
-            return self._last_size
-        if self.expected_size is not None:
-            return self.expected_size
-        if self._cap is not None:
-            width, height = int(self._cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(self._cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-            if width > 0 and height > 0:
-                return width, height
-        return None
+        return self._last_size or self.expected_size or self._reported_size
 
-    def read(self) -> Frame:
-        self._check_open()
-        if self._lost is not None:
-            raise SourceLost(self._lost)
-        image = self._read_once()
-        if image is None:
-            image = self._rewind() if self.is_file else self._reconnect()
-        timestamp = float(self._clock()) - self.exposure_latency_s
+    def _frame(self, image: np.ndarray, arrived_s: float) -> Frame:
+        """The next Frame of this source from a captured image and the clock at its arrival."""
         mono = to_mono8(image)
         height, width = mono.shape
         if self.expected_size is not None and (width, height) != self.expected_size:
@@ -369,39 +378,92 @@ class VideoCaptureSource(BaseSource):
                 f"expected {_format_size(self.expected_size)} (width x height)"
             )
         self._last_size = (width, height)
-        frame = Frame(mono, timestamp, self._next_index)
+        frame = Frame(mono, float(arrived_s) - self.exposure_latency_s, self._next_index)
         self._next_index += 1
         return frame
+
+    def read(self) -> Frame:
+        """The next frame: of a file, the next one in it; of a live source, the newest frame
+        not handed out before, waiting for it to arrive."""
+        self._check_open()
+        if not self.is_file:
+            return self._take(arrived_after_s=-math.inf)
+        if self._lost is not None:
+            raise SourceLost(self._lost)
+        image = self._read_once()
+        if image is None:
+            image = self._rewind()
+        return self._frame(image, self._clock())
 
     def read_after(self, t_s: float) -> Frame:
         """A frame exposed at or after ``t_s`` (this source's clock, which must be the robot's).
 
         The capture's frames carry no exposure time we can trust (CAP_PROP_POS_MSEC is a
-        position in the stream, not a time on our clock), so freshness follows from two
-        settings instead. No read returns a frame exposed at or after t_s before
-        t_s + exposure_latency_s; so once the clock has passed that moment, the frames
-        a read can return at once are older ones, at most ``buffer_frames`` of them, and
-        any frame after them arrived later, exposed at or after t_s. Waiting until
-        then, discarding ``buffer_frames`` frames and keeping the next is therefore
-        enough, whatever the frame rate. A buffer that was not full costs a frame period
-        per surplus discard; after a motion, when nothing read the camera, it is full.
+        position in the stream, not a time on our clock), but the reading thread knows
+        when each frame arrived, and it drains every buffer between the camera and here:
+        so a frame arrives at most ``exposure_latency_s`` after its exposure, and one that
+        arrived at or after t_s + exposure_latency_s was exposed at or after t_s. This
+        returns the newest such frame not handed out before, waiting for the first one when
+        none has arrived yet, whatever the frame rate and however slowly the caller reads;
+        with ``buffer_frames`` it then still discards that many, for a pipeline that holds
+        frames inside however fast it is read (each costs a frame period).
+
+        A video file's frames are not live: its next frame, as ``read``.
 
         Raises CameraSourceError when t_s is ahead of the clock (the robot's clock and
         this source's are not the same one), SourceLost as ``read`` does.
         """
         self._check_open()
+        if self.is_file:
+            return self.read()
         now = float(self._clock())
         if t_s > now:
             raise CameraSourceError(
                 f"{self._describe()}: asked for a frame exposed after {t_s:.3f} s, {t_s - now:.3f} s ahead of "
                 "the source's clock: the camera source must run on the robot's clock"
             )
-        wait = t_s + self.exposure_latency_s - now
-        if wait > 0.0:
-            self._sleep(wait)
+        frame = self._take(arrived_after_s=t_s + self.exposure_latency_s)
         for _ in range(self.buffer_frames):
-            self.read()
-        return self.read()
+            frame = self._take(arrived_after_s=-math.inf)
+        return frame
+
+    def _take(self, arrived_after_s: float) -> Frame:
+        """The newest live frame not handed out before that arrived at or after
+        ``arrived_after_s``, waiting for one; SourceLost once the reader gave up."""
+        with self._arrived:
+            while True:
+                self._check_open()
+                if self._newest is not None:
+                    image, arrived_s, number = self._newest
+                    if number > self._taken and arrived_s >= arrived_after_s:
+                        self._taken = number
+                        break
+                if self._lost is not None:
+                    raise SourceLost(self._lost)
+                self._arrived.wait()
+        return self._frame(image, arrived_s)
+
+    def _read_continuously(self) -> None:
+        """The live reader: read, stamp and keep the newest frame until closed or lost."""
+        number = 0
+        try:
+            while not self._stopping.is_set():
+                image = self._read_once()
+                if image is None:
+                    if self._stopping.is_set():
+                        break
+                    image = self._reconnect()
+                arrived_s = float(self._clock())
+                number += 1
+                with self._arrived:
+                    self._newest = (image, arrived_s, number)
+                    self._arrived.notify_all()
+        except SourceLost:
+            pass  # _lose recorded why; the consumer raises it
+        except Exception as exc:  # a broken capture or clock must reach the consumer, not vanish
+            self._lose(f"{self._describe()}: reading failed: {type(exc).__name__}: {exc}")
+        finally:
+            self._release()
 
     def _rewind(self) -> np.ndarray:
         """The first frame again at the end of a looping file; SourceLost without ``loop``."""
@@ -435,6 +497,8 @@ class VideoCaptureSource(BaseSource):
                 self.reconnect_attempts,
             )
             self._sleep(self.reconnect_delay_s)
+            if self._stopping.is_set():
+                raise self._lose(f"{self._describe()} is closed")
             self._cap, open_why = self._open()
             if self._cap is None:
                 why = f"reopening failed: {open_why}"
@@ -450,8 +514,26 @@ class VideoCaptureSource(BaseSource):
         )
 
     def close(self) -> None:
-        self._release()
-        super().close()
+        """Release the capture; a live source's reader finishes its read and releases it."""
+        with self._arrived:
+            super().close()
+            self._arrived.notify_all()
+        self._stopping.set()
+        if self._reader is None:
+            self._release()
+            return
+        # A read returns within a frame period from a delivering camera; one that hangs
+        # on a vanished stream returns at the capture's own timeout, and releases then.
+        self._reader.join(timeout=CLOSE_WAIT_S)
+        if self._reader.is_alive():
+            log.warning("%s: still waiting for a frame after %.1f s; it is released when the read returns",
+                        self._describe(), CLOSE_WAIT_S)
+
+
+def _reported_size(cap: CaptureLike) -> Size | None:
+    """The frame size the capture reports before delivering any, if it does."""
+    width, height = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+    return (width, height) if width > 0 and height > 0 else None
 
 
 class ImageFolderSource(BaseSource):

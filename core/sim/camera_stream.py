@@ -31,9 +31,20 @@ log = logging.getLogger("vservo.sim.camera_stream")
 
 BOUNDARY = "vservoframe"
 STREAM_PATH = "/stream.mjpg"
-# Room for about one frame in the kernel per client: enough to keep the link busy, too
-# little to hold a backlog of stale frames.
+# Room for a frame or two in the kernel per client (Linux doubles it): enough to keep the
+# link busy, too little to hold a backlog of stale frames.
 SEND_BUFFER_BYTES = 64 * 1024
+
+
+def encode_jpeg(image: np.ndarray, quality: int) -> bytes:
+    """One frame as the stream sends it: an 8-bit monochrome (H, W) image as a JPEG."""
+    if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8 or image.size == 0:
+        what = f"{image.dtype} array of shape {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
+        raise ValueError(f"a camera frame is a non-empty uint8 (height, width) image, got {what}")
+    ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError(f"OpenCV could not encode a {image.shape[1]}x{image.shape[0]} frame as JPEG")
+    return jpeg.tobytes()
 
 
 class CameraStream:
@@ -43,7 +54,9 @@ class CameraStream:
       time from the stream's frame thread.
     fps: frames per second of the frame clock.
     exposure_latency_s: time from a frame's exposure until it is sent.
-    jpeg_quality: 0 .. 100, OpenCV's IMWRITE_JPEG_QUALITY.
+    jpeg_quality: 0 .. 100, OpenCV's IMWRITE_JPEG_QUALITY. 100 by default: at 95 the
+      detected corners move by up to 0.18 px on the cell's views, at 100 by 0.006 px, for
+      a frame 17 % larger (docs/vision.md, "Through a stream").
 
     ``start()`` begins exposing frames and serving, ``close()`` stops both and closes the
     port, waiting for every thread it started; the stream is a context manager. Any number
@@ -56,7 +69,7 @@ class CameraStream:
         *,
         fps: float = 30.0,
         exposure_latency_s: float = 0.05,
-        jpeg_quality: int = 95,
+        jpeg_quality: int = 100,
         host: str = "127.0.0.1",
         port: int = 0,
     ) -> None:
@@ -128,16 +141,6 @@ class CameraStream:
 
     # -- the camera ---------------------------------------------------------------------
 
-    def _encode(self) -> bytes:
-        image = self.render()
-        if not isinstance(image, np.ndarray) or image.ndim != 2 or image.dtype != np.uint8 or image.size == 0:
-            what = f"{image.dtype} array of shape {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
-            raise ValueError(f"render must return a non-empty uint8 (height, width) image, got {what}")
-        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
-        if not ok:
-            raise RuntimeError(f"OpenCV could not encode a {image.shape[1]}x{image.shape[0]} frame as JPEG")
-        return jpeg.tobytes()
-
     def _expose(self) -> None:
         """The frame clock: expose frame k at t_0 + k / fps, send it exposure_latency_s later.
 
@@ -159,9 +162,9 @@ class CameraStream:
                 self._wait_until(t_exposure)
                 if self._stop.is_set():
                     break
-                in_flight.append((t_exposure + self.exposure_latency_s, self._encode()))
+                in_flight.append((t_exposure + self.exposure_latency_s, encode_jpeg(self.render(), self.jpeg_quality)))
                 k = max(k + 1, math.floor((time.monotonic() - t0) / period) + 1)
-        except BaseException as exc:  # a broken render ends the stream; clients see it end
+        except Exception as exc:  # a broken render ends the stream; clients see it end
             log.error("camera stream at %s stopped: %s", self.url, exc)
             self._stop.set()
             with self._sent:
@@ -189,6 +192,18 @@ class CameraStream:
             return self._frame_number, self._jpeg
 
     # -- the server ---------------------------------------------------------------------
+
+    def connect(self, connection: socket.socket) -> bool:
+        """Count a client in, so that ``close`` can cut it off; False once closing."""
+        with self._sent:
+            if self._stop.is_set():
+                return False
+            self._connections.add(connection)
+            return True
+
+    def disconnect(self, connection: socket.socket) -> None:
+        with self._sent:
+            self._connections.discard(connection)
 
     def _handler_class(self) -> type[BaseHTTPRequestHandler]:
         stream = self
@@ -222,10 +237,8 @@ class _StreamHandler(BaseHTTPRequestHandler):
             self.send_error(404, f"the camera serves {STREAM_PATH} only")
             return
         camera = self.camera
-        with camera._sent:
-            if camera._stop.is_set():
-                return
-            camera._connections.add(self.request)
+        if not camera.connect(self.request):
+            return
         try:
             self.send_response(200)
             self.send_header("Content-Type", f"multipart/x-mixed-replace; boundary={BOUNDARY}")
@@ -244,5 +257,4 @@ class _StreamHandler(BaseHTTPRequestHandler):
         except OSError:  # the client went away, or close() disconnected it
             pass
         finally:
-            with camera._sent:
-                camera._connections.discard(self.request)
+            camera.disconnect(self.request)

@@ -1,5 +1,5 @@
 """The study's commands: ``vservo demo``, ``simulate``, ``montecarlo``, ``reproduce``, ``replay``,
-and the vision and JRC link benches (``vservo bench vision``, ``vservo bench jrc``)."""
+and the vision, stream and JRC link benches (``vservo bench vision``, ``stream``, ``jrc``)."""
 
 from __future__ import annotations
 
@@ -124,6 +124,13 @@ def _cmd_bench_vision(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_stream(args: argparse.Namespace) -> int:
+    from vservo.core.study.stream_bench import bench_stream
+
+    print_result(bench_stream(load_cell(args.cell), views=args.views, quality=args.quality, seed=args.seed), args.json)
+    return 0
+
+
 def _cmd_bench_jrc(args: argparse.Namespace) -> int:
     config = load_cell(args.cell)
     if args.soak:
@@ -201,6 +208,24 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
 def add_vision_bench(bench: BenchCommand) -> None:
     """Register ``vservo bench vision``."""
     bench.add("vision", "render, detection and loop times, detection accuracy", _cmd_bench_vision)
+
+
+def add_stream_bench(bench: BenchCommand) -> None:
+    """Register ``vservo bench stream``."""
+    stream = bench.add("stream", "corner and spot differences and latency of frames through an MJPEG stream",
+                       _cmd_bench_stream)
+    stream.add_argument("--views", type=positive(int), default=24, help="stream: views of the cell (default 24)")
+    stream.add_argument("--quality", type=_jpeg_quality, default=100, help="stream: JPEG quality 0..100 (default 100)")
+
+
+def _jpeg_quality(text: str) -> int:
+    try:
+        quality = int(text)
+    except ValueError:
+        quality = -1
+    if not 0 <= quality <= 100:
+        raise argparse.ArgumentTypeError(f"a JPEG quality is an integer in 0..100, got {text!r}")
+    return quality
 
 
 def add_jrc_bench(bench: BenchCommand) -> None:
