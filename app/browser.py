@@ -74,7 +74,8 @@ class ServeProcess:
               timeout_s: float = 120.0, cell: str | None = None) -> ServeProcess:
         stderr_path = Path(data) / "serve.stderr"
         Path(data).mkdir(parents=True, exist_ok=True)
-        command = [sys.executable, "-m", "vservo.app.cli", *(["--cell", cell] if cell else []), "serve", "--port", str(free_port()), "--data", str(data),
+        cell_option = ["--cell", cell] if cell else []
+        command = [sys.executable, "-m", "vservo.app.cli", *cell_option, "serve", "--port", str(free_port()), "--data", str(data),
                    "--token", token, "--cycle-period", str(cycle_period_s), "--seed", str(seed)]
         with open(stderr_path, "w") as stderr:
             process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=stderr, text=True)

@@ -150,6 +150,11 @@ class CellController:
         self.state_subscribers: list[Callable[[ControllerState], None]] = []
         self.frame_subscribers: list[Callable[[FrameView], None]] = []
         self.rig.robot.connect()
+        status = self.rig.robot.status()
+        if status.held:  # an earlier session's e-stop or fault: motion only after an explicit reset
+            self._state = replace(self._state, phase=Phase.FAULT.value,
+                                  detail=f"the robot is {status.describe()} since before this controller started: "
+                                  "Reset releases it")
         self._publish_state()
 
     # -- publishing ------------------------------------------------------------------
@@ -516,7 +521,11 @@ class CellController:
 
 
 def run_job_once(controller: CellController, job_name: str) -> dict:
-    """One headless assembly (``vservo run``): a new part on a simulated cell, start, wait."""
+    """One headless assembly (``vservo run``): a new part where the cell can present one,
+    start, wait. The command is the operator's explicit go: a hold left by an earlier
+    session's fault is released first, as its Reset would."""
+    if controller.state.phase == Phase.FAULT.value:
+        controller.reset()
     if controller.rig.present_part is not None:
         controller.present_part()
     run_id = controller.start(job_name)

@@ -51,7 +51,7 @@ DEFAULT_VACUUM_IO = VacuumDeviceConfig("jrc_io", suction_output=27010, grip_inpu
 class VirtualCellSettings:
     """time_scale: the emulated JRC and the plant run this many times faster than a real
     cell (the controller's sampling period in the written cell file shrinks as much).
-    fps, exposure_latency_s, jpeg_quality: the camera stream's. latency_margin_s: what the
+    fps, exposure_latency_s: the camera stream's (JPEG at its lossless-looking default quality). latency_margin_s: what the
     written cell file adds to the camera's latency for the network and the decoder, so
     that its ``exposure_latency_s`` is an upper bound."""
 
@@ -59,7 +59,6 @@ class VirtualCellSettings:
     fps: float = 30.0
     exposure_latency_s: float = 0.05
     latency_margin_s: float = 0.05
-    jpeg_quality: int = 95
     release_poll_s: float = 0.01
 
 
@@ -124,8 +123,7 @@ class VirtualCell:
         self.emulator = JrcEmulator(self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum)
         self.renderer = SceneRenderer(self.cell.truth.model.camera, RenderSettings())
         self.camera_rng = np.random.default_rng(self.cell.rng.integers(2**31))
-        self.camera = CameraStream(self._render, fps=settings.fps, exposure_latency_s=settings.exposure_latency_s,
-                                   jpeg_quality=settings.jpeg_quality)
+        self.camera = CameraStream(self._render, fps=settings.fps, exposure_latency_s=settings.exposure_latency_s)
         self.fixture = _FixtureServer(self)
         self.released: list[Released] = []
         self._stop = threading.Event()
