@@ -78,9 +78,11 @@ def _present_and_start(page) -> int:
 def _assemble(page, virtual_cell) -> None:
     run = _present_and_start(page)
     done = wait_for_status(page, rf"Done .*run {run}", timeout_s=RUN_TIMEOUT_S)
-    assert "placed" in done or "part in the metal part" in done, done
+    seen = re.search(r"part seen (\d+\.\d+) mm from its taught place", done)
+    assert seen, done
     released = virtual_cell.next_event()
     assert released["event"] == "released" and released["inside"], released
+    assert abs(float(seen.group(1)) - released["placement_error_mm"]) <= 0.1, (done, released)
     page.get_by_text(f"Run {run}: placed").wait_for(timeout=10_000)
 
 
