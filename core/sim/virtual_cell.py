@@ -277,5 +277,9 @@ def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
 def load_virtual_cell_tables(cell: str | None, truth: str | None) -> tuple[dict[str, Any], str]:
     """The --cell file's tables (the shipped cell by default) with the --truth file's truth."""
     tables, source = read_cell_data(cell)
-    truth_data = read_cell_data(truth)[0] if truth is not None else None
-    return with_truth(tables, truth_data), source if truth is None else f"{source} with the truth of {truth}"
+    if truth is None:
+        return with_truth(tables, None), source
+    try:
+        return with_truth(tables, read_cell_data(truth)[0]), f"{source} with the truth of {truth}"
+    except ConfigError as exc:
+        raise ConfigError(f"--truth {truth}: {exc}") from None
