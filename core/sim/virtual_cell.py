@@ -51,7 +51,8 @@ DEFAULT_VACUUM_IO = VacuumDeviceConfig("jrc_io", suction_output=27010, grip_inpu
 class VirtualCellSettings:
     """time_scale: the emulated JRC and the plant run this many times faster than a real
     cell (the controller's sampling period in the written cell file shrinks as much).
-    fps, exposure_latency_s: the camera stream's (JPEG at its lossless-looking default quality). latency_margin_s: what the
+    fps, exposure_latency_s: the camera stream's (its JPEG quality stays the stream's default, 100:
+    at 95 the laser stage stalled on the demo job, docs/vision.md). latency_margin_s: what the
     written cell file adds to the camera's latency for the network and the decoder, so
     that its ``exposure_latency_s`` is an upper bound."""
 
