@@ -5,8 +5,8 @@ with it when the file is loaded) the rig is the JRC on ``[jrc] port`` behind the
 layer, the camera of ``[camera.source]``, the vacuum cup on the JRC's I/O or none, and
 the detectors on the NOMINAL camera and laser, and a test cell's fixture
 (``[fixture] url``) to present new parts if it has one. Nothing of the simulator is imported
-then, and no gauge says where a released part ended: the placement is reported unknown
-(None). The simulated cell's rig (core/production/simulated_rig.py) is imported only
+then, and no gauge says where a released part ended: the run measures the placement
+itself, by vision from the job's check view. The simulated cell's rig (core/production/simulated_rig.py) is imported only
 when the file names the simulated camera.
 """
 
@@ -58,7 +58,7 @@ def real_rig(config: CellConfig) -> Rig:
         extractor=extractor_for(config),
         policy=policy,
         dof=ArmKinematics(load_arm(config.arm), model.mount).dof,
-        # No gauge on a real cell: where the part ended is unknown to the controller.
+        # No gauge on a real cell: the assembly measures the placement by vision alone.
         measure_placement=lambda: None,
         present_part=FixtureClient(config.fixture_url).present_part if config.fixture_url else None,
     )

@@ -127,6 +127,7 @@ class VirtualCell:
         self.camera = CameraStream(self._render, fps=settings.fps, exposure_latency_s=settings.exposure_latency_s)
         self.fixture = _FixtureServer(self)
         self.released: list[Released] = []
+        self.jrc_port: str | None = None  # the emulator's pseudo-terminal, once started
         self._stop = threading.Event()
         self._watch: threading.Thread | None = None
 
@@ -158,6 +159,8 @@ class VirtualCell:
 
     def write_cell_file(self, path: str | Path) -> Path:
         """The controller's cell file for this running virtual cell."""
+        if self.jrc_port is None:
+            raise RuntimeError("the virtual cell is not started: its devices have no addresses yet")
         path = Path(path)
         tables = controller_tables(self.tables, jrc_port=self.jrc_port, camera_url=self.camera.url,
                                    fixture_url=self.fixture.url, vacuum=self.vacuum, settings=self.settings)
