@@ -59,6 +59,41 @@ class CellModel:
 
 
 @dataclass(frozen=True)
+class BoardConfig:
+    """[board]: the calibration checkerboard laid on the table for commissioning.
+
+    ``inner_corners`` is (columns, rows) of inner corners, ``square_m`` the side of a
+    square. The board frame has its origin at the inner corner (0, 0) on the board's top
+    surface, x along the columns, y along the rows, z up; the square spanning
+    [0, s] x [0, s] is black. ``bMboard`` is where the cell file says the board lies: a
+    rough place (to a few centimetres and degrees), which commissioning measures.
+    """
+
+    square_m: float
+    inner_corners: tuple[int, int]
+    bMboard: Matrix
+
+    def corners_board(self) -> Matrix:
+        """The inner corners (N, 3) in the board frame, row by row (x fastest)."""
+        cols, rows = self.inner_corners
+        i, j = np.meshgrid(np.arange(cols), np.arange(rows))
+        return np.column_stack((i.ravel() * self.square_m, j.ravel() * self.square_m, np.zeros(cols * rows)))
+
+
+@dataclass(frozen=True)
+class CommissioningRecord:
+    """[commissioning]: what ``vservo commission`` wrote into a cell file.
+
+    ``nn_path``: the chapter 2 network trained on the cell (read from the cell file's
+    folder when relative), which locating a part uses; ``provenance``: the date, the data
+    folder and the residuals of each step, kept as written (a record, not a setting).
+    """
+
+    nn_path: Path | None
+    provenance: dict[str, Any]
+
+
+@dataclass(frozen=True)
 class CameraSourceConfig:
     """[camera.source]: where the controller's frames come from.
 
@@ -202,6 +237,8 @@ class CellConfig:
     # [fixture] url: a test cell's part feeder and gauge (the virtual cell's), which can
     # present a new part; None on a production cell, where parts arrive by hand or conveyor.
     fixture_url: str | None = None
+    board: BoardConfig | None = None  # [board]: None when the file names no calibration board
+    commissioning: CommissioningRecord | None = None  # [commissioning]: None until the cell is commissioned
 
     @property
     def real(self) -> bool:
@@ -299,7 +336,11 @@ def _non_negative(v: float) -> bool:
 
 
 def _camera(t: _Table) -> CameraModel:
-    """[camera]: the intrinsics of Table 3-1 and an OpenCV distortion (k1 k2 p1 p2 k3)."""
+    """[camera]: the intrinsics of Table 3-1 and an OpenCV distortion (k1 k2 p1 p2 k3).
+
+    A data sheet gives the focal length in mm and the pixel pitch; a calibration measures
+    the focal lengths in pixels, ``focal_length_px = [fx, fy]``, which then replaces them.
+    """
     focal = t.number("focal_length_mm", 6.0, check=_positive, why="must be positive")
     pixel = t.vector("pixel_size_mm", 2, [0.0074, 0.0074])
     if np.any(pixel <= 0):
@@ -309,13 +350,21 @@ def _camera(t: _Table) -> CameraModel:
     if np.any(size < 1) or np.any(size != np.round(size)):
         raise t.fail("image_size_px", size.tolist(), "must be two positive whole numbers")
     distortion = Distortion(*t.vector("distortion", 5, [0.0] * 5))
+    measured = "focal_length_px" in t._data
+    focal_px = t.vector("focal_length_px", 2, [1.0, 1.0])
+    if np.any(focal_px <= 0):
+        raise t.fail("focal_length_px", focal_px.tolist(), "both focal lengths must be positive")
     t.finish()
-    intrinsics = Intrinsics.from_sensor(
-        focal_length_m=focal / 1000.0,
-        pixel_size_m=(pixel[0] / 1000.0, pixel[1] / 1000.0),
-        principal_point_px=(float(principal[0]), float(principal[1])),
-        image_size_px=(int(size[0]), int(size[1])),
-    )
+    if measured:
+        intrinsics = Intrinsics(float(focal_px[0]), float(focal_px[1]), float(principal[0]), float(principal[1]),
+                                int(size[0]), int(size[1]))
+    else:
+        intrinsics = Intrinsics.from_sensor(
+            focal_length_m=focal / 1000.0,
+            pixel_size_m=(pixel[0] / 1000.0, pixel[1] / 1000.0),
+            principal_point_px=(float(principal[0]), float(principal[1])),
+            image_size_px=(int(size[0]), int(size[1])),
+        )
     return CameraModel(intrinsics, distortion)
 
 
@@ -377,6 +426,36 @@ def _fixture_url(t: _Table) -> str | None:
         raise t.fail("url", url, "must be an http:// address (the fixture's JSON port)")
     t.finish()
     return url.rstrip("/")
+
+
+def _board(t: _Table) -> BoardConfig | None:
+    """[board]: square side, inner corners and rough pose; None when the table is absent."""
+    if not t._data:
+        return None
+    square = t.number("square_mm", None, check=_positive, why="must be positive") / 1000.0
+    corners = t.vector("inner_corners", 2, None)
+    if np.any(corners < 3) or np.any(corners != np.round(corners)) or corners[0] == corners[1]:
+        raise t.fail("inner_corners", corners.tolist(), "must be two different whole numbers >= 3 (columns, rows): "
+                     "a square board's quarter turns cannot be told apart")
+    board = BoardConfig(square, (int(corners[0]), int(corners[1])), t.pose("pose", None))
+    t.finish()
+    return board
+
+
+def _commissioning(t: _Table, base_dir: Path | None) -> CommissioningRecord | None:
+    """[commissioning]: the network's file and a free-form provenance table."""
+    if not t._data:
+        return None
+    nn_path = None
+    if "nn_file" in t._data:
+        nn_path = Path(t.text("nn_file"))
+        if not nn_path.is_absolute() and base_dir is not None:
+            nn_path = base_dir / nn_path
+    provenance = t._raw("provenance", {})
+    if not isinstance(provenance, dict):
+        raise t.fail("provenance", provenance, "must be a table")
+    t.finish()
+    return CommissioningRecord(nn_path, provenance)
 
 
 def _io_address(t: _Table, key: str) -> int:
@@ -559,11 +638,13 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     jrc = _jrc(root.table("jrc"))
     safety = _safety(root.table("safety"))
     fixture_url = _fixture_url(root.table("fixture"))
+    board = _board(root.table("board"))
+    commissioning = _commissioning(root.table("commissioning"), base_dir)
     root.finish()
     camera_source = _camera_source(_Table(wiring.get("camera", {}), "camera", source).table("source"), base_dir)
     vacuum_device = _vacuum_device(_Table(wiring.get("vacuum", {}), "vacuum", source))
     config = CellConfig(source, arm, home_q, nominal, motion, simulation, backend, jrc, safety, camera_source,
-                        vacuum_device, fixture_url)
+                        vacuum_device, fixture_url, board, commissioning)
     _check_devices(config)
     return config
 
