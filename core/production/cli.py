@@ -7,6 +7,7 @@ import json
 import os
 import sys
 import threading
+from pathlib import Path
 
 from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
 from vservo.core.production.storage import default_data_dir
@@ -71,6 +72,78 @@ def _cmd_controller(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_commission(args: argparse.Namespace) -> int:
+    from vservo.core.cell.config import ConfigError, read_cell_data
+    from vservo.core.production.cell_rig import build_rig
+    from vservo.core.production.commissioned_file import commissioned_tables, write_commissioned_cell
+    from vservo.core.production.commissioning import (
+        Commissioning,
+        CommissioningError,
+        CommissionSettings,
+        Step,
+        commission_summary,
+        model_errors,
+    )
+    from vservo.core.terminal.progress import Progress
+
+    try:
+        steps = [Step(name) for name in args.steps.split(",")]
+    except ValueError:
+        print(f"vservo commission: error: --steps {args.steps!r}: choose from {','.join(Step)}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        print(f"vservo commission: error: --out {out} exists: commissioning writes a new file (--force replaces it)",
+              file=sys.stderr)
+        return 2
+    config = load_cell(args.cell)
+    reference = _reference_model(args.reference) if args.reference else None
+    folder = Path(args.data_folder) if args.data_folder else out.with_name(out.stem + "-commissioning")
+    rig = build_rig(config, args.seed)
+    bars: dict[str, Progress] = {}
+
+    def on_progress(progress) -> None:
+        bar = bars.get(progress.step)
+        if bar is None:
+            bar = bars[progress.step] = Progress(progress.total, f"commission {progress.step}")
+        bar.advance(progress.note)
+
+    try:
+        rig.robot.connect()
+        if not rig.robot.status().servo_on:
+            rig.robot.servo(True)
+        result = Commissioning(rig, folder, CommissionSettings(seed=args.seed or 0), on_progress).run(steps)
+    except (CommissioningError, ConfigError) as exc:
+        print(f"vservo commission: error: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        for bar in bars.values():
+            bar.close()
+        rig.close()
+    summary = commission_summary(result)
+    summary["data_folder"] = str(folder)
+    if reference is not None:
+        summary["against_reference"] = model_errors(result.model, reference, 0.162)
+    if result.good:
+        tables, _ = read_cell_data(args.cell)
+        write_commissioned_cell(config.source, commissioned_tables(tables, result, out, folder, steps), out)
+        summary["out"] = str(out)
+    else:
+        summary["out"] = None
+    print_result(summary, args.json)
+    return 0 if result.good else 1
+
+
+def _reference_model(path: str):
+    """The model a reference cell file says the cell is: its [simulation.truth] when it has
+    a plant (a virtual cell's truth file), its nominal model otherwise."""
+    from vservo.core.cell.config import parse_cell, read_cell_data
+
+    tables, source = read_cell_data(path)
+    config = parse_cell(tables, source)
+    return config.simulation.truth if config.simulation is not None else config.nominal
+
+
 def _stop_when_orphaned(parent_pid: int, stop: threading.Event, period_s: float = 0.5) -> None:
     """Set ``stop`` once this process's parent is no longer ``parent_pid``.
 
@@ -110,3 +183,21 @@ def add_production_commands(commands: argparse._SubParsersAction) -> None:
                             help="hold the robot and exit when the process that started this one is gone "
                                  "(`vservo serve` sets it: a killed app leaves no controller holding the cell)")
     controller.set_defaults(run=_cmd_controller)
+
+    commission = commands.add_parser(
+        "commission", help="measure the connected cell's camera, hand-eye, laser and NN on its board and write a new "
+                           "cell file (docs/commissioning.md)")
+    commission.add_argument("--cell", required=True, help="the cell file of the cell to commission (never overwritten)")
+    commission.add_argument("--out", required=True, metavar="NEW_FILE", help="the commissioned cell file to write")
+    commission.add_argument("--steps", default="camera,hand-eye,laser,nn",
+                            help="comma-separated steps: camera, hand-eye, laser, nn (default: all)")
+    commission.add_argument("--data-folder", metavar="DIR",
+                            help="where the views, datasets and the NN go (default: NEW_FILE's name + -commissioning)")
+    commission.add_argument("--reference", metavar="FILE",
+                            help="a cell file to compare the measured model with: a virtual cell's --truth file, or "
+                                 "the last commissioned file")
+    commission.add_argument("--seed", type=int, default=None, help="seed of the views' random tilts and turns "
+                                                                   "(and of a simulated cell)")
+    commission.add_argument("--force", action="store_true", help="replace NEW_FILE if it exists (never the input)")
+    commission.add_argument("--json", action="store_true", help="one JSON object")
+    commission.set_defaults(run=_cmd_commission)
