@@ -53,9 +53,6 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
         placement = cell.ground_truth_placement()
         return PlacementReport(placement.inside, 1000.0 * placement.error_m)
 
-    def present_part(rng: np.random.Generator) -> None:
-        feed_part(cell, taught_bMo, rng)
-
     policy = step_policy_from_config(config.motion)
     emulator = None
     vacuum = config.vacuum_device
@@ -75,6 +72,10 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
         policy = replace(policy, sampling_period_s=policy.sampling_period_s / jrc_time_scale)
     # The emulator's thread moves the plant: the table changes between its commands.
     lock = emulator.lock if emulator is not None else nullcontext()
+
+    def present_part(rng: np.random.Generator) -> None:
+        with lock:
+            feed_part(cell, taught_bMo, rng)
 
     def lay_board(laid: bool) -> None:
         with lock:
