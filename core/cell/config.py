@@ -6,7 +6,7 @@ and the ``[vacuum]`` device keys say which devices the controller drives (the
 simulator's, or a real camera and the vacuum on the JRC's I/O); ``[jrc]`` holds the
 serial line to a JRC and ``[safety]`` the limits on every move; ``[simulation]``
 describes the plant the simulator plays: its seed and noise, ``[simulation.scene]``
-(where the table, cube and metal part really are) and ``[simulation.truth.*]`` tables
+(where the table, cube, metal part and the checkerboard, when laid, really are) and ``[simulation.truth.*]`` tables
 that override nominal values with what the cell really is (the robustness test of
 Table 5-3 is such a file).
 
@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from vservo.core.cell.kinematics import ToolMount
-from vservo.core.cell.scene import Cube, MetalPart, Scene
+from vservo.core.cell.scene import Cube, LaidBoard, MetalPart, Scene
 from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
 from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import Matrix, matrix_from_pose, pose_from_mm_deg
@@ -214,6 +214,7 @@ class SimulationConfig:
     seed: int
     truth: CellModel
     scene: Scene
+    board: LaidBoard | None  # where the true board lies when laid; None without a [board]
     pixel_noise_px: float
     repeatability_m: float
     repeatability_rad: float
@@ -505,13 +506,34 @@ def _check_devices(config: CellConfig) -> None:
                           f"\"jrc\", not {backend!r}")
 
 
-def _scene(t: _Table) -> Scene:
+# How far the true board may lie from the table's plane: it is a printed sheet on it.
+_SHEET_ON_TABLE_M = 1e-5
+_SHEET_LEVEL_RAD = math.radians(0.01)
+
+
+def _scene(t: _Table, board: BoardConfig | None) -> tuple[Scene, LaidBoard | None]:
+    """The scene as the plant starts (no board laid), and the board where it lies when laid:
+    ``board_pose``, or the [board] pose by default; it must lie flat on the table."""
     table_height = t.number("table_height_mm", 0.0) / 1000.0
     cube = Cube(t.pose("object_pose", None), t.number("cube_side_mm", 20.0, check=_positive,
                                                         why="must be positive") / 1000.0)
     part = MetalPart(t.pose("metal_part_pose", None))
+    laid = None
+    if "board_pose" in t._data and board is None:
+        raise t.fail("board_pose", t._data["board_pose"], "needs a [board] table (square_mm, inner_corners, pose)")
+    if board is not None:
+        given = "board_pose" in t._data
+        bMboard = t.pose("board_pose") if given else board.bMboard
+        tilt = math.acos(min(1.0, float(bMboard[2, 2])))
+        if abs(bMboard[2, 3] - table_height) > _SHEET_ON_TABLE_M or tilt > _SHEET_LEVEL_RAD:
+            key = "board_pose" if given else "board_pose (not given: the [board] pose)"
+            raise t.fail(key, t._data.get("board_pose", "[board] pose"),
+                         f"the board is a sheet lying on the table: its z ({1000.0 * bMboard[2, 3]:g} mm) must be "
+                         f"table_height_mm = {1000.0 * table_height:g} and it must lie level (theta = psi = 0; "
+                         f"it is tilted {math.degrees(tilt):.3g} deg)")
+        laid = LaidBoard(bMboard, board.square_m, board.inner_corners)
     t.finish()
-    return Scene(table_height, cube, part)
+    return Scene(table_height, cube, part), laid
 
 
 def _motion(t: _Table) -> MotionConfig:
@@ -591,12 +613,14 @@ def _truth_tables(data: dict[str, Any], truth: Any, source: str) -> dict[str, An
     return merged
 
 
-def _simulation(t: _Table, truth: CellModel) -> SimulationConfig:
+def _simulation(t: _Table, truth: CellModel, board: BoardConfig | None) -> SimulationConfig:
     t.table("truth")  # parsed by _truth_tables; marked as known here
+    scene, laid_board = _scene(t.table("scene"), board)
     simulation = SimulationConfig(
         seed=t.integer("seed", 0),
         truth=truth,
-        scene=_scene(t.table("scene")),
+        scene=scene,
+        board=laid_board,
         pixel_noise_px=t.number("pixel_noise_px", 0.0, check=_non_negative, why="must be >= 0"),
         repeatability_m=t.number("repeatability_mm", 0.0, check=_non_negative, why="must be >= 0") / 1000.0,
         repeatability_rad=math.radians(
@@ -633,12 +657,12 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     truth_data = simulation_data.get("truth", {}) if isinstance(simulation_data, dict) else {}
     truth = _cell_model(_Table(_truth_tables(data, truth_data, source), "", f"{source} [simulation.truth]"))
     motion = _motion(root.table("motion"))
+    board = _board(root.table("board"))
     # A controller's file for a real cell may leave the plant out: only a simulator reads it.
-    simulation = _simulation(root.table("simulation"), truth) if "simulation" in data else None
+    simulation = _simulation(root.table("simulation"), truth, board) if "simulation" in data else None
     jrc = _jrc(root.table("jrc"))
     safety = _safety(root.table("safety"))
     fixture_url = _fixture_url(root.table("fixture"))
-    board = _board(root.table("board"))
     commissioning = _commissioning(root.table("commissioning"), base_dir)
     root.finish()
     camera_source = _camera_source(_Table(wiring.get("camera", {}), "camera", source).table("source"), base_dir)

@@ -1,4 +1,4 @@
-"""The physical objects of the cell: table, the 20 mm cube and the metal part.
+"""The physical objects of the cell: table, the 20 mm cube, the metal part and the checkerboard.
 
 Everything is expressed in the robot base frame B. The scene is what the simulator
 ray-casts against (the laser spot, occlusion of corners); it is also the nominal layout
@@ -13,7 +13,7 @@ corners in the order (0, 0), (s, 0), (s, s), (0, s).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -155,13 +155,59 @@ class MetalPart:
 
 
 @dataclass(frozen=True)
+class LaidBoard:
+    """The calibration checkerboard as it lies on the table: a printed sheet of no thickness.
+
+    Board frame as [board] in the cell file: origin at the inner corner (0, 0) on the
+    sheet, x along the columns, y along the rows, z up; the square [0, s] x [0, s] is
+    black. The pattern has (cols + 1) x (rows + 1) squares around the cols x rows inner
+    corners, and the white sheet one white square of margin around the pattern.
+    """
+
+    bMboard: Matrix
+    square_m: float
+    inner_corners: tuple[int, int]
+    sheet_b: Matrix = field(init=False, repr=False, compare=False)
+    black_squares_b: Matrix = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        # The renderer draws these every frame: place them in B once.
+        s = self.square_m
+        cols, rows = self.inner_corners
+        sheet = np.array([[-2 * s, -2 * s], [(cols + 1) * s, -2 * s], [(cols + 1) * s, (rows + 1) * s],
+                          [-2 * s, (rows + 1) * s]])
+        unit = np.array([[0.0, 0.0], [s, 0.0], [s, s], [0.0, s]])
+        squares = [unit + (i * s, j * s) for j in range(-1, rows) for i in range(-1, cols) if (i + j) % 2 == 0]
+        object.__setattr__(self, "sheet_b", self._to_b(sheet))
+        object.__setattr__(self, "black_squares_b", self._to_b(np.array(squares)))
+
+    def _to_b(self, xy_board: Matrix) -> Matrix:
+        points = np.concatenate((xy_board, np.zeros(xy_board.shape[:-1] + (1,))), axis=-1)
+        return points @ self.bMboard[:3, :3].T + self.bMboard[:3, 3]
+
+    @property
+    def corners_b(self) -> Matrix:
+        """The inner corners (N, 3) in B, row by row (x fastest), the order OpenCV reports them in."""
+        cols, rows = self.inner_corners
+        i, j = np.meshgrid(np.arange(cols), np.arange(rows))
+        xy = np.column_stack((i.ravel(), j.ravel())) * self.square_m
+        return self._to_b(xy.astype(float))
+
+
+@dataclass(frozen=True)
 class Scene:
-    """Table plane z = table_height_m in B, the cube and the metal part."""
+    """Table plane z = table_height_m in B, the cube and the metal part, or the board.
+
+    While a board is laid the table is cleared (as an integrator clears it to lay the
+    sheet): the cube and the metal part are off it, kept where they go back when the
+    board is taken away, and the scene's surfaces are the table and the sheet on it.
+    """
 
     table_height_m: float
     cube: Cube
     metal_part: MetalPart
     table_half_size_m: float = 1.0
+    board: LaidBoard | None = None
     boxes: tuple[Box, ...] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -171,7 +217,14 @@ class Scene:
             transform(t=(0.0, 0.0, self.table_height_m - 0.005)),
             np.array([self.table_half_size_m, self.table_half_size_m, 0.005]),
         )
-        object.__setattr__(self, "boxes", (table, self.cube.box, *self.metal_part.boxes))
+        # The sheet has no thickness: a beam that lands on it lands on the table.
+        boxes = (table,) if self.board is not None else (table, self.cube.box, *self.metal_part.boxes)
+        object.__setattr__(self, "boxes", boxes)
+
+    @property
+    def parts_on_table(self) -> bool:
+        """Whether the cube and the metal part are on the table (no board laid)."""
+        return self.board is None
 
     def raycast(self, ray: Ray) -> RayHit | None:
         """First surface hit by a ray given in B, or None if it leaves the scene."""
@@ -190,4 +243,8 @@ class Scene:
         return hit is None or hit.distance_m >= distance - tolerance_m
 
     def with_cube(self, cube: Cube) -> Scene:
-        return Scene(self.table_height_m, cube, self.metal_part, self.table_half_size_m)
+        return replace(self, cube=cube)
+
+    def with_board(self, board: LaidBoard | None) -> Scene:
+        """The board laid (the table cleared of the parts), or taken away (None: the parts back)."""
+        return replace(self, board=board)

@@ -4,13 +4,15 @@ On a real cell (a camera that is not the simulator's; its robot and vacuum are c
 with it when the file is loaded) the rig is the JRC on ``[jrc] port`` behind the safety
 layer, the camera of ``[camera.source]``, the vacuum cup on the JRC's I/O or none, and
 the detectors on the NOMINAL camera and laser, and a test cell's fixture
-(``[fixture] url``) to present new parts if it has one. Nothing of the simulator is imported
+(``[fixture] url``) to present or place new parts and lay the checkerboard, if it has one. Nothing of the simulator is imported
 then, and no gauge says where a released part ended: the run measures the placement
 itself, by vision from the job's check view. The simulated cell's rig (core/production/simulated_rig.py) is imported only
 when the file names the simulated camera.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 from vservo.core.cell.config import CameraSourceConfig, CellConfig, ConfigError
 from vservo.core.cell.kinematics import ArmKinematics
@@ -60,8 +62,16 @@ def real_rig(config: CellConfig) -> Rig:
         dof=ArmKinematics(load_arm(config.arm), model.mount).dof,
         # No gauge on a real cell: the assembly measures the placement by vision alone.
         measure_placement=lambda: None,
-        present_part=FixtureClient(config.fixture_url).present_part if config.fixture_url else None,
+        **_fixture_hooks(config),
     )
+
+
+def _fixture_hooks(config: CellConfig) -> dict[str, Callable[..., object]]:
+    """The rig's test-cell hooks, on the fixture of [fixture] url; none without one."""
+    if not config.fixture_url:
+        return {}
+    fixture = FixtureClient(config.fixture_url)
+    return {"present_part": fixture.present_part, "lay_board": fixture.lay_board, "place_part": fixture.place_part}
 
 
 def open_camera(source: CameraSourceConfig, size: tuple[int, int]) -> FrameSource:

@@ -1,10 +1,12 @@
-"""A test cell's fixture, reached over its JSON port: it presents new parts.
+"""A test cell's fixture, reached over its JSON port: it presents new parts and lays the board.
 
-A production cell has none: parts arrive by hand or on a conveyor. A test cell (the
-virtual cell of ``vservo virtual-cell``) has a fixture that puts a new part on the table
-on request and gauges where a released part ended; the controller uses only the first,
-so that one-click runs each get a part, and measures placement itself, by vision. The
-cell file names the fixture with ``[fixture] url``.
+A production cell has none: parts arrive by hand or on a conveyor, and an integrator lays
+the calibration checkerboard. A test cell (the virtual cell of ``vservo virtual-cell``)
+has a fixture that puts a new part on the table on request (near where the job was
+taught, or at a given place), lays the checkerboard or takes it away, and gauges where a
+released part ended; the controller uses all but the gauge, and measures placement
+itself, by vision. The cell file names the fixture with ``[fixture] url``; its endpoints
+are in docs/connecting-your-cell.md.
 """
 
 from __future__ import annotations
@@ -28,6 +30,17 @@ class FixtureClient:
         """A new part on the table; ``rng`` draws the seed of where it lands, so a run's
         ``--seed`` decides the part's arrival here as on the simulated cell."""
         return self._request("POST", "/part", {"seed": int(rng.integers(2**31))})
+
+    def place_part(self, x_m: float, y_m: float, yaw_rad: float) -> dict:
+        """The part put down with its frame O (a top-face corner) at (x_m, y_m) in the base
+        frame, turned yaw_rad about the vertical; the fixture refuses a place off its table
+        or on the metal part."""
+        return self._request("POST", "/part", {"x_mm": 1000.0 * x_m, "y_mm": 1000.0 * y_m,
+                                               "yaw_deg": float(np.degrees(yaw_rad))})
+
+    def lay_board(self, laid: bool) -> dict:
+        """Lay the calibration checkerboard on the table (the parts cleared off it), or take it away."""
+        return self._request("POST", "/board", {"laid": bool(laid)})
 
     def _request(self, method: str, path: str, body: dict | None = None) -> dict:
         data = None if body is None else json.dumps(body).encode()

@@ -3,8 +3,9 @@
 A ``Rig`` is built from the cell file by ``build_rig`` (core/production/cell_rig.py, where
 the real cell's devices are made; the simulated cell's are in
 core/production/simulated_rig.py). The controller sees only the
-interfaces real hardware has, plus the two things only a test cell offers (a gauge for
-where a released part ended, and a new part presented on the table), None elsewhere.
+interfaces real hardware has, plus what only a test cell offers (a gauge for where a
+released part ended, a new part presented on the table or put at a given place, the
+calibration checkerboard laid on the table or taken away), None where the cell cannot.
 """
 
 from __future__ import annotations
@@ -40,6 +41,10 @@ class Rig:
     dof: int
     measure_placement: Callable[[], PlacementReport | None]
     present_part: Callable[[np.random.Generator], None] | None = None
+    # The checkerboard laid (True: the table cleared of the parts) or taken away (False).
+    lay_board: Callable[[bool], None] | None = None
+    # The part put down with its frame O at (x_m, y_m) in the base frame, turned yaw_rad.
+    place_part: Callable[[float, float, float], None] | None = None
     cell: SimulatedCell | None = None  # the plant, for the 3D view and evaluation; None on a real cell
     emulator: JrcEmulator | None = None  # the JRC emulator the robot link talks to, if any
 

@@ -5,12 +5,14 @@ pseudo-terminal to the JRC emulator moving that same simulator), its vacuum cup 
 simulator's, or through the emulator's I/O when the cell file wires it there), the
 synthetic camera and the detectors on the NOMINAL camera and laser. The simulator's
 truth is reached only through ``measure_placement`` (the gauge that says where a
-released part ended) and ``present_part`` (a new part arriving on the table), the two
-things a test cell provides that no JRC reads.
+released part ended), ``present_part`` and ``place_part`` (a new part arriving on the
+table) and ``lay_board`` (the checkerboard laid on it): what a test cell provides that
+no JRC reads.
 """
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from dataclasses import replace
 
 import numpy as np
@@ -26,6 +28,7 @@ from vservo.core.servo.step_policy import DividedPositionStep, step_policy_from_
 from vservo.core.sim.backend import SimulatedBackend
 from vservo.core.sim.camera import SimulatedCamera
 from vservo.core.sim.jrc_emulator import JrcEmulator
+from vservo.core.sim.part_feeder import place_part as put_part
 from vservo.core.sim.part_feeder import present_part as feed_part
 from vservo.core.sim.plant import SimulatedCell
 from vservo.core.sim.vacuum import SimulatedVacuum
@@ -50,9 +53,6 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
         placement = cell.ground_truth_placement()
         return PlacementReport(placement.inside, 1000.0 * placement.error_m)
 
-    def present_part(rng: np.random.Generator) -> None:
-        feed_part(cell, taught_bMo, rng)
-
     policy = step_policy_from_config(config.motion)
     emulator = None
     vacuum = config.vacuum_device
@@ -70,6 +70,21 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
         if vacuum.device == "jrc_io":
             gripper = JrcVacuum(jrc, vacuum.suction_output, vacuum.grip_input)
         policy = replace(policy, sampling_period_s=policy.sampling_period_s / jrc_time_scale)
+    # The emulator's thread moves the plant: the table changes between its commands.
+    lock = emulator.lock if emulator is not None else nullcontext()
+
+    def present_part(rng: np.random.Generator) -> None:
+        with lock:
+            feed_part(cell, taught_bMo, rng)
+
+    def lay_board(laid: bool) -> None:
+        with lock:
+            cell.lay_board(laid)
+
+    def place_part(x_m: float, y_m: float, yaw_rad: float) -> None:
+        with lock:
+            put_part(cell, x_m, y_m, yaw_rad)
+
     return Rig(
         config=config,
         robot=robot,
@@ -80,6 +95,8 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
         dof=cell.jrc_arm.dof,
         measure_placement=measure_placement,
         present_part=present_part,
+        lay_board=lay_board,
+        place_part=place_part,
         cell=cell,
         emulator=emulator,
     )

@@ -74,7 +74,8 @@ def _cmd_virtual_cell(args: argparse.Namespace) -> int:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stopped.set())
     with tempfile.TemporaryDirectory(prefix="vservo-virtual-cell-") as folder, \
-            VirtualCell(tables, source, args.seed, settings, on_released=print_released) as virtual:
+            VirtualCell(tables, source, args.seed, settings, on_released=print_released,
+                        board_laid=args.board) as virtual:
         cell_file = virtual.write_cell_file(Path(args.out) if args.out else Path(folder) / "cell.toml")
         print(json.dumps({"cell_file": str(cell_file), "jrc_port": virtual.jrc_port, "camera_url": virtual.camera.url,
                           "fixture": virtual.fixture.url}), flush=True)
@@ -92,12 +93,13 @@ def add_virtual_cell_command(commands: argparse._SubParsersAction) -> None:
         "a part fixture",
         description="Runs the simulated cell behind the interfaces a real cell has: the JRC emulator on a new "
         "pseudo-terminal (the vacuum cup on its I/O), the camera as an MJPEG stream OpenCV opens by URL, and a "
-        "fixture (HTTP, JSON) that presents parts and gauges where a released part ended. It writes a cell file "
-        "for the controller and prints one JSON line with cell_file, jrc_port, camera_url and fixture, then one "
-        "line per released part. Runs until Ctrl-C or SIGTERM.",
+        "fixture (HTTP, JSON) that presents parts, lays the checkerboard and gauges where a released part ended. "
+        "It writes a cell file for the controller and prints one JSON line with cell_file, jrc_port, camera_url "
+        "and fixture, then one line per released part. Runs until Ctrl-C or SIGTERM.",
     )
     virtual.add_argument("--truth", metavar="FILE", help="a cell file whose [simulation.truth.*] tables say how the "
-                         "cell really differs from the nominal one (default: the --cell file's own)")
+                         "cell really differs from the nominal one, and its [simulation.scene] board_pose where the "
+                         "board truly lies (default: the --cell file's own)")
     virtual.add_argument("--seed", type=int, default=None, help="seed of the plant, its camera and its parts")
     virtual.add_argument("--out", metavar="FILE", help="where to write the controller's cell file (default: a "
                          "temporary folder removed on exit)")
@@ -106,4 +108,6 @@ def add_virtual_cell_command(commands: argparse._SubParsersAction) -> None:
     virtual.add_argument("--fps", type=positive(float), default=30.0, help="camera frames per second (default 30)")
     virtual.add_argument("--latency", type=positive(float), default=0.05, metavar="S",
                          help="camera latency from exposure to sending a frame, in s (default 0.05)")
+    virtual.add_argument("--board", action="store_true", help="start with the calibration checkerboard of the "
+                         "cell file's [board] laid on the table (the parts cleared off it), as to commission the cell")
     virtual.set_defaults(run=_cmd_virtual_cell)

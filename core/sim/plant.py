@@ -42,6 +42,11 @@ IK_TOLERANCE_M = 1e-7
 IK_TOLERANCE_RAD = 1e-7
 
 
+class CellStateError(RuntimeError):
+    """The plant refuses what it is asked in its present state (the cup holds the part,
+    the board lies on the table); the message says what is in the way."""
+
+
 @dataclass(frozen=True)
 class CellTruth:
     """What the cell really is. Only the simulator holds one."""
@@ -153,6 +158,24 @@ class SimulatedCell:
             )
         self.truth = CellTruth.from_config(config, self.jrc_arm, self.rng)
         self.state = PlantState(0.0, config.home_q.copy(), np.eye(4), config.simulation.scene)
+        self.source = config.source
+        self.board = config.simulation.board  # the TRUE board, where it lies when laid
+
+    # -- the table -------------------------------------------------------------------
+
+    def lay_board(self, laid: bool) -> None:
+        """Lay the checkerboard at its true pose, clearing the table of the cube and the
+        metal part to make room (as an integrator does), or take it away and put them back
+        where they were. Refused while the cup holds the part."""
+        if self.board is None:
+            raise ConfigError(f"{self.source}: no [board] table: this cell has no checkerboard to lay")
+        if self.holding_part:
+            raise CellStateError("the cup holds the part: release it before the table is cleared for the board")
+        self.state = replace(self.state, scene=self.state.scene.with_board(self.board if laid else None))
+
+    @property
+    def board_laid(self) -> bool:
+        return self.state.scene.board is not None
 
     # -- sensors ---------------------------------------------------------------------
 
@@ -175,16 +198,20 @@ class SimulatedCell:
         scene = self.state.scene
         corners_b = scene.cube.corners_b
         corners_c = corners_b @ cMb[:3, :3].T + cMb[:3, 3]
-        projected = camera.project(corners_c)
-        corners_px = self._observe(projected)
-        hidden = [not scene.visible_from(eye_b, corner_b) for corner_b in corners_b]
-        corners_px[hidden] = np.nan
-        region = visible_region(projected, camera.image_size)
-
-        reference_b = scene.cube.reference_b
-        reference_px = self._observe(camera.project(cMb[:3, :3] @ reference_b + cMb[:3, 3]))[0]
-        if not scene.visible_from(eye_b, reference_b):
-            reference_px[:] = np.nan
+        if scene.parts_on_table:
+            projected = camera.project(corners_c)
+            corners_px = self._observe(projected)
+            hidden = [not scene.visible_from(eye_b, corner_b) for corner_b in corners_b]
+            corners_px[hidden] = np.nan
+            region = visible_region(projected, camera.image_size)
+            reference_b = scene.cube.reference_b
+            reference_px = self._observe(camera.project(cMb[:3, :3] @ reference_b + cMb[:3, 3]))[0]
+            if not scene.visible_from(eye_b, reference_b):
+                reference_px[:] = np.nan
+        else:  # the board is laid: no cube on the table to see
+            corners_px, reference_px = np.full((4, 2), np.nan), np.full(2, np.nan)
+            corners_c[:, 2] = np.nan
+            region = ObjectRegion(0.0, np.full(2, np.nan))
 
         spot_px = np.full(2, np.nan)
         spot_b = self._visible_spot_b(bMc)
@@ -273,12 +300,13 @@ class SimulatedCell:
 
         Suction grips the cube only if the TRUE cup sits on its top face (the cup's centre
         over the face, between VACUUM_GAP_M above it and VACUUM_STROKE_M into the level
-        compensator, its axis against the face's normal within VACUUM_TILT_RAD); the
-        part then hangs on the cup's face. Releasing drops the part: it comes to rest level, on the
-        pocket floor if its footprint fits the pocket, else on whatever lies below it.
+        compensator, its axis against the face's normal within VACUUM_TILT_RAD), and not
+        while the board is laid (the cube is off the table); the part then hangs on the
+        cup's face. Releasing drops the part: it comes to rest level, on the pocket floor
+        if its footprint fits the pocket, else on whatever lies below it.
         """
         if on:
-            if self.state.vMo_held is None:
+            if self.state.vMo_held is None and self.state.scene.parts_on_table:
                 bMv = self._true_bMv()
                 cube = self.state.scene.cube
                 oMv = inverse(cube.bMo) @ bMv

@@ -9,8 +9,9 @@ How the scene becomes a frame (the sensor's effects come after, in sensor.py):
 
 1. Every box of the scene (table, cube, the five boxes of the metal part) is taken into
    the camera frame; faces whose outward normal points away from the eye are culled.
-   The remaining faces (and the cube's orientation mark, a many-sided polygon of the
-   disc's area on the top face) are clipped in 3-D against the near plane and against
+   The remaining faces (and what is printed on a top face: the cube's orientation mark,
+   a many-sided polygon of the disc's area, and the laid board's white sheet and black
+   squares on the table) are clipped in 3-D against the near plane and against
    the viewing frustum of the image (grown by a margin), so geometry behind the camera
    or far outside the field never reaches the lens model, whose polynomial folds over
    far from the calibrated field.
@@ -24,8 +25,10 @@ How the scene becomes a frame (the sensor's effects come after, in sensor.py):
    convex box tile its silhouette without overlap, so a box is composited in one step:
    image = image * (1 - coverage) + sum(face coverage * face grey). That makes the
    edges shared by two faces of a box exact (no background bleeding through), and the
-   silhouette exactly anti-aliased against what lies behind. The mark is a polygon of
-   coverage weight 0 and grey weight (mark - top) inside the top face.
+   silhouette exactly anti-aliased against what lies behind. A printed polygon (the mark,
+   the sheet, a square) has coverage weight 0 and grey weight (its grey - the grey under
+   it) inside the top face, so a board's squares are as exactly anti-aliased as the
+   box edges.
 4. Boxes are drawn back to front. Boxes are convex and disjoint, so for two boxes a
    face plane of one that has the other wholly outside decides which can hide which
    (the eye's side of that plane); a topological sort of that relation, ties broken by
@@ -275,7 +278,11 @@ class SceneRasterizer:
             return st.metal_grey
         return st.metal_grey * (1.0 + st.metal_side_shading * light)
 
-    def _prepare(self, box: Box, kind: str, cMb: np.ndarray, planes, offsets, inner, mark=None) -> _Group | None:
+    def _prepare(self, box: Box, kind: str, cMb: np.ndarray, planes, offsets, inner,
+                 decals: tuple[tuple[np.ndarray, float], ...] = ()) -> _Group | None:
+        """The box's visible faces; ``decals`` are (polygon in C, grey added) printed on
+        its top face, each over the ones before it (the cube's mark, the board's sheet
+        and squares)."""
         cRx = cMb[:3, :3] @ box.bMx[:3, :3]
         centre = cMb[:3, :3] @ box.bMx[:3, 3] + cMb[:3, 3]
         half = np.asarray(box.half_extents, dtype=float)
@@ -298,11 +305,12 @@ class SceneRasterizer:
                 group.fills_view = grey
             group.polygons.append(xn)
             group.weights.append((1.0, grey))
-            if mark is not None and axis == 2 and sign > 0:
-                mark_poly = self._clip(mark, planes, offsets)
-                if mark_poly is not None:
-                    group.polygons.append(mark_poly[:, :2] / mark_poly[:, 2:3])
-                    group.weights.append((0.0, self.settings.mark_grey - grey))
+            if axis == 2 and sign > 0:
+                for decal, added_grey in decals:
+                    decal_poly = self._clip(decal, planes, offsets)
+                    if decal_poly is not None:
+                        group.polygons.append(decal_poly[:, :2] / decal_poly[:, 2:3])
+                        group.weights.append((0.0, added_grey))
         return group if group.polygons else None
 
     def _prepare_metal(self, part: MetalPart, cube: Cube, cMb: np.ndarray, planes, offsets, inner) -> _Group | None | bool:
@@ -387,9 +395,13 @@ class SceneRasterizer:
         for box in scene.boxes:
             if box.name in ("cube", "metal_part"):
                 continue
-            group = self._prepare(box, "table" if box.name == "table" else "other", cMb, planes, offsets, inner)
+            decals = self._board_decals(scene, cMb) if box.name == "table" else ()
+            group = self._prepare(box, "table" if box.name == "table" else "other", cMb, planes, offsets, inner,
+                                  decals)
             if group is not None:
                 groups.append(group)
+        if not scene.parts_on_table:  # the table was cleared to lay the board
+            return self._finish(canvas, groups, pad, k)
         cube = scene.cube
         n = st.mark_vertices
         angles = 2.0 * np.pi * np.arange(n) / n
@@ -398,7 +410,8 @@ class SceneRasterizer:
         mark_o = cube.mark_o + radius * np.column_stack((np.cos(angles), np.sin(angles), np.zeros(n)))
         cMo = cMb @ cube.bMo
         mark_c = mark_o @ cMo[:3, :3].T + cMo[:3, 3]
-        group = self._prepare(cube.box, "cube", cMb, planes, offsets, inner, mark=mark_c)
+        group = self._prepare(cube.box, "cube", cMb, planes, offsets, inner,
+                              ((mark_c, st.mark_grey - st.top_grey),))
         if group is not None:
             groups.append(group)
         metal = self._prepare_metal(scene.metal_part, cube, cMb, planes, offsets, inner)
@@ -409,13 +422,25 @@ class SceneRasterizer:
                     groups.append(group)
         elif metal is not None:
             groups.append(metal)
-        if not groups:
-            return self._downsample(canvas, k)
+        return self._finish(canvas, groups, pad, k)
 
-        self._to_canvas(groups, pad, k)
-        for group in _painter_order(groups):
-            self._composite(canvas, group)
+    def _finish(self, canvas: np.ndarray, groups: list[_Group], pad: int, k: int) -> np.ndarray:
+        if groups:
+            self._to_canvas(groups, pad, k)
+            for group in _painter_order(groups):
+                self._composite(canvas, group)
         return self._downsample(canvas, k)
+
+    def _board_decals(self, scene: Scene, cMb: np.ndarray) -> tuple[tuple[np.ndarray, float], ...]:
+        """The laid board as decals on the table's top: the white sheet, then its black squares."""
+        board = scene.board
+        if board is None:
+            return ()
+        st = self.settings
+        sheet = board.sheet_b @ cMb[:3, :3].T + cMb[:3, 3]
+        squares = board.black_squares_b @ cMb[:3, :3].T + cMb[:3, 3]
+        black = st.board_black_grey - st.board_white_grey
+        return ((sheet, st.board_white_grey - st.table_grey), *((square, black) for square in squares))
 
     def _to_canvas(self, groups: list[_Group], pad: int, k: int) -> None:
         """Subdivide, distort and scale every polygon of every group into canvas

@@ -25,6 +25,7 @@ class RenderSettings:
         light comes; side faces facing it are brighter.
     edge_segment_px: length of the chords that approximate a distorted straight edge.
     mark_vertices: vertices of the polygon standing for the orientation mark.
+    board_white_grey, board_black_grey: the printed checkerboard's paper and ink.
     near_m: the near clipping plane (m in front of the camera).
     """
 
@@ -44,6 +45,8 @@ class RenderSettings:
     metal_grey: float = 85.0
     metal_side_shading: float = 0.15
     pocket_floor_grey: float = 55.0
+    board_white_grey: float = 215.0
+    board_black_grey: float = 25.0
     light_azimuth_deg: float = 60.0
     edge_segment_px: float = 6.0
     mark_vertices: int = 64

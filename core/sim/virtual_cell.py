@@ -7,8 +7,10 @@ The controller reaches it only as it reaches hardware, through the cell file it 
 - the camera: an MJPEG stream over HTTP that OpenCV opens by URL
   (``[camera.source] device``), exposed on a steady frame clock and sent a camera's
   latency later;
-- the fixture (``[fixture] url``): a JSON port that presents a new part and gauges where
-  a released part truly ended, what a test cell has and the product never needs.
+- the fixture (``[fixture] url``): a JSON port that presents a new part (near where the
+  job was taught, or at a given place), lays the calibration checkerboard on the table or
+  takes it away, and gauges where a released part truly ended: what a test cell has and
+  a production cell does without.
 
 The plant plays the TRUE cell: the ``--cell`` file's [simulation] with the ``--truth``
 file's [simulation.truth.*] laid over it. The cell file written for the controller holds
@@ -20,6 +22,7 @@ from __future__ import annotations
 import copy
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -35,8 +38,8 @@ from vservo.core.cell.config import CellConfig, ConfigError, VacuumDeviceConfig,
 from vservo.core.perception.recording import write_atomic
 from vservo.core.sim.camera_stream import CameraStream
 from vservo.core.sim.jrc_emulator import JrcEmulator
-from vservo.core.sim.part_feeder import present_part
-from vservo.core.sim.plant import SimulatedCell
+from vservo.core.sim.part_feeder import place_part, present_part
+from vservo.core.sim.plant import CellStateError, SimulatedCell
 from vservo.core.sim.render import SceneRenderer
 from vservo.core.sim.render_settings import RenderSettings
 
@@ -75,13 +78,18 @@ class Released:
 
 
 def with_truth(cell_tables: dict[str, Any], truth_file: dict[str, Any] | None) -> dict[str, Any]:
-    """The cell's tables with the truth file's [simulation.truth.*] in place of its own."""
+    """The cell's tables with the truth file's [simulation.truth.*] in place of its own,
+    and its [simulation.scene] board_pose (where the board truly lies), if it has one."""
     tables = copy.deepcopy(cell_tables)
     if truth_file is not None:
-        truth = truth_file.get("simulation", {}).get("truth")
+        simulation = truth_file.get("simulation", {})
+        truth = simulation.get("truth")
         if not isinstance(truth, dict) or not truth:
             raise ConfigError("the truth file has no [simulation.truth.*] tables: it says nothing about the true cell")
         tables.setdefault("simulation", {})["truth"] = copy.deepcopy(truth)
+        board_pose = simulation.get("scene", {}).get("board_pose")
+        if board_pose is not None:
+            tables["simulation"].setdefault("scene", {})["board_pose"] = copy.deepcopy(board_pose)
     return tables
 
 
@@ -115,10 +123,12 @@ class VirtualCell:
 
     def __init__(self, tables: dict[str, Any], source: str, seed: int | None = None,
                  settings: VirtualCellSettings = VirtualCellSettings(),
-                 on_released: Callable[[Released], None] = lambda released: None) -> None:
+                 on_released: Callable[[Released], None] = lambda released: None, board_laid: bool = False) -> None:
         self.tables, self.source, self.settings, self.on_released = tables, source, settings, on_released
         self.config: CellConfig = parse_cell(tables, source)
         self.cell = SimulatedCell(self.config, seed)
+        if board_laid:
+            self.cell.lay_board(True)
         self.taught_bMo = self.config.simulation.scene.cube.bMo
         self.vacuum = self.config.vacuum_device if self.config.vacuum_device.device == "jrc_io" else DEFAULT_VACUUM_IO
         self.emulator = JrcEmulator(self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum)
@@ -180,13 +190,36 @@ class VirtualCell:
             scene = self.cell.state.scene
         return self.renderer.render(scene, bMc, spot_b, self.camera_rng)
 
+    def _check_still(self, action: str) -> None:
+        """Refuse ``action`` while the arm moves (call with the emulator's lock held)."""
+        self.emulator.advance()
+        if self.emulator.motion is not None:
+            raise CellStateError(f"the arm is moving: {action} only while it stands still")
+
     def present_part(self, seed: int | None) -> dict[str, float]:
         rng = np.random.default_rng(seed) if seed is not None else self.cell.rng
         with self.emulator.lock:
-            if self.emulator.motion is not None:
-                raise RuntimeError("the arm is moving: a part is presented only while it stands still")
+            self._check_still("a part is presented")
             bMo = present_part(self.cell, self.taught_bMo, rng)
         return _planar_pose(bMo)
+
+    def place_part(self, x_mm: float, y_mm: float, yaw_deg: float) -> dict[str, float]:
+        """The part put down with its frame O at (x_mm, y_mm) on the table, turned yaw_deg."""
+        with self.emulator.lock:
+            self._check_still("a part is put down")
+            bMo = place_part(self.cell, x_mm / 1000.0, y_mm / 1000.0, np.radians(yaw_deg))
+        return _planar_pose(bMo)
+
+    def lay_board(self, laid: bool) -> dict[str, bool]:
+        """Lay the checkerboard (the table cleared of the parts) or take it away."""
+        with self.emulator.lock:
+            self._check_still("the board is laid or taken away")
+            self.cell.lay_board(laid)
+        return self.board_state()
+
+    def board_state(self) -> dict[str, bool]:
+        with self.emulator.lock:
+            return {"laid": self.cell.board_laid}
 
     def part_pose(self) -> dict[str, float]:
         with self.emulator.lock:
@@ -214,8 +247,11 @@ def _planar_pose(bMo: np.ndarray) -> dict[str, float]:
 
 
 class _FixtureServer:
-    """The fixture's JSON port: POST /part presents a part ({"seed": n} optional), GET /part
-    says where the part truly is, GET /released lists the gauged releases."""
+    """The fixture's JSON port (ENDPOINTS). POST /part presents a part near the taught
+    place ({"seed": n} optional) or puts it at a given place ({"x_mm", "y_mm", "yaw_deg"}:
+    its frame O, a top-face corner, on the table); GET /part says where the part truly
+    is; POST /board ({"laid": true|false}) lays the checkerboard or takes it away, GET
+    /board says which; GET /released lists the gauged releases."""
 
     def __init__(self, virtual: VirtualCell, host: str = "127.0.0.1") -> None:
         self.server = ThreadingHTTPServer((host, 0), _handler_for(virtual))
@@ -235,34 +271,72 @@ class _FixtureServer:
         self.server.server_close()
 
 
+ENDPOINTS = ("POST /part", "GET /part", "POST /board", "GET /board", "GET /released")
+_PART_BODY = 'the body is empty, {"seed": <integer>}, or {"x_mm": <number>, "y_mm": <number>, "yaw_deg": <number>}'
+_BOARD_BODY = 'the body is {"laid": true} or {"laid": false}'
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _post_part(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
+    if set(body) <= {"seed"}:
+        seed = body.get("seed")
+        if not (seed is None or (isinstance(seed, int) and not isinstance(seed, bool))):
+            raise ValueError(f"seed = {seed!r} is not an integer: {_PART_BODY}")
+        return {"part": virtual.present_part(seed)}
+    place = {"x_mm", "y_mm", "yaw_deg"}
+    if not set(body) <= place or not {"x_mm", "y_mm"} <= set(body):
+        raise ValueError(f"keys {sorted(body)}: {_PART_BODY}")
+    body = {"yaw_deg": 0.0, **body}
+    for key in sorted(place):
+        if not _is_number(body[key]):
+            raise ValueError(f"{key} = {body[key]!r} is not a finite number: {_PART_BODY}")
+    return {"part": virtual.place_part(float(body["x_mm"]), float(body["y_mm"]), float(body["yaw_deg"]))}
+
+
+def _post_board(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
+    if set(body) != {"laid"} or not isinstance(body["laid"], bool):
+        raise ValueError(f"{json.dumps(body)}: {_BOARD_BODY}")
+    return {"board": virtual.lay_board(body["laid"])}
+
+
+_POSTS: dict[str, Callable[[VirtualCell, dict[str, Any]], dict[str, Any]]] = {"/part": _post_part,
+                                                                              "/board": _post_board}
+
+
 def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
     class FixtureHandler(BaseHTTPRequestHandler):
         def do_GET(self) -> None:  # noqa: N802 (http.server's name)
             if self.path == "/part":
                 self._reply(200, {"part": virtual.part_pose()})
+            elif self.path == "/board":
+                self._reply(200, {"board": virtual.board_state()})
             elif self.path == "/released":
                 self._reply(200, {"released": [r.as_dict() for r in virtual.released]})
             elif self.path == "/":
-                self._reply(200, {"fixture": "vservo virtual cell", "endpoints": ["POST /part", "GET /part",
-                                                                                   "GET /released"]})
+                self._reply(200, {"fixture": "vservo virtual cell", "endpoints": list(ENDPOINTS)})
             else:
                 self._reply(404, {"error": f"no such endpoint: GET {self.path}"})
 
         def do_POST(self) -> None:  # noqa: N802
-            if self.path != "/part":
+            post = _POSTS.get(self.path)
+            if post is None:
                 self._reply(404, {"error": f"no such endpoint: POST {self.path}"})
                 return
             try:
                 length = int(self.headers.get("Content-Length") or 0)
-                body = json.loads(self.rfile.read(length) or b"{}") if length <= 4096 else None
-                seed = body.get("seed") if isinstance(body, dict) else None
-                if body is None or not isinstance(body, dict) or not (seed is None or isinstance(seed, int)):
-                    raise ValueError('the body is {"seed": <integer>} or empty')
-                self._reply(200, {"part": virtual.present_part(seed)})
-            except (ValueError, json.JSONDecodeError) as exc:
-                self._reply(400, {"error": str(exc)})
-            except RuntimeError as exc:
+                if length > 4096:
+                    raise ValueError(f"a body of {length} bytes is too long for the fixture")
+                body = json.loads(self.rfile.read(length) or b"{}")
+                if not isinstance(body, dict):
+                    raise ValueError(f"the body must be a JSON object, got {json.dumps(body)}")
+                self._reply(200, post(virtual, body))
+            except (RuntimeError, ConfigError) as exc:  # the cell's state (CellStateError), or a cell without a board
                 self._reply(409, {"error": str(exc)})
+            except ValueError as exc:  # json.JSONDecodeError is one
+                self._reply(400, {"error": str(exc)})
 
         def _reply(self, status: int, body: dict) -> None:
             data = json.dumps(body).encode()
