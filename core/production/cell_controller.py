@@ -409,7 +409,11 @@ class CellController:
     # -- assembly ------------------------------------------------------------------------
 
     def start(self, job_name: str, record: bool = True) -> int:
-        """Start one assembly of ``job_name`` in the background; returns the run's id."""
+        """Start one assembly of ``job_name`` in the background; returns the run's id.
+
+        The job is first retargeted to the cell file's model (core/production/retarget.py):
+        a job taught through another calibration of the camera, hand-eye or laser sees
+        the same part through this one."""
         with self._lock:
             self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
             model = self.rig.config.nominal
