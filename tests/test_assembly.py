@@ -125,7 +125,9 @@ def test_teach_a_job_then_assemble_it(controller):
         controller.save_job("bolt")
     controller.move_to(demo.start_bMe)
     controller.set_start_pose()
-    controller.save_job("bolt")
+    saved = controller.save_job("bolt")
+    assert saved.taught_model.matches(controller.rig.config.nominal)  # what the pixels were seen through
+    assert controller.store.load_job("bolt").taught_model.matches(controller.rig.config.nominal)
     assert "bolt" in [entry.name for entry in controller.store.list_jobs()]
     assert controller.store.job_image("bolt").shape == (480, 640)
     controller.present_part()

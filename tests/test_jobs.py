@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from vservo.core.production.assembly import Outcome
-from vservo.core.production.jobs import JobError, job_from_dict, read_job_file, write_job_file
+from vservo.core.production.jobs import JOB_VERSION, JobError, job_from_dict, read_job_file, write_job_file
 from vservo.core.production.storage import DEMO_JOB, Store, StoreError, shipped_job_path
 
 
@@ -43,6 +43,16 @@ def test_a_job_survives_the_file_round_trip(tmp_path, demo):
         (lambda d: d["check"].update(corners_px=[[1, 2]] * 3), "check: corners_px: shape (3, 2), expected (4, 2)"),
         (lambda d: d["check"].update(check_bMe=(2 * np.eye(4)).tolist()), "check: check_bMe: not a rigid transform"),
         (lambda d: d["check"].pop("check_bMe"), "check: check_bMe: missing"),
+        (lambda d: d.pop("taught_model"), "taught_model: missing"),
+        (lambda d: d["taught_model"]["camera"].update(fx_px=0), "taught_model: camera: fx_px: 0 must be positive"),
+        (lambda d: d["taught_model"]["camera"].update(image_size_px=[640.5, 480]),
+         "is not two positive whole numbers"),
+        (lambda d: d["taught_model"]["camera"].update(distortion=[0, 0]),
+         "taught_model: camera: distortion: shape (2,), expected (5,)"),
+        (lambda d: d["taught_model"].update(eMc=(2 * np.eye(4)).tolist()), "taught_model: eMc: not a rigid transform"),
+        (lambda d: d["taught_model"].pop("cMl"), "taught_model: cMl: missing"),
+        (lambda d: d.pop("survey_bMe"), "survey_bMe: missing"),
+        (lambda d: d.update(survey_bMe=[[1, 0], [0, 1]]), "survey_bMe: shape (2, 2), expected (4, 4)"),
     ],
 )
 def test_a_broken_job_is_refused_naming_the_field(demo, change, message):
@@ -55,12 +65,33 @@ def test_a_broken_job_is_refused_naming_the_field(demo, change, message):
 def test_a_version_1_job_reads_as_a_job_without_a_check_view(demo):
     data = json.loads(json.dumps(demo.as_dict()))
     data["version"] = 1
-    for added in ("check", "placement_tolerance_mm"):  # what version 2 added
+    for added in ("check", "placement_tolerance_mm", "taught_model", "survey_bMe"):  # what versions 2, 3 added
         data.pop(added)
     job = job_from_dict(data, "old.json")
-    assert job.check is None and job.placement_tolerance_mm == 1.0
-    assert job.as_dict()["version"] == 2 and job.as_dict()["check"] is None
+    assert job.check is None and job.placement_tolerance_mm == 1.0 and job.taught_model is None
+    assert job.as_dict()["version"] == JOB_VERSION and job.as_dict()["check"] is None
     assert job_from_dict(job.as_dict(), "again.json").check is None
+
+
+def test_a_version_2_job_reads_as_a_job_without_a_taught_model(demo):
+    data = json.loads(json.dumps(demo.as_dict()))
+    data["version"] = 2
+    for added in ("taught_model", "survey_bMe"):  # what version 3 added
+        data.pop(added)
+    job = job_from_dict(data, "old.json")
+    assert job.taught_model is None and job.survey_bMe is None and job.check is not None
+    again = job_from_dict(job.as_dict(), "again.json")
+    assert again.taught_model is None and again.as_dict()["version"] == JOB_VERSION
+
+
+def test_the_taught_model_and_the_survey_pose_survive_the_file_round_trip(tmp_path, demo):
+    assert demo.taught_model is not None and demo.survey_bMe is None  # the shipped demo does not locate
+    survey = demo.start_bMe.copy()
+    survey[2, 3] += 0.1
+    write_job_file(replace(demo, survey_bMe=survey), tmp_path / "j.json")
+    again = read_job_file(tmp_path / "j.json")
+    assert np.array_equal(again.survey_bMe, survey)
+    assert again.taught_model.as_dict() == demo.taught_model.as_dict()
 
 
 def test_unreadable_job_files(tmp_path):

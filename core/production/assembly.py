@@ -107,6 +107,7 @@ class AssemblyOutcome:
     iterations: int
     gauge_placement_error_mm: float | None = None
     gauge_inside: bool | None = None
+    notes: tuple[str, ...] = ()  # what the operator should know of how the job was run (retargeting)
 
     def summary(self) -> dict:
         """The JSON object of ``vservo run --json``."""
@@ -120,6 +121,7 @@ class AssemblyOutcome:
             "duration_s": round(self.duration_s, 3),
             "iterations": self.iterations,
             "stages": self.stages,
+            "notes": list(self.notes),
         }
 
 

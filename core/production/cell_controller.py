@@ -35,8 +35,9 @@ from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.perception.recording import RunRecorder
 from vservo.core.production.assembly import AssemblyEvent, AssemblyOutcome, Outcome, Phase, PhaseChange, run_assembly
 from vservo.core.production.fixture import FixtureError
-from vservo.core.production.jobs import Job, JobError
+from vservo.core.production.jobs import Job, JobError, TaughtModel
 from vservo.core.production.placement_check import CheckView
+from vservo.core.production.retarget import retarget, retarget_note
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.backend import MotionStopped, RobotError, apply_increment
@@ -70,6 +71,7 @@ class TeachDraft:
     approach_m: float = 0.04
     check: CheckView | None = None
     placement_tolerance_mm: float = 1.0
+    taught_model: TaughtModel | None = None  # what the desired image was seen through
 
     def missing(self) -> list[str]:
         """What the job cannot be saved without."""
@@ -314,7 +316,8 @@ class CellController:
             self._desired = desired
             self._desired_image = frame.image
             self._set_draft(f"desired image captured, laser depth {1000 * desired.depth_m:.1f} mm",
-                            desired=desired, taught_bMe=self.rig.robot.read_pose())
+                            desired=desired, taught_bMe=self.rig.robot.read_pose(),
+                            taught_model=TaughtModel.of(self.rig.config.nominal))
             return desired
 
     def capture_check_view(self) -> CheckView:
@@ -374,7 +377,8 @@ class CellController:
                 job = Job(name=name, description=description, part_side_m=part_side_m, desired=draft.desired,
                           taught_bMe=draft.taught_bMe, start_bMe=draft.start_bMe, eMe_pick=draft.eMe_pick,
                           bMe_place=draft.bMe_place, approach_m=draft.approach_m, threshold_px=draft.threshold_px,
-                          gain=draft.gain, check=draft.check, placement_tolerance_mm=draft.placement_tolerance_mm)
+                          gain=draft.gain, check=draft.check, placement_tolerance_mm=draft.placement_tolerance_mm,
+                          taught_model=draft.taught_model)
             except JobError as exc:
                 raise CommandRefused(str(exc)) from exc
             self.store.save_job(job, self._desired_image, self._check_image if draft.check is not None else None)
@@ -405,19 +409,29 @@ class CellController:
     # -- assembly ------------------------------------------------------------------------
 
     def start(self, job_name: str, record: bool = True) -> int:
-        """Start one assembly of ``job_name`` in the background; returns the run's id."""
+        """Start one assembly of ``job_name`` in the background; returns the run's id.
+
+        The job is first retargeted to the cell file's model (core/production/retarget.py):
+        a job taught through another calibration of the camera, hand-eye or laser sees
+        the same part through this one."""
         with self._lock:
             self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
+            model = self.rig.config.nominal
             try:
-                job = self.store.load_job(job_name)
+                stored = self.store.load_job(job_name)
+                job = retarget(stored, model)
             except JobError as exc:
                 raise CommandRefused(str(exc)) from exc
+            note = retarget_note(stored, model)
+            if note:
+                log.info("job %r: %s", job.name, note)
             self._enable_motion()
             run_id = self.store.start_run(job.name, self.rig.robot.name)
             self._desired, self._trail = job.desired, []
             self._update(phase=Phase.SERVOING.value, detail="starting", job=job.name, run_id=run_id, stage=None,
                          iteration=0, error_px=None, last_outcome=None)
-            self._run_thread = threading.Thread(target=self._run, args=(job, run_id, record), name="assembly", daemon=True)
+            self._run_thread = threading.Thread(target=self._run, args=(job, run_id, record, note), name="assembly",
+                                                daemon=True)
             self._run_thread.start()
             return run_id
 
@@ -427,7 +441,8 @@ class CellController:
         if thread is not None:
             thread.join(timeout_s)
 
-    def _run(self, job: Job, run_id: int, record: bool) -> None:
+    def _run(self, job: Job, run_id: int, record: bool, note: str | None) -> None:
+        """One run of ``job``, already retargeted to the cell's model; ``note`` says how (None: as taught)."""
         folder = self.store.run_folder(run_id)
         recorder = RunRecorder(folder, {"job": job.name, "run": run_id, "desired": job.desired}) if record else None
         perception = self.rig.perception()
@@ -470,6 +485,8 @@ class CellController:
                                       float("nan"), None, 0.0, [], 0)
         if outcome.outcome is Outcome.ESTOPPED:
             outcome = replace(outcome, reason=self._estop_reason)
+        if note:
+            outcome = replace(outcome, notes=(*outcome.notes, note))
         if recorder is not None:
             recorder.close(outcome.summary())
         self.store.finish_run(run_id, outcome.outcome, outcome.reason, outcome.final_error_px,

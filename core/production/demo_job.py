@@ -20,7 +20,7 @@ import numpy as np
 
 from vservo.core.cell.config import CellConfig, load_cell
 from vservo.core.geometry.spatial import Pose6, inverse, matrix_from_pose, rot_x, transform
-from vservo.core.production.jobs import Job, write_job_file
+from vservo.core.production.jobs import Job, TaughtModel, write_job_file
 from vservo.core.production.placement_check import CheckView
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.robot.backend import apply_increment
@@ -85,6 +85,7 @@ def teach_demo_job(config: CellConfig) -> tuple[Job, np.ndarray, np.ndarray]:
         eMe_pick=inverse(taught_bMe) @ bMe_pick,
         bMe_place=bMe_place,
         check=check,
+        taught_model=TaughtModel.of(model),
     )
     rig.close()
     return job, frame.image, check_frame.image

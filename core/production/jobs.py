@@ -8,9 +8,15 @@ from (core/production/placement_check.py; optional: without it a run reports its
 unknown), and the settings of the run. Poses are
 flange poses in the robot base frame, as the JRC reports them.
 
+Pixels are seen through a camera, a hand-eye transform and a laser: the job records the
+cell model it was taught through (``taught_model``), so that a run on a recalibrated cell
+can see the same part through the new model (core/production/retarget.py). A job that
+locates its part names the pose the camera surveys the table from (``survey_bMe``).
+
 A job file is JSON with a format tag and version: ``read_job_file`` refuses a foreign or
 broken file with a message that names the file and the field. Version 1 files (before
-the check view) still read, as jobs without a check view.
+the check view) still read, as jobs without a check view; versions 1 and 2 (before the
+taught model) as jobs without a taught model, which run as they were taught.
 """
 
 from __future__ import annotations
@@ -24,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from vservo.core.cell.config import CellModel
+from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage
 from vservo.core.perception.recording import write_atomic
@@ -31,13 +39,56 @@ from vservo.core.production.placement_check import CheckView
 from vservo.core.servo.methods import METHODS
 
 JOB_FORMAT = "vservo-job"
-JOB_VERSION = 2
-READABLE_VERSIONS = (1, JOB_VERSION)
+JOB_VERSION = 3
+READABLE_VERSIONS = (1, 2, JOB_VERSION)
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
 class JobError(ValueError):
     """A job that cannot be used; the message names the job or file and the field."""
+
+
+@dataclass(frozen=True, eq=False)
+class TaughtModel:
+    """The cell model a job's pixels were seen through: the camera (intrinsics, image size,
+    distortion), the hand-eye transform eMc and the laser's pose cMl in the camera. The
+    vacuum cup's eMv is not part of it: the pick is taught by moving the flange, not
+    through the cup's model."""
+
+    camera: CameraModel
+    eMc: Matrix
+    cMl: Matrix
+
+    # Tight enough that only the very model matches (a JSON round trip is exact), loose
+    # enough that float noise in a model read from a cell file does not count as a change.
+    PIXEL_TOLERANCE = 1e-6
+    TOLERANCE = 1e-9
+
+    @classmethod
+    def of(cls, model: CellModel) -> TaughtModel:
+        return cls(model.camera, np.array(model.eMc, dtype=float), np.array(model.laser.cMl, dtype=float))
+
+    def matches(self, model: CellModel) -> bool:
+        """Whether ``model`` is this one: same image size, intrinsics to 1e-6 px, distortion,
+        eMc and cMl to 1e-9."""
+        mine, theirs = self.camera, model.camera
+        if mine.image_size != theirs.image_size:
+            return False
+        k, k2 = mine.intrinsics, theirs.intrinsics
+        return (np.allclose([k.fx, k.fy, k.u0, k.v0], [k2.fx, k2.fy, k2.u0, k2.v0], rtol=0, atol=self.PIXEL_TOLERANCE)
+                and np.allclose(mine.distortion.as_opencv(), theirs.distortion.as_opencv(), rtol=0, atol=self.TOLERANCE)
+                and np.allclose(self.eMc, model.eMc, rtol=0, atol=self.TOLERANCE)
+                and np.allclose(self.cMl, model.laser.cMl, rtol=0, atol=self.TOLERANCE))
+
+    def as_dict(self) -> dict[str, Any]:
+        k = self.camera.intrinsics
+        return {
+            "camera": {"fx_px": k.fx, "fy_px": k.fy, "principal_point_px": [k.u0, k.v0],
+                       "image_size_px": [k.width, k.height],
+                       "distortion": self.camera.distortion.as_opencv().tolist()},
+            "eMc": self.eMc.tolist(),
+            "cMl": self.cMl.tolist(),
+        }
 
 
 @dataclass(frozen=True)
@@ -49,6 +100,10 @@ class Job:
     check: where the placed part is looked at after the release; None: placement unknown.
     placement_tolerance_mm: a run whose part is seen farther than this from its taught
       place ends missed (the shipped metal part's pocket leaves 1 mm each side).
+    taught_model: the cell model the desired image and the check view were seen through;
+      None: a job file from before it was recorded (run as taught, never retargeted).
+    survey_bMe: where the camera surveys the table to locate the part before the run;
+      None: the job does not locate, the part arrives where it was taught.
     """
 
     name: str
@@ -65,6 +120,8 @@ class Job:
     taught_bMe: Matrix = field(default_factory=lambda: np.eye(4))  # where the desired image was taken
     check: CheckView | None = None
     placement_tolerance_mm: float = 1.0
+    taught_model: TaughtModel | None = None
+    survey_bMe: Matrix | None = None
 
     def __post_init__(self) -> None:
         validate_job_name(self.name)
@@ -97,6 +154,8 @@ class Job:
                 "check_bMe": self.check.check_bMe.tolist(),
                 "corners_px": self.check.corners_px.tolist(),
             },
+            "taught_model": None if self.taught_model is None else self.taught_model.as_dict(),
+            "survey_bMe": None if self.survey_bMe is None else self.survey_bMe.tolist(),
         }
 
 
@@ -190,6 +249,7 @@ def job_from_dict(data: Any, source: str) -> Job:
         eMe_pick=f.pose("eMe_pick"),
         bMe_place=f.pose("bMe_place"),
         **(_check_fields(f, source) if version >= 2 else {}),
+        **(_model_fields(f, source) if version >= 3 else {}),
     )
 
 
@@ -200,6 +260,24 @@ def _check_fields(f: _Fields, source: str) -> dict[str, Any]:
         view = _Fields(check, f"{source}: check")
         check = CheckView(check_bMe=view.pose("check_bMe"), corners_px=view.array("corners_px", (4, 2)))
     return {"placement_tolerance_mm": f.number("placement_tolerance_mm"), "check": check}
+
+
+def _model_fields(f: _Fields, source: str) -> dict[str, Any]:
+    """What version 3 added: the taught model and the survey pose (null: none)."""
+    model = f.get("taught_model")
+    if model is not None:
+        fields = _Fields(model, f"{source}: taught_model")
+        camera = _Fields(fields.get("camera"), f"{source}: taught_model: camera")
+        u0, v0 = camera.array("principal_point_px", (2,))
+        size = camera.array("image_size_px", (2,))
+        if np.any(size < 1) or np.any(size != np.round(size)):
+            raise camera.fail("image_size_px", f"{size.tolist()} is not two positive whole numbers")
+        intrinsics = Intrinsics(camera.number("fx_px"), camera.number("fy_px"), float(u0), float(v0),
+                                int(size[0]), int(size[1]))
+        distortion = Distortion(*camera.array("distortion", (5,)))
+        model = TaughtModel(CameraModel(intrinsics, distortion), fields.pose("eMc"), fields.pose("cMl"))
+    survey = f.get("survey_bMe")
+    return {"taught_model": model, "survey_bMe": None if survey is None else f.pose("survey_bMe")}
 
 
 def job_from_json(text: str, source: str) -> Job:

@@ -1,0 +1,139 @@
+"""Jobs that survive a recalibration: what a job taught, seen through another cell model.
+
+A job's desired image and check view are pixels, seen through the camera, hand-eye and
+laser of the cell it was taught on (its ``taught_model``). A recalibrated or replaced
+camera, a hand-eye measured again or a re-mounted laser changes how the same part looks,
+so the pixels are recomputed from what the job taught relative to the part:
+
+* the desired view is the part's pose in the camera, cdMo (estimated at teaching from
+  the taught corners); the part seen there through the new camera gives the desired
+  corners (the pinhole projection with distortion, eqs. 2-1 .. 2-5 in OpenCV's
+  convention, core/geometry/camera.py), and where the NEW beam cMl meets the part's
+  top face gives the desired spot and its depth Z* (section 4.3; the general beam of
+  core/geometry/laser.py);
+* the pick is the part's pose in the flange at the servo's end, eMo = eMc cdMo: kept
+  relative to the part, the flange's move from the servo's end to the pick becomes
+  eMe_pick' = (eMc' cdMo) (eMc_t cdMo)^-1 eMe_pick;
+* the check view is a flange pose over the metal part; the placed part's pose in the
+  flange there (its four taught corners and known side through the taught camera and
+  eMc) is seen through the new eMc and camera.
+
+The start, place and check flange poses are base-frame poses of the flange: the metal
+part is fixed in the cell, so they stay. On the cell the job was taught on, the captured
+image is the best desired image there is (it holds whatever the model gets wrong), so
+a job whose taught model is the cell's own is run unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from vservo.core.cell.config import CellModel
+from vservo.core.cell.scene import Cube
+from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
+from vservo.core.geometry.spatial import Matrix, inverse, rot_z, rotation_angle, transform
+from vservo.core.perception.features import DesiredImage
+from vservo.core.production.jobs import Job, JobError, TaughtModel
+from vservo.core.production.placement_check import CheckView
+
+NOT_RETARGETED = ("the job records no taught model (a job file before version 3): run as taught, "
+                  "not retargeted to this cell's calibration")
+RETARGETED = "retargeted: the job was taught through another camera, hand-eye or laser calibration"
+
+
+def retarget(job: Job, model: CellModel) -> Job:
+    """``job`` as if taught through ``model`` (module docstring).
+
+    Unchanged when the job has no taught model or was taught through ``model`` itself.
+    The result records ``model`` as its taught model, with taught_bMe the flange pose of
+    the desired view of the taught part through it, so that retargeting is idempotent
+    and every relation to the part (start_pose_for_part) holds in the result as in the job.
+    Raises JobError when the part at the taught view cannot be seen through the new
+    model (a corner off the image, the beam off the top face): the desired view must then
+    be taught again.
+    """
+    taught = job.taught_model
+    if taught is None or taught.matches(model):
+        return job
+    part = Cube(np.eye(4), job.part_side_m)
+    cdMo = job.desired.cdMo
+    eMo_taught, eMo = taught.eMc @ cdMo, model.eMc @ cdMo
+    return replace(
+        job,
+        desired=_desired_through(model, cdMo, part, job.name),
+        taught_bMe=job.taught_bMe @ eMo_taught @ inverse(eMo),
+        eMe_pick=eMo @ inverse(eMo_taught) @ job.eMe_pick,
+        check=None if job.check is None else _check_through(job.check, taught, model, part, job.name),
+        taught_model=TaughtModel.of(model),
+    )
+
+
+def retarget_note(job: Job, model: CellModel) -> str | None:
+    """What a run of ``job`` on a cell of ``model`` should say about retargeting; None: nothing."""
+    if job.taught_model is None:
+        return NOT_RETARGETED
+    return None if job.taught_model.matches(model) else RETARGETED
+
+
+def _desired_through(model: CellModel, cdMo: Matrix, part: Cube, name: str) -> DesiredImage:
+    """The desired image of the part at cdMo through ``model``: its corners projected, and
+    the spot where the beam meets the top face (the plane z = 0 of O), with its depth Z*."""
+    camera = model.camera
+    corners_c = part.corners_o @ cdMo[:3, :3].T + cdMo[:3, 3]
+    corners_px = camera.project(corners_c)
+    if not np.all(camera.in_view(corners_px)):
+        raise JobError(f"job {name!r}: through this cell's camera the desired view does not show the part's four "
+                       "corners: teach the desired image again")
+    normal_c = cdMo[:3, 2]
+    spot_c = model.laser.spot_on_plane(normal_c, float(normal_c @ cdMo[:3, 3]))
+    spot_o = None if spot_c is None else inverse(cdMo)[:3, :3] @ spot_c + inverse(cdMo)[:3, 3]
+    if spot_o is None or not np.all((spot_o[:2] >= 0.0) & (spot_o[:2] <= part.side_m)):
+        raise JobError(f"job {name!r}: this cell's laser beam misses the part's top face at the desired view: "
+                       "teach the desired image again")
+    spot_px = camera.project(spot_c)[0]
+    if not camera.in_view(spot_px)[0]:
+        raise JobError(f"job {name!r}: through this cell's camera the desired view's laser spot is off the image: "
+                       "teach the desired image again")
+    # The corners' depths follow from cdMo alone, which a new model does not change.
+    return DesiredImage(corners_px, spot_px, float(spot_c[2]), cdMo, corners_c[:, 2])
+
+
+def _check_through(check: CheckView, taught: TaughtModel, model: CellModel, part: Cube, name: str) -> CheckView:
+    """The check view's corners seen through ``model``: the placed part's pose in the flange,
+    eMo = eMc_t c_tMo (c_tMo from the taught corners and the part's side), seen from the
+    new camera at eMc'^-1 eMo."""
+    try:
+        ctMo = pose_from_planar_points(check.corners_px, part.corners_o, taught.camera)
+    except PoseEstimationError as exc:
+        raise JobError(f"job {name!r}: the check view's corners give no pose ({exc}): teach it again") from exc
+    cMo = inverse(model.eMc) @ taught.eMc @ ctMo
+    corners_px = model.camera.project(part.corners_o @ cMo[:3, :3].T + cMo[:3, 3])
+    if not np.all(model.camera.in_view(corners_px)):
+        raise JobError(f"job {name!r}: through this cell's camera the check view does not show the placed part's "
+                       "four corners: teach the check view again")
+    return CheckView(check.check_bMe, corners_px)
+
+
+def start_pose_for_part(job: Job, model: TaughtModel, bMo: Matrix) -> Matrix:
+    """The flange pose to start the servo from for a part found at ``bMo``: the taught start
+    pose relative to the part, moved with the part.
+
+    The part stood at bMo_taught = taught_bMe eMc cdMo when the desired image was taken;
+    the start pose relative to it is oMe_start = bMo_taught^-1 start_bMe, and the start for
+    the part found is bMo' oMe_start. A cube looks the same after a quarter turn about its
+    top face's centre, so bMo' is the one of bMo's four quarter turns nearest in rotation to
+    bMo_taught: the servo then has at most 45 deg to turn.
+
+    model: the model the job was taught through (``job.taught_model``; for a job without
+    one, the cell's current model).
+    """
+    bMo_taught = job.taught_bMe @ model.eMc @ job.desired.cdMo
+    oMe_start = inverse(bMo_taught) @ job.start_bMe
+    centre = transform(t=(job.part_side_m / 2, job.part_side_m / 2, 0.0))
+    turns = [np.asarray(bMo, dtype=float) @ centre @ transform(rot_z(k * np.pi / 2)) @ inverse(centre)
+             for k in range(4)]
+    nearest = min(turns, key=lambda bMo_k: rotation_angle(bMo_taught[:3, :3].T @ bMo_k[:3, :3]))
+    return nearest @ oMe_start
+
