@@ -31,8 +31,10 @@ from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import ObjectRegion
 from vservo.core.perception.measurement import Measurement
-from vservo.core.production.jobs import Job
+from vservo.core.production.jobs import Job, TaughtModel
+from vservo.core.production.locate import LocateError, PartLocator
 from vservo.core.production.placement_check import PlacementCheck, check_placement
+from vservo.core.production.retarget import start_pose_for_part
 from vservo.core.robot.backend import RobotBackend, RobotError
 from vservo.core.robot.gripper import VacuumGripper
 from vservo.core.robot.safety import SafetyLayer
@@ -172,6 +174,7 @@ def run_assembly(
     on_event: Callable[[AssemblyEvent], None] = lambda event: None,
     measure_placement: Callable[[], PlacementReport | None] = lambda: None,
     estopped: Callable[[], bool] = lambda: False,
+    locator: PartLocator | None = None,
 ) -> AssemblyOutcome:
     """Run the job once; the robot must be connected with servo power on.
 
@@ -208,8 +211,24 @@ def run_assembly(
         robot.move_linear(target, speed)
 
     try:
+        start_bMe = job.start_bMe
+        if job.survey_bMe is not None:
+            if locator is None:
+                return end(Outcome.FAULT, "the job locates its part and this cell has no network to locate it with: "
+                                          "commission the nn step (docs/commissioning.md)")
+            on_event(PhaseChange(Phase.SERVOING, "surveying the table for the part"))
+            move(job.survey_bMe)
+            # A frame exposed after the move ended, from the pose the robot reports.
+            seen = perception.perceive(FlangeReadout(robot, dof).measure(), robot.clock_s())
+            try:
+                located = locator.locate(seen.corners_px, robot.read_pose(), job.part_side_m)
+            except LocateError as exc:
+                return end(Outcome.FAULT, f"locate: {exc}")
+            start_bMe = start_pose_for_part(job, job.taught_model or TaughtModel.of(model), located.bMo)
+            on_event(PhaseChange(Phase.SERVOING, f"part located at ({1000 * located.bMo[0, 3]:.1f}, "
+                                                 f"{1000 * located.bMo[1, 3]:.1f}) mm"))
         on_event(PhaseChange(Phase.SERVOING, "moving to the start pose"))
-        move(job.start_bMe)
+        move(start_bMe)
         on_event(PhaseChange(Phase.SERVOING, f"servoing with the {job.method} method"))
         law = build_law(model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
         servo = run_servo(FlangeReadout(robot, dof), law, job.desired, model, policy, limits,

@@ -474,7 +474,7 @@ class CellController:
             outcome = run_assembly(
                 job, self.rig.robot, self.rig.gripper, perception, self.rig.config.nominal, self.rig.policy,
                 dof=self.rig.dof, on_event=on_event, measure_placement=self.rig.measure_placement,
-                estopped=self._estop.is_set,
+                estopped=self._estop.is_set, locator=self.rig.locator,
             )
         except CameraSourceError as exc:
             outcome = AssemblyOutcome(Outcome.FAULT, f"camera: {exc}{self._hold_after_fault()}", float("nan"), None,

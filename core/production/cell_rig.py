@@ -18,6 +18,7 @@ from vservo.core.cell.config import CameraSourceConfig, CellConfig, ConfigError
 from vservo.core.cell.kinematics import ArmKinematics
 from vservo.core.perception.camera_source import FrameSource, ImageFolderSource, VideoCaptureSource, read_mono8
 from vservo.core.production.fixture import FixtureClient
+from vservo.core.production.locate import PartLocator
 from vservo.core.production.rig import Rig, extractor_for
 from vservo.core.robot.gripper import NoVacuum, VacuumGripper
 from vservo.core.robot.jrc import JrcBackend
@@ -62,6 +63,7 @@ def real_rig(config: CellConfig) -> Rig:
         dof=ArmKinematics(load_arm(config.arm), model.mount).dof,
         # No gauge on a real cell: the assembly measures the placement by vision alone.
         measure_placement=lambda: None,
+        locator=PartLocator.from_config(config),
         **_fixture_hooks(config),
     )
 

@@ -35,13 +35,17 @@ import numpy as np
 
 from vservo.core.calibration.board_views import BoardNotFound, BoardView, find_board
 from vservo.core.calibration.cell_calibration import (
+    AcceptanceCheck,
+    CameraCalibration,
+    HandEyeCalibration,
     Verdict,
     acceptance_errors,
+    board_pose,
     calibrate_camera_views,
     calibrate_hand_eye,
-    fit_laser_beam,
     grid_dataset,
 )
+from vservo.core.calibration.laser_calibration import LaserCalibration, beam_line_error, fit_laser_beam
 from vservo.core.calibration.levenberg_marquardt import LMSettings
 from vservo.core.calibration.mlp import train_nn
 from vservo.core.cell.config import BoardConfig, CellModel, ConfigError
@@ -157,15 +161,6 @@ class CommissionResult:
     @property
     def good(self) -> bool:
         return all(result.verdict.good for result in self.steps.values())
-
-
-def board_pose(view: BoardView, camera: CameraModel) -> Matrix:
-    """cMboard: the board's pose in the camera from its corners seen in one view (PnP)."""
-    ok, rvec, tvec = cv2.solvePnP(view.corners_board.astype(np.float64), view.corners_px.astype(np.float64),
-                                  camera.intrinsics.K, camera.distortion.as_opencv())
-    if not ok:
-        raise BoardNotFound("no pose of the board fits the corners found")
-    return transform(cv2.Rodrigues(rvec)[0], tvec.ravel())
 
 
 def look_at(target_b: Matrix, distance_m: float, tilt_rad: float = 0.0, azimuth_rad: float = 0.0,
@@ -285,20 +280,27 @@ class Commissioning:
         self._find_board()
         if steps & {Step.CAMERA, Step.HAND_EYE}:
             views = self._collect("tilted", self._tilted_poses())
+            board_views = [v for _, v, _ in views]
             if Step.CAMERA in steps:
-                camera = calibrate_camera_views([v for _, v, _ in views], self.model.camera)
+                camera = calibrate_camera_views(board_views, self.model.camera)
                 self.model = replace(self.model, camera=camera.camera)
-                results[Step.CAMERA] = StepResult(Step.CAMERA, camera.figures(), camera.verdict)
+                results[Step.CAMERA] = StepResult(Step.CAMERA, camera_figures(camera, len(views)), camera.verdict)
+                cMboard = list(camera.cMboard)
+            else:
+                cMboard = [board_pose(self.model.camera, v) for v in board_views]
             if Step.HAND_EYE in steps:
-                hand_eye = calibrate_hand_eye([bMe for bMe, _, _ in views], [v for _, v, _ in views], self.model.camera)
+                hand_eye = calibrate_hand_eye([bMe for bMe, _, _ in views], board_views, self.model.camera, cMboard)
                 self.model = replace(self.model, eMc=hand_eye.eMc)
                 self.bMboard = hand_eye.bMboard
-                results[Step.HAND_EYE] = StepResult(Step.HAND_EYE, hand_eye.figures(), hand_eye.verdict)
+                results[Step.HAND_EYE] = StepResult(Step.HAND_EYE, hand_eye_figures(hand_eye), hand_eye.verdict)
         if Step.LASER in steps:
             views = self._collect("laser", self._laser_poses(), spot=True)
-            laser = fit_laser_beam(self.model.camera, [s for _, _, s in views], [v for _, v, _ in views])
+            if not views:
+                raise CommissioningError("no laser view showed both the board and the spot (views.json says why)")
+            laser = fit_laser_beam(self.model.camera, np.array([s for _, _, s in views]),
+                                   [board_pose(self.model.camera, v) for _, v, _ in views])
             self.model = replace(self.model, laser=LaserPointer(laser.cMl))
-            results[Step.LASER] = StepResult(Step.LASER, laser.figures(), laser.verdict)
+            results[Step.LASER] = StepResult(Step.LASER, laser_figures(laser), laser.verdict)
         nn_path = None
         if Step.NN in steps:
             nn_path, result = self._train_nn()
@@ -315,7 +317,7 @@ class Commissioning:
                                      f"[board] pose puts it ({self.views[-1].found}): lay the board there "
                                      "(to a few centimetres), or correct [board] pose")
         bMe, view, _ = seen
-        self.bMboard = bMe @ self.model.eMc @ board_pose(view, self.model.camera)
+        self.bMboard = bMe @ self.model.eMc @ board_pose(self.model.camera, view)
         self._report("find", 1, 1, "board found")
 
     def _tilted_poses(self) -> list[Matrix]:
@@ -383,7 +385,6 @@ class Commissioning:
     def _acceptance(self) -> dict[str, Any]:
         """The camera over a few board corners, each at a fresh turn: where the calibrated
         model puts the corner found there, against where the board says it is."""
-        cols, rows = self.board.inner_corners
         corners = self.board.corners_board()
         picks = self.rng.choice(len(corners), size=min(self.settings.acceptance_corners, len(corners)), replace=False)
         seen = []
@@ -394,10 +395,17 @@ class Commissioning:
             self._report("acceptance", k + 1, len(picks), self.views[-1].found)
             if found is not None:
                 bMe, view, _ = found
-                seen.append((bMe, int(index), view))
+                at = np.flatnonzero(np.all(np.isclose(view.corners_board, corners[index]), axis=1))
+                if len(at):
+                    seen.append(AcceptanceCheck(bMe, corners[index], view.corners_px[at[0]]))
         if not seen:
             raise CommissioningError("the acceptance check saw the board from none of its poses")
-        return acceptance_errors(seen, self.model, self.bMboard, self.board)
+        # The calibrated model as a planar calibration: a pixel's ray met with the board plane.
+        model = HandEyeCalibration(self.model.camera, self.model.eMc, self.bMboard, self.model.eMc, 0.0, 0.0, 0.0,
+                                   (0.0, 0.0, 0.0), Verdict(True, ""))
+        errors = acceptance_errors(model, self.bMboard, seen)
+        return {"corners": len(seen), "errors_mm": [round(float(e), 4) for e in errors.errors_mm],
+                "mean_mm": round(errors.mean_mm, 4), "max_mm": round(errors.max_mm, 4)}
 
     def _write_views(self) -> None:
         (self.folder / "views.json").write_text(json.dumps([v.as_dict() for v in self.views], indent=1))
@@ -406,7 +414,6 @@ class Commissioning:
 def model_errors(model: CellModel, reference: CellModel, depth_m: float) -> dict[str, Any]:
     """How far a measured model is from a reference one (a simulator's truth, or the last
     commissioning): the figures of the issue's acceptance."""
-    from vservo.core.calibration.cell_calibration import beam_line_error
     from vservo.core.geometry.spatial import pose_error
 
     k, r = model.camera.intrinsics, reference.camera.intrinsics
@@ -427,7 +434,6 @@ def camera_summary(camera: CameraModel) -> dict[str, Any]:
 
 def commission_summary(result: CommissionResult) -> dict[str, Any]:
     """The JSON of ``vservo commission``: the measured model and every step's figures."""
-    from vservo.core.calibration.cell_calibration import laser_geometry
     from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
 
     baseline_m, alpha_rad = laser_geometry(result.model.laser.cMl)
@@ -445,3 +451,34 @@ def commission_summary(result: CommissionResult) -> dict[str, Any]:
         "cell_time_s": round(result.cell_time_s, 1),
         "nn_file": None if result.nn_path is None else str(result.nn_path),
     }
+
+
+def laser_geometry(cMl: Matrix) -> tuple[float, float]:
+    """(baseline d, angle alpha) of a beam (eqs. 4-18 .. 4-21): d from the lens to where the
+    beam crosses the camera's z = 0 plane, alpha between the beam and that baseline seen
+    from the laser back towards the lens (80 deg for the thesis's in-plane laser)."""
+    origin, direction = cMl[:3, 3], cMl[:3, 2]
+    origin = origin - direction * (origin[2] / direction[2])
+    baseline = float(np.linalg.norm(origin))
+    return baseline, float(np.arccos(np.clip(direction @ (-origin / baseline), -1.0, 1.0)))
+
+
+def camera_figures(camera: CameraCalibration, views: int) -> dict[str, Any]:
+    return {**camera_summary(camera.camera), "views": views, "rms_px": round(camera.rms_px, 4),
+            "worst_view_rms_px": round(float(np.max(camera.view_rms_px)), 4),
+            "std_fx_px": round(camera.std_fx_px, 4), "std_fy_px": round(camera.std_fy_px, 4),
+            "std_principal_point_px": [round(camera.std_u0_px, 4), round(camera.std_v0_px, 4)]}
+
+
+def hand_eye_figures(hand_eye: HandEyeCalibration) -> dict[str, Any]:
+    from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
+
+    return {"eMc_mm_deg": [round(float(v), 4) for v in pose_to_mm_deg(pose_from_matrix(hand_eye.eMc))],
+            "rms_px": round(hand_eye.rms_px, 4), "spread_mm": round(hand_eye.spread_mm, 4),
+            "spread_deg": round(hand_eye.spread_deg, 4), "wrist_turns_deg": [round(t, 2) for t in hand_eye.turn_deg]}
+
+
+def laser_figures(laser: LaserCalibration) -> dict[str, Any]:
+    return {"spots": len(laser.points_c), "baseline_mm": round(1000 * laser.baseline_m, 4),
+            "alpha_deg": round(float(np.degrees(laser.alpha_rad)), 4), "line_rms_mm": round(laser.rms_mm, 4),
+            "depth_span_mm": round(laser.depth_span_mm, 2)}

@@ -21,13 +21,15 @@ not extrapolated.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vservo.core.calibration.mlp import NNCalibration
 from vservo.core.cell.config import CellConfig, CellModel, ConfigError
 from vservo.core.geometry.spatial import Matrix, rotation_angle, transform
-from vservo.core.perception.vision.pipeline import ImageFeatureExtractor
+
+if TYPE_CHECKING:
+    from vservo.core.calibration.mlp import NNCalibration
 
 # How far the survey may be from the network's grid: a flange outside the trained
 # positions by more than this, or at another height or orientation, is refused.
@@ -64,6 +66,9 @@ class PartLocator:
         record = config.commissioning
         if record is None or record.nn_path is None:
             return None
+        # Only a commissioned cell pays for importing the network's torch.
+        from vservo.core.calibration.mlp import NNCalibration
+
         nn = NNCalibration.load(record.nn_path, "planar")
         grid = nn.training.get("dataset", {})
         if "grid_bMe" not in grid or "board_z_m" not in grid:
@@ -87,13 +92,13 @@ class PartLocator:
                               f"grid the network was trained on (x {low[0] * 1000:.0f}..{high[0] * 1000:.0f}, "
                               f"y {low[1] * 1000:.0f}..{high[1] * 1000:.0f} mm)")
 
-    def locate(self, image: np.ndarray, bMe: Matrix, extractor: ImageFeatureExtractor, part_side_m: float) -> LocatedPart:
-        """The part frame of the part seen in ``image``, taken from the reported flange pose bMe."""
+    def locate(self, corners_px: Matrix | None, bMe: Matrix, part_side_m: float) -> LocatedPart:
+        """The part frame of the part whose top-face corners were seen at ``corners_px``
+        (ordered as the vision orders them) from the reported flange pose bMe."""
         self.check_survey(bMe)
-        features, report = extractor.extract(image)
-        if features.corners_px is None or not np.all(np.isfinite(features.corners_px)):
-            raise LocateError(f"no part seen from the survey pose ({report.as_dict()['corners']['reason'] or 'no corners'})")
-        corners_px = np.asarray(features.corners_px, dtype=float)
+        if corners_px is None or not np.all(np.isfinite(corners_px)):
+            raise LocateError("no part seen from the survey pose")
+        corners_px = np.asarray(corners_px, dtype=float)
         on_plane = self.nn.world_of(corners_px, np.repeat(bMe[None], len(corners_px), axis=0))
         if not np.all(np.isfinite(on_plane)):
             raise LocateError("the network gives no world point for the corners seen")

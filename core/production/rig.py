@@ -21,6 +21,7 @@ from vservo.core.cell.scene import Cube
 from vservo.core.perception.camera_source import FrameSource
 from vservo.core.perception.vision.pipeline import CameraPerception, ImageFeatureExtractor, front_winding
 from vservo.core.production.assembly import PlacementReport
+from vservo.core.production.locate import PartLocator
 from vservo.core.robot.gripper import VacuumGripper
 from vservo.core.robot.safety import SafetyLayer
 from vservo.core.servo.step_policy import StepPolicy
@@ -45,6 +46,8 @@ class Rig:
     lay_board: Callable[[bool], None] | None = None
     # The part put down with its frame O at (x_m, y_m) in the base frame, turned yaw_rad.
     place_part: Callable[[float, float, float], None] | None = None
+    # The chapter 2 network of a commissioned cell, for jobs that locate their part; None before.
+    locator: PartLocator | None = None
     cell: SimulatedCell | None = None  # the plant, for the 3D view and evaluation; None on a real cell
     emulator: JrcEmulator | None = None  # the JRC emulator the robot link talks to, if any
 

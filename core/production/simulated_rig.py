@@ -19,6 +19,7 @@ import numpy as np
 
 from vservo.core.cell.config import ROBOT_BACKENDS, CellConfig
 from vservo.core.production.assembly import PlacementReport
+from vservo.core.production.locate import PartLocator
 from vservo.core.production.rig import Rig, extractor_for
 from vservo.core.robot.gripper import NoVacuum, VacuumGripper
 from vservo.core.robot.jrc import JrcBackend
@@ -97,6 +98,7 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
         present_part=present_part,
         lay_board=lay_board,
         place_part=place_part,
+        locator=PartLocator.from_config(config),
         cell=cell,
         emulator=emulator,
     )
