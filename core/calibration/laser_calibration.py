@@ -124,5 +124,7 @@ def beam_line_error(cMl_a: Matrix, cMl_b: Matrix, depth_m: float) -> tuple[float
         if abs(direction[2]) < 1e-9:
             raise ValueError("a beam parallel to the camera's plane never crosses z_c = depth")
         crossings.append(origin + ((depth_m - origin[2]) / direction[2]) * direction)
-    cos_angle = float(np.clip(np.asarray(cMl_a)[:3, 2] @ np.asarray(cMl_b)[:3, 2], -1.0, 1.0))
-    return float(np.degrees(np.arccos(cos_angle))), 1000.0 * float(np.linalg.norm(crossings[0] - crossings[1]))
+    a, b = np.asarray(cMl_a, dtype=float)[:3, 2], np.asarray(cMl_b, dtype=float)[:3, 2]
+    # atan2 of sine and cosine keeps small angles that an arccos of the cosine rounds away.
+    angle = np.arctan2(np.linalg.norm(np.cross(a, b)), float(a @ b))
+    return float(np.degrees(angle)), 1000.0 * float(np.linalg.norm(crossings[0] - crossings[1]))
