@@ -116,10 +116,11 @@ def find_board(board: BoardConfig, image: np.ndarray, spot_px: Matrix | None = N
         raise BoardNotFound(f"no checkerboard of {cols} x {rows} inner corners in the image (all of it must be in view)")
     grid = corners.reshape(rows, cols, 2).astype(np.float64)
     named = [g for g in _orderings(grid) if _seen_from_front(g) and _colour_agreement(grey, g) >= _COLOUR_AGREEMENT]
-    if len(named) != 1:
-        why = "no ordering of the grid" if not named else f"{len(named)} orderings of the grid"
-        raise BoardNotFound(f"{why} shows the board's colouring (its square beyond corner (0, 0) black): "
-                            "the squares are not seen clearly enough to name the corners")
+    if not named:
+        raise BoardNotFound("no ordering of the grid shows the board's colouring (its square beyond corner (0, 0) "
+                            "black): the squares are not seen clearly enough to name the corners")
+    if len(named) > 1:
+        raise BoardNotFound(f"{len(named)} orderings of the grid show the board's colouring: the corners cannot be named")
     pixels = named[0].reshape(-1, 2)
     keep = np.ones(len(pixels), dtype=bool)
     if spot_px is not None:
