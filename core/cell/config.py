@@ -673,6 +673,13 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     return config
 
 
+def model_with_truth(data: dict[str, Any], truth: dict[str, Any], source: str = "<cell>") -> CellModel:
+    """The model of a cell file's tables with ``truth`` ([simulation.truth.*] tables, as a
+    virtual cell's --truth file holds them) laid over its nominal ones."""
+    data, _ = _split_wiring(data)
+    return _cell_model(_Table(_truth_tables(data, truth, source), "", f"{source} [simulation.truth]"))
+
+
 def read_cell_bytes(path: str | Path | None = None) -> tuple[bytes, str]:
     """A cell file's bytes (what a study snapshot hashes) and its name; ``None`` reads the shipped cell."""
     if path is None:

@@ -91,13 +91,17 @@ def _cmd_commission(args: argparse.Namespace) -> int:
     except ValueError:
         print(f"vservo commission: error: --steps {args.steps!r}: choose from {','.join(Step)}", file=sys.stderr)
         return 2
+    if not args.cell:
+        print("vservo commission: error: --cell FILE is required: the cell file of the cell to commission "
+              "(it is never overwritten)", file=sys.stderr)
+        return 2
     out = Path(args.out)
     if out.exists() and not args.force:
         print(f"vservo commission: error: --out {out} exists: commissioning writes a new file (--force replaces it)",
               file=sys.stderr)
         return 2
     config = load_cell(args.cell)
-    reference = _reference_model(args.reference) if args.reference else None
+    reference = _reference_model(args.reference, args.cell) if args.reference else None
     folder = Path(args.data_folder) if args.data_folder else out.with_name(out.stem + "-commissioning")
     rig = build_rig(config, args.seed)
     bars: dict[str, Progress] = {}
@@ -134,14 +138,17 @@ def _cmd_commission(args: argparse.Namespace) -> int:
     return 0 if result.good else 1
 
 
-def _reference_model(path: str):
-    """The model a reference cell file says the cell is: its [simulation.truth] when it has
-    a plant (a virtual cell's truth file), its nominal model otherwise."""
-    from vservo.core.cell.config import parse_cell, read_cell_data
+def _reference_model(path: str, cell: str):
+    """The model a reference file says the cell is: its [simulation.truth.*] laid over the
+    --cell file's nominal model (a virtual cell's truth file), or, for a cell file
+    without truth tables (the last commissioning), its nominal model."""
+    from vservo.core.cell.config import load_cell, model_with_truth, read_cell_data
 
-    tables, source = read_cell_data(path)
-    config = parse_cell(tables, source)
-    return config.simulation.truth if config.simulation is not None else config.nominal
+    reference, source = read_cell_data(path)
+    truth = reference.get("simulation", {}).get("truth")
+    if isinstance(truth, dict) and truth:
+        return model_with_truth(read_cell_data(cell)[0], truth, source)
+    return load_cell(path).nominal
 
 
 def _stop_when_orphaned(parent_pid: int, stop: threading.Event, period_s: float = 0.5) -> None:
@@ -187,7 +194,6 @@ def add_production_commands(commands: argparse._SubParsersAction) -> None:
     commission = commands.add_parser(
         "commission", help="measure the connected cell's camera, hand-eye, laser and NN on its board and write a new "
                            "cell file (docs/commissioning.md)")
-    commission.add_argument("--cell", required=True, help="the cell file of the cell to commission (never overwritten)")
     commission.add_argument("--out", required=True, metavar="NEW_FILE", help="the commissioned cell file to write")
     commission.add_argument("--steps", default="camera,hand-eye,laser,nn",
                             help="comma-separated steps: camera, hand-eye, laser, nn (default: all)")

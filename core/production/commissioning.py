@@ -101,7 +101,7 @@ class CommissionSettings:
     grid_half_m: tuple[float, float] = (0.06, 0.05)
     grid_step_m: float = 0.02
     acceptance_corners: int = 5
-    acceptance_height_m: float = 0.22
+    acceptance_height_m: float = 0.27
     find_height_m: float = 0.32
     speed_m_s: float = 0.10
     nn_epochs: int = 60
@@ -155,7 +155,7 @@ class CommissionResult:
     acceptance: dict[str, Any] | None
     nn_path: Path | None
     views: list[ViewRecord] = field(default_factory=list)
-    cell_time_s: float = 0.0
+    robot_clock_s: float = 0.0  # the robot's own clock: the plant's on a simulated cell, the wall's on a JRC
     wall_time_s: float = 0.0
 
     @property
@@ -171,6 +171,13 @@ def look_at(target_b: Matrix, distance_m: float, tilt_rad: float = 0.0, azimuth_
     axis = tilt_rad * np.array([np.cos(azimuth_rad), np.sin(azimuth_rad), 0.0])
     bRc = exp_twist(np.concatenate((np.zeros(3), axis)))[:3, :3] @ bRc_DOWN @ rot_z(turn_rad)[:3, :3]
     return transform(bRc, np.asarray(target_b, float) - bRc[:, 2] * distance_m)
+
+
+def _shifted(bMe: Matrix, dx_m: float, dy_m: float) -> Matrix:
+    """bMe moved horizontally by (dx, dy) in B."""
+    moved = np.array(bMe, dtype=float)
+    moved[:2, 3] += (dx_m, dy_m)
+    return moved
 
 
 class Commissioning:
@@ -199,13 +206,27 @@ class Commissioning:
         centre = np.array([(cols - 1) / 2, (rows - 1) / 2, 0.0, 1.0]) * np.array([self.board.square_m] * 2 + [0, 1])
         return (self.bMboard @ centre)[:3]
 
-    def _go(self, bMc: Matrix) -> Matrix | None:
-        """Move the camera to bMc (through the current eMc); the reported flange pose, or None
-        when the arm cannot reach it (the safety layer's checks refuse it before any motion)."""
-        bMe_target = bMc @ inverse(self.model.eMc)
+    def _down_view(self, target_b: Matrix, height_m: float, turn_rad: float = 0.0, tilt_rad: float = 0.0) -> Matrix:
+        """The flange pose ``height_m`` over ``target_b``, tool down (tilted by ``tilt_rad`` about
+        the radial direction, turned by ``turn_rad`` about the vertical), placed so that the
+        current model's optical axis meets the board's plane at ``target_b``."""
+        axis = tilt_rad * np.append(np.array([np.cos(self._radial_azimuth()), np.sin(self._radial_azimuth())]), 0.0)
+        bRe = exp_twist(np.concatenate((np.zeros(3), axis)))[:3, :3] @ rot_z(turn_rad)[:3, :3] @ bRc_DOWN
+        bMe = transform(bRe, np.asarray(target_b, float) + np.array([0.0, 0.0, height_m]))
+        bMc = bMe @ self.model.eMc
+        normal = self.bMboard[:3, 2]
+        along = float(normal @ (np.asarray(target_b, float) - bMc[:3, 3])) / float(normal @ bMc[:3, 2])
+        hit = bMc[:3, 3] + along * bMc[:3, 2]
+        bMe[:2, 3] += (np.asarray(target_b, float) - hit)[:2]
+        return bMe
+
+    def _go(self, bMe_target: Matrix) -> Matrix | None:
+        """Move the flange to bMe_target; the reported flange pose, or None when the arm
+        cannot reach it (the safety layer's checks refuse it before any motion)."""
         robot = self.rig.robot
         try:
-            robot.check_target(bMe_target, self.settings.speed_m_s)
+            # Reach and workspace only: move_linear cuts the way there into allowed steps.
+            robot.check_target(bMe_target, self.settings.speed_m_s, bMe_now=bMe_target)
             robot.move_linear(bMe_target, self.settings.speed_m_s)
         except SafetyStopActive:
             raise
@@ -220,13 +241,13 @@ class Commissioning:
         cv2.imwrite(str(self.folder / "views" / name), frame.image)
         return frame.image, name
 
-    def _look(self, step: str, index: int, bMc: Matrix, spot: bool = False
+    def _look(self, step: str, index: int, bMe_target: Matrix, spot: bool = False
               ) -> tuple[Matrix, BoardView, Matrix | None] | None:
-        """Go to bMc, take a frame, find the board (and the laser spot when asked). None when
+        """Go to bMe_target, take a frame, find the board (and the laser spot when asked). None when
         the view cannot be used; the reason is recorded."""
         if self.stopped():
             raise CommissioningError("stopped by the operator")
-        bMe = self._go(bMc)
+        bMe = self._go(bMe_target)
         if bMe is None:
             self.views.append(ViewRecord(step, index, None, None, "unreachable"))
             return None
@@ -252,8 +273,8 @@ class Commissioning:
 
     def _collect(self, step: str, poses: Sequence[Matrix], spot: bool = False) -> list[tuple[Matrix, BoardView, Matrix | None]]:
         found = []
-        for k, bMc in enumerate(poses):
-            seen = self._look(step, k, bMc, spot)
+        for k, bMe_target in enumerate(poses):
+            seen = self._look(step, k, bMe_target, spot)
             if seen is not None:
                 found.append(seen)
             self._report(step, k + 1, len(poses), self.views[-1].found)
@@ -262,7 +283,7 @@ class Commissioning:
     # -- the procedure ------------------------------------------------------------------------
 
     def run(self, steps: Sequence[Step] = ALL_STEPS) -> CommissionResult:
-        started_wall, started_cell = time.monotonic(), self.rig.robot.clock_s()
+        started_wall, started_clock = time.monotonic(), self.rig.robot.clock_s()
         (self.folder / "views").mkdir(parents=True, exist_ok=True)
         if self.rig.lay_board is not None:
             self.rig.lay_board(True)
@@ -273,7 +294,7 @@ class Commissioning:
             if self.rig.lay_board is not None:
                 self.rig.lay_board(False)
         return replace(result, views=list(self.views), wall_time_s=time.monotonic() - started_wall,
-                       cell_time_s=self.rig.robot.clock_s() - started_cell)
+                       robot_clock_s=self.rig.robot.clock_s() - started_clock)
 
     def _run(self, steps: set[Step]) -> CommissionResult:
         results: dict[Step, StepResult] = {}
@@ -311,7 +332,7 @@ class Commissioning:
     def _find_board(self) -> None:
         """Look straight down at where the cell file says the board lies; from what is seen
         there, through the current model, where it really lies (enough to aim by)."""
-        seen = self._look("find", 0, look_at(self._centre_b(), self.settings.find_height_m))
+        seen = self._look("find", 0, self._down_view(self._centre_b(), self.settings.find_height_m))
         if seen is None:
             raise CommissioningError(f"no board seen from {self.settings.find_height_m * 1000:.0f} mm over where "
                                      f"[board] pose puts it ({self.views[-1].found}): lay the board there "
@@ -320,41 +341,69 @@ class Commissioning:
         self.bMboard = bMe @ self.model.eMc @ board_pose(self.model.camera, view)
         self._report("find", 1, 1, "board found")
 
+    def _radial_azimuth(self) -> float:
+        """The horizontal direction from the arm's base axis to the board's centre.
+
+        The UPJ has five axes: its tool axis always lies in the vertical plane through the
+        base axis, so a camera looking at the board can lean only towards or away from
+        the base, at any turn about its own axis. Tilts in that plane, combined with
+        turns, still tilt the camera about both of its image axes (what the camera step
+        needs) and turn the wrist about two axes (what AX = XB needs)."""
+        centre = self._centre_b()
+        return float(np.arctan2(centre[1], centre[0]))
+
+    def _reachable(self, bMe: Matrix) -> bool:
+        try:
+            self.rig.robot.check_target(bMe, self.settings.speed_m_s, bMe_now=bMe)
+        except (SafetyRefusal, UnreachableTarget):
+            return False
+        return True
+
+    def _draw(self, count: int, draw: Callable[[int], Matrix]) -> list[Matrix]:
+        """``count`` reachable poses from ``draw`` (given the number drawn so far), or as many
+        as 20 draws each find."""
+        poses: list[Matrix] = []
+        for k in range(20 * count):
+            if len(poses) == count:
+                break
+            bMe = draw(k)
+            if self._reachable(bMe):
+                poses.append(bMe)
+        return poses
+
     def _tilted_poses(self) -> list[Matrix]:
         s, rng = self.settings, self.rng
-        centre = self._centre_b()
-        return [look_at(centre + np.append(rng.uniform(-0.01, 0.01, 2), 0.0), rng.uniform(*s.camera_distance_m),
-                        np.deg2rad(rng.uniform(*s.tilt_deg)), azimuth, np.deg2rad(rng.uniform(-s.turn_deg, s.turn_deg)))
-                for azimuth in np.linspace(0.0, 2 * np.pi, s.camera_views, endpoint=False) + rng.uniform(0, 0.3)]
+        centre, radial = self._centre_b(), self._radial_azimuth()
+        return self._draw(s.camera_views, lambda k: look_at(
+            centre + np.append(rng.uniform(-0.01, 0.01, 2), 0.0), rng.uniform(*s.camera_distance_m),
+            np.deg2rad(rng.uniform(*s.tilt_deg)), radial + np.pi * (k % 2), rng.uniform(-np.pi, np.pi))
+            @ inverse(self.model.eMc))
 
     def _laser_poses(self) -> list[Matrix]:
-        """At each height the spot falls near the board's centre: the camera is put so that
-        the beam the current model believes in meets the board there."""
+        """At each height, level and leaning both ways: the flange is put so that the beam
+        the current model believes in meets the board near its centre."""
         s = self.settings
-        tilt = np.deg2rad(s.laser_tilt_deg)
+        tilt, centre = np.deg2rad(s.laser_tilt_deg), self._centre_b()
+        normal = self.bMboard[:3, 2]
         poses = []
         for height in s.laser_heights_m:
-            for tilt_rad, azimuth in ((0.0, 0.0), (tilt, 0.0), (tilt, np.pi / 2)):
-                bMc = look_at(self._centre_b(), height, tilt_rad, azimuth)
-                # Where the believed beam meets the board plane, shifted back onto the centre.
-                beam = self.model.laser.beam(bMc)
-                normal = self.bMboard[:3, 2]
+            for tilt_rad in (0.0, tilt, -tilt):
+                bMe = self._down_view(centre, height, tilt_rad=tilt_rad)
+                beam = self.model.laser.beam(bMe @ self.model.eMc)
                 reach = beam.intersect_plane(normal, float(normal @ self.bMboard[:3, 3]))
-                if reach is not None:
-                    bMc = bMc.copy()
-                    offset = beam.point_at(reach) - self._centre_b()
-                    bMc[:3, 3] -= offset - normal * float(normal @ offset)
-                poses.append(bMc)
+                if reach is not None:  # the believed spot, moved onto the centre
+                    bMe[:2, 3] -= (beam.point_at(reach) - centre)[:2]
+                poses.append(bMe)
         return poses
 
     def _grid_poses(self) -> list[Matrix]:
+        """The NN's grid: the flange tool down at one height and orientation (the thesis's
+        planar moves, section 3.2), in serpentine order over the board."""
         s = self.settings
-        centre = self._centre_b()
+        bMe0 = self._down_view(self._centre_b(), s.survey_height_m)
         xs = np.arange(-s.grid_half_m[0], s.grid_half_m[0] + 1e-9, s.grid_step_m)
         ys = np.arange(-s.grid_half_m[1], s.grid_half_m[1] + 1e-9, s.grid_step_m)
-        # The survey height is over the table (the board is a sheet on it), flange tool-down.
-        return [look_at(centre + np.array([x, y, 0.0]), s.survey_height_m)
-                for k, x in enumerate(xs) for y in (ys if k % 2 == 0 else ys[::-1])]
+        return [_shifted(bMe0, x, y) for k, x in enumerate(xs) for y in (ys if k % 2 == 0 else ys[::-1])]
 
     def _train_nn(self) -> tuple[Path, StepResult]:
         views = self._collect("grid", self._grid_poses())
@@ -390,8 +439,10 @@ class Commissioning:
         seen = []
         for k, index in enumerate(picks):
             corner_b = (self.bMboard @ np.append(corners[index], 1.0))[:3]
-            bMc = look_at(corner_b, self.settings.acceptance_height_m, turn_rad=self.rng.uniform(-np.pi / 4, np.pi / 4))
-            found = self._look("acceptance", k, bMc)
+            # A fresh turn where the wrist allows one, else none.
+            turns = (self.rng.uniform(-np.pi / 4, np.pi / 4), self.rng.uniform(-np.pi / 8, np.pi / 8), 0.0)
+            views = [self._down_view(corner_b, self.settings.acceptance_height_m, turn_rad=t) for t in turns]
+            found = self._look("acceptance", k, next((v for v in views if self._reachable(v)), views[-1]))
             self._report("acceptance", k + 1, len(picks), self.views[-1].found)
             if found is not None:
                 bMe, view, _ = found
@@ -448,7 +499,7 @@ def commission_summary(result: CommissionResult) -> dict[str, Any]:
         "good": result.good,
         "views": {"taken": len(result.views), "used": sum(1 for v in result.views if "corners" in v.found)},
         "wall_time_s": round(result.wall_time_s, 1),
-        "cell_time_s": round(result.cell_time_s, 1),
+        "robot_clock_s": round(result.robot_clock_s, 1),
         "nn_file": None if result.nn_path is None else str(result.nn_path),
     }
 
