@@ -11,8 +11,8 @@ laser spot, blur, motion smear, noise, 8-bit quantisation, dropped and repeated 
 The settings of both are one ``RenderSettings`` (render_settings.py).
 
 Speed (2-core machine, 640 x 480, median of 50): 1.5 ms for the task-1 desired view,
-3.5-4 ms for an oblique view of cube, metal part and table with distortion; noise, blur
-and lighting together add ~1.5 ms.
+3.5-4 ms for an oblique view of cube, metal part and table with distortion, 5-6 ms for a
+view of the laid checkerboard with distortion; noise, blur and lighting together add ~1.5 ms.
 """
 
 from __future__ import annotations
