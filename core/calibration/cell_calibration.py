@@ -73,7 +73,8 @@ class Verdict:
         return cls(True, "good: " + summary)
 
 
-def _frozen(array: Matrix) -> Matrix:
+def read_only(array: Matrix) -> Matrix:
+    """A read-only float copy, so that a frozen result really is frozen."""
     out = np.array(array, dtype=float)
     out.flags.writeable = False
     return out
@@ -148,8 +149,8 @@ def calibrate_camera_views(views: Sequence[BoardView], nominal: CameraModel) -> 
         faults.append(f"the principal point uncertain to {max(std_u0, std_v0):.1f} px, "
                       "tilt the camera more, about both axes")
     verdict = Verdict.of(faults, f"RMS {rms:.3f} px over {len(views)} views, fx uncertain to {100 * focal_std:.3f} %")
-    cMboard = tuple(_frozen(transform(cv2.Rodrigues(r)[0], np.ravel(t))) for r, t in zip(rvecs, tvecs))
-    return CameraCalibration(camera, cMboard, float(rms), _frozen(view_rms), std_fx, std_fy, std_u0, std_v0, verdict)
+    cMboard = tuple(read_only(transform(cv2.Rodrigues(r)[0], np.ravel(t))) for r, t in zip(rvecs, tvecs))
+    return CameraCalibration(camera, cMboard, float(rms), read_only(view_rms), std_fx, std_fy, std_u0, std_v0, verdict)
 
 
 def board_pose(camera: CameraModel, view: BoardView) -> Matrix:
@@ -310,7 +311,7 @@ def calibrate_hand_eye(bMe_list: Sequence[Matrix], views: Sequence[BoardView], c
                       "the board moved, or the arm's readings are off")
     verdict = Verdict.of(faults, f"RMS {rms:.3f} px over {len(views)} views, board spread {spread_mm:.2f} mm "
                                  f"{spread_deg:.3f} deg")
-    return HandEyeCalibration(camera, _frozen(eMc), _frozen(bMboard), _frozen(eMc_axxb), rms, spread_mm, spread_deg,
+    return HandEyeCalibration(camera, read_only(eMc), read_only(bMboard), read_only(eMc_axxb), rms, spread_mm, spread_deg,
                               turns, verdict)
 
 
@@ -376,4 +377,4 @@ def acceptance_errors(model: PlanarCalibration, bMboard: Matrix, checks: Sequenc
     placed = np.column_stack((xy, z))
     corners = np.array([bMboard[:3, :3] @ np.asarray(c.corner_board, dtype=float) + bMboard[:3, 3] for c in checks])
     errors = 1000.0 * np.linalg.norm(placed - corners, axis=1)
-    return AcceptanceErrors(_frozen(errors), float(np.mean(errors)), float(np.max(errors)))
+    return AcceptanceErrors(read_only(errors), float(np.mean(errors)), float(np.max(errors)))

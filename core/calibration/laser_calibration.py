@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vservo.core.calibration.cell_calibration import Verdict
+from vservo.core.calibration.cell_calibration import Verdict, read_only
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.spatial import Matrix, transform
 
@@ -46,12 +46,6 @@ class LaserCalibration:
     rms_mm: float
     depth_span_mm: float
     verdict: Verdict
-
-
-def _frozen(array: Matrix) -> Matrix:
-    out = np.array(array, dtype=float)
-    out.flags.writeable = False
-    return out
 
 
 def beam_cMl(origin_c: Matrix, direction_c: Matrix) -> Matrix:
@@ -102,7 +96,7 @@ def fit_laser_beam(camera: CameraModel, spots_px: Matrix, cMboard_list: Sequence
     rms_mm = 1000.0 * float(np.sqrt(np.mean(np.sum((offsets - np.outer(offsets @ direction, direction)) ** 2, axis=1))))
     span_mm = 1000.0 * float(np.ptp(points[:, 2]))
     baseline = float(np.linalg.norm(origin))
-    alpha = float(np.arccos(np.clip(-direction @ origin / baseline, -1.0, 1.0))) if baseline > 0.0 else np.pi / 2
+    alpha = float(np.arccos(np.clip(-direction @ origin / baseline, -1.0, 1.0)))
     faults = []
     if span_mm < MIN_DEPTH_SPAN_MM:
         faults.append(f"the spots span {span_mm:.0f} mm of depth (at least {MIN_DEPTH_SPAN_MM:.0f}): "
@@ -112,7 +106,7 @@ def fit_laser_beam(camera: CameraModel, spots_px: Matrix, cMboard_list: Sequence
                       "a spot was misfound or the board's pose is off")
     verdict = Verdict.of(faults, f"line RMS {rms_mm:.3f} mm over {span_mm:.0f} mm of depth, "
                                  f"d {1000 * baseline:.1f} mm, alpha {np.degrees(alpha):.2f} deg")
-    return LaserCalibration(_frozen(cMl), baseline, alpha, _frozen(points), rms_mm, span_mm, verdict)
+    return LaserCalibration(read_only(cMl), baseline, alpha, read_only(points), rms_mm, span_mm, verdict)
 
 
 def beam_line_error(cMl_a: Matrix, cMl_b: Matrix, depth_m: float) -> tuple[float, float]:
