@@ -20,7 +20,13 @@ from vservo.core.production.cli import BACKEND_HELP, add_production_commands
 from vservo.core.production.storage import StoreError, default_data_dir
 from vservo.core.robot.backend import RobotError
 from vservo.core.sim.cli import add_jrc_emulator_command, add_virtual_cell_command
-from vservo.core.study.cli import add_jrc_bench, add_stream_bench, add_study_commands, add_vision_bench
+from vservo.core.study.cli import (
+    add_jrc_bench,
+    add_locate_bench,
+    add_stream_bench,
+    add_study_commands,
+    add_vision_bench,
+)
 from vservo.core.terminal.command_line import BenchCommand, Parser, positive, print_result
 
 
@@ -109,6 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench = BenchCommand(commands.add_parser("bench", help="measure speed and accuracy on this machine"))
     add_vision_bench(bench)
     add_stream_bench(bench)
+    add_locate_bench(bench)
     add_calibration_bench(bench)
     add_jrc_bench(bench)
     _add_ui_bench(bench)

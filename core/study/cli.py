@@ -218,6 +218,28 @@ def add_stream_bench(bench: BenchCommand) -> None:
     stream.add_argument("--quality", type=_jpeg_quality, default=100, help="stream: JPEG quality 0..100 (default 100)")
 
 
+def add_locate_bench(bench: BenchCommand) -> None:
+    """Register ``vservo bench locate``."""
+    locate = bench.add("locate", "a locating job on parts put anywhere in its survey view (a commissioned cell with "
+                                 "a fixture)", _cmd_bench_locate)
+    locate.add_argument("--job", default="demo", help="locate: the taught job to run as a locating job (default demo)")
+    locate.add_argument("--placements", type=positive(int), default=40, help="locate: random placements of the part "
+                                                                             "(default 40)")
+    locate.add_argument("--data", metavar="DIR", help="locate: data folder for the jobs and runs (default: a new "
+                                                      "temporary folder)")
+
+
+def _cmd_bench_locate(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from vservo.core.study.locate_bench import bench_locate
+
+    data = Path(args.data) if args.data else Path(tempfile.mkdtemp(prefix="vservo-bench-locate-"))
+    result = bench_locate(load_cell(args.cell), args.job, args.placements, args.seed or 0, data)
+    print_result(result, args.json)
+    return 0 if result["placed_share"] >= 0.95 else 1
+
+
 def _jpeg_quality(text: str) -> int:
     try:
         quality = int(text)

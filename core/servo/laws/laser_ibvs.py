@@ -101,6 +101,7 @@ class LaserIbvs:
     k_final: float = 1.0  # stage 3
     f0_px: float = 10.0  # eq. 4-27
     f0_laser_px: float = 10.0  # eq. 4-43
+    f0_turn_px: float = 1.0  # stage 1.A also ends when a turn can remove no more than this of its error
     final_threshold_px: float = 1.0
     name: str = "laser"
 
@@ -131,10 +132,17 @@ class LaserIbvs:
         stage_error = float(np.linalg.norm(e))
         if stage_error <= self.f0_px:
             return self._stage_2(features, desired, error_px, note=f"1A -> 2: ||f_id - f|| = {stage_error:.2f} px")
+        J = rotational_jacobian(self.camera, features.corners_px)
+        # What a turn can still remove of e (linearised). The rest is the pattern's shape,
+        # which only a translation changes: a beam out of the camera's x-z plane (a real
+        # laser mount) can leave more than f0 of it, and stage 1.A would turn forever.
+        turnable_px = float(np.linalg.norm(J @ checked_pinv(J) @ e))
+        if turnable_px <= self.f0_turn_px:
+            return self._stage_2(features, desired, error_px,
+                                 note=f"1A -> 2: turned as far as turning helps (||f_id - f|| = {stage_error:.2f} px)")
         # The turn about the optical axis comes from the pattern's orientation: a least-
         # squares w_z vanishes at a half turn, where every error is radial (eq. 4-25).
         # An image pattern turns at -w_z (x right, y down), hence the sign.
-        J = rotational_jacobian(self.camera, features.corners_px)
         w_z = -self.k_rotation_1a * image_rotation(features.corners_px, f_id)
         # J_xy w_xy + J_z w_z = -K_l e (eq. 4-29), solved for what w_z leaves.
         w_xy = -checked_pinv(J[:, :2]) @ (self.k_rotation_1a * e + J[:, 2] * w_z)
