@@ -40,6 +40,7 @@ import numpy as np
 
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.production.cell_controller import CellController, CommandRefused, ControllerState, FrameView
+from vservo.core.production.commissioning import Step
 from vservo.core.production.jobs import JobError
 
 log = logging.getLogger("vservo.channel")
@@ -72,6 +73,12 @@ def _pose(value: Any) -> Matrix:
     return array
 
 
+def _steps(value: Any) -> list[str]:
+    if not isinstance(value, list) or not all(isinstance(step, str) for step in value):
+        raise CommandRefused(f"steps must be a list of step names ({', '.join(Step)}), got {value!r}")
+    return value
+
+
 def _jobs(controller: CellController) -> list[dict]:
     return [{"name": e.name, "saved_at": e.saved_at, "problem": e.problem, "shipped": e.shipped}
             for e in controller.store.list_jobs()]
@@ -99,6 +106,8 @@ COMMANDS: dict[str, Callable[[CellController, dict], Any]] = {
     "cancel_teach": lambda c, a: c.cancel_teach(),
     "present_part": lambda c, a: c.present_part(),
     "start": lambda c, a: c.start(str(a.get("job", ""))),
+    "commission": lambda c, a: str(c.commission(_steps(a.get("steps", list(Step))), a.get("out"))),
+    "apply_commissioning": lambda c, a: str(c.apply_commissioning()),
     "estop": lambda c, a: c.estop(),
     "reset": lambda c, a: c.reset(),
     "list_jobs": lambda c, a: _jobs(c),
