@@ -637,7 +637,7 @@ class CellController:
             result = commissioning.run(steps)
         except Exception as exc:  # a bug as much as a stop must leave the robot held
             if self._estop.is_set():
-                error, phase = f"stopped: {self._estop_reason}", Phase.ESTOPPED
+                error, phase = self._estop_reason, Phase.ESTOPPED
             else:
                 if not isinstance(exc, CommissioningError):
                     log.exception("commissioning crashed")
