@@ -28,7 +28,6 @@ from vservo.app.context import AppContext
 from vservo.app.session import SessionView
 from vservo.core.production.assembly import Phase
 from vservo.core.production.channel import Reply
-from vservo.core.production.commissioning import Step
 
 # Commissioning starts, and is applied, only from these phases (as the controller checks).
 READY_PHASES = (Phase.IDLE, Phase.DONE, Phase.FAULT)
@@ -57,7 +56,7 @@ class CalibratePanel:
         gui = view.client.gui
         with self.tab:
             steps = {step: view.control(gui.add_checkbox(f"Step {step}", True, order=2 + k))
-                     for k, step in enumerate(Step)}
+                     for k, step in enumerate(commission_text.STEP_WORDS)}
             start = view.control(gui.add_button("Start commissioning", icon=viser.Icon.PLAYER_PLAY, order=6,
                                                 hint="The robot moves: it shows the camera the board"))
             apply = view.control(gui.add_button("Apply", icon=viser.Icon.DEVICE_FLOPPY, order=9, disabled=True,
@@ -66,7 +65,7 @@ class CalibratePanel:
             run = view.control(gui.add_button("Run calibration", icon=viser.Icon.PLAYER_PLAY, order=22))
             stop = view.control(gui.add_button("Stop calibration", icon=viser.Icon.PLAYER_STOP, order=23))
         start.on_click(lambda _: self.app.send(view, "Start commissioning", "commission", "commissioning started",
-                                               steps=[str(step) for step, box in steps.items() if box.value]))
+                                               steps=[step for step, box in steps.items() if box.value]))
         apply.on_click(lambda _: self._confirm_apply(view))
         run.on_click(lambda _: self._start(view, preset.value))
         stop.on_click(lambda _: self._stop(view))

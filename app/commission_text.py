@@ -19,6 +19,8 @@ PROCEDURE = {
     "nn": "training the network",
     "acceptance": "acceptance check",
 }
+# Commissioning's steps (core/production/commissioning.py Step, which the app does not
+# import: it brings the calibration's torch) and how the results table names them.
 STEP_WORDS = {"camera": "camera", "hand-eye": "hand-eye", "laser": "laser", "nn": "network (nn)"}
 
 

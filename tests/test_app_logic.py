@@ -22,6 +22,7 @@ from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg
 from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController
 from vservo.core.production.channel import Reply
+from vservo.core.production.commissioning import Step
 from vservo.core.production.jobs import read_job_file
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import DEMO_JOB, Store, shipped_job_path
@@ -284,6 +285,7 @@ def commissioning_record(nn_verdict: str = "good") -> dict:
 
 
 def test_commissioning_texts():
+    assert tuple(commission_text.STEP_WORDS) == tuple(Step)  # the tab offers every step, by its name
     assert "Not commissioned in this session" in commission_text.progress_markdown(None, "static/cell.toml")
     record = commissioning_record()
     running = {**record, "summary": None}

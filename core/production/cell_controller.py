@@ -34,27 +34,17 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from vservo.core.cell.config import DEFAULT_CELL, CellConfig, ConfigError, load_cell, read_cell_data
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, exp_twist
-from vservo.core.perception.camera_source import BaseSource, CameraSourceError, Frame, FrameSource
+from vservo.core.perception.camera_source import BaseSource, CameraSourceError, Frame, FrameSource, Size
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.perception.recording import RunRecorder
 from vservo.core.production.assembly import AssemblyEvent, AssemblyOutcome, Outcome, Phase, PhaseChange, run_assembly
-from vservo.core.production.commissioned_file import commissioned_tables, write_commissioned_cell
-from vservo.core.production.commissioning import (
-    ALL_STEPS,
-    Commissioning,
-    CommissioningError,
-    CommissionResult,
-    CommissionSettings,
-    Progress,
-    Step,
-    commission_summary,
-)
 from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job, JobError, TaughtModel
 from vservo.core.production.locate import PartLocator
@@ -67,6 +57,9 @@ from vservo.core.servo.laws.base import Stage
 from vservo.core.servo.loop import cycle_record
 from vservo.core.servo.teaching import TeachError, desired_from_features
 from vservo.robot_models.loader import load_arm
+
+if TYPE_CHECKING:  # commissioning's calibration (torch, the board finder) is imported when a cell is commissioned
+    from vservo.core.production.commissioning import Commissioning, CommissionResult, CommissionSettings, Progress, Step
 
 log = logging.getLogger("vservo.controller")
 
@@ -194,7 +187,7 @@ class _ShownCamera(BaseSource):
         self._camera, self._show = camera, show
 
     @property
-    def image_size(self):
+    def image_size(self) -> Size | None:
         return self._camera.image_size
 
     def read(self) -> Frame:
@@ -587,15 +580,18 @@ class CellController:
 
     # -- commissioning -----------------------------------------------------------------------
 
-    def commission(self, steps: Sequence[Step | str] = ALL_STEPS, out_path: str | Path | None = None,
+    def commission(self, steps: Sequence[Step | str] | None = None, out_path: str | Path | None = None,
                    settings: CommissionSettings | None = None) -> Path:
         """Commission the cell in the background: the robot shows the camera the board and the
-        chosen steps measure the model (docs/commissioning.md). Progress, then the summary,
-        are published in the state's ``commissioning``; the e-stop stops it between views
-        (and any move under way at once). Returns the cell file Apply will write
-        (default: ``commissioned_path``)."""
+        chosen steps (default: all) measure the model (docs/commissioning.md). Progress, then
+        the summary, are published in the state's ``commissioning``; the e-stop stops it
+        between views (and any move under way at once). Returns the cell file Apply will
+        write (default: ``commissioned_path``)."""
+        from vservo.core.production.commissioning import ALL_STEPS, Commissioning, CommissionSettings, Step
+
         with self._lock:
             self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
+            steps = ALL_STEPS if steps is None else steps
             try:
                 chosen = [Step(step) for step in steps]
             except ValueError:
@@ -633,6 +629,8 @@ class CellController:
     def _commission(self, commissioning: Commissioning, steps: list[Step], out: Path, folder: Path) -> None:
         """The commissioning thread: on success the result waits for Apply; any failure
         leaves the robot held, and the state says why."""
+        from vservo.core.production.commissioning import CommissioningError, commission_summary
+
         try:
             result = commissioning.run(steps)
         except Exception as exc:  # a bug as much as a stop must leave the robot held
@@ -658,6 +656,8 @@ class CellController:
         model, the feature extractor and the part locator are rebuilt from it. Refused when
         a step says retake or nothing was commissioned; a file whose devices differ from
         the running ones is written, but the controller must be restarted on it."""
+        from vservo.core.production.commissioned_file import commissioned_tables, write_commissioned_cell
+
         with self._lock:
             self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
             done = self._commissioned
