@@ -1,8 +1,16 @@
-"""Calibrate tab: the NN hand-eye calibration workflow (chapters 2-3) on the simulated cell.
+"""Calibrate tab: commissioning the connected cell, then the NN calibration study.
 
-Per browser (operator only): the preset, Run and Stop. Shared: the step under way with a
-progress bar, then the per-method result table. The work runs in background processes
-(app/calibration_run.py); it does not move the cell's robot.
+Commission this cell (first): per browser (operator only) the steps to run, Start and
+Apply; shared by every browser, the progress of each part of the procedure, then each
+step's residuals and verdict, the acceptance check and the measured values
+(app/commission_text.py). The controller runs it (its ``commission`` and
+``apply_commissioning`` commands): the robot moves, and Apply, after a confirmation,
+writes the commissioned cell file and reloads the controller's model from it.
+
+The NN hand-eye calibration study (chapters 2-3) on the simulated cell: per browser the
+preset, Run and Stop; shared, the step under way with a progress bar, then the
+per-method result table. It runs in background processes (app/calibration_run.py) and
+does not move the cell's robot.
 """
 
 from __future__ import annotations
@@ -13,10 +21,16 @@ from typing import Any
 
 import viser
 
+from vservo.app import commission_text
 from vservo.app.calibration_run import PRESETS, QUICK, CalibrationProgress, CalibrationRun, results_markdown
 from vservo.app.client_view import ClientView
 from vservo.app.context import AppContext
 from vservo.app.session import SessionView
+from vservo.core.production.assembly import Phase
+from vservo.core.production.channel import Reply
+
+# Commissioning starts, and is applied, only from these phases (as the controller checks).
+READY_PHASES = (Phase.IDLE, Phase.DONE, Phase.FAULT)
 
 
 class CalibratePanel:
@@ -24,31 +38,99 @@ class CalibratePanel:
         self.app, self.tab = app, tab
         gui = app.server.gui
         with tab:
+            gui.add_markdown("### Commission this cell\nThe robot shows the camera the calibration board; each step "
+                             "measures part of the cell's model (docs/commissioning.md).", order=1)
+            self.commission_progress = gui.add_markdown("", order=7)
+            self.commission_results = gui.add_markdown("", order=8)
+            gui.add_markdown("### NN calibration study (simulated cell)", order=20)
             self.status = gui.add_markdown("The workflow collects checkerboard views on the simulated cell, trains "
                                            "the network and the classical calibrations, evaluates them on held-out "
-                                           "views and tracks points with each (PBVS, eq. 2-47).", order=10)
-            self.bar = gui.add_progress_bar(0.0, order=11)
-            self.results = gui.add_markdown("", order=12)
+                                           "views and tracks points with each (PBVS, eq. 2-47).", order=30)
+            self.bar = gui.add_progress_bar(0.0, order=31)
+            self.results = gui.add_markdown("", order=32)
         self._run: CalibrationRun | None = None
         self._lock = threading.Lock()
+        self._views: dict[int, ClientView] = {}
 
     def add_client(self, view: ClientView) -> None:
         gui = view.client.gui
         with self.tab:
-            preset = view.control(gui.add_dropdown("Preset", tuple(PRESETS), initial_value=QUICK, order=1))
-            run = view.control(gui.add_button("Run calibration", icon=viser.Icon.PLAYER_PLAY, order=2))
-            stop = view.control(gui.add_button("Stop calibration", icon=viser.Icon.PLAYER_STOP, order=3))
+            steps = {step: view.control(gui.add_checkbox(f"Step {step}", True, order=2 + k))
+                     for k, step in enumerate(commission_text.STEP_WORDS)}
+            start = view.control(gui.add_button("Start commissioning", icon=viser.Icon.PLAYER_PLAY, order=6,
+                                                hint="The robot moves: it shows the camera the board"))
+            apply = view.control(gui.add_button("Apply", icon=viser.Icon.DEVICE_FLOPPY, order=9, disabled=True,
+                                                hint="Write the commissioned cell file and run on it"))
+            preset = view.control(gui.add_dropdown("Preset", tuple(PRESETS), initial_value=QUICK, order=21))
+            run = view.control(gui.add_button("Run calibration", icon=viser.Icon.PLAYER_PLAY, order=22))
+            stop = view.control(gui.add_button("Stop calibration", icon=viser.Icon.PLAYER_STOP, order=23))
+        start.on_click(lambda _: self.app.send(view, "Start commissioning", "commission", "commissioning started",
+                                               steps=[step for step, box in steps.items() if box.value]))
+        apply.on_click(lambda _: self._confirm_apply(view))
         run.on_click(lambda _: self._start(view, preset.value))
         stop.on_click(lambda _: self._stop(view))
+        view.handles["commission_start"], view.handles["commission_apply"] = start, apply
+        # A change of operator enables every control; what the cell is doing decides again.
+        view.on_role(lambda _: self._enable(view, self.app.session.state))
+        with self._lock:
+            self._views[view.client_id] = view
 
     def remove_client(self, client_id: int) -> None:
-        pass
+        with self._lock:
+            self._views.pop(client_id, None)
 
     def lists_changed(self, views: list[ClientView]) -> None:
         pass
 
     def refresh(self, view: SessionView) -> None:
-        pass  # the workflow reports its own progress (_on_change)
+        """The commissioning's progress and results, and which buttons each browser may press
+        (the study reports its own progress, _on_change)."""
+        state = view.state
+        record = state.get("commissioning")
+        _set(self.commission_progress, commission_text.progress_markdown(record, state.get("cell_file", "")))
+        _set(self.commission_results, commission_text.results_markdown(record))
+        with self._lock:
+            views = list(self._views.values())
+        for client in views:
+            self._enable(client, state)
+
+    def _enable(self, view: ClientView, state: dict) -> None:
+        """Start while the cell is ready; Apply once a good commissioning waits to be applied."""
+        record = state.get("commissioning") or {}
+        ready = state.get("phase") in READY_PHASES
+        summary = record.get("summary")
+        can_apply = ready and bool(summary) and summary["good"] and not record.get("applied")
+        for key, allowed in (("commission_start", ready), ("commission_apply", can_apply)):
+            button = view.handles[key]
+            disabled = not (view.is_operator and allowed)
+            if button.disabled != disabled:
+                button.disabled = disabled
+
+    def _confirm_apply(self, view: ClientView) -> None:
+        """Apply asks first: the modal names the file it writes."""
+        if not view.allowed("Apply", self.app.roles):
+            return
+        record = self.app.session.state.get("commissioning")
+        if not record:
+            view.notify("Apply: refused", "nothing was commissioned", error=True)
+            return
+        with view.client.gui.add_modal("Apply the commissioning") as modal:
+            view.client.gui.add_markdown(commission_text.apply_question(record))
+            write = view.client.gui.add_button("Write and reload", icon=viser.Icon.DEVICE_FLOPPY, color="green")
+            cancel = view.client.gui.add_button("Cancel")
+
+        def applied(reply: Reply) -> None:
+            if reply.ok:
+                view.notify("Apply", f"the controller runs on {reply.result}")
+            else:
+                view.notify("Apply: refused", reply.error or "no reason given", error=True)
+
+        def on_write(_: object) -> None:
+            modal.close()
+            self.app.send(view, "Apply", "apply_commissioning", done=applied)
+
+        write.on_click(on_write)
+        cancel.on_click(lambda _: modal.close())
 
     def _start(self, view: ClientView, preset: str) -> None:
         if not view.allowed("Run calibration", self.app.roles):
@@ -93,3 +175,9 @@ class CalibratePanel:
         if run is not None:
             run.cancel()
             run.wait(10.0)
+
+
+def _set(markdown: viser.GuiMarkdownHandle, content: str) -> None:
+    """Send a shared text only when it changed (refresh runs on every state the controller sends)."""
+    if markdown.content != content:
+        markdown.content = content

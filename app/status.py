@@ -17,8 +17,9 @@ from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
 from vservo.core.production.assembly import Outcome, Phase
 
 PHASE_WORDS = {
-    Phase.IDLE: "Idle", Phase.TEACHING: "Teaching", Phase.SERVOING: "Servoing", Phase.PICKING: "Picking",
-    Phase.PLACING: "Placing", Phase.DONE: "Done", Phase.FAULT: "FAULT", Phase.ESTOPPED: "E-STOPPED",
+    Phase.IDLE: "Idle", Phase.TEACHING: "Teaching", Phase.COMMISSIONING: "Commissioning", Phase.SERVOING: "Servoing",
+    Phase.PICKING: "Picking", Phase.PLACING: "Placing", Phase.DONE: "Done", Phase.FAULT: "FAULT",
+    Phase.ESTOPPED: "E-STOPPED",
 }
 OUTCOME_WORDS = {Outcome.PLACED: "placed", Outcome.MISSED: "MISSED", Outcome.FAULT: "FAULT", Outcome.ESTOPPED: "E-STOPPED",
                  None: "running"}

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vservo.app import live_image
+from vservo.app import commission_text, live_image
 from vservo.app.calibration_run import bar_fraction, results_markdown
 from vservo.app.commands import CommandQueue
 from vservo.app.roles import RoleRefused, Roles, new_token
@@ -22,6 +22,7 @@ from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg
 from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController
 from vservo.core.production.channel import Reply
+from vservo.core.production.commissioning import Step
 from vservo.core.production.jobs import read_job_file
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import DEMO_JOB, Store, shipped_job_path
@@ -259,6 +260,63 @@ def test_calibration_progress_and_table():
                                            "corners": 10, "views": 2},
                               "track": {"methods": {"nn": {"xy_mm": 0.04, "true": {"xy_mm": 0.37}}}, "points": 10}})
     assert "| nn | 0.100 | 0.200 | 0.250 | 0.500 | 0.040 | 0.370 |" in table
+
+
+def commissioning_record(nn_verdict: str = "good") -> dict:
+    """A finished commissioning as the controller publishes it (figures of the shipped cell's)."""
+    nn_why = ("validation error 0.298 mm mean over 166 corners" if nn_verdict == "good"
+              else "retake: 6 grid views, validation error 14.948 mm mean")
+    summary = {
+        "camera": {"fx_px": 811.178, "fy_px": 811.1212, "principal_point_px": [320.2411, 239.9594]},
+        "eMc_mm_deg": [0.0104, -0.0157, -0.0799, 0.0004, 0.0151, -0.0013],
+        "cMl_mm_deg": [29.9933, -0.0003, 0.0, 0.0, -10.0105, -0.0029],
+        "laser": {"baseline_mm": 29.9933, "alpha_deg": 79.9895},
+        "steps": {"camera": {"views": 24, "rms_px": 0.0577, "worst_view_rms_px": 0.1412, "std_fx_px": 0.4856,
+                             "verdict": "good", "why": "good: RMS 0.058 px over 24 views"},
+                  "nn": {"views": 25, "corners": 1000, "validation_mean_mm": 0.2984, "validation_max_mm": 0.8561,
+                         "verdict": nn_verdict, "why": nn_why}},
+        "acceptance": {"corners": 4, "mean_mm": 0.0101, "max_mm": 0.0152},
+        "good": nn_verdict == "good", "views": {"taken": 90, "used": 62}, "robot_clock_s": 98.3,
+    }
+    return {"steps": ["camera", "nn"], "out": "/cells/line3-commissioned.toml", "step": "acceptance",
+            "progress": {"tilted": {"done": 24, "total": 24, "note": "40 corners"},
+                         "nn": {"done": 40, "total": 60, "note": "mse 1.3e-07"}},
+            "summary": summary, "error": None, "applied": None}
+
+
+def test_commissioning_texts():
+    assert tuple(commission_text.STEP_WORDS) == tuple(Step)  # the tab offers every step, by its name
+    assert "Not commissioned in this session" in commission_text.progress_markdown(None, "static/cell.toml")
+    record = commissioning_record()
+    running = {**record, "summary": None}
+    text = commission_text.progress_markdown(running, "/cells/line3.toml")
+    assert text.startswith("The controller runs on `/cells/line3.toml`.")
+    assert "**Commissioning** camera, nn; the new cell file will be `/cells/line3-commissioned.toml`." in text
+    assert "- tilted views (camera, hand-eye): 24 of 24 views (last: 40 corners)" in text
+    assert "- training the network: epoch 40 of at most 60, mse 1.3e-07" in text
+    assert commission_text.results_markdown(running) == ""
+
+    assert "**Commissioned**: every step is good. **Apply** writes `/cells/line3-commissioned.toml`." in (
+        commission_text.progress_markdown(record, "/cells/line3.toml"))
+    table = commission_text.results_markdown(record)
+    assert "| camera | RMS 0.058 px over 24 views (worst view 0.141 px); fx known to ±0.49 px | good |" in table
+    assert "| network (nn) | validation error 0.298 mm mean, 0.856 mm max (1000 corners from 25 views) | good |" in table
+    assert "the figure to sign off**: mean error **0.010 mm**, max **0.015 mm** over 4 board corners" in table
+    assert "- camera: fx 811.18 px, fy 811.12 px, principal point (320.24, 239.96) px\n" in table
+    assert "- laser cMl: X 29.993 Y -0.000 Z 0.000 mm, phi 0.000 theta -10.011 psi -0.003 deg (not measured" in table
+    assert "- laser baseline d 29.99 mm, angle alpha 79.99 deg (not measured: the cell file's)" in table
+    assert commission_text.apply_question(record) == ("Write `/cells/line3-commissioned.toml` and reload the "
+                                                      "controller's model from it?")
+
+    retake = commissioning_record("retake")
+    assert "**Commissioned**, but nn says retake: commission again." in commission_text.progress_markdown(retake, "x")
+    assert "| **retake**: 6 grid views, validation error 14.948 mm mean |" in commission_text.results_markdown(retake)
+
+    stopped = {**running, "error": "e-stop pressed"}
+    assert "**Commissioning stopped**: e-stop pressed" in commission_text.progress_markdown(stopped, "x")
+    applied = {**record, "applied": "/cells/line3-commissioned.toml"}
+    text = commission_text.progress_markdown(applied, "/cells/line3-commissioned.toml")
+    assert text.startswith("**Applied**: the controller's model is now `/cells/line3-commissioned.toml`.")
 
 
 # -- the 3D view's geometry (the controller's picture, from measurements) ---------------------------------

@@ -46,10 +46,11 @@ log = logging.getLogger("vservo.assembly")
 
 
 class Phase(str, Enum):
-    """The states of the cell's sequence (the controller process adds idle and teaching)."""
+    """The states of the cell's sequence (the controller process adds idle, teaching and commissioning)."""
 
     IDLE = "idle"
     TEACHING = "teaching"
+    COMMISSIONING = "commissioning"
     SERVOING = "servoing"
     PICKING = "picking"
     PLACING = "placing"

@@ -7,7 +7,12 @@ reason, never moves the robot. The phases (vservo.core.production.assembly.Phase
 
     idle --teach--> teaching --save/cancel--> idle
     idle --start--> servoing (stages) --> picking --> placing --> done | fault
+    idle --commission--> commissioning --> idle | fault
     any  --estop--> e-stopped --reset--> idle
+
+Commissioning (core/production/commissioning.py) measures the cell's model on its board
+in the background; ``apply_commissioning`` writes the commissioned cell file and runs
+on it from then on: the jobs are retargeted to the new model as every run starts.
 
 E-stop acts at once from the caller's thread: it sends hold to the robot before it
 returns, so a move the assembly thread has not yet sent is refused by the robot itself
@@ -20,25 +25,32 @@ them; they are called from the cell controller's threads and must not block.
 
 from __future__ import annotations
 
+import itertools
 import logging
+import re
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
+from importlib import resources
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from vservo.core.cell.config import DEFAULT_CELL, CellConfig, ConfigError, load_cell, read_cell_data
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, exp_twist
-from vservo.core.perception.camera_source import CameraSourceError, Frame
+from vservo.core.perception.camera_source import BaseSource, CameraSourceError, Frame, FrameSource, Size
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.perception.recording import RunRecorder
 from vservo.core.production.assembly import AssemblyEvent, AssemblyOutcome, Outcome, Phase, PhaseChange, run_assembly
 from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job, JobError, TaughtModel
+from vservo.core.production.locate import PartLocator
 from vservo.core.production.placement_check import CheckView
 from vservo.core.production.retarget import retarget, retarget_note
-from vservo.core.production.rig import Rig
+from vservo.core.production.rig import Rig, extractor_for
 from vservo.core.production.storage import Store
 from vservo.core.robot.backend import MotionStopped, RobotError, apply_increment
 from vservo.core.servo.laws.base import Stage
@@ -46,10 +58,20 @@ from vservo.core.servo.loop import cycle_record
 from vservo.core.servo.teaching import TeachError, desired_from_features
 from vservo.robot_models.loader import load_arm
 
+if TYPE_CHECKING:  # commissioning's calibration (torch, the board finder) is imported when a cell is commissioned
+    from vservo.core.production.commissioning import Commissioning, CommissionResult, CommissionSettings, Progress, Step
+
 log = logging.getLogger("vservo.controller")
 
 JOG_SPEED_M_S = 0.02
 TRAIL_LENGTH = 400  # feature positions kept for the trajectories drawn on the image
+# What a commissioned file must share with the running cell for the controller to run on it
+# without a restart: the devices it opened (the model is what commissioning changes).
+DEVICES: dict[str, Callable[[CellConfig], object]] = {
+    "[camera.source]": lambda c: c.camera_source, "[jrc]": lambda c: c.jrc,
+    "[vacuum] device": lambda c: c.vacuum_device, "[robot] backend": lambda c: c.robot_backend,
+    "[fixture] url": lambda c: c.fixture_url, "arm": lambda c: c.arm,
+}
 
 
 class CommandRefused(Exception):
@@ -105,6 +127,11 @@ class ControllerState:
     teach_missing: list[str] = field(default_factory=list)
     teach_optional: list[str] = field(default_factory=list)
     last_outcome: dict | None = None
+    cell_file: str = ""  # the cell file whose model the controller runs on
+    # The commissioning of this session: its steps, the file Apply writes, per step of the
+    # procedure the views (or epochs) done of total and the last note, then the summary
+    # (commission_summary), or the error that stopped it; "applied" once written and reloaded.
+    commissioning: dict | None = None
     time_s: float = 0.0
 
     def as_dict(self) -> dict:
@@ -122,8 +149,59 @@ class FrameView:
     trail_px: Matrix | None = None  # (T, 4, 2): corner positions so far in this run
 
 
+@dataclass(frozen=True)
+class Commissioned:
+    """A finished commissioning, waiting for Apply: what it measured and where it goes."""
+
+    result: CommissionResult
+    out_path: Path
+    folder: Path
+    steps: list[Step]
+
+
 def _finite_list(values: Matrix) -> list:
     return [None if not np.isfinite(v) else float(v) for v in np.asarray(values, dtype=float).ravel()]
+
+
+def is_shipped_cell(source: str) -> bool:
+    """Whether ``source`` names the cell file shipped in static/ (part of the installed package)."""
+    shipped = Path(str(resources.files("vservo.static").joinpath(DEFAULT_CELL)))
+    return source == f"static/{DEFAULT_CELL}" or Path(source).resolve() == shipped.resolve()
+
+
+def commissioned_path(source: str, data_folder: Path) -> Path:
+    """Where a commissioning of the cell file ``source`` is written unless told: beside it as
+    ``<stem>-commissioned.toml`` (``-2``, ``-3``... when taken; a commissioned file's own
+    commissioning counts on from its stem), or in the data folder when ``source`` is the
+    shipped file, which belongs to the installed package."""
+    folder = Path(data_folder) if is_shipped_cell(source) else Path(source).parent
+    stem = re.sub(r"-commissioned(-\d+)?$", "", Path(source).stem)
+    names = (f"{stem}-commissioned{'' if k == 1 else f'-{k}'}.toml" for k in itertools.count(1))
+    return next(folder / name for name in names if not (folder / name).exists())
+
+
+class _ShownCamera(BaseSource):
+    """The rig's camera lent to commissioning: every frame it takes is shown in the live view."""
+
+    def __init__(self, camera: FrameSource, show: Callable[[FrameView], None]) -> None:
+        self._camera, self._show = camera, show
+
+    @property
+    def image_size(self) -> Size | None:
+        return self._camera.image_size
+
+    def read(self) -> Frame:
+        return self._shown(self._camera.read())
+
+    def read_after(self, t_s: float) -> Frame:
+        return self._shown(self._camera.read_after(t_s))
+
+    def _shown(self, frame: Frame) -> Frame:
+        self._show(FrameView(frame))
+        return frame
+
+    def close(self) -> None:
+        pass  # the controller owns the camera; commissioning only borrows it
 
 
 class CellController:
@@ -131,10 +209,11 @@ class CellController:
         self.rig = rig
         self.store = store
         self.rng = np.random.default_rng(seed)
+        self.seed = seed
         self.cycle_period_s = cycle_period_s  # a floor on the servo cycle, so a fast simulator can be watched
         self._lock = threading.RLock()  # one command at a time; the camera and robot are shared
         self._state = ControllerState(backend=rig.robot.name, robot=rig.config.arm,
-                                      can_present_part=rig.present_part is not None)
+                                      can_present_part=rig.present_part is not None, cell_file=rig.config.source)
         # The joints drawn in 3D: a real JRC reports the flange pose; the nominal model's
         # inverse kinematics, from the last joints shown, turns it into an arm to draw.
         self._arm = ArmKinematics(load_arm(rig.config.arm), rig.config.nominal.mount)
@@ -143,7 +222,9 @@ class CellController:
         self._estop = threading.Event()
         self._estop_reason = "e-stop pressed"
         self._jogging = threading.Event()  # a jog or a gizmo move is under way
-        self._run_thread: threading.Thread | None = None
+        self._run_thread: threading.Thread | None = None  # an assembly run's, or commissioning's
+        self._work = "an assembly run"  # what the thread does, for the refusals while it runs
+        self._commissioned: Commissioned | None = None
         self._trail: list[Matrix] = []
         self._desired: DesiredImage | None = None  # drawn over the live image
         self._desired_image: np.ndarray | None = None
@@ -216,7 +297,7 @@ class CellController:
         """
         with self._lock:
             if self.running:
-                raise CommandRefused("the assembly run owns the camera")
+                raise CommandRefused(f"{self._work} owns the camera")
             camera = self.rig.camera
             frame = camera.read_after(self.rig.robot.clock_s()) if fresh else camera.read()
         features, _ = self.rig.extractor.extract(frame.image)
@@ -238,7 +319,7 @@ class CellController:
         if self._estop.is_set():
             raise CommandRefused("e-stop is active: reset it first")
         if self.running:
-            raise CommandRefused("an assembly run is under way")
+            raise CommandRefused(f"{self._work} is under way")
         if Phase(self._state.phase) not in phases:
             allowed = " or ".join(p.value for p in phases)
             raise CommandRefused(f"not possible while {self._state.phase} (only when {allowed})")
@@ -426,6 +507,7 @@ class CellController:
             if note:
                 log.info("job %r: %s", job.name, note)
             self._enable_motion()
+            self._work = "an assembly run"
             run_id = self.store.start_run(job.name, self.rig.robot.name)
             self._desired, self._trail = job.desired, []
             self._update(phase=Phase.SERVOING.value, detail="starting", job=job.name, run_id=run_id, stage=None,
@@ -495,6 +577,113 @@ class CellController:
         phase = Phase.ESTOPPED if self._estop.is_set() else Phase.FAULT if outcome.outcome is Outcome.FAULT else Phase.DONE
         self._update(phase=phase.value, detail=outcome.reason, last_outcome=outcome.summary(), **self._robot_readout())
         self.last_outcome = outcome
+
+    # -- commissioning -----------------------------------------------------------------------
+
+    def commission(self, steps: Sequence[Step | str] | None = None, out_path: str | Path | None = None,
+                   settings: CommissionSettings | None = None) -> Path:
+        """Commission the cell in the background: the robot shows the camera the board and the
+        chosen steps (default: all) measure the model (docs/commissioning.md). Progress, then
+        the summary, are published in the state's ``commissioning``; the e-stop stops it
+        between views (and any move under way at once). Returns the cell file Apply will
+        write (default: ``commissioned_path``)."""
+        from vservo.core.production.commissioning import ALL_STEPS, Commissioning, CommissionSettings, Step
+
+        with self._lock:
+            self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
+            steps = ALL_STEPS if steps is None else steps
+            try:
+                chosen = [Step(step) for step in steps]
+            except ValueError:
+                raise CommandRefused(f"commissioning steps {list(steps)!r}: choose from {', '.join(Step)}") from None
+            if not chosen:
+                raise CommandRefused("choose at least one step to commission")
+            out = Path(out_path) if out_path else commissioned_path(self.rig.config.source, self.store.root)
+            if out.exists():
+                raise CommandRefused(f"{out} exists: commissioning writes a new cell file, never over another")
+            folder = out.with_name(out.stem + "-commissioning")
+            rig = replace(self.rig, camera=_ShownCamera(self.rig.camera, self._publish_frame))
+            try:
+                commissioning = Commissioning(rig, folder, settings or CommissionSettings(seed=self.seed),
+                                              self._on_commission_progress, self._estop.is_set)
+            except ConfigError as exc:
+                raise CommandRefused(str(exc)) from exc
+            self._enable_motion()
+            self._commissioned, self._work = None, "commissioning"
+            self._update(phase=Phase.COMMISSIONING.value, detail=f"commissioning {', '.join(chosen)}",
+                         commissioning={"steps": [str(step) for step in chosen], "out": str(out), "step": None,
+                                        "progress": {}, "summary": None, "error": None, "applied": None})
+            self._run_thread = threading.Thread(target=self._commission, args=(commissioning, chosen, out, folder),
+                                                name="commissioning", daemon=True)
+            self._run_thread.start()
+            return out
+
+    def _on_commission_progress(self, progress: Progress) -> None:
+        record = self._state.commissioning
+        line = {"done": progress.done, "total": progress.total, "note": progress.note}
+        self._update(detail=f"commissioning: {progress.step} {progress.done}/{progress.total}",
+                     commissioning={**record, "step": progress.step,
+                                    "progress": {**record["progress"], progress.step: line}},
+                     **self._robot_readout())
+
+    def _commission(self, commissioning: Commissioning, steps: list[Step], out: Path, folder: Path) -> None:
+        """The commissioning thread: on success the result waits for Apply; any failure
+        leaves the robot held, and the state says why."""
+        from vservo.core.production.commissioning import CommissioningError, commission_summary
+
+        try:
+            result = commissioning.run(steps)
+        except Exception as exc:  # a bug as much as a stop must leave the robot held
+            if self._estop.is_set():
+                error, phase = self._estop_reason, Phase.ESTOPPED
+            else:
+                if not isinstance(exc, CommissioningError):
+                    log.exception("commissioning crashed")
+                error, phase = f"{exc}{self._hold_after_fault()}", Phase.FAULT
+            self._update(phase=phase.value, detail=f"commissioning stopped: {error}",
+                         commissioning={**self._state.commissioning, "error": error}, **self._robot_readout())
+            return
+        self._commissioned = Commissioned(result, out, folder, steps)
+        retakes = [str(step) for step, step_result in result.steps.items() if not step_result.verdict.good]
+        detail = (f"commissioned: every step good; Apply writes {out}" if not retakes else
+                  f"commissioned: {', '.join(retakes)} say{'s' if len(retakes) == 1 else ''} retake")
+        self._update(phase=Phase.IDLE.value, detail=detail,
+                     commissioning={**self._state.commissioning, "summary": commission_summary(result)},
+                     **self._robot_readout())
+
+    def apply_commissioning(self) -> Path:
+        """Write the commissioned cell file and run on its model from now on: the cell's
+        model, the feature extractor and the part locator are rebuilt from it. Refused when
+        a step says retake or nothing was commissioned; a file whose devices differ from
+        the running ones is written, but the controller must be restarted on it."""
+        from vservo.core.production.commissioned_file import commissioned_tables, write_commissioned_cell
+
+        with self._lock:
+            self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
+            done = self._commissioned
+            if done is None:
+                raise CommandRefused("nothing to apply: commission the cell first (a commissioning is applied once)")
+            retakes = [f"{step}: {r.verdict.reason}" for step, r in done.result.steps.items() if not r.verdict.good]
+            if retakes:
+                raise CommandRefused("a step says retake; commission it again: " + "; ".join(retakes))
+            running = self.rig.config
+            try:
+                tables, _ = read_cell_data(None if is_shipped_cell(running.source) else running.source)
+                write_commissioned_cell(running.source, commissioned_tables(tables, done.result, done.out_path,
+                                                                            done.folder, done.steps), done.out_path)
+                self._commissioned = None
+                config = load_cell(done.out_path)
+                changed = [name for name, device in DEVICES.items() if device(config) != device(running)]
+                if changed:
+                    raise CommandRefused(f"{done.out_path} is written, but its {', '.join(changed)} differ from the "
+                                         f"running cell's: restart the controller with --cell {done.out_path}")
+                locator = PartLocator.from_config(config)
+            except (ConfigError, OSError) as exc:
+                raise CommandRefused(f"apply: {exc}") from exc
+            self.rig.config, self.rig.extractor, self.rig.locator = config, extractor_for(config), locator
+            self._update(cell_file=config.source, detail=f"the controller's model is now {config.source}",
+                         commissioning={**self._state.commissioning, "applied": config.source})
+            return done.out_path
 
     # -- safety ----------------------------------------------------------------------------
 

@@ -72,6 +72,13 @@ def _pose(value: Any) -> Matrix:
     return array
 
 
+def _steps(value: Any) -> list[str]:
+    """Commissioning's steps by name (the controller checks the names)."""
+    if not isinstance(value, list) or not all(isinstance(step, str) for step in value):
+        raise CommandRefused(f"steps must be a list of step names, got {value!r}")
+    return value
+
+
 def _jobs(controller: CellController) -> list[dict]:
     return [{"name": e.name, "saved_at": e.saved_at, "problem": e.problem, "shipped": e.shipped}
             for e in controller.store.list_jobs()]
@@ -99,6 +106,8 @@ COMMANDS: dict[str, Callable[[CellController, dict], Any]] = {
     "cancel_teach": lambda c, a: c.cancel_teach(),
     "present_part": lambda c, a: c.present_part(),
     "start": lambda c, a: c.start(str(a.get("job", ""))),
+    "commission": lambda c, a: str(c.commission(_steps(a["steps"]) if "steps" in a else None, a.get("out"))),
+    "apply_commissioning": lambda c, a: str(c.apply_commissioning()),
     "estop": lambda c, a: c.estop(),
     "reset": lambda c, a: c.reset(),
     "list_jobs": lambda c, a: _jobs(c),
