@@ -35,7 +35,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
-from vservo.core.calibration.checkerboard import table_points
+from vservo.core.calibration.board_views import table_points
 from vservo.core.calibration.dataset import CalibrationDataset
 from vservo.core.calibration.storage import CalibrationFileError, read_archive, write_archive
 from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics

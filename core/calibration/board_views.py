@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from vservo.core.calibration.checkerboard import BoardNotFound
 from vservo.core.cell.config import BoardConfig
+from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.spatial import Matrix
 
 # The share of the pattern's inner squares whose colour must match the naming: a glint
@@ -31,6 +31,10 @@ _COLOUR_AGREEMENT = 0.9
 # The detector's exhaustive search draws from OpenCV's global random generator: seeded,
 # a view is found or refused the same way every time.
 _DETECTOR_SEED = 0
+
+
+class BoardNotFound(ValueError):
+    """No checkerboard, or none that can be named, in an image; the message says why."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,3 +130,15 @@ def find_board(board: BoardConfig, image: np.ndarray, spot_px: Matrix | None = N
     if spot_px is not None:
         keep = np.linalg.norm(pixels - np.asarray(spot_px, dtype=float), axis=1) >= spot_radius_px
     return BoardView(pixels[keep], board.corners_board()[keep])
+
+
+def table_points(camera: CameraModel, wMc: Matrix, pixels_px: Matrix) -> Matrix:
+    """(x, y) (N, 2) in W where the rays through pixels (N, 2) of a camera at wMc meet the
+    plane z_W = 0; NaN where a ray does not reach it."""
+    wMc = np.asarray(wMc, dtype=float)
+    xn = camera.pixel_to_normalized(pixels_px)
+    rays_w = np.column_stack((xn, np.ones(len(xn)))) @ wMc[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = -wMc[2, 3] / rays_w[:, 2]
+    hits = wMc[:3, 3] + rays_w * np.where(reach > 0.0, reach, np.nan)[:, None]
+    return hits[:, :2]

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from vservo.core.calibration.board_views import BoardNotFound, table_points
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.spatial import Matrix, inverse
 from vservo.core.sim.raster import rasterize
@@ -49,10 +50,6 @@ _NAMING_AMBIGUITY = 0.2
 _NAMING_STEP = 0.25
 # Detector searches tried per image before a view is refused (see find_corners).
 DETECTION_ATTEMPTS = 4
-
-
-class BoardNotFound(ValueError):
-    """No checkerboard, or none that can be named, in an image; the message says why."""
 
 
 @dataclass(frozen=True)
@@ -150,18 +147,6 @@ class Checkerboard:
         cMw = inverse(inverse(self.bMw) @ np.asarray(bMc, dtype=float))
         points_w = np.column_stack((self.corner_w(ij), np.zeros(len(ij))))
         return camera.project(points_w @ cMw[:3, :3].T + cMw[:3, 3])
-
-
-def table_points(camera: CameraModel, wMc: Matrix, pixels_px: Matrix) -> Matrix:
-    """(x, y) (N, 2) in W where the rays through pixels (N, 2) of a camera at wMc meet the
-    plane z_W = 0; NaN where a ray does not reach it."""
-    wMc = np.asarray(wMc, dtype=float)
-    xn = camera.pixel_to_normalized(pixels_px)
-    rays_w = np.column_stack((xn, np.ones(len(xn)))) @ wMc[:3, :3].T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        reach = -wMc[2, 3] / rays_w[:, 2]
-    hits = wMc[:3, 3] + rays_w * np.where(reach > 0.0, reach, np.nan)[:, None]
-    return hits[:, :2]
 
 
 @dataclass(frozen=True)

@@ -418,7 +418,7 @@ class Commissioning:
         fit, check = dataset.subset(order[validation:]), dataset.subset(order[:validation])
         model = train_nn(fit, "planar", validation=check, settings=LMSettings(epochs=self.settings.nn_epochs),
                          seed=self.settings.seed,
-                         on_epoch=lambda epoch, mse: self._report("nn", epoch + 1, self.settings.nn_epochs,
+                         on_epoch=lambda epoch, mse: self._report("nn", epoch, self.settings.nn_epochs,
                                                                   f"mse {mse:.3g}"))
         path = self.folder / "nn.npz"
         model.save(path)
