@@ -8,7 +8,7 @@ centre of the network's grid (flange tool-down at the grid's height), saved as
 ``<job>-locate`` in the bench's data folder. Each placement is drawn uniformly in the
 part of the table the survey camera sees, a margin inside the image's edges (through the
 cell file's calibrated model), at a random turn, where the arm can serve it: the start
-pose, the desired view and the pick pose moved with the part, and every pose 15 mm around
+pose, the desired view and the pick pose moved with the part, and every pose 5 mm around
 them, must be reachable (the UPJ's tool-down workspace at the taught heights is a thin
 shell around its base, and the servo's path wanders about those poses). Places
 the fixture refuses (on the metal part) or the arm cannot serve are drawn again, and
@@ -41,7 +41,7 @@ from vservo.core.terminal.progress import Progress
 # Placements keep the part's centre this far inside the survey image's edges (px).
 MARGIN_PX = 60.0
 # How far around the poses of a run the arm must reach for a place to count as servable.
-SERVO_MARGIN_M = 0.015
+SERVO_MARGIN_M = 0.005
 
 
 def survey_pose(locator: PartLocator) -> Matrix:
