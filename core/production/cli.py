@@ -96,6 +96,10 @@ def _cmd_commission(args: argparse.Namespace) -> int:
               "(it is never overwritten)", file=sys.stderr)
         return 2
     out = Path(args.out)
+    if out.resolve() == Path(args.cell).resolve():
+        print(f"vservo commission: error: --out {out} is the input cell file: commissioning writes a new one",
+              file=sys.stderr)
+        return 2
     if out.exists() and not args.force:
         print(f"vservo commission: error: --out {out} exists: commissioning writes a new file (--force replaces it)",
               file=sys.stderr)
