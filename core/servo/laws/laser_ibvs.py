@@ -133,13 +133,6 @@ class LaserIbvs:
         if stage_error <= self.f0_px:
             return self._stage_2(features, desired, error_px, note=f"1A -> 2: ||f_id - f|| = {stage_error:.2f} px")
         J = rotational_jacobian(self.camera, features.corners_px)
-        # What a turn can still remove of e (linearised). The rest is the pattern's shape,
-        # which only a translation changes: a beam out of the camera's x-z plane (a real
-        # laser mount) can leave more than f0 of it, and stage 1.A would turn forever.
-        turnable_px = float(np.linalg.norm(J @ checked_pinv(J) @ e))
-        if turnable_px <= self.f0_turn_px:
-            return self._stage_2(features, desired, error_px,
-                                 note=f"1A -> 2: turned as far as turning helps (||f_id - f|| = {stage_error:.2f} px)")
         # The turn about the optical axis comes from the pattern's orientation: a least-
         # squares w_z vanishes at a half turn, where every error is radial (eq. 4-25).
         # An image pattern turns at -w_z (x right, y down), hence the sign.
@@ -147,6 +140,13 @@ class LaserIbvs:
         # J_xy w_xy + J_z w_z = -K_l e (eq. 4-29), solved for what w_z leaves.
         w_xy = -checked_pinv(J[:, :2]) @ (self.k_rotation_1a * e + J[:, 2] * w_z)
         w = np.array([w_xy[0], w_xy[1], w_z])
+        # What this turn still removes of e (linearised, per unit of gain). The rest is the
+        # pattern's shape, which only a translation changes: a beam out of the camera's x-z
+        # plane (a real laser mount) can leave more than f0 of it, and 1.A would turn forever.
+        turning_px = float(np.linalg.norm(J @ w)) / self.k_rotation_1a
+        if turning_px <= self.f0_turn_px:
+            return self._stage_2(features, desired, error_px,
+                                 note=f"1A -> 2: turned as far as turning helps (||f_id - f|| = {stage_error:.2f} px)")
         return ControlOutput(self._with_compensation(w), Stage.ALIGN_1A, error_px, stage_error)
 
     def _stage_1b(self, features: ImageFeatures, error_px: float) -> ControlOutput:
