@@ -126,12 +126,16 @@ def test_the_retargeted_views_are_what_the_recalibrated_cell_sees(demo, shipped,
         rig.close()
 
 
-def run_once(config: CellConfig, job: Job, tmp_path, seed: int):
+def run_once(config: CellConfig, job: Job, tmp_path, seed: int, bMo: np.ndarray | None = None):
+    """One run of ``job`` on a new part: presented by the cell, or put at ``bMo`` by hand."""
     store = Store(tmp_path / f"data-{job.name}-{seed}")
     store.save_job(job)
     controller = CellController(simulated_rig(config, seed=seed), store, seed=seed)
     try:
-        controller.present_part()
+        if bMo is None:
+            controller.present_part()
+        else:
+            controller.rig.cell.place_cube(bMo)
         controller.start(job.name)
         controller.wait()
         return controller.last_outcome
@@ -175,28 +179,13 @@ def test_the_start_pose_for_a_part_moves_with_the_part(demo):
             abs(expected_turn_deg), abs=1e-9)
 
 
-def assemble_part_at(config: CellConfig, job: Job, bMo: np.ndarray, tmp_path, seed: int):
-    """One run of ``job`` with the part put at ``bMo`` by hand."""
-    store = Store(tmp_path / f"data-{job.name}")
-    store.save_job(job)
-    controller = CellController(simulated_rig(config, seed=seed), store, seed=seed)
-    try:
-        controller.rig.cell.place_cube(bMo)
-        controller.start(job.name)
-        controller.wait()
-        return controller.last_outcome
-    finally:
-        controller.close()
-        store.close()
-
-
 def test_a_part_found_far_from_its_taught_place_is_assembled_from_the_start_pose_moved_with_it(demo, shipped, tmp_path):
     """34 mm away and turned 100 deg (the part feeder's arrivals stay within 15 mm and 10 deg)."""
     centre = transform(t=(demo.part_side_m / 2, demo.part_side_m / 2, 0.0))
     bMo = (transform(t=(0.015, 0.03, 0.0)) @ shipped.simulation.scene.cube.bMo @ centre
            @ transform(rot_z(np.deg2rad(100.0))) @ inverse(centre))
     found = replace(demo, name="found", start_bMe=start_pose_for_part(demo, demo.taught_model, bMo))
-    outcome = assemble_part_at(shipped, found, bMo, tmp_path, seed=4)
+    outcome = run_once(shipped, found, tmp_path, seed=4, bMo=bMo)
     assert outcome.outcome is Outcome.PLACED, outcome.reason
     assert outcome.gauge_inside and outcome.gauge_placement_error_mm < 0.5
 

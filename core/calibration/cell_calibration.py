@@ -191,6 +191,23 @@ class HandEyeCalibration:
     def world_of(self, pixels_px: Matrix, bMe: Matrix) -> Matrix:
         """Base (x, y) (N, 2) where the rays through pixels (N, 2), seen from bMe (N, 4, 4),
         meet the board plane; NaN where a ray does not reach it."""
+        return BoardPlaneModel(self.camera, self.eMc, self.bMboard).world_of(pixels_px, bMe)
+
+
+@dataclass(frozen=True, eq=False)
+class BoardPlaneModel:
+    """A calibrated camera, hand-eye and board plane as a ``PlanarCalibration``: a pixel
+    seen from bMe is its ray from bMe eMc met with the board plane (what the acceptance
+    check holds any calibrated model to)."""
+
+    camera: CameraModel
+    eMc: Matrix
+    bMboard: Matrix
+    name = "board_plane"
+
+    def world_of(self, pixels_px: Matrix, bMe: Matrix) -> Matrix:
+        """Base (x, y) (N, 2) where the rays through pixels (N, 2), seen from bMe (N, 4, 4),
+        meet the board plane; NaN where a ray does not reach it."""
         pixels_px = np.atleast_2d(np.asarray(pixels_px, dtype=float))
         normal_b, origin_b = self.bMboard[:3, 2], self.bMboard[:3, 3]
         out = np.full((len(pixels_px), 2), np.nan)

@@ -220,9 +220,9 @@ def run_assembly(
             on_event(PhaseChange(Phase.SERVOING, "surveying the table for the part"))
             move(job.survey_bMe)
             # A frame exposed after the move ended, from the pose the robot reports.
-            seen = perception.perceive(FlangeReadout(robot, dof).measure(), robot.clock_s())
+            survey = perception.perceive(FlangeReadout(robot, dof).measure(), robot.clock_s())
             try:
-                located = locator.locate(seen.corners_px, robot.read_pose(), job.part_side_m)
+                located = locator.locate(survey.corners_px, robot.read_pose(), job.part_side_m)
             except LocateError as exc:
                 return end(Outcome.FAULT, f"locate: {exc}")
             start_bMe = start_pose_for_part(job, job.taught_model or TaughtModel.of(model), located.bMo)

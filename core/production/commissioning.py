@@ -36,6 +36,7 @@ import numpy as np
 from vservo.core.calibration.board_views import BoardNotFound, BoardView, find_board
 from vservo.core.calibration.cell_calibration import (
     AcceptanceCheck,
+    BoardPlaneModel,
     CameraCalibration,
     HandEyeCalibration,
     Verdict,
@@ -207,10 +208,11 @@ class Commissioning:
         return (self.bMboard @ centre)[:3]
 
     def _down_view(self, target_b: Matrix, height_m: float, turn_rad: float = 0.0, tilt_rad: float = 0.0) -> Matrix:
-        """The flange pose ``height_m`` over ``target_b``, tool down (tilted by ``tilt_rad`` about
-        the radial direction, turned by ``turn_rad`` about the vertical), placed so that the
+        """The flange pose ``height_m`` over ``target_b``, tool down (leaning sideways by ``tilt_rad``
+        about the radial direction, turned by ``turn_rad`` about the vertical), placed so that the
         current model's optical axis meets the board's plane at ``target_b``."""
-        axis = tilt_rad * np.append(np.array([np.cos(self._radial_azimuth()), np.sin(self._radial_azimuth())]), 0.0)
+        radial = self._radial_azimuth()
+        axis = tilt_rad * np.array([np.cos(radial), np.sin(radial), 0.0])
         bRe = exp_twist(np.concatenate((np.zeros(3), axis)))[:3, :3] @ rot_z(turn_rad)[:3, :3] @ bRc_DOWN
         bMe = transform(bRe, np.asarray(target_b, float) + np.array([0.0, 0.0, height_m]))
         bMc = bMe @ self.model.eMc
@@ -342,13 +344,15 @@ class Commissioning:
         self._report("find", 1, 1, "board found")
 
     def _radial_azimuth(self) -> float:
-        """The horizontal direction from the arm's base axis to the board's centre.
+        """The horizontal direction from the arm's base axis to the board's centre, the axis
+        views are tilted about.
 
-        The UPJ has five axes: its tool axis always lies in the vertical plane through the
-        base axis, so a camera looking at the board can lean only towards or away from
-        the base, at any turn about its own axis. Tilts in that plane, combined with
-        turns, still tilt the camera about both of its image axes (what the camera step
-        needs) and turn the wrist about two axes (what AX = XB needs)."""
+        At these heights the UPJ reaches tool-down poses only in a thin shell around its
+        base axis: leaning the camera towards or away from the base swings the wrist out of
+        it, leaning sideways (about this direction) keeps the wrist at its radius. Such
+        tilts, combined with turns about the optical axis, still tilt the camera about both
+        of its image axes (what the camera step needs) and turn the wrist about two axes
+        (what AX = XB needs); poses are drawn until enough are reachable."""
         centre = self._centre_b()
         return float(np.arctan2(centre[1], centre[0]))
 
@@ -451,10 +455,7 @@ class Commissioning:
                     seen.append(AcceptanceCheck(bMe, corners[index], view.corners_px[at[0]]))
         if not seen:
             raise CommissioningError("the acceptance check saw the board from none of its poses")
-        # The calibrated model as a planar calibration: a pixel's ray met with the board plane.
-        model = HandEyeCalibration(self.model.camera, self.model.eMc, self.bMboard, self.model.eMc, 0.0, 0.0, 0.0,
-                                   (0.0, 0.0, 0.0), Verdict(True, ""))
-        errors = acceptance_errors(model, self.bMboard, seen)
+        errors = acceptance_errors(BoardPlaneModel(self.model.camera, self.model.eMc, self.bMboard), self.bMboard, seen)
         return {"corners": len(seen), "errors_mm": [round(float(e), 4) for e in errors.errors_mm],
                 "mean_mm": round(errors.mean_mm, 4), "max_mm": round(errors.max_mm, 4)}
 
