@@ -12,7 +12,7 @@ import serial
 
 from tests.jrc_fixtures import TEST_LINE, TIME_SCALE, jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
 from vservo.core.cell.kinematics import UnreachableTarget
-from vservo.core.geometry.spatial import Pose6, inverse, matrix_from_pose, pose_error, rot_x, transform
+from vservo.core.geometry.spatial import Pose6, inverse, matrix_from_pose, pose_error, rot_x, rot_z, transform
 from vservo.core.robot.backend import RobotError
 from vservo.core.robot.bsc import (
     ACK0,
@@ -359,6 +359,26 @@ def test_status_servo_pose_and_moves(robot, cell):
     after = cell.jrc_arm.fk(cell.state.q)
     assert np.allclose(after[:3, 3] - before[:3, 3], [0.0, 0.0, -0.01], atol=1e-6)
     assert np.allclose(after[:3, :3], before[:3, :3], atol=1e-6)
+
+def test_a_turn_finer_than_the_readback_is_not_lost(robot, cell):
+    """RPOSC reads degrees to 0.01; a servo step of a fiftieth turns by less. Aimed from
+    a reading rounded back to where it started, the arm would stand still step after step."""
+    robot.servo(True)
+    bMe = robot.read_pose()
+    for _ in range(10):  # ten turns of 0.003 deg about the flange's own z
+        target = bMe @ transform(R=rot_z(np.radians(0.003)))
+        robot.move_to(target, 0.05)
+        assert robot.wait_motion()
+        bMe = robot.read_pose()
+        assert pose_error(bMe, target)[1] < np.radians(1e-4)  # the target, to its 4 decimals
+    _, turned = pose_error(cell.jrc_arm.fk(cell.state.q), bMe)
+    assert turned < np.radians(1e-4)
+    # A pose the host did not send (an IMOV here) is read as the JRC reports it.
+    robot.move_by(transform(t=(0.0, 0.0, -0.005)), 0.05)
+    assert robot.wait_motion()
+    translation, rotation = pose_error(robot.read_pose(), cell.jrc_arm.fk(cell.state.q))
+    assert translation < 1e-6 and rotation < np.radians(0.006)
+
 
 
 def test_refusals_carry_the_jrcs_reason(robot):

@@ -88,7 +88,7 @@ class TeachDraft:
     start_bMe: Matrix | None = None
     eMe_pick: Matrix | None = None
     bMe_place: Matrix | None = None
-    threshold_px: float = 3.0
+    threshold_px: float = Job.threshold_px
     gain: float = 1.0
     approach_m: float = 0.04
     check: CheckView | None = None

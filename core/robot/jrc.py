@@ -142,6 +142,19 @@ def format_pose(values: list[float]) -> str:
     return ",".join([f"{v:.3f}" for v in values[:3]] + [f"{v:.4f}" for v in values[3:]])
 
 
+# RPOSC carries millimetres to 3 decimals but degrees only to 2 (0.01 deg, 0.17 mrad), while
+# MOVL takes 4: how far a reading may lie from the target last sent and still be that target.
+READBACK_TOLERANCE_MM = 0.0015
+READBACK_TOLERANCE_DEG = 0.0055
+
+
+def reads_as(reading: list[float], sent: list[float]) -> bool:
+    """Whether an RPOSC reading is the wire pose ``sent``, to the reading's resolution."""
+    mm = np.abs(np.subtract(reading[:3], sent[:3]))
+    deg = np.abs((np.subtract(reading[3:], sent[3:]) + 180.0) % 360.0 - 180.0)
+    return bool(np.all(mm <= READBACK_TOLERANCE_MM) and np.all(deg <= READBACK_TOLERANCE_DEG))
+
+
 def open_serial(line: JrcLineConfig, port: str) -> serial.SerialBase:
     """Open a serial port (a device or a pyserial URL) with the line settings."""
     try:
@@ -183,6 +196,7 @@ class JrcBackend:
         self._lock = threading.RLock()
         self._holds_waiting = 0  # holds from other threads (e-stop, watchdog) go before the next JWAIT
         self._posture = 0  # the RPOSC "type": the arm configuration, sent back with MOVL
+        self._sent: list[float] | None = None  # the wire pose of the last MOVL
         self.last_command = ""  # the text of the last command sent, for diagnostics
 
     # -- the link --------------------------------------------------------------------
@@ -293,6 +307,12 @@ class JrcBackend:
         if len(numbers) < 8:
             raise RobotError(f"RPOSC: the JRC's reply {values!r} has fewer than 8 values")
         self._posture = int(numbers[6])
+        # A servo step of a fiftieth (section 5.3) turns by less than the reading's 0.01 deg:
+        # aimed from the reading, the next step would aim at the same target again, and the
+        # arm would stand still. Where the reading is the target last sent, that target is
+        # where the JRC stands, to the 4 decimals it was sent with.
+        if self._sent is not None and reads_as(numbers[:6], self._sent):
+            return pose_from_wire(self._sent)
         return pose_from_wire(numbers[:6])
 
     def servo(self, on: bool) -> None:
@@ -311,8 +331,9 @@ class JrcBackend:
         self.command("CANCEL")
 
     def move_to(self, bMe_target: Matrix, speed_m_s: float) -> None:
-        self.command(f"MOVL 0,{self._speed(speed_m_s)},0,{format_pose(wire_pose(bMe_target))},{self._posture},0,"
-                     "0,0,0,0,0,0")
+        pose = format_pose(wire_pose(bMe_target))
+        self.command(f"MOVL 0,{self._speed(speed_m_s)},0,{pose},{self._posture},0,0,0,0,0,0,0")
+        self._sent = [float(v) for v in pose.split(",")]
 
     def move_by(self, bMe_increment: Matrix, speed_m_s: float) -> None:
         self.command(f"IMOV 0,{self._speed(speed_m_s)},0,{format_pose(wire_pose(bMe_increment))},{self._posture},0,"
