@@ -9,11 +9,13 @@ import pytest
 from tests.servo_fixtures import CAMERA, CORNERS_O, DESIRED_SPOT, DESIRED_cMo, desired_image, features, project, rotate_about
 from vservo.core.geometry.camera import CameraModel, Intrinsics
 from vservo.core.geometry.spatial import exp_twist, inverse, matrix_from_pose, transform, twist_transform
+from vservo.core.perception.features import ImageFeatures, ObjectRegion
 from vservo.core.servo.laws.base import Failure, SingularJacobian, Stage, checked_pinv
 from vservo.core.servo.laws.hybrid import Hybrid25D, translation_interaction
 from vservo.core.servo.laws.ibvs import ClassicIbvs
 from vservo.core.servo.laws.laser_ibvs import LaserIbvs, image_rotation, rotational_jacobian, translational_jacobian
 from vservo.core.servo.laws.pbvs import Pbvs
+from vservo.core.servo.loop import hold_spot
 from vservo.core.sim.plant import visible_region
 
 H = 1e-6
@@ -235,3 +237,24 @@ def test_checked_pinv_is_the_pseudo_inverse_or_says_singular():
     for bad in (np.full((8, 6), np.nan), np.zeros((8, 6)), np.outer(np.arange(8.0), np.ones(6))):
         with pytest.raises(SingularJacobian):
             checked_pinv(bad)
+
+
+def _frame(corners_px, spot_px):
+    corners_px = np.asarray(corners_px, dtype=float)
+    return ImageFeatures(corners_px, np.asarray(spot_px, dtype=float), 0.16 if spot_px[0] == spot_px[0] else float("nan"),
+                         ObjectRegion(0.0, np.full(2, np.nan)), np.full(4, np.nan), np.full(2, np.nan))
+
+
+def test_a_spot_hidden_behind_the_part_is_held_while_the_part_moves_less_than_its_size():
+    square = np.array([[300.0, 200.0], [400.0, 200.0], [400.0, 300.0], [300.0, 300.0]])
+    seen = _frame(square, [320.0, 280.0])
+    nan = [np.nan, np.nan]
+    # Thirty cycles a pixel apart: the spot still behind the part's edge, still held.
+    for shift in range(30):
+        held = hold_spot(_frame(square + [shift, 0.0], nan), seen)
+        assert np.allclose(held.laser_spot_px, [320.0, 280.0]) and held.laser_depth_m == 0.16
+    # Moved beyond its own size (diagonal about 141 px): the spot is gone, not hidden.
+    gone = hold_spot(_frame(square + [150.0, 0.0], nan), seen)
+    assert not gone.laser_visible
+    # No corner seen: nothing tells how far the part moved.
+    assert not hold_spot(_frame(np.full((4, 2), np.nan), nan), seen).laser_visible

@@ -21,6 +21,11 @@ def pixel_or_none(point: Matrix, digits: int = 4) -> list[float] | None:
     return None if np.isnan(point).any() else [round(float(v), digits) for v in point]
 
 
+def pattern_scale(points_px: Matrix) -> float:
+    """RMS distance of a point pattern to its centroid (px)."""
+    return float(np.sqrt(np.mean(np.sum((points_px - points_px.mean(axis=0)) ** 2, axis=1))))
+
+
 def polygon_moments(polygon_px: Matrix) -> tuple[float, Matrix]:
     """Area m00 and centroid (m10/m00, m01/m00) of a simple polygon (eqs. 4-33 .. 4-35).
 

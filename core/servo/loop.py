@@ -27,7 +27,7 @@ from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import Matrix, twist_transform
-from vservo.core.perception.features import DesiredImage, ImageFeatures, polygon_moments
+from vservo.core.perception.features import DesiredImage, ImageFeatures, pattern_scale, polygon_moments
 from vservo.core.perception.measurement import Measurement, features_from_measurement
 from vservo.core.robot.backend import RobotBackend, RobotError, carry_out
 from vservo.core.robot.safety import SafetyLayer, Watchdog
@@ -45,8 +45,6 @@ class LoopLimits:
       and the desired area means the camera is backing away (IBVS's retreat, Chaumette 1998).
     progress_window / progress_fraction: a stage whose error has not fallen by this
       fraction over this many cycles is stuck in a local minimum.
-    spot_hold_cycles: for how many cycles a laser spot that vanished (hidden behind the
-      part's edge as it climbs onto it) is taken to be where it was last seen.
     lost_hold_cycles: for how many consecutive cycles the loop holds the robot (zero
       twist, no command) while the law finds its features lost (a frame or two
       in which a detector misses them) before it stops with the features lost.
@@ -56,7 +54,6 @@ class LoopLimits:
     retreat_area_fraction: float = 0.75
     progress_window: int = 150
     progress_fraction: float = 0.01
-    spot_hold_cycles: int = 10
     lost_hold_cycles: int = 3
 
 
@@ -133,14 +130,28 @@ class ProjectedPerception:
 
 
 def hold_spot(features: ImageFeatures, last_seen: ImageFeatures | None) -> ImageFeatures:
-    """The features with a vanished laser spot replaced by its last sighting, if any.
+    """The features with a vanished laser spot replaced by its last sighting, while the
+    part has moved in the image by less than its own size since.
 
-    The spot's image position depends only on the depth it lands at, which changes little
-    over a few cycles, so the last sighting is a good estimate while it stays hidden.
+    The spot's image position depends only on the depth it lands at, so the last sighting
+    is a good estimate while it is hidden. It hides behind the part: near the part's edge
+    the part's side blocks the camera's view of the table where the beam lands, and near
+    the end of stage 1.A the turn moves the part across the spot by a pixel or so a
+    cycle. The part cannot hide the spot once it has moved by more than its own size:
+    then the spot is gone, not hidden.
     """
     if features.laser_visible or last_seen is None:
         return features
+    moved_px = np.linalg.norm(_centroid_px(features.corners_px) - _centroid_px(last_seen.corners_px))
+    if not moved_px <= 2.0 * pattern_scale(last_seen.corners_px[np.isfinite(last_seen.corners_px).all(axis=1)]):
+        return features  # moved too far, or no corner seen to tell (NaN)
     return replace(features, laser_spot_px=last_seen.laser_spot_px, laser_depth_m=last_seen.laser_depth_m)
+
+
+def _centroid_px(corners_px: Matrix) -> Matrix:
+    """The centroid of the corners seen (NaN when none is)."""
+    seen = corners_px[np.isfinite(corners_px).all(axis=1)]
+    return seen.mean(axis=0) if len(seen) else np.full(2, np.nan)
 
 
 def corner_area_px2(corners_px: Matrix) -> float:
@@ -185,7 +196,6 @@ def _servo(cell: MeasurementSource, law: ControlLaw, desired: DesiredImage, mode
     cycles: list[Cycle] = []
     stage: Stage | None = None
     last_spot: ImageFeatures | None = None  # the last frame that saw the laser spot
-    spot_hidden_for = 0
     lost_for = 0  # consecutive cycles held with the features lost
     recent_errors: deque[float] = deque(maxlen=limits.progress_window + 1)  # of the current stage
     # The robot stands still when the loop starts (its caller waited for the last move),
@@ -203,10 +213,8 @@ def _servo(cell: MeasurementSource, law: ControlLaw, desired: DesiredImage, mode
         if watchdog is not None:
             watchdog.feed("camera")
         if seen.laser_visible:
-            last_spot, spot_hidden_for = seen, 0
-        else:
-            spot_hidden_for += 1
-        features = hold_spot(seen, last_spot if spot_hidden_for <= limits.spot_hold_cycles else None)
+            last_spot = seen
+        features = hold_spot(seen, last_spot)
         output = law.step(features, desired, stage)
         lost_for = lost_for + 1 if output.failure is Failure.FEATURES_LOST else 0
         hold = 0 < lost_for <= limits.lost_hold_cycles

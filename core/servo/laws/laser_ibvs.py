@@ -50,7 +50,7 @@ import numpy as np
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.interaction import pixel_interaction_matrix
 from vservo.core.geometry.spatial import Matrix
-from vservo.core.perception.features import DesiredImage, ImageFeatures
+from vservo.core.perception.features import DesiredImage, ImageFeatures, pattern_scale
 from vservo.core.servo.laws.base import ControlOutput, Failure, SingularJacobian, Stage, checked_pinv, feature_error_px
 
 # Rotation-only Jacobians do not depend on depth; any positive value fills the slot.
@@ -73,11 +73,6 @@ def image_rotation(from_px: Matrix, to_px: Matrix) -> float:
     a = from_px - from_px.mean(axis=0)
     b = to_px - to_px.mean(axis=0)
     return float(np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b)))
-
-
-def pattern_scale(points_px: Matrix) -> float:
-    """RMS distance of a point pattern to its centroid (px)."""
-    return float(np.sqrt(np.mean(np.sum((points_px - points_px.mean(axis=0)) ** 2, axis=1))))
 
 
 def imaginary_features(desired: DesiredImage, features: ImageFeatures) -> Matrix:
