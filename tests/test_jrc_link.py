@@ -5,6 +5,7 @@ JRC emulator, every injected fault, and a short soak."""
 import os
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -541,3 +542,25 @@ def test_a_short_soak_loses_no_move_and_accounts_for_every_fault(config):
     assert sum(result["faults_recovered"].values()) > 0
     assert result["moves_off_path"] == 0 and result["commands_accepted_twice"] == 0
     assert result["final_pose_error_mm"] < 0.01 and result["final_pose_error_deg"] < 0.001
+
+
+def test_the_cell_clock_undoes_the_emulators_speed_up_and_counts_the_wire(cell, config):
+    """At 50 x real time a 40 mm move at 10 mm/s waits 80 ms on the wall; the cell clock
+    counts the 4 s the arm takes, a dwell 50 times, and each exchange at 9600 baud."""
+    line = replace(config.jrc, time_scale=TIME_SCALE)
+    with jrc_link(cell, replace(config, jrc=line)) as (robot, _):
+        robot.servo(True)
+        start = robot.read_pose()
+        before = robot.cell_clock_s()
+        robot.move_to(transform(t=(0.04, 0.0, 0.0)) @ start, 0.01)
+        assert robot.wait_motion()
+        moved = robot.cell_clock_s() - before
+        assert 4.0 <= moved <= 4.0 + 1.5  # the motion, plus MOVL's and the JWAITs' bytes
+        before = robot.cell_clock_s()
+        robot.dwell(0.01)
+        assert robot.cell_clock_s() - before >= 0.5
+        before = robot.cell_clock_s()
+        for _ in range(10):
+            robot.read_pose()
+        wire = robot.cell_clock_s() - before
+        assert wire >= 10 * line.wire_time_s(len("RPOSC 0,0") + 40)  # at least the command and a short pose

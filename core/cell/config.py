@@ -162,6 +162,8 @@ class JrcLineConfig:
     unanswered (RS036); retry_2: repeats of a text the receiver refused with NAK (RS037).
     jwait_slice_s: a wait for the end of a motion is split into JWAITs this long, so a
     hold from the host (e-stop, watchdog) reaches the JRC within one slice.
+    time_scale: an emulated JRC runs this many times faster than real time (the virtual
+    cell writes it); 1, a real JRC. The host's cell clock undoes it.
     """
 
     port: str
@@ -175,6 +177,7 @@ class JrcLineConfig:
     retry_1: int
     retry_2: int
     jwait_slice_s: float
+    time_scale: float = 1.0
 
     @property
     def bits_per_character(self) -> int:
@@ -575,6 +578,7 @@ def _jrc(t: _Table) -> JrcLineConfig:
         timer_a_s=t.number("timer_a_s", 3.0, check=_positive, why="must be positive"),
         timer_b_s=t.number("timer_b_s", 20.0, check=_positive, why="must be positive"),
         jwait_slice_s=t.number("jwait_slice_s", 0.5, check=_positive, why="must be positive"),
+        time_scale=t.number("time_scale", 1.0, check=lambda v: 1.0 <= v <= 1000.0, why="must be 1 (a real JRC) to 1000"),
         **retries,
     )
     t.finish()

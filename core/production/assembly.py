@@ -111,6 +111,7 @@ class AssemblyOutcome:
     gauge_placement_error_mm: float | None = None
     gauge_inside: bool | None = None
     notes: tuple[str, ...] = ()  # what the operator should know of how the job was run (retargeting)
+    cell_time_s: float | None = None  # the cell clock's time for the run (RobotBackend.cell_clock_s)
 
     def summary(self) -> dict:
         """The JSON object of ``vservo run --json``."""
@@ -122,6 +123,7 @@ class AssemblyOutcome:
             "gauge_placement_error_mm": _rounded(self.gauge_placement_error_mm),
             "gauge_inside": self.gauge_inside,
             "duration_s": round(self.duration_s, 3),
+            "cell_time_s": _rounded(self.cell_time_s),
             "iterations": self.iterations,
             "stages": self.stages,
             "notes": list(self.notes),
@@ -183,6 +185,7 @@ def run_assembly(
     (SafetyLayer.move_linear); the servo's steps as the step policy makes them.
     """
     started = time.monotonic()
+    cell_started_s = robot.cell_clock_s()
     servo = None
 
     def end(outcome: Outcome, reason: str, seen: PlacementCheck | None = None,
@@ -202,6 +205,7 @@ def run_assembly(
             final_error_px=servo.final_error_px if servo else float("nan"),
             placement_error_mm=seen.error_mm if seen else None,
             duration_s=time.monotonic() - started,
+            cell_time_s=robot.cell_clock_s() - cell_started_s,
             stages=servo.stages if servo else [],
             iterations=servo.iterations if servo else 0,
             gauge_placement_error_mm=gauge.error_mm if gauge else None,

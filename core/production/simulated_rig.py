@@ -66,7 +66,7 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
         if not isinstance(policy, DividedPositionStep):
             raise ValueError(f"{config.source}: the JRC takes position steps; set [motion] mode = \"position_steps\"")
         emulator = JrcEmulator(cell, config.jrc, time_scale=jrc_time_scale, vacuum=vacuum)
-        jrc = JrcBackend(config.jrc, emulator.start_on_pty())
+        jrc = JrcBackend(replace(config.jrc, time_scale=jrc_time_scale), emulator.start_on_pty())
         robot = SafetyLayer.from_config(jrc, config)
         if vacuum.device == "jrc_io":
             gripper = JrcVacuum(jrc, vacuum.suction_output, vacuum.grip_input)

@@ -95,6 +95,11 @@ class RobotBackend(Protocol):
         """The robot's clock in s: the plant's simulated time, or the host's monotonic time
         for a real controller. Only differences of it mean anything."""
         ...
+    def cell_clock_s(self) -> float:
+        """How long the real cell would have taken, as a clock: the plant's time for the
+        simulator; for a JRC the wall clock with an emulator's speed-up undone and the link
+        at its baud rate (on a real JRC, the wall clock). Only differences mean anything."""
+        ...
     def dwell(self, seconds: float) -> None:
         """Let time pass with the robot standing still (the rest of a sampling period)."""
         ...

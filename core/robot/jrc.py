@@ -184,6 +184,12 @@ class JrcBackend:
     ``port`` overrides the configured one (an emulator's pseudo-terminal, say). Every
     method is safe to call from several threads (the loop, an e-stop, the watchdog):
     commands go out one at a time.
+
+    The cell clock (``cell_clock_s``) undoes an emulated JRC's speed-up (the line's
+    ``time_scale``, 1 on a real JRC): the wall clock, with every wait for the arm
+    (JWAIT) and every dwell counted ``time_scale`` times, and every
+    exchange at least as long as its bytes take at the line's baud rate (a
+    pseudo-terminal carries them faster).
     """
 
     name = "jrc"
@@ -191,6 +197,7 @@ class JrcBackend:
     def __init__(self, line: JrcLineConfig, port: str | None = None) -> None:
         self.line = line
         self.port = port or line.port
+        self._cell_ahead_s = 0.0  # how far the cell clock runs ahead of the wall clock
         self._serial: serial.SerialBase | None = None
         self._station: BscStation | None = None
         self._lock = threading.RLock()
@@ -240,10 +247,13 @@ class JrcBackend:
         with self._lock:
             station = self.station
             self.last_command = text
+            started_s, bytes_before = time.monotonic(), station.channel.bytes_in + station.channel.bytes_out
             try:
                 station.channel.discard_input()
                 station.send(Message(HOST_COMMAND, text + "\r"))
                 reply = station.receive(reply_wait_s or self.line.timer_b_s, f"the reply to {name}")
+                self._count_cell_time(name, time.monotonic() - started_s,
+                                      station.channel.bytes_in + station.channel.bytes_out - bytes_before)
             except LinkError as exc:  # the station has ended the exchange with EOT
                 raise LinkError(f"{name} failed: {exc}; {self._hold_after_failure(name)}") from exc
             except (OSError, serial.SerialException) as exc:  # the port itself is gone (unplugged, closed)
@@ -398,9 +408,19 @@ class JrcBackend:
     def clock_s(self) -> float:
         return time.monotonic()
 
+    def cell_clock_s(self) -> float:
+        return time.monotonic() + self._cell_ahead_s
+
     def dwell(self, seconds: float) -> None:
         if seconds > 0.0:
             time.sleep(seconds)
+            self._cell_ahead_s += (self.line.time_scale - 1.0) * seconds
+
+    def _count_cell_time(self, name: str, wall_s: float, n_bytes: int) -> None:
+        """What one exchange cost the cell beyond its wall time (class docstring)."""
+        if name == "JWAIT":  # the emulator waited out the arm's motion time_scale times faster
+            self._cell_ahead_s += (self.line.time_scale - 1.0) * wall_s
+        self._cell_ahead_s += max(self.line.wire_time_s(n_bytes) - wall_s, 0.0)
 
     # -- helpers ---------------------------------------------------------------------
 

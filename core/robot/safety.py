@@ -305,6 +305,9 @@ class SafetyLayer:
     def clock_s(self) -> float:
         return self.robot.clock_s()
 
+    def cell_clock_s(self) -> float:
+        return self.robot.cell_clock_s()
+
     def dwell(self, seconds: float) -> None:
         self.robot.dwell(seconds)
 

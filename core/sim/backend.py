@@ -77,6 +77,9 @@ class SimulatedBackend:
     def clock_s(self) -> float:
         return self.cell.state.time_s
 
+    def cell_clock_s(self) -> float:
+        return self.cell.state.time_s
+
     def dwell(self, seconds: float) -> None:
         self.cell.pass_time(seconds)
 

@@ -100,7 +100,7 @@ def controller_tables(cell_tables: dict[str, Any], *, jrc_port: str, camera_url:
     tables.setdefault("robot", {})["backend"] = "jrc"
     # Linux drops a pseudo-terminal's parity bit and then refuses it on the next opening,
     # so the virtual JRC's line runs without parity (pendant RS032 allows none).
-    tables.setdefault("jrc", {}).update(port=jrc_port, parity="none")
+    tables.setdefault("jrc", {}).update(port=jrc_port, parity="none", time_scale=settings.time_scale)
     camera = tables.setdefault("camera", {})
     camera["source"] = {
         "kind": "capture",
