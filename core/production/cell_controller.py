@@ -703,12 +703,19 @@ class CellController:
         self._update(phase=Phase.ESTOPPED.value, detail=detail)
 
     def reset(self) -> None:
-        """Clear an e-stop or a fault once the run has stopped: release the hold, back to idle."""
+        """Clear an e-stop or a fault once the run has stopped: open again a device lost
+        with the fault (the robot's port, the camera), release the hold, back to idle."""
         if self.running:
             raise CommandRefused("the run is still stopping; try again")
         with self._lock:
             if Phase(self._state.phase) not in (Phase.ESTOPPED, Phase.FAULT, Phase.DONE):
                 raise CommandRefused(f"nothing to reset while {self._state.phase}")
+            try:
+                self.rig.reconnect()
+            except RobotError as exc:
+                raise CommandRefused(f"reset failed: the robot link: {exc}") from exc
+            except CameraSourceError as exc:
+                raise CommandRefused(f"reset failed: the camera: {exc}") from exc
             try:
                 self.rig.robot.reset_emergency_stop()
                 self.rig.robot.reset_alarms()
