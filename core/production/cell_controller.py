@@ -165,6 +165,23 @@ def _finite_list(values: Matrix) -> list:
     return [None if not np.isfinite(v) else float(v) for v in np.asarray(values, dtype=float).ravel()]
 
 
+class _WorkThread(threading.Thread):
+    """A daemon thread that drives the cell, whose end is an Event rather than the thread's
+    own lock: a Ctrl-C that interrupts ``join()`` leaves CPython 3.11 taking a running
+    thread for stopped (``Thread._wait_for_tstate_lock``), and the process would then exit
+    under a run still moving the robot, its end never on record."""
+
+    def __init__(self, target: Callable[..., None], args: tuple, name: str) -> None:
+        super().__init__(target=target, args=args, name=name, daemon=True)
+        self.finished = threading.Event()
+
+    def run(self) -> None:
+        try:
+            super().run()
+        finally:
+            self.finished.set()
+
+
 def _closed_quietly(recorder: RunRecorder) -> None:
     """Close a recorder that failed to write; its close may fail alike (the same full disk)."""
     try:
@@ -232,7 +249,7 @@ class CellController:
         self._estop = threading.Event()
         self._estop_reason = "e-stop pressed"
         self._jogging = threading.Event()  # a jog or a gizmo move is under way
-        self._run_thread: threading.Thread | None = None  # an assembly run's, or commissioning's
+        self._run_thread: _WorkThread | None = None  # an assembly run's, or commissioning's
         self._work = "an assembly run"  # what the thread does, for the refusals while it runs
         self._commissioned: Commissioned | None = None
         self._trail: list[Matrix] = []
@@ -321,7 +338,7 @@ class CellController:
 
     @property
     def running(self) -> bool:
-        return self._run_thread is not None and self._run_thread.is_alive()
+        return self._run_thread is not None and not self._run_thread.finished.is_set()
 
     @property
     def in_motion(self) -> bool:
@@ -525,8 +542,7 @@ class CellController:
             self._desired, self._trail = job.desired, []
             self._update(phase=Phase.SERVOING.value, detail="starting", job=job.name, run_id=run_id, stage=None,
                          iteration=0, error_px=None, last_outcome=None)
-            self._run_thread = threading.Thread(target=self._run, args=(job, run_id, record, note), name="assembly",
-                                                daemon=True)
+            self._run_thread = _WorkThread(self._run, (job, run_id, record, note), "assembly")
             self._run_thread.start()
             return run_id
 
@@ -534,7 +550,7 @@ class CellController:
         """Block until the run under way (if any) ends."""
         thread = self._run_thread
         if thread is not None:
-            thread.join(timeout_s)
+            thread.finished.wait(timeout_s)
 
     def _run(self, job: Job, run_id: int, record: bool, note: str | None) -> None:
         """One run of ``job``, already retargeted to the cell's model; ``note`` says how (None: as taught)."""
@@ -646,8 +662,7 @@ class CellController:
             self._update(phase=Phase.COMMISSIONING.value, detail=f"commissioning {', '.join(chosen)}",
                          commissioning={"steps": [str(step) for step in chosen], "out": str(out), "step": None,
                                         "progress": {}, "summary": None, "error": None, "applied": None})
-            self._run_thread = threading.Thread(target=self._commission, args=(commissioning, chosen, out, folder),
-                                                name="commissioning", daemon=True)
+            self._run_thread = _WorkThread(self._commission, (commissioning, chosen, out, folder), "commissioning")
             self._run_thread.start()
             return out
 
