@@ -22,7 +22,7 @@ PHASE_WORDS = {
     Phase.ESTOPPED: "E-STOPPED",
 }
 OUTCOME_WORDS = {Outcome.PLACED: "placed", Outcome.MISSED: "MISSED", Outcome.FAULT: "FAULT", Outcome.ESTOPPED: "E-STOPPED",
-                 None: "running"}
+                 Outcome.INTERRUPTED: "INTERRUPTED", None: "running"}
 
 
 def _number(value: object, digits: int = 2, unit: str = "") -> str:

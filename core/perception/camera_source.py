@@ -113,6 +113,11 @@ class FrameSource(Protocol):
         """Release the source; calling it again does nothing."""
         ...
 
+    @property
+    def lost(self) -> str | None:
+        """Why the source gave up delivering for good (SourceLost), None while it delivers."""
+        ...
+
     def __enter__(self) -> FrameSource: ...
 
     def __exit__(self, *exc_info: object) -> None: ...
@@ -132,6 +137,10 @@ class BaseSource:
     @property
     def closed(self) -> bool:
         return self._closed
+
+    @property
+    def lost(self) -> str | None:
+        return None  # a source that is never lost (files, the simulator); a live one says why
 
     def close(self) -> None:
         self._closed = True
@@ -367,6 +376,10 @@ class VideoCaptureSource(BaseSource):
     @property
     def image_size(self) -> Size | None:
         return self._last_size or self.expected_size or self._reported_size
+
+    @property
+    def lost(self) -> str | None:
+        return self._lost
 
     def _frame(self, image: np.ndarray, arrived_s: float) -> Frame:
         """The next Frame of this source from a captured image and the clock at its arrival."""

@@ -70,6 +70,7 @@ class Outcome(StrEnum):
     MISSED = "missed"
     FAULT = "fault"
     ESTOPPED = Phase.ESTOPPED.value
+    INTERRUPTED = "interrupted"  # the controller process died during the run (found so at its next start)
 
     @classmethod
     def _missing_(cls, value: object) -> Outcome | None:

@@ -28,6 +28,7 @@ from __future__ import annotations
 import itertools
 import logging
 import re
+import sqlite3
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -43,7 +44,7 @@ from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, exp_twist
 from vservo.core.perception.camera_source import BaseSource, CameraSourceError, Frame, FrameSource, Size
 from vservo.core.perception.features import DesiredImage, ImageFeatures
-from vservo.core.perception.recording import RunRecorder
+from vservo.core.perception.recording import RecordingError, RunRecorder
 from vservo.core.production.assembly import AssemblyEvent, AssemblyOutcome, Outcome, Phase, PhaseChange, run_assembly
 from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job, JobError, TaughtModel
@@ -64,6 +65,7 @@ if TYPE_CHECKING:  # commissioning's calibration (torch, the board finder) is im
 log = logging.getLogger("vservo.controller")
 
 JOG_SPEED_M_S = 0.02
+HOLD_CONFIRM_S = 1.0  # an e-stop's hold unanswered this long is reported as not confirmed
 TRAIL_LENGTH = 400  # feature positions kept for the trajectories drawn on the image
 # What a commissioned file must share with the running cell for the controller to run on it
 # without a restart: the devices it opened (the model is what commissioning changes).
@@ -163,6 +165,31 @@ def _finite_list(values: Matrix) -> list:
     return [None if not np.isfinite(v) else float(v) for v in np.asarray(values, dtype=float).ravel()]
 
 
+class _WorkThread(threading.Thread):
+    """A daemon thread that drives the cell, whose end is an Event rather than the thread's
+    own lock: a Ctrl-C that interrupts ``join()`` leaves CPython 3.11 taking a running
+    thread for stopped (``Thread._wait_for_tstate_lock``), and the process would then exit
+    under a run still moving the robot, its end never on record."""
+
+    def __init__(self, target: Callable[..., None], args: tuple, name: str) -> None:
+        super().__init__(target=target, args=args, name=name, daemon=True)
+        self.finished = threading.Event()
+
+    def run(self) -> None:
+        try:
+            super().run()
+        finally:
+            self.finished.set()
+
+
+def _closed_quietly(recorder: RunRecorder) -> None:
+    """Close a recorder that failed to write; its close may fail alike (the same full disk)."""
+    try:
+        recorder.close({"aborted": "a write failed"})
+    except (RecordingError, OSError) as exc:
+        log.warning("closing the failed recording %s: %s", recorder.folder, exc)
+
+
 def is_shipped_cell(source: str) -> bool:
     """Whether ``source`` names the cell file shipped in static/ (part of the installed package)."""
     shipped = Path(str(resources.files("vservo.static").joinpath(DEFAULT_CELL)))
@@ -222,7 +249,7 @@ class CellController:
         self._estop = threading.Event()
         self._estop_reason = "e-stop pressed"
         self._jogging = threading.Event()  # a jog or a gizmo move is under way
-        self._run_thread: threading.Thread | None = None  # an assembly run's, or commissioning's
+        self._run_thread: _WorkThread | None = None  # an assembly run's, or commissioning's
         self._work = "an assembly run"  # what the thread does, for the refusals while it runs
         self._commissioned: Commissioned | None = None
         self._trail: list[Matrix] = []
@@ -232,6 +259,9 @@ class CellController:
         self.last_outcome: AssemblyOutcome | None = None
         self.state_subscribers: list[Callable[[ControllerState], None]] = []
         self.frame_subscribers: list[Callable[[FrameView], None]] = []
+        interrupted = store.close_unfinished_runs()
+        if interrupted:
+            log.warning("runs %s were found unfinished (their controller died): marked interrupted", interrupted)
         self.rig.robot.connect()
         status = self.rig.robot.status()
         if status.held:  # an earlier session's e-stop or fault: motion only after an explicit reset
@@ -308,7 +338,7 @@ class CellController:
 
     @property
     def running(self) -> bool:
-        return self._run_thread is not None and self._run_thread.is_alive()
+        return self._run_thread is not None and not self._run_thread.finished.is_set()
 
     @property
     def in_motion(self) -> bool:
@@ -512,8 +542,7 @@ class CellController:
             self._desired, self._trail = job.desired, []
             self._update(phase=Phase.SERVOING.value, detail="starting", job=job.name, run_id=run_id, stage=None,
                          iteration=0, error_px=None, last_outcome=None)
-            self._run_thread = threading.Thread(target=self._run, args=(job, run_id, record, note), name="assembly",
-                                                daemon=True)
+            self._run_thread = _WorkThread(self._run, (job, run_id, record, note), "assembly")
             self._run_thread.start()
             return run_id
 
@@ -521,17 +550,24 @@ class CellController:
         """Block until the run under way (if any) ends."""
         thread = self._run_thread
         if thread is not None:
-            thread.join(timeout_s)
+            thread.finished.wait(timeout_s)
 
     def _run(self, job: Job, run_id: int, record: bool, note: str | None) -> None:
         """One run of ``job``, already retargeted to the cell's model; ``note`` says how (None: as taught)."""
         folder = self.store.run_folder(run_id)
-        recorder = RunRecorder(folder, {"job": job.name, "run": run_id, "desired": job.desired}) if record else None
+        recorder, recording_note, recorded_to = None, None, None
+        if record:
+            try:
+                recorder = RunRecorder(folder, {"job": job.name, "run": run_id, "desired": job.desired})
+                recorded_to = folder
+            except (RecordingError, OSError) as exc:  # a full disk, a leftover folder: run, and say so
+                recording_note = f"not recorded: {exc}"
+                log.error("run %d: %s", run_id, recording_note)
         perception = self.rig.perception()
         last_cycle_at = time.monotonic()
 
         def on_event(event: AssemblyEvent) -> None:
-            nonlocal last_cycle_at
+            nonlocal last_cycle_at, recorder, recording_note
             if isinstance(event, PhaseChange):
                 if event.phase not in (Phase.DONE, Phase.FAULT, Phase.ESTOPPED):
                     self._update(phase=event.phase.value, detail=event.detail, **self._robot_readout())
@@ -539,7 +575,12 @@ class CellController:
             cycle = event.cycle
             frame = perception.last_frame
             if recorder is not None:
-                recorder.record(frame, cycle_record(cycle))
+                try:
+                    recorder.record(frame, cycle_record(cycle))
+                except (RecordingError, OSError) as exc:  # the disk filled up: the run goes on unrecorded
+                    recording_note = f"recording stopped at cycle {cycle.iteration + 1}: {exc}"
+                    log.error("run %d: %s", run_id, recording_note)
+                    recorder = _closed_quietly(recorder)
             self._trail = (self._trail + [cycle.features.corners_px])[-TRAIL_LENGTH:]
             self._update(stage=cycle.output.stage, iteration=cycle.iteration + 1,
                          error_px=float(cycle.output.error_px) if np.isfinite(cycle.output.error_px) else None,
@@ -570,10 +611,18 @@ class CellController:
         if note:
             outcome = replace(outcome, notes=(*outcome.notes, note))
         if recorder is not None:
-            recorder.close(outcome.summary())
-        self.store.finish_run(run_id, outcome.outcome, outcome.reason, outcome.final_error_px,
-                              outcome.placement_error_mm, outcome.duration_s, outcome.stages,
-                              str(folder) if recorder is not None else None)
+            try:
+                recorder.close(outcome.summary())
+            except (RecordingError, OSError) as exc:
+                recording_note = f"the recording's summary was not written: {exc}"
+        if recording_note:
+            outcome = replace(outcome, notes=(*outcome.notes, recording_note))
+        try:
+            self.store.finish_run(run_id, outcome.outcome, outcome.reason, outcome.final_error_px,
+                                  outcome.placement_error_mm, outcome.duration_s, outcome.stages, recorded_to)
+        except (sqlite3.Error, OSError) as exc:  # the next start marks it interrupted; the operator learns now
+            log.error("run %d: its end could not be stored: %s", run_id, exc)
+            outcome = replace(outcome, notes=(*outcome.notes, f"its end could not be stored: {exc}"))
         phase = Phase.ESTOPPED if self._estop.is_set() else Phase.FAULT if outcome.outcome is Outcome.FAULT else Phase.DONE
         self._update(phase=phase.value, detail=outcome.reason, last_outcome=outcome.summary(), **self._robot_readout())
         self.last_outcome = outcome
@@ -613,8 +662,7 @@ class CellController:
             self._update(phase=Phase.COMMISSIONING.value, detail=f"commissioning {', '.join(chosen)}",
                          commissioning={"steps": [str(step) for step in chosen], "out": str(out), "step": None,
                                         "progress": {}, "summary": None, "error": None, "applied": None})
-            self._run_thread = threading.Thread(target=self._commission, args=(commissioning, chosen, out, folder),
-                                                name="commissioning", daemon=True)
+            self._run_thread = _WorkThread(self._commission, (commissioning, chosen, out, folder), "commissioning")
             self._run_thread.start()
             return out
 
@@ -688,27 +736,61 @@ class CellController:
     # -- safety ----------------------------------------------------------------------------
 
     def estop(self, why: str = "e-stop pressed") -> None:
-        """Hold the robot now and refuse every move until reset (never waits for a lock).
+        """Hold the robot now and refuse every move until reset (never waits for a lock, never raises).
 
-        ``why`` is what the state, the log and the run's record say stopped it.
+        ``why`` is what the state, the log and the run's record say stopped it. The hold
+        goes out from its own thread: a link that went silent in the middle of another
+        thread's request keeps the line until that request's timers run out (tens of
+        seconds on the factory timers), and the operator must not wait for it. After
+        HOLD_CONFIRM_S without the JRC's answer the state says the hold is not confirmed
+        and why; it says "robot held" (or that the hold failed) once the answer comes.
         """
         self._estop_reason = why
         self._estop.set()
-        try:
-            self.rig.robot.emergency_stop(why)
-            detail = f"{why}: robot held"
-        except RobotError as exc:
-            detail = f"{why}: hold could not be sent ({exc}); use the pendant's e-stop"
-        log.warning(detail)
-        self._update(phase=Phase.ESTOPPED.value, detail=detail)
+        pending = (f"{why}: hold NOT confirmed after {HOLD_CONFIRM_S:g} s (the robot link is silent or busy): "
+                   "use the pendant's e-stop")
+        settled = threading.Lock()  # the answer and the timeout: whichever comes first writes the state
+        answer: dict[str, str | bool] = {}
+        answered = threading.Event()
+
+        def send_hold() -> None:
+            try:
+                self.rig.robot.emergency_stop(why)
+                detail = f"{why}: robot held"
+            except RobotError as exc:
+                detail = f"{why}: hold could not be sent ({exc}); use the pendant's e-stop"
+            except Exception as exc:  # a bug must not hide that the hold was not sent
+                log.exception("e-stop: sending the hold failed")
+                detail = f"{why}: hold could not be sent ({exc!r}); use the pendant's e-stop"
+            log.warning(detail)
+            with settled:
+                answer["detail"] = detail
+                answered.set()
+                if answer.get("late") and self._state.detail == pending:  # nothing newer said since
+                    self._update(phase=Phase.ESTOPPED.value, detail=detail)
+
+        threading.Thread(target=send_hold, name="estop-hold", daemon=True).start()
+        answered.wait(HOLD_CONFIRM_S)
+        with settled:
+            if "detail" not in answer:
+                answer["late"] = True
+                log.error(pending)
+            self._update(phase=Phase.ESTOPPED.value, detail=str(answer.get("detail", pending)))
 
     def reset(self) -> None:
-        """Clear an e-stop or a fault once the run has stopped: release the hold, back to idle."""
+        """Clear an e-stop or a fault once the run has stopped: open again a device lost
+        with the fault (the robot's port, the camera), release the hold, back to idle."""
         if self.running:
             raise CommandRefused("the run is still stopping; try again")
         with self._lock:
             if Phase(self._state.phase) not in (Phase.ESTOPPED, Phase.FAULT, Phase.DONE):
                 raise CommandRefused(f"nothing to reset while {self._state.phase}")
+            try:
+                self.rig.reconnect()
+            except RobotError as exc:
+                raise CommandRefused(f"reset failed: the robot link: {exc}") from exc
+            except CameraSourceError as exc:
+                raise CommandRefused(f"reset failed: the camera: {exc}") from exc
             try:
                 self.rig.robot.reset_emergency_stop()
                 self.rig.robot.reset_alarms()

@@ -64,6 +64,7 @@ def real_rig(config: CellConfig) -> Rig:
         # No gauge on a real cell: the assembly measures the placement by vision alone.
         measure_placement=lambda: None,
         locator=PartLocator.from_config(config),
+        reopen_camera=lambda: open_camera(config.camera_source, (intrinsics.width, intrinsics.height)),
         **_fixture_hooks(config),
     )
 

@@ -18,6 +18,8 @@ BACKEND_HELP = ("the simulated cell's robot: sim drives the simulator directly, 
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    import signal
+
     from vservo.core.production.assembly import Outcome
     from vservo.core.production.cell_controller import CellController, CommandRefused, run_job_once
     from vservo.core.production.cell_rig import build_rig
@@ -30,6 +32,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
     except CommandRefused as exc:
         print(f"vservo run: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        # Ctrl-C: hold the robot and let the run end on record (e-stopped) before exiting;
+        # a second Ctrl-C must not cut that short.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        controller.estop("Ctrl-C on vservo run")
+        controller.wait()
+        print(f"vservo run: interrupted: {controller.state.detail}", file=sys.stderr)
+        return 130
     finally:
         controller.close()
         store.close()

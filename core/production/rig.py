@@ -50,10 +50,21 @@ class Rig:
     locator: PartLocator | None = None
     cell: SimulatedCell | None = None  # the plant, for the 3D view and evaluation; None on a real cell
     emulator: JrcEmulator | None = None  # the JRC emulator the robot link talks to, if any
+    # Opens the camera of the cell file again, for one lost with its device; None: it cannot be lost.
+    reopen_camera: Callable[[], FrameSource] | None = None
 
     def perception(self) -> CameraPerception:
         """A fresh tracker on the rig's camera (nothing carried over from an earlier run)."""
         return CameraPerception(self.camera, self.extractor)
+
+    def reconnect(self) -> None:
+        """Open again what was lost with its device (the robot link, a live camera), so a
+        device that is back serves without restarting the controller. Raises the device's
+        own error (RobotError, CameraSourceError) naming it when it is still gone."""
+        self.robot.connect()  # opens a lost port anew; asks an open one for its status
+        if self.camera.lost is not None and self.reopen_camera is not None:
+            self.camera.close()
+            self.camera = self.reopen_camera()
 
     def close(self) -> None:
         self.camera.close()

@@ -234,26 +234,55 @@ class Store:
         return self.runs_dir / f"{run_id:06d}"
 
     def finish_run(self, run_id: int, outcome: Outcome, reason: str, final_error_px: float | None,
-                   placement_error_mm: float | None, duration_s: float, stages: list[dict], recording: str | None) -> None:
+                   placement_error_mm: float | None, duration_s: float, stages: list[dict],
+                   recording: Path | None) -> None:
+        """The run's end on record. ``recording`` (its folder) is stored relative to the data
+        folder, so the folder can be moved or opened from any working directory."""
         with self._transaction() as db:
             db.execute(
                 "UPDATE runs SET finished_at = ?, outcome = ?, reason = ?, final_error_px = ?, placement_error_mm = ?,"
                 " duration_s = ?, stages = ?, recording = ? WHERE id = ?",
                 (time.time(), outcome, reason, _finite_or_none(final_error_px), _finite_or_none(placement_error_mm),
-                 duration_s, json.dumps(stages), recording, run_id),
+                 duration_s, json.dumps(stages), self._stored_path(recording), run_id),
             )
+
+    def close_unfinished_runs(self) -> list[int]:
+        """Mark every run without an outcome ``interrupted``, its recording linked if it left
+        one: called by a controller as it starts, when no run of this data folder can still
+        be under way (a run ends on record unless its process died). The runs' ids."""
+        with self._transaction() as db:
+            ids = [row[0] for row in db.execute("SELECT id FROM runs WHERE outcome IS NULL ORDER BY id")]
+            for run_id in ids:
+                folder = self.run_folder(run_id)
+                db.execute("UPDATE runs SET outcome = ?, reason = ?, recording = ? WHERE id = ?",
+                           (Outcome.INTERRUPTED, "the controller process ended during the run (found unfinished "
+                            "at its next start)",
+                            self._stored_path(folder) if folder.is_dir() else None, run_id))
+        return ids
+
+    def _stored_path(self, folder: Path | None) -> str | None:
+        if folder is None:
+            return None
+        folder = Path(folder)
+        return str(folder.relative_to(self.root)) if folder.is_relative_to(self.root) else str(folder.absolute())
 
     def list_runs(self, limit: int = 100) -> list[RunRecord]:
         with self._lock:
             rows = self._db.execute("SELECT * FROM runs ORDER BY id DESC LIMIT ?", (limit,)).fetchall()
-        return [_run_record(row) for row in rows]
+        return [self._run_record(row) for row in rows]
 
     def run(self, run_id: int) -> RunRecord:
         with self._lock:
             row = self._db.execute("SELECT * FROM runs WHERE id = ?", (run_id,)).fetchone()
         if row is None:
             raise StoreError(f"no run {run_id}")
-        return _run_record(row)
+        return self._run_record(row)
+
+    def _run_record(self, row: tuple) -> RunRecord:
+        """A row as a RunRecord, its recording an absolute path (rows stored before the paths
+        were relative hold absolute ones, which stay as they are)."""
+        recording = row[11] if row[11] is None else str(self.root.absolute() / row[11])
+        return _run_record((*row[:11], recording))
 
 
 def _check_name(image_name: str) -> str:

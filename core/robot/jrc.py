@@ -205,15 +205,18 @@ class JrcBackend:
         self._posture = 0  # the RPOSC "type": the arm configuration, sent back with MOVL
         self._sent: list[float] | None = None  # the wire pose of the last MOVL
         self.last_command = ""  # the text of the last command sent, for diagnostics
+        self._lost: str | None = None  # why the port was given up, until it is opened again
 
     # -- the link --------------------------------------------------------------------
 
     def open(self) -> None:
-        """Open the port, without a word to the JRC yet."""
+        """Open the port, without a word to the JRC yet; a lost one is opened anew (the
+        device may be back, under the same name, as another one)."""
         with self._lock:
             if self._serial is None:
                 self._serial = open_serial(self.line, self.port)
                 self._station = BscStation(ByteChannel(self._serial), self.line, yields=True)
+                self._lost = None
 
     def connect(self) -> None:
         """Open the port and ask the JRC for its status: fails clearly if nothing answers."""
@@ -230,10 +233,24 @@ class JrcBackend:
                 self._serial.close()
             self._serial = self._station = None
 
+    def _drop_lost_port(self, exc: Exception) -> str:
+        """Close a port whose device is gone: its file descriptor never works again, and
+        connect() opens the device anew. What to tell the caller."""
+        self._lost = f"the serial port {self.port} is lost ({exc})"
+        try:
+            self._serial.close()
+        except (OSError, serial.SerialException):
+            pass  # closing a dead descriptor may fail too; it is dropped either way
+        self._serial = self._station = None
+        log.error("%s; the link is closed until it is connected again", self._lost)
+        return self._lost
+
     @property
     def station(self) -> BscStation:
         """The data link, for its counters (and for benchmarks)."""
         if self._station is None:
+            if self._lost is not None:
+                raise LinkError(f"{self._lost}: reset (connect) to open it again")
             raise RobotError(f"the JRC on {self.port} is not connected: call connect() first")
         return self._station
 
@@ -257,8 +274,8 @@ class JrcBackend:
             except LinkError as exc:  # the station has ended the exchange with EOT
                 raise LinkError(f"{name} failed: {exc}; {self._hold_after_failure(name)}") from exc
             except (OSError, serial.SerialException) as exc:  # the port itself is gone (unplugged, closed)
-                raise LinkError(f"{name} failed: the serial port {self.port} is lost ({exc}); no hold could be "
-                                "sent: the robot may still be moving") from exc
+                raise LinkError(f"{name} failed: {self._drop_lost_port(exc)}; no hold could be sent: the robot may "
+                                "still be moving") from exc
         return self._parse(name, reply)
 
     def _hold_after_failure(self, failed: str) -> str:
@@ -269,6 +286,8 @@ class JrcBackend:
             self._parse("HOLD", self._exchange("HOLD 1"))
         except RobotError as exc:
             return f"HOLD 1 failed too ({exc}): the robot may still be moving"
+        except (OSError, serial.SerialException) as exc:  # the port went while the link was failing
+            return f"HOLD 1 could not be sent ({self._drop_lost_port(exc)}): the robot may still be moving"
         return "the robot is held (release with HOLD 0)"
 
     def _exchange(self, text: str) -> Message:

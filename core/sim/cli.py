@@ -62,7 +62,7 @@ def add_jrc_emulator_command(commands: argparse._SubParsersAction) -> None:
 def _cmd_virtual_cell(args: argparse.Namespace) -> int:
     import signal
 
-    from vservo.core.sim.virtual_cell import Released, VirtualCell, VirtualCellSettings, load_virtual_cell_tables
+    from vservo.core.sim.virtual_cell import Addresses, Released, VirtualCell, VirtualCellSettings, load_virtual_cell_tables
 
     tables, source = load_virtual_cell_tables(args.cell, args.truth)
     settings = VirtualCellSettings(time_scale=args.time_scale, fps=args.fps, exposure_latency_s=args.latency)
@@ -75,7 +75,8 @@ def _cmd_virtual_cell(args: argparse.Namespace) -> int:
         signal.signal(signum, lambda *_: stopped.set())
     with tempfile.TemporaryDirectory(prefix="vservo-virtual-cell-") as folder, \
             VirtualCell(tables, source, args.seed, settings, on_released=print_released,
-                        board_laid=args.board) as virtual:
+                        board_laid=args.board, addresses=Addresses(args.jrc_link and Path(args.jrc_link),
+                                                                   args.camera_port, args.fixture_port)) as virtual:
         cell_file = virtual.write_cell_file(Path(args.out) if args.out else Path(folder) / "cell.toml")
         print(json.dumps({"cell_file": str(cell_file), "jrc_port": virtual.jrc_port, "camera_url": virtual.camera.url,
                           "fixture": virtual.fixture.url}), flush=True)
@@ -110,4 +111,11 @@ def add_virtual_cell_command(commands: argparse._SubParsersAction) -> None:
                          help="camera latency from exposure to sending a frame, in s (default 0.05)")
     virtual.add_argument("--board", action="store_true", help="start with the calibration checkerboard of the "
                          "cell file's [board] laid on the table (the parts cleared off it), as to commission the cell")
+    virtual.add_argument("--jrc-link", metavar="PATH", help="a symbolic link to the JRC's pseudo-terminal, made at "
+                         "start and named as [jrc] port: a virtual cell restarted on the same PATH is where the "
+                         "controller left it, as a real serial adapter's /dev/serial/by-id name is")
+    virtual.add_argument("--camera-port", type=int, default=0, metavar="PORT",
+                         help="the camera stream's TCP port (default: any free one)")
+    virtual.add_argument("--fixture-port", type=int, default=0, metavar="PORT",
+                         help="the fixture's TCP port (default: any free one)")
     virtual.set_defaults(run=_cmd_virtual_cell)

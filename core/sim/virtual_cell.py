@@ -67,6 +67,21 @@ class VirtualCellSettings:
 
 
 @dataclass(frozen=True)
+class Addresses:
+    """Where the virtual cell's devices appear; by default wherever the system puts them.
+
+    Fixed ones let a virtual cell restarted after a crash come back where the controller
+    looks for it, as a real cell's devices do (a serial adapter's /dev/serial/by-id name,
+    a camera's address): jrc_link is a symbolic link to the JRC's pseudo-terminal, put in
+    place at every start; camera_port and fixture_port are TCP ports (0: any free one).
+    """
+
+    jrc_link: Path | None = None
+    camera_port: int = 0
+    fixture_port: int = 0
+
+
+@dataclass(frozen=True)
 class Released:
     """A part the cup let go, gauged: inside the pocket, and its centre's offset from the pocket's."""
 
@@ -123,8 +138,10 @@ class VirtualCell:
 
     def __init__(self, tables: dict[str, Any], source: str, seed: int | None = None,
                  settings: VirtualCellSettings = VirtualCellSettings(),
-                 on_released: Callable[[Released], None] = lambda released: None, board_laid: bool = False) -> None:
+                 on_released: Callable[[Released], None] = lambda released: None, board_laid: bool = False,
+                 addresses: Addresses = Addresses()) -> None:
         self.tables, self.source, self.settings, self.on_released = tables, source, settings, on_released
+        self.addresses = addresses
         self.config: CellConfig = parse_cell(tables, source)
         self.cell = SimulatedCell(self.config, seed)
         if board_laid:
@@ -134,8 +151,9 @@ class VirtualCell:
         self.emulator = JrcEmulator(self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum)
         self.renderer = SceneRenderer(self.cell.truth.model.camera, RenderSettings())
         self.camera_rng = np.random.default_rng(self.cell.rng.integers(2**31))
-        self.camera = CameraStream(self._render, fps=settings.fps, exposure_latency_s=settings.exposure_latency_s)
-        self.fixture = _FixtureServer(self)
+        self.camera = CameraStream(self._render, fps=settings.fps, exposure_latency_s=settings.exposure_latency_s,
+                                   port=addresses.camera_port)
+        self.fixture = _FixtureServer(self, port=addresses.fixture_port)
         self.released: list[Released] = []
         self.jrc_port: str | None = None  # the emulator's pseudo-terminal, once started
         self._stop = threading.Event()
@@ -145,6 +163,14 @@ class VirtualCell:
 
     def start(self) -> None:
         self.jrc_port = self.emulator.start_on_pty()
+        if self.addresses.jrc_link is not None:
+            # A new link beside the old one, then renamed over it: the name is never missing
+            # or left pointing at a dead pseudo-terminal by this start.
+            fresh = self.addresses.jrc_link.with_name(self.addresses.jrc_link.name + ".new")
+            fresh.unlink(missing_ok=True)
+            fresh.symlink_to(self.jrc_port)
+            fresh.replace(self.addresses.jrc_link)
+            self.jrc_port = str(self.addresses.jrc_link)
         self.camera.start()
         self.fixture.start()
         self._watch = threading.Thread(target=self._watch_releases, name="release-gauge", daemon=True)
@@ -253,8 +279,8 @@ class _FixtureServer:
     is; POST /board ({"laid": true|false}) lays the checkerboard or takes it away, GET
     /board says which; GET /released lists the gauged releases."""
 
-    def __init__(self, virtual: VirtualCell, host: str = "127.0.0.1") -> None:
-        self.server = ThreadingHTTPServer((host, 0), _handler_for(virtual))
+    def __init__(self, virtual: VirtualCell, host: str = "127.0.0.1", port: int = 0) -> None:
+        self.server = ThreadingHTTPServer((host, port), _handler_for(virtual))
         self.server.daemon_threads = True
         self.url = f"http://{host}:{self.server.server_address[1]}"
         self._thread: threading.Thread | None = None
