@@ -5,7 +5,7 @@ from one operator at a time (the channel and the app decide who that is); every 
 is checked against the current phase, and a refused one raises CommandRefused with the
 reason, never moves the robot. The phases (vservo.core.production.assembly.Phase):
 
-    idle --teach--> teaching --save/cancel--> idle
+    idle --teach--> teaching --save/cancel--> idle   (teaching: jog, suction, test pick, present part)
     idle --start--> servoing (stages) --> picking --> placing --> done | fault
     idle --commission--> commissioning --> idle | fault
     any  --estop--> e-stopped --reset--> idle
@@ -64,6 +64,10 @@ if TYPE_CHECKING:  # commissioning's calibration (torch, the board finder) is im
 log = logging.getLogger("vservo.controller")
 
 JOG_SPEED_M_S = 0.02
+PART_SIDE_M = 0.020  # the shipped part, a 20 mm cube (section 5.3)
+# A test pick lifts the part this far: enough for the vacuum sensor to feel its weight,
+# little enough that a part that falls lands where it lay.
+TEST_PICK_LIFT_M = 0.005
 TRAIL_LENGTH = 400  # feature positions kept for the trajectories drawn on the image
 # What a commissioned file must share with the running cell for the controller to run on it
 # without a restart: the devices it opened (the model is what commissioning changes).
@@ -157,6 +161,19 @@ class Commissioned:
     out_path: Path
     folder: Path
     steps: list[Step]
+
+
+def _part_origin(centre_mm: Sequence[float], turn_deg: float) -> tuple[float, float]:
+    """The part's frame O (a top-face corner), x and y in m, for its top face's centre at
+    ``centre_mm`` turned ``turn_deg``."""
+    values = [*np.asarray(centre_mm, float).ravel(), float(turn_deg)]
+    if len(values) != 3 or not np.all(np.isfinite(values)):
+        raise CommandRefused(f"a part is presented at a finite X, Y (mm) and turn (deg), got {values}")
+    turn = np.deg2rad(turn_deg)
+    half = PART_SIDE_M / 2
+    corner = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]]) @ [half, half]
+    x, y = np.asarray(values[:2]) / 1000.0 - corner
+    return float(x), float(y)
 
 
 def _finite_list(values: Matrix) -> list:
@@ -385,7 +402,7 @@ class CellController:
         self._draft = replace(self._draft, **changes)
         self._update(detail=detail, teach_missing=self._draft.missing(), teach_optional=self._draft.optional_missing())
 
-    def capture_desired(self, part_side_m: float = 0.020) -> DesiredImage:
+    def capture_desired(self, part_side_m: float = PART_SIDE_M) -> DesiredImage:
         """Take the desired image here (Fig. C-2): the four corners and the laser spot must be seen."""
         with self._lock:
             self._require(Phase.TEACHING)
@@ -431,9 +448,61 @@ class CellController:
             self._set_draft("pick pose set here", eMe_pick=eMe_pick)
 
     def set_place_pose(self) -> None:
+        """The cup has carried the part into the metal part: the place pose is taught only
+        with the part on the cup, so the vacuum sensor must say so."""
         with self._lock:
             self._require(Phase.TEACHING)
+            if not self._holding():
+                raise CommandRefused("the place pose is taught with the part on the cup, and the vacuum sensor "
+                                     "reports none: at the pick, Suction on, then carry the part into the metal part")
             self._set_draft("place pose set here", bMe_place=self.rig.robot.read_pose())
+
+    def _holding(self) -> bool:
+        try:
+            return self.rig.gripper.holding()
+        except RobotError as exc:
+            raise CommandRefused(f"the vacuum sensor cannot be read: {exc}") from exc
+
+    def suction(self, on: bool) -> bool:
+        """Switch the cup's suction while teaching; whether the vacuum sensor then reports a part."""
+        with self._lock:
+            self._require(Phase.TEACHING)
+            try:
+                self.rig.gripper.set_vacuum(on)
+            except RobotError as exc:
+                raise CommandRefused(f"suction {'on' if on else 'off'}: {exc}") from exc
+            holding = self._holding()
+            sensor = "a part on the cup" if holding else "no part on the cup"
+            self._update(detail=f"suction {'on' if on else 'off'}: the vacuum sensor reports {sensor}",
+                         **self._robot_readout())
+            return holding
+
+    def test_pick(self) -> bool:
+        """Try the pick here, the way a run will: suction on, lift TEST_PICK_LIFT_M, read the
+        vacuum sensor, put the part back down where it was and release it. Whether it held."""
+        with self._lock:
+            self._require(Phase.TEACHING)
+            if self._holding():
+                raise CommandRefused("the cup holds a part already: Suction off first")
+            bMe = self.rig.robot.read_pose()
+            lifted = bMe.copy()
+            lifted[2, 3] += TEST_PICK_LIFT_M
+            gripped = self.suction(True)
+            held = False
+            try:
+                if gripped:
+                    self.move_to(lifted)
+                    held = self._holding()
+                    self.move_to(bMe)
+            finally:
+                self.rig.gripper.set_vacuum(False)
+            lift = f"{1000 * TEST_PICK_LIFT_M:.0f} mm"
+            detail = (f"test pick: the part held through a {lift} lift and is back down: grip good" if held else
+                      f"test pick: the part fell during the {lift} lift: grip weak" if gripped else
+                      "test pick: no grip: the vacuum sensor reports no part after suction on "
+                      "(put the cup on the middle of the part's top face, pressed a few mm)")
+            self._update(detail=detail, **self._robot_readout())
+            return held
 
     def set_settings(self, threshold_px: float, gain: float, approach_m: float,
                      placement_tolerance_mm: float | None = None) -> None:
@@ -448,7 +517,7 @@ class CellController:
             self._set_draft("settings changed", threshold_px=threshold_px, gain=gain, approach_m=approach_m,
                             placement_tolerance_mm=tolerance)
 
-    def save_job(self, name: str, description: str = "", part_side_m: float = 0.020) -> Job:
+    def save_job(self, name: str, description: str = "", part_side_m: float = PART_SIDE_M) -> Job:
         with self._lock:
             self._require(Phase.TEACHING)
             draft = self._draft
@@ -474,16 +543,24 @@ class CellController:
             self._draft = None
             self._update(phase=Phase.IDLE.value, detail="teaching cancelled", teach_missing=[], teach_optional=[])
 
-    def present_part(self) -> None:
-        """A new part near where the job was taught, where the cell can: the simulated
-        cell, or a test cell's fixture."""
+    def present_part(self, centre_mm: Sequence[float] | None = None, turn_deg: float = 0.0) -> None:
+        """A new part on the table where the cell can (the simulated cell, or a test cell's
+        fixture), whenever no run or commissioning moves the robot, teaching included: near
+        where the demo job was taught, or with its top face's centre at ``centre_mm`` (X, Y
+        in the base frame) turned ``turn_deg`` about the vertical. The cup lets go of a part
+        it held."""
         with self._lock:
-            self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
-            if self.rig.present_part is None:
+            self._require(Phase.IDLE, Phase.TEACHING, Phase.DONE, Phase.FAULT)
+            hook = self.rig.present_part if centre_mm is None else self.rig.place_part
+            if hook is None:
                 raise CommandRefused("this cell has no part fixture: parts arrive by hand")
             try:
-                self.rig.present_part(self.rng)
-            except FixtureError as exc:
+                if centre_mm is None:
+                    self.rig.present_part(self.rng)
+                else:
+                    x, y = _part_origin(centre_mm, turn_deg)
+                    self.rig.place_part(x, y, np.deg2rad(turn_deg))
+            except (FixtureError, ValueError) as exc:
                 raise CommandRefused(str(exc)) from None
             self._update(detail="a new part is on the table", **self._robot_readout())
 
