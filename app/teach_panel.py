@@ -58,6 +58,7 @@ PART_SIDE_M = 0.020
 # level compensator, as an operator jogs until it presses.
 PICK_PRESS_M = 0.003
 TOOLS = ("flange", "cup")
+NEXT_COLOR = "orange"  # the next step's button: the theme's buttons are blue already
 
 
 class PoseEntryError(ValueError):
@@ -289,7 +290,7 @@ class TeachPanel:
                 if pose is None:
                     view.notify("Go to", f"job {template_name()!r} has no {where}", error=True)
                     return
-                send(view, f"Go to the template's {where}", "move_to", bMe=pose)
+                send(view, f"Go to the template's {where}", "move_to", "arrived", bMe=pose)
             return lambda _: app.in_background(fetch_and_move)
 
         def on_jog(event: Any) -> None:
@@ -322,7 +323,7 @@ class TeachPanel:
                 view.notify("Move there: refused", str(exc), error=True)
                 return
             bMe = bMx if tool.value == "flange" else bMx @ inverse(app.scene.mount.eMv)
-            send(view, f"Move the {tool.value} there", "move_to", bMe=bMe.tolist())
+            send(view, f"Move the {tool.value} there", "move_to", "arrived", bMe=bMe.tolist())
 
         def on_present(_: Any) -> None:
             send(view, "Present part here", "present_part", "a new part is on the table",
@@ -399,7 +400,7 @@ class TeachPanel:
 
     def _enable(self, client_id: int) -> None:
         """Each button enabled only while it can act: the operator's browser, and the state
-        allows it; the next step's button in blue."""
+        allows it; the next step's button in orange."""
         state = self.app.session.state
         with self._lock:
             view, live = self._live.get(client_id, (None, []))
@@ -412,7 +413,7 @@ class TeachPanel:
                 disabled = not (view.is_operator and when(state))
                 if handle.disabled != disabled:
                     handle.disabled = disabled
-                color = "blue" if handle is buttons.get(upcoming) else ("green" if handle.label == "Save job" else None)
+                color = NEXT_COLOR if handle is buttons.get(upcoming) else ("green" if handle.label == "Save job" else None)
                 if handle.color != color:
                     handle.color = color
             except RuntimeError:  # viser removed it: its browser left
