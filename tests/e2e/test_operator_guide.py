@@ -174,3 +174,28 @@ def test_teach_a_new_job_as_the_guide_says_and_assemble_it_three_times(page):
         outcome = page.get_by_text(f"Run {run_id}: ").first
         outcome.wait_for(timeout=10_000)
         assert f"Run {run_id}: placed" in outcome.inner_text(), (run, outcome.inner_text(), ended)
+
+
+def test_holding_a_jog_button_moves_the_arm_until_it_is_let_go(page):
+    if page.get_by_text("this browser holds control").count() == 0:  # run on its own
+        take_control(page, TOKEN)
+    page.get_by_role("tab", name="Teach").click()
+    page.get_by_text("Hold to jog").first.click()  # the folder is folded
+    choose(page, "Speed", "medium: 10 mm/s, 5 deg/s")
+    # One step first: a fresh controller publishes the flange pose with its first move.
+    shown = flange_of(status_text(page))
+    choose(page, "Step", "1 mm / 1 deg")
+    page.get_by_role("button", name="-Z", exact=True).click()
+    wait_until(lambda: flange_of(status_text(page)) != shown, "the flange pose shown after a step")
+    time.sleep(1.0)
+    before = flange_of(status_text(page))[2]
+    hold = page.get_by_role("button", name="Hold +Z", exact=True)
+    hold.hover()
+    page.mouse.down()
+    time.sleep(1.5)
+    page.mouse.up()
+    time.sleep(1.0)  # the last jog under way ends
+    released = flange_of(status_text(page))[2]
+    time.sleep(1.5)
+    assert flange_of(status_text(page))[2] == released  # nothing moves once let go
+    assert 3.0 < released - before < 30.0, (before, released)  # about 1.5 s at 10 mm/s
