@@ -160,6 +160,7 @@ def test_teach_a_new_job_as_the_guide_says_and_assemble_it_three_times(page):
     press(page, "Save job", r"job 'shifted' saved")
 
     # Assemble it three times, each on a newly presented part.
+    outcomes = []
     for run, (x, y, turn) in enumerate(ARRIVALS, start=1):
         page.get_by_role("tab", name="Teach").click()
         type_into(page, "Part X (mm)", f"{x:g}")
@@ -174,6 +175,8 @@ def test_teach_a_new_job_as_the_guide_says_and_assemble_it_three_times(page):
         outcome = page.get_by_text(f"Run {run_id}: ").first
         outcome.wait_for(timeout=10_000)
         assert f"Run {run_id}: placed" in outcome.inner_text(), (run, outcome.inner_text(), ended)
+        outcomes.append(outcome.inner_text())
+    (ARTIFACTS / "guide-runs.txt").write_text("\n".join(outcomes) + "\n")  # the figures, for the record
 
 
 def test_holding_a_jog_button_moves_the_arm_until_it_is_let_go(page):
