@@ -129,6 +129,10 @@ def test_teach_a_job_then_assemble_it(controller):
     controller.move_to(demo.bMe_place)
     controller.set_place_pose()
     assert not controller.suction(False)
+    controller.move_to(demo.check.check_bMe)
+    controller.capture_check_view()
+    assert "from where the taught pick and place put it" in controller.state.detail
+    assert "WARNING" not in controller.state.detail, controller.state.detail
     with pytest.raises(CommandRefused, match="start pose"):
         controller.save_job("bolt")
     controller.move_to(demo.start_bMe)
@@ -157,6 +161,24 @@ def test_teaching_presents_a_part_where_asked_and_a_test_pick_off_the_part_says_
     assert "no grip" in controller.state.detail
     with pytest.raises(CommandRefused, match="X, Y"):
         controller.present_part((float("nan"), 0.0))
+
+
+def test_a_part_turned_between_the_desired_image_and_the_pick_is_warned_of_at_the_check_view(controller):
+    demo = controller.store.load_job("demo")
+    controller.begin_teach("demo")
+    controller.move_to(demo.taught_bMe)
+    controller.capture_desired()
+    controller.present_part((-390.0, 0.0), 10.0)  # the same place, turned: the desired image no longer says how
+    controller.move_to(demo.taught_bMe @ demo.eMe_pick)
+    controller.set_pick_pose()
+    assert controller.suction(True)
+    controller.move_to(demo.bMe_place)
+    controller.set_place_pose()
+    controller.suction(False)
+    controller.move_to(demo.check.check_bMe)
+    controller.capture_check_view()
+    detail = controller.state.detail
+    assert "WARNING" in detail and "+10." in detail, detail
 
 
 def test_capture_without_the_part_in_view_is_refused(controller):

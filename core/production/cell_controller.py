@@ -40,7 +40,9 @@ import numpy as np
 
 from vservo.core.cell.config import DEFAULT_CELL, CellConfig, ConfigError, load_cell, read_cell_data
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
-from vservo.core.geometry.spatial import Matrix, exp_twist
+from vservo.core.cell.scene import Cube
+from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
+from vservo.core.geometry.spatial import Matrix, exp_twist, inverse
 from vservo.core.perception.camera_source import BaseSource, CameraSourceError, Frame, FrameSource, Size
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.perception.recording import RunRecorder
@@ -68,6 +70,11 @@ PART_SIDE_M = 0.020  # the shipped part, a 20 mm cube (section 5.3)
 # A test pick lifts the part this far: enough for the vacuum sensor to feel its weight,
 # little enough that a part that falls lands where it lay.
 TEST_PICK_LIFT_M = 0.005
+# The check view's part may lie this far from where the taught pick and place carry the
+# part of the desired view before the operator is warned (deg; the position's bound is
+# the job's placement tolerance): beyond it the part moved between the desired image and
+# the pick, or slipped on the cup, and every run would place it so.
+PLACE_TURN_WARNING_DEG = 2.0
 TRAIL_LENGTH = 400  # feature positions kept for the trajectories drawn on the image
 # What a commissioned file must share with the running cell for the controller to run on it
 # without a restart: the devices it opened (the model is what commissioning changes).
@@ -98,6 +105,7 @@ class TeachDraft:
     check: CheckView | None = None
     placement_tolerance_mm: float = 1.0
     taught_model: TaughtModel | None = None  # what the desired image was seen through
+    seen_bMo: Matrix | None = None  # the part as the desired image saw it (planar PnP, nominal camera)
 
     def missing(self) -> list[str]:
         """What the job cannot be saved without."""
@@ -413,9 +421,10 @@ class CellController:
                 raise CommandRefused(str(exc)) from exc
             self._desired = desired
             self._desired_image = frame.image
+            taught_bMe = self.rig.robot.read_pose()
             self._set_draft(f"desired image captured, laser depth {1000 * desired.depth_m:.1f} mm",
-                            desired=desired, taught_bMe=self.rig.robot.read_pose(),
-                            taught_model=TaughtModel.of(self.rig.config.nominal))
+                            desired=desired, taught_bMe=taught_bMe, taught_model=TaughtModel.of(self.rig.config.nominal),
+                            seen_bMo=self._part_seen(taught_bMe, features.corners_px, part_side_m))
             return desired
 
     def capture_check_view(self) -> CheckView:
@@ -430,8 +439,36 @@ class CellController:
                                      "the metal part and the camera over it")
             check = CheckView(check_bMe=self.rig.robot.read_pose(), corners_px=features.corners_px)
             self._check_image = frame.image
-            self._set_draft("check view captured", check=check)
+            self._set_draft(f"check view captured{self._place_check(check)}", check=check)
             return check
+
+    def _part_seen(self, bMe: Matrix, corners_px: Matrix, side_m: float = PART_SIDE_M) -> Matrix | None:
+        """bMo of the part from its four corners seen from bMe (None when the pose cannot be had)."""
+        model = self.rig.config.nominal
+        try:
+            return bMe @ model.eMc @ pose_from_planar_points(corners_px, Cube(np.eye(4), side_m).corners_o, model.camera)
+        except PoseEstimationError:
+            return None
+
+    def _place_check(self, check: CheckView) -> str:
+        """The check view's part against where the taught pick and place put the part the
+        desired image saw: the words to add to the state (a warning beyond the bounds)."""
+        draft = self._draft
+        if draft.seen_bMo is None or draft.eMe_pick is None or draft.bMe_place is None:
+            return ""
+        placed = self._part_seen(check.check_bMe, check.corners_px)
+        if placed is None:
+            return ""
+        # The part held as the pick found it, set down by the place pose.
+        expected = draft.bMe_place @ inverse(draft.taught_bMe @ draft.eMe_pick) @ draft.seen_bMo
+        offset_mm = 1000.0 * float(np.linalg.norm(placed[:2, 3] - expected[:2, 3]))
+        turn = np.arctan2(placed[1, 0], placed[0, 0]) - np.arctan2(expected[1, 0], expected[0, 0])
+        turn_deg = float(np.rad2deg(np.angle(np.exp(1j * turn))))
+        where = f"the part lies {offset_mm:.1f} mm and {turn_deg:+.1f} deg from where the taught pick and place put it"
+        if offset_mm > draft.placement_tolerance_mm or abs(turn_deg) > PLACE_TURN_WARNING_DEG:
+            return (f"; WARNING: {where}: the part moved between the desired image and the pick, or slipped on "
+                    "the cup; teach the desired image, the pick and the place again on one part left where it lies")
+        return f": {where}"
 
     def set_start_pose(self) -> None:
         with self._lock:
