@@ -111,7 +111,13 @@ def test_estop_stops_the_arm_within_one_cycle_and_refuses_moves_until_reset(cont
 
 def test_teach_a_job_then_assemble_it(controller):
     demo = controller.store.load_job("demo")
+    controller.present_part()
+    assert controller.state.job is None  # nothing was run yet
+    controller.start("demo")
+    controller.wait()
     controller.begin_teach()
+    assert controller.state.job is None  # a new job is not the last one run
+    controller.present_part((-390.0, 0.0), 0.0)  # where the demo job's part was taught
     with pytest.raises(CommandRefused, match="desired image"):
         controller.set_pick_pose()
     controller.move_to(demo.taught_bMe)

@@ -403,7 +403,8 @@ class CellController:
                                    placement_tolerance_mm=job.placement_tolerance_mm)
             self._draft = draft
             self._check_image = None
-            self._update(phase=Phase.TEACHING.value, detail="jog to the desired view and capture it",
+            # The job shown is the template taught from; a new job has none until it is saved.
+            self._update(phase=Phase.TEACHING.value, detail="jog to the desired view and capture it", job=template or None,
                          teach_missing=draft.missing(), teach_optional=draft.optional_missing())
 
     def _set_draft(self, detail: str, **changes) -> None:

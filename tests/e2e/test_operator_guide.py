@@ -144,7 +144,7 @@ def test_teach_a_new_job_as_the_guide_says_and_assemble_it_three_times(page):
 
     # 6. The check view: the template's, capture it.
     press(page, "Go to the template's check view", "arrived")
-    press(page, "Capture check view", "check view captured")
+    press(page, "Capture check view", "check view captured: the part lies")
     shot(page, 5, "check-view")
 
     # 7. The start pose: the template's, moved by the part's offset (Y -40), set it.
