@@ -41,6 +41,7 @@ from vservo.core.geometry.spatial import (
     transform,
 )
 from vservo.core.production.assembly import Phase
+from vservo.core.production.cell_controller import PART_SIDE_M
 
 NEW_JOB = "(new job)"
 # Jog step: translation (m) and rotation (deg) per press.
@@ -53,7 +54,6 @@ GIZMO_FOLLOW = 1e-4  # m and rad: the gizmo is moved to the flange only when the
 SPEEDS = {"slow: 2 mm/s, 2 deg/s": (0.002, 2.0), "medium: 10 mm/s, 5 deg/s": (0.010, 5.0),
           "fast: 25 mm/s, 10 deg/s": (0.025, 10.0)}
 HOLD_HZ = 5.0
-PART_SIDE_M = 0.020
 # The cup pose offered for a pick: on the middle of the top face, pressed this far into its
 # level compensator, as an operator jogs until it presses.
 PICK_PRESS_M = 0.003
@@ -104,7 +104,16 @@ def image_direction(bMe: Matrix, eMc: Matrix, button: str) -> str:
 
 def jog_step(button: str, step: str) -> tuple[list[float], list[float]]:
     """(translation m, rotation rad) of one press of a jog button at a step size."""
-    metres, degrees = STEPS[step]
+    return _jog(button, *STEPS[step])
+
+
+def hold_step(button: str, speed: str) -> tuple[list[float], list[float]]:
+    """(translation m, rotation rad) of one repeat of a held jog button: a HOLD_HZ-th of a second at ``speed``."""
+    metres_s, degrees_s = SPEEDS[speed]
+    return _jog(button, metres_s / HOLD_HZ, degrees_s / HOLD_HZ)
+
+
+def _jog(button: str, metres: float, degrees: float) -> tuple[list[float], list[float]]:
     sign = 1.0 if button[0] == "+" else -1.0
     axis = "XYZ".index(button[-1].upper())
     translation, rotation = [0.0] * 3, [0.0] * 3
@@ -265,7 +274,7 @@ class TeachPanel:
                 cancel = button("Cancel teaching", teaching)
         view.handles["teach_template"] = template
         send = app.send
-        held: dict[str, float] = {}  # hold-to-jog: the jog under way, if any (one at a time per browser)
+        jogging = threading.Event()  # hold-to-jog: a jog of this browser's is under way
 
         def template_name() -> str | None:
             return None if template.value == NEW_JOB else template.value
@@ -302,18 +311,16 @@ class TeachPanel:
             def hold(_: Any) -> None:
                 # One short jog per repeat of the held button, at the chosen speed; a repeat
                 # while the last jog still moves is dropped, so letting go stops within one.
-                if held.get("busy"):
+                if jogging.is_set():
                     return
-                metres_s, degrees_s = SPEEDS[speed.value]
-                translation, rotation = jog_step(name, "1 mm / 1 deg")
-                scale_t, scale_r = metres_s / HOLD_HZ / 0.001, degrees_s / HOLD_HZ
-                held["busy"] = 1.0
+                jogging.set()
+                translation, rotation = hold_step(name, speed.value)
 
                 def done(reply: Any) -> None:
-                    held["busy"] = 0.0
+                    jogging.clear()
                     view.report(f"Jog {name}")(reply)
-                send(view, f"Jog {name}", "jog", done=done, translation_m=[scale_t * v for v in translation],
-                     rotation_rad=[scale_r * v for v in rotation], frame=frame.value)
+                send(view, f"Jog {name}", "jog", done=done, translation_m=translation, rotation_rad=rotation,
+                     frame=frame.value)
             return hold
 
         def on_move_there(_: Any) -> None:
