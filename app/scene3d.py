@@ -2,8 +2,10 @@
 
 - the UPJ from its URDF through Pinocchio's ViserVisualizer, posed from the joints the
   controller publishes (``state.q``);
-- the camera's view frustum and the laser beam, from the flange pose and the NOMINAL tool
-  mount of the cell file (what the controller believes, not the simulator's truth);
+- the tools on the flange from the NOMINAL tool mount of the cell file (what the controller
+  believes, not the simulator's truth): the vacuum cup (eMv), the camera's body and view
+  frustum (eMc), the laser pointer and its beam (eMc cMl), each joined to the flange by a
+  bracket line;
 - the part where the vision puts it: the pose estimated from the four detected corners
   with the nominal camera (planar PnP), carried rigidly by the cup while it holds the part;
 - the metal part where the selected job places the part (from its place pose);
@@ -36,6 +38,22 @@ METAL_RGB = (150, 155, 165)
 CAMERA_RGB = (40, 90, 220)
 LASER_RGB = (240, 30, 30)
 PATH_RGB = (20, 160, 90)
+CUP_RGB = (30, 30, 30)
+BRACKET_RGB = (90, 90, 90)
+# The tools' bodies as drawn: the cup's bellows above its lip, the camera's housing behind
+# its lens, the laser pointer's tube behind its aperture (m).
+CUP_RADIUS_M, CUP_HEIGHT_M = 0.009, 0.020
+CAMERA_BODY_M = (0.035, 0.035, 0.045)
+LASER_RADIUS_M, LASER_LENGTH_M = 0.006, 0.040
+
+
+def tool_bodies(bMe: Matrix, mount: ToolMount) -> dict[str, Matrix]:
+    """Where each tool's body is drawn: its centre, z along the tool's axis (the cup's and
+    the laser's towards the part, the camera's along its view); the body lies behind the
+    tool's frame origin (the cup's lip, the lens, the aperture)."""
+    behind = {"cup": CUP_HEIGHT_M / 2, "camera": CAMERA_BODY_M[2] / 2, "laser": LASER_LENGTH_M / 2}
+    frames = {"cup": mount.eMv, "camera": mount.eMc, "laser": mount.eMl}
+    return {name: bMe @ frames[name] @ transform(t=(0.0, 0.0, -behind[name])) for name in frames}
 
 
 def part_pose_from_corners(corners_px: Matrix, bMe: Matrix, eMc: Matrix, camera: CameraModel,
@@ -125,6 +143,11 @@ class CellScene:
             "/cell/camera", fov=2 * np.arctan2(intrinsics.height / 2, intrinsics.fy),
             aspect=intrinsics.width / intrinsics.height, scale=0.05, thickness=0.002, color=CAMERA_RGB)
         self.part = scene.add_box("/cell/part", PART_RGB, (0.02, 0.02, 0.02), visible=False)
+        self.tools = {
+            "cup": scene.add_cylinder("/cell/tools/cup", CUP_RADIUS_M, CUP_HEIGHT_M, CUP_RGB),
+            "camera": scene.add_box("/cell/tools/camera", CAMERA_RGB, CAMERA_BODY_M),
+            "laser": scene.add_cylinder("/cell/tools/laser", LASER_RADIUS_M, LASER_LENGTH_M, LASER_RGB),
+        }
         self.metal: list = []
         self.tracker = PartTracker(self.mount, self.camera)
         self.job: _Job | None = None
@@ -155,6 +178,11 @@ class CellScene:
         bMe = np.asarray(state["bMe"], float)
         bMc = bMe @ self.mount.eMc
         self.frustum.wxyz, self.frustum.position = _wxyz(bMc), bMc[:3, 3]
+        bodies = tool_bodies(bMe, self.mount)
+        for name, bMx in bodies.items():
+            self.tools[name].wxyz, self.tools[name].position = _wxyz(bMx), bMx[:3, 3]
+        brackets = np.array([[bMe[:3, 3], bMx[:3, 3]] for bMx in bodies.values()])
+        self.server.scene.add_line_segments("/cell/tools/brackets", brackets, BRACKET_RGB, thickness=0.004)
         side = self.job.side_m if self.job else 0.020
         bMo = self.tracker.update(state, overlay, side)
         if bMo is not None:

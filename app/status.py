@@ -89,18 +89,6 @@ def outcome_markdown(outcome: dict | None, run_id: int | None) -> str:
             f"{_number(outcome.get('duration_s'), 1, ' s')} · {outcome.get('iterations', 0)} servo cycles")
 
 
-def teach_markdown(state: dict) -> str:
-    """What teaching still needs, or how to start it."""
-    if state.get("phase") != Phase.TEACHING:
-        return "Not teaching. Choose a template (or a new job) and press **Begin teaching**."
-    missing = state.get("teach_missing") or []
-    optional = state.get("teach_optional") or []
-    also = (" Optional: " + ", ".join(optional) + ".") if optional else ""
-    if missing:
-        return "Still to teach: " + ", ".join(missing) + "." + also
-    return "Everything is taught: name the job and **Save**." + also
-
-
 def runs_table(runs: Sequence[dict], limit: int = 15) -> str:
     """Past runs, newest first, as a markdown table."""
     if not runs:

@@ -111,7 +111,13 @@ def test_estop_stops_the_arm_within_one_cycle_and_refuses_moves_until_reset(cont
 
 def test_teach_a_job_then_assemble_it(controller):
     demo = controller.store.load_job("demo")
+    controller.present_part()
+    assert controller.state.job is None  # nothing was run yet
+    controller.start("demo")
+    controller.wait()
     controller.begin_teach()
+    assert controller.state.job is None  # a new job is not the last one run
+    controller.present_part((-390.0, 0.0), 0.0)  # where the demo job's part was taught
     with pytest.raises(CommandRefused, match="desired image"):
         controller.set_pick_pose()
     controller.move_to(demo.taught_bMe)
@@ -119,8 +125,20 @@ def test_teach_a_job_then_assemble_it(controller):
     np.testing.assert_allclose(desired.corners_px, demo.desired.corners_px, atol=0.05)
     controller.move_to(demo.taught_bMe @ demo.eMe_pick)
     controller.set_pick_pose()
+    assert controller.test_pick()
+    assert "grip good" in controller.state.detail and not controller.state.holding_part
+    controller.move_to(demo.bMe_place)
+    with pytest.raises(CommandRefused, match="reports none"):
+        controller.set_place_pose()  # the part was left at the pick
+    controller.move_to(demo.taught_bMe @ demo.eMe_pick)
+    assert controller.suction(True) and controller.state.holding_part
     controller.move_to(demo.bMe_place)
     controller.set_place_pose()
+    assert not controller.suction(False)
+    controller.move_to(demo.check.check_bMe)
+    controller.capture_check_view()
+    assert "from where the taught pick and place put it" in controller.state.detail
+    assert "WARNING" not in controller.state.detail, controller.state.detail
     with pytest.raises(CommandRefused, match="start pose"):
         controller.save_job("bolt")
     controller.move_to(demo.start_bMe)
@@ -134,6 +152,39 @@ def test_teach_a_job_then_assemble_it(controller):
     controller.start("bolt")
     controller.wait()
     assert controller.last_outcome.outcome is Outcome.PLACED, controller.last_outcome.reason
+
+
+def test_teaching_presents_a_part_where_asked_and_a_test_pick_off_the_part_says_no_grip(controller):
+    cell = controller.rig.cell
+    controller.begin_teach()
+    controller.present_part((-360.0, -20.0), 30.0)  # 40 mm from the demo's part, turned
+    bMo = cell.state.scene.cube.bMo
+    centre = bMo @ np.array([0.01, 0.01, 0.0, 1.0])
+    np.testing.assert_allclose(centre[:2], [-0.360, -0.020], atol=1e-9)
+    assert np.degrees(np.arctan2(bMo[1, 0], bMo[0, 0])) == pytest.approx(30.0)
+    assert controller.state.phase == Phase.TEACHING.value
+    assert not controller.test_pick()  # the cup is nowhere near it
+    assert "no grip" in controller.state.detail
+    with pytest.raises(CommandRefused, match="X, Y"):
+        controller.present_part((float("nan"), 0.0))
+
+
+def test_a_part_turned_between_the_desired_image_and_the_pick_is_warned_of_at_the_check_view(controller):
+    demo = controller.store.load_job("demo")
+    controller.begin_teach("demo")
+    controller.move_to(demo.taught_bMe)
+    controller.capture_desired()
+    controller.present_part((-390.0, 0.0), 10.0)  # the same place, turned: the desired image no longer says how
+    controller.move_to(demo.taught_bMe @ demo.eMe_pick)
+    controller.set_pick_pose()
+    assert controller.suction(True)
+    controller.move_to(demo.bMe_place)
+    controller.set_place_pose()
+    controller.suction(False)
+    controller.move_to(demo.check.check_bMe)
+    controller.capture_check_view()
+    detail = controller.state.detail
+    assert "WARNING" in detail and "+10." in detail, detail
 
 
 def test_capture_without_the_part_in_view_is_refused(controller):

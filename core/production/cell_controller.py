@@ -5,7 +5,7 @@ from one operator at a time (the channel and the app decide who that is); every 
 is checked against the current phase, and a refused one raises CommandRefused with the
 reason, never moves the robot. The phases (vservo.core.production.assembly.Phase):
 
-    idle --teach--> teaching --save/cancel--> idle
+    idle --teach--> teaching --save/cancel--> idle   (teaching: jog, suction, test pick, present part)
     idle --start--> servoing (stages) --> picking --> placing --> done | fault
     idle --commission--> commissioning --> idle | fault
     any  --estop--> e-stopped --reset--> idle
@@ -41,7 +41,9 @@ import numpy as np
 
 from vservo.core.cell.config import DEFAULT_CELL, CellConfig, ConfigError, load_cell, read_cell_data
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
-from vservo.core.geometry.spatial import Matrix, exp_twist
+from vservo.core.cell.scene import Cube
+from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
+from vservo.core.geometry.spatial import Matrix, exp_twist, inverse
 from vservo.core.perception.camera_source import BaseSource, CameraSourceError, Frame, FrameSource, Size
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.perception.recording import RecordingError, RunRecorder
@@ -66,6 +68,15 @@ log = logging.getLogger("vservo.controller")
 
 JOG_SPEED_M_S = 0.02
 HOLD_CONFIRM_S = 1.0  # an e-stop's hold unanswered this long is reported as not confirmed
+PART_SIDE_M = 0.020  # the shipped part, a 20 mm cube (section 5.3)
+# A test pick lifts the part this far: enough for the vacuum sensor to feel its weight,
+# little enough that a part that falls lands where it lay.
+TEST_PICK_LIFT_M = 0.005
+# The check view's part may lie this far from where the taught pick and place carry the
+# part of the desired view before the operator is warned (deg; the position's bound is
+# the job's placement tolerance): beyond it the part moved between the desired image and
+# the pick, or slipped on the cup, and every run would place it so.
+PLACE_TURN_WARNING_DEG = 2.0
 TRAIL_LENGTH = 400  # feature positions kept for the trajectories drawn on the image
 # What a commissioned file must share with the running cell for the controller to run on it
 # without a restart: the devices it opened (the model is what commissioning changes).
@@ -96,6 +107,7 @@ class TeachDraft:
     check: CheckView | None = None
     placement_tolerance_mm: float = 1.0
     taught_model: TaughtModel | None = None  # what the desired image was seen through
+    seen_bMo: Matrix | None = None  # the part as the desired image saw it (planar PnP, nominal camera)
 
     def missing(self) -> list[str]:
         """What the job cannot be saved without."""
@@ -159,6 +171,19 @@ class Commissioned:
     out_path: Path
     folder: Path
     steps: list[Step]
+
+
+def _part_origin(centre_mm: Sequence[float], turn_deg: float) -> tuple[float, float]:
+    """The part's frame O (a top-face corner), x and y in m, for its top face's centre at
+    ``centre_mm`` turned ``turn_deg``."""
+    values = [*np.asarray(centre_mm, float).ravel(), float(turn_deg)]
+    if len(values) != 3 or not np.all(np.isfinite(values)):
+        raise CommandRefused(f"a part is presented at a finite X, Y (mm) and turn (deg), got {values}")
+    turn = np.deg2rad(turn_deg)
+    half = PART_SIDE_M / 2
+    corner = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]]) @ [half, half]
+    x, y = np.asarray(values[:2]) / 1000.0 - corner
+    return float(x), float(y)
 
 
 def _finite_list(values: Matrix) -> list:
@@ -408,14 +433,15 @@ class CellController:
                                    placement_tolerance_mm=job.placement_tolerance_mm)
             self._draft = draft
             self._check_image = None
-            self._update(phase=Phase.TEACHING.value, detail="jog to the desired view and capture it",
+            # The job shown is the template taught from; a new job has none until it is saved.
+            self._update(phase=Phase.TEACHING.value, detail="jog to the desired view and capture it", job=template or None,
                          teach_missing=draft.missing(), teach_optional=draft.optional_missing())
 
     def _set_draft(self, detail: str, **changes) -> None:
         self._draft = replace(self._draft, **changes)
         self._update(detail=detail, teach_missing=self._draft.missing(), teach_optional=self._draft.optional_missing())
 
-    def capture_desired(self, part_side_m: float = 0.020) -> DesiredImage:
+    def capture_desired(self, part_side_m: float = PART_SIDE_M) -> DesiredImage:
         """Take the desired image here (Fig. C-2): the four corners and the laser spot must be seen."""
         with self._lock:
             self._require(Phase.TEACHING)
@@ -426,9 +452,10 @@ class CellController:
                 raise CommandRefused(str(exc)) from exc
             self._desired = desired
             self._desired_image = frame.image
+            taught_bMe = self.rig.robot.read_pose()
             self._set_draft(f"desired image captured, laser depth {1000 * desired.depth_m:.1f} mm",
-                            desired=desired, taught_bMe=self.rig.robot.read_pose(),
-                            taught_model=TaughtModel.of(self.rig.config.nominal))
+                            desired=desired, taught_bMe=taught_bMe, taught_model=TaughtModel.of(self.rig.config.nominal),
+                            seen_bMo=self._part_seen(taught_bMe, features.corners_px, part_side_m))
             return desired
 
     def capture_check_view(self) -> CheckView:
@@ -443,8 +470,36 @@ class CellController:
                                      "the metal part and the camera over it")
             check = CheckView(check_bMe=self.rig.robot.read_pose(), corners_px=features.corners_px)
             self._check_image = frame.image
-            self._set_draft("check view captured", check=check)
+            self._set_draft(f"check view captured{self._place_check(check)}", check=check)
             return check
+
+    def _part_seen(self, bMe: Matrix, corners_px: Matrix, side_m: float = PART_SIDE_M) -> Matrix | None:
+        """bMo of the part from its four corners seen from bMe (None when the pose cannot be had)."""
+        model = self.rig.config.nominal
+        try:
+            return bMe @ model.eMc @ pose_from_planar_points(corners_px, Cube(np.eye(4), side_m).corners_o, model.camera)
+        except PoseEstimationError:
+            return None
+
+    def _place_check(self, check: CheckView) -> str:
+        """The check view's part against where the taught pick and place put the part the
+        desired image saw: the words to add to the state (a warning beyond the bounds)."""
+        draft = self._draft
+        if draft.seen_bMo is None or draft.eMe_pick is None or draft.bMe_place is None:
+            return ""
+        placed = self._part_seen(check.check_bMe, check.corners_px)
+        if placed is None:
+            return ""
+        # The part held as the pick found it, set down by the place pose.
+        expected = draft.bMe_place @ inverse(draft.taught_bMe @ draft.eMe_pick) @ draft.seen_bMo
+        offset_mm = 1000.0 * float(np.linalg.norm(placed[:2, 3] - expected[:2, 3]))
+        turn = np.arctan2(placed[1, 0], placed[0, 0]) - np.arctan2(expected[1, 0], expected[0, 0])
+        turn_deg = float(np.rad2deg(np.angle(np.exp(1j * turn))))
+        where = f"the part lies {offset_mm:.1f} mm and {turn_deg:+.1f} deg from where the taught pick and place put it"
+        if offset_mm > draft.placement_tolerance_mm or abs(turn_deg) > PLACE_TURN_WARNING_DEG:
+            return (f"; WARNING: {where}: the part moved between the desired image and the pick, or slipped on "
+                    "the cup; teach the desired image, the pick and the place again on one part left where it lies")
+        return f": {where}"
 
     def set_start_pose(self) -> None:
         with self._lock:
@@ -461,9 +516,61 @@ class CellController:
             self._set_draft("pick pose set here", eMe_pick=eMe_pick)
 
     def set_place_pose(self) -> None:
+        """The cup has carried the part into the metal part: the place pose is taught only
+        with the part on the cup, so the vacuum sensor must say so."""
         with self._lock:
             self._require(Phase.TEACHING)
+            if not self._holding():
+                raise CommandRefused("the place pose is taught with the part on the cup, and the vacuum sensor "
+                                     "reports none: at the pick, Suction on, then carry the part into the metal part")
             self._set_draft("place pose set here", bMe_place=self.rig.robot.read_pose())
+
+    def _holding(self) -> bool:
+        try:
+            return self.rig.gripper.holding()
+        except RobotError as exc:
+            raise CommandRefused(f"the vacuum sensor cannot be read: {exc}") from exc
+
+    def suction(self, on: bool) -> bool:
+        """Switch the cup's suction while teaching; whether the vacuum sensor then reports a part."""
+        with self._lock:
+            self._require(Phase.TEACHING)
+            try:
+                self.rig.gripper.set_vacuum(on)
+            except RobotError as exc:
+                raise CommandRefused(f"suction {'on' if on else 'off'}: {exc}") from exc
+            holding = self._holding()
+            sensor = "a part on the cup" if holding else "no part on the cup"
+            self._update(detail=f"suction {'on' if on else 'off'}: the vacuum sensor reports {sensor}",
+                         **self._robot_readout())
+            return holding
+
+    def test_pick(self) -> bool:
+        """Try the pick here, the way a run will: suction on, lift TEST_PICK_LIFT_M, read the
+        vacuum sensor, put the part back down where it was and release it. Whether it held."""
+        with self._lock:
+            self._require(Phase.TEACHING)
+            if self._holding():
+                raise CommandRefused("the cup holds a part already: Suction off first")
+            bMe = self.rig.robot.read_pose()
+            lifted = bMe.copy()
+            lifted[2, 3] += TEST_PICK_LIFT_M
+            gripped = self.suction(True)
+            held = False
+            try:
+                if gripped:
+                    self.move_to(lifted)
+                    held = self._holding()
+                    self.move_to(bMe)
+            finally:
+                self.rig.gripper.set_vacuum(False)
+            lift = f"{1000 * TEST_PICK_LIFT_M:.0f} mm"
+            detail = (f"test pick: the part held through a {lift} lift and is back down: grip good" if held else
+                      f"test pick: the part fell during the {lift} lift: grip weak" if gripped else
+                      "test pick: no grip: the vacuum sensor reports no part after suction on "
+                      "(put the cup on the middle of the part's top face, pressed a few mm)")
+            self._update(detail=detail, **self._robot_readout())
+            return held
 
     def set_settings(self, threshold_px: float, gain: float, approach_m: float,
                      placement_tolerance_mm: float | None = None) -> None:
@@ -478,7 +585,7 @@ class CellController:
             self._set_draft("settings changed", threshold_px=threshold_px, gain=gain, approach_m=approach_m,
                             placement_tolerance_mm=tolerance)
 
-    def save_job(self, name: str, description: str = "", part_side_m: float = 0.020) -> Job:
+    def save_job(self, name: str, description: str = "", part_side_m: float = PART_SIDE_M) -> Job:
         with self._lock:
             self._require(Phase.TEACHING)
             draft = self._draft
@@ -504,16 +611,24 @@ class CellController:
             self._draft = None
             self._update(phase=Phase.IDLE.value, detail="teaching cancelled", teach_missing=[], teach_optional=[])
 
-    def present_part(self) -> None:
-        """A new part near where the job was taught, where the cell can: the simulated
-        cell, or a test cell's fixture."""
+    def present_part(self, centre_mm: Sequence[float] | None = None, turn_deg: float = 0.0) -> None:
+        """A new part on the table where the cell can (the simulated cell, or a test cell's
+        fixture), whenever no run or commissioning moves the robot, teaching included: near
+        where the demo job was taught, or with its top face's centre at ``centre_mm`` (X, Y
+        in the base frame) turned ``turn_deg`` about the vertical. The cup lets go of a part
+        it held."""
         with self._lock:
-            self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
-            if self.rig.present_part is None:
+            self._require(Phase.IDLE, Phase.TEACHING, Phase.DONE, Phase.FAULT)
+            hook = self.rig.present_part if centre_mm is None else self.rig.place_part
+            if hook is None:
                 raise CommandRefused("this cell has no part fixture: parts arrive by hand")
             try:
-                self.rig.present_part(self.rng)
-            except FixtureError as exc:
+                if centre_mm is None:
+                    self.rig.present_part(self.rng)
+                else:
+                    x, y = _part_origin(centre_mm, turn_deg)
+                    self.rig.place_part(x, y, np.deg2rad(turn_deg))
+            except (FixtureError, ValueError) as exc:
                 raise CommandRefused(str(exc)) from None
             self._update(detail="a new part is on the table", **self._robot_readout())
 

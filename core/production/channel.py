@@ -104,7 +104,10 @@ COMMANDS: dict[str, Callable[[CellController, dict], Any]] = {
         None if a.get("placement_tolerance_mm") is None else float(a["placement_tolerance_mm"])),
     "save_job": lambda c, a: c.save_job(str(a.get("name", "")), str(a.get("description", ""))).name,
     "cancel_teach": lambda c, a: c.cancel_teach(),
-    "present_part": lambda c, a: c.present_part(),
+    "present_part": lambda c, a: c.present_part(
+        None if a.get("centre_mm") is None else _vector(a["centre_mm"], 2, "centre_mm"), float(a.get("turn_deg", 0.0))),
+    "suction": lambda c, a: c.suction(bool(a["on"])),
+    "test_pick": lambda c, a: c.test_pick(),
     "start": lambda c, a: c.start(str(a.get("job", ""))),
     "commission": lambda c, a: str(c.commission(_steps(a["steps"]) if "steps" in a else None, a.get("out"))),
     "apply_commissioning": lambda c, a: str(c.apply_commissioning()),

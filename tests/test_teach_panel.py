@@ -1,0 +1,59 @@
+"""The Teach tab's words and numbers, without a browser: the pose entry, the cup pose it
+offers for a pick, the image direction of each jog, the next step."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vservo.app.teach_panel import (
+    PoseEntryError,
+    cup_on_part,
+    image_direction,
+    next_button,
+    parse_pose_mm_deg,
+    pose_words,
+    teach_checklist,
+)
+from vservo.core.cell.config import load_cell
+from vservo.core.geometry.spatial import inverse
+from vservo.core.production.jobs import read_job_file
+
+
+def test_a_typed_pose_reads_back_as_typed_and_bad_text_is_named():
+    text = "-369.10 0.00 7.25 -155.00 0.00 180.00"
+    assert pose_words(parse_pose_mm_deg(text)) == text
+    for bad in ("1 2 3", "1 2 3 4 5 x", "1 2 3 4 5 nan"):
+        with pytest.raises(PoseEntryError, match="six numbers"):
+            parse_pose_mm_deg(bad)
+
+
+def test_the_cup_pose_offered_on_the_demo_part_is_the_demo_jobs_pick():
+    config = load_cell()
+    job = read_job_file("static/jobs/demo.json")
+    bMv = cup_on_part(config.simulation.scene.cube.bMo)
+    np.testing.assert_allclose(bMv @ inverse(config.nominal.eMv), job.taught_bMe @ job.eMe_pick, atol=2e-4)
+
+
+def test_image_directions_follow_the_camera_looking_down():
+    config = load_cell()
+    job = read_job_file("static/jobs/demo.json")
+    words = {button: image_direction(job.taught_bMe, config.nominal.eMc, button) for button in ("+X", "-X", "+Z", "-Z")}
+    assert words["+Z"] == "part smaller" and words["-Z"] == "part larger"
+    opposite = {"part left": "part right", "part right": "part left", "part up": "part down", "part down": "part up"}
+    assert words["-X"] == opposite[words["+X"]]
+
+
+def test_the_next_step_follows_the_operators_order():
+    state = {"phase": "teaching", "teach_missing": ["the desired image", "the start pose", "the pick pose",
+                                                    "the place pose"],
+             "teach_optional": ["the check view (without it, runs report placement unknown)"]}
+    assert next_button({"phase": "idle"}) == "Begin teaching"
+    assert next_button(state) == "Capture desired image"
+    state["teach_missing"] = ["the start pose"]
+    assert next_button(state) == "Capture check view"
+    state["teach_optional"] = []
+    assert next_button(state) == "Set start pose here"
+    state["teach_missing"] = []
+    assert next_button(state) == "Save job"
+    assert "**Next: Save job**" in teach_checklist(state) and "no part on the cup" in teach_checklist(state)
