@@ -160,7 +160,7 @@ def dismiss_notifications(page: Any) -> None:
 
 def status_text(page: Any) -> str:
     """The status line under the E-STOP (phase, run, stage, cycle, error, detail, flange pose)."""
-    return page.get_by_text(re.compile("flange X")).first.locator("xpath=..").inner_text()
+    return page.get_by_text(re.compile("flange (X|pose not known)")).first.locator("xpath=..").inner_text()
 
 
 def wait_for_status(page: Any, pattern: str, timeout_s: float = 60.0) -> str:

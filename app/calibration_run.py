@@ -14,7 +14,9 @@ Viser-free.
 from __future__ import annotations
 
 import json
+import os
 import re
+import signal
 import subprocess
 import sys
 import threading
@@ -94,7 +96,9 @@ class CalibrationRun:
         self._cancelled.set()
         process = self._process
         if process is not None and process.poll() is None:
-            process.terminate()
+            # The whole group: a step's own workers keep its standard error open, and the step
+            # would run on to its end while they live.
+            os.killpg(process.pid, signal.SIGTERM)
 
     def wait(self, timeout_s: float | None = None) -> None:
         self._thread.join(timeout_s)
@@ -117,7 +121,8 @@ class CalibrationRun:
 
     def _step(self, step: str, index: int) -> dict[str, Any]:
         command = step_command(step, self.folder, self.preset, self.cell)
-        self._process = process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self._process = process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                                  start_new_session=True)
         # Standard output (one JSON object) is small and read at the end; standard error
         # carries the progress lines as they come.
         last_line = ""

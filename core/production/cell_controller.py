@@ -378,6 +378,7 @@ class CellController:
                                    placement_tolerance_mm=job.placement_tolerance_mm)
             self._draft = draft
             self._check_image = None
+            self._desired = None  # the last job's desired corners are no part of the new one
             self._update(phase=Phase.TEACHING.value, detail="jog to the desired view and capture it",
                          teach_missing=draft.missing(), teach_optional=draft.optional_missing())
 
