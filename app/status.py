@@ -144,18 +144,7 @@ def run_label(run: dict) -> str:
     return f"#{run['id']} {run['job']} {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))}"
 
 
-def stage_timeline(run: dict, width: int = 40) -> str:
-    """The run's servo stages in order, each with its share of the cycles as a bar."""
-    stages = run.get("stages") or []
-    total = sum(int(s.get("iterations", 0)) for s in stages)
-    lines = [f"**Run {run['id']}** ({run['job']}): {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))}, "
-             f"{run.get('reason') or ''}"]
-    if not total:
-        return lines[0] + "  \nNo servo cycles recorded."
-    lines.append("```")
-    for stage in stages:
-        count = int(stage.get("iterations", 0))
-        bar = "#" * max(1, round(width * count / total))
-        lines.append(f"{str(stage.get('stage')):>4} {bar} {count}")
-    lines.append("```")
-    return "\n".join(lines)
+def run_heading(run: dict) -> str:
+    """One run in a line: its number, job, outcome and why (its stages are app/stage_chart.py's chart)."""
+    return (f"**Run {run['id']}** ({run['job']}): {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))}, "
+            f"{run.get('reason') or ''}")
