@@ -97,7 +97,7 @@ class OperatorApp:
         with self.safety.add_tab("Cell", viser.Icon.ALERT_TRIANGLE):
             estop = server.gui.add_button("E-STOP", color="red", icon=viser.Icon.HAND_STOP,
                                           hint="Hold the robot now. Every browser may stop the cell.")
-            server.gui.add_html(f"<style>button[id='{estop._impl.uuid}'] {{height: 4.2em; font-size: 1.8em; "
+            server.gui.add_html(f"<style>button[id='{estop._impl.uuid}'] {{height: 84px !important; font-size: 1.8em; "
                                 "font-weight: 800; letter-spacing: 0.12em}</style>")  # large: viser has no button size
             self.status = server.gui.add_markdown("")
         self.safety.float(x=15, y=BANNER_HEIGHT_PX + 10, width=SAFETY_WIDTH_PX, height=230)
