@@ -57,6 +57,7 @@ IMAGE_PERIOD_S = 1 / 30  # the live image at up to 30 frames per second
 TEXT_PERIOD_S = 0.1
 BANNER_HEIGHT_PX = 96
 SAFETY_WIDTH_PX = 440
+SAFETY_HEIGHT_PX = 310  # the E-STOP and five lines of status: never cut off
 # The banner sits fixed over the top of the window; viser's root (#root > div) gives it room.
 BANNER_STYLE = f"""<style>
 #root > div {{ padding-top: {BANNER_HEIGHT_PX}px; box-sizing: border-box; }}
@@ -100,7 +101,7 @@ class OperatorApp:
             server.gui.add_html(f"<style>button[id='{estop._impl.uuid}'] {{height: 84px !important; font-size: 1.8em; "
                                 "font-weight: 800; letter-spacing: 0.12em}</style>")  # large: viser has no button size
             self.status = server.gui.add_markdown("")
-        self.safety.float(x=15, y=BANNER_HEIGHT_PX + 10, width=SAFETY_WIDTH_PX, height=230)
+        self.safety.float(x=15, y=BANNER_HEIGHT_PX + 10, width=SAFETY_WIDTH_PX, height=SAFETY_HEIGHT_PX)
         estop.on_click(lambda event: self.commands.estop(event.client_id, self._estop_reply(event.client_id)))
         self.tabs = server.gui.add_tab_group(order=10)
         self.scene = CellScene(server, config)

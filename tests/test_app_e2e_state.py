@@ -35,6 +35,16 @@ from vservo.app.browser import (
 TOKEN = "e2e-state-token"
 ROOT = Path(__file__).resolve().parent.parent
 IMAGES = Path(os.environ.get("VSERVO_DOC_IMAGES") or os.environ.get("VSERVO_ARTIFACTS", ROOT / "test-artifacts"))
+# Whether an element is shown whole: no scrolling box it sits in (up to the panel) hides part of it.
+SHOWN_WHOLE = """(element) => {
+    for (let node = element.parentElement, level = 0; node && level < 12; node = node.parentElement, level++) {
+        const overflow = getComputedStyle(node).overflowY;
+        if ((overflow === 'auto' || overflow === 'scroll' || overflow === 'hidden') && node.scrollHeight > node.clientHeight + 1) {
+            return false;
+        }
+    }
+    return true;
+}"""
 REPLAY_TEXT = re.compile(r"run (\d+): ([\d.]+) s of ([\d.]+) s, frame (\d+) of (\d+)")
 
 
@@ -65,9 +75,11 @@ def page(tmp_path_factory):
         assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]
 
 
-def _shot(page, name: str) -> None:
+def _shot(page, name: str, top_px: int | None = 480) -> None:
+    """The page (its top ``top_px``: the banner, the E-STOP and the Assemble tab's buttons) as PNG."""
     dismiss_notifications(page)
-    page.screenshot(path=str(IMAGES / f"{name}.png"))
+    clip = None if top_px is None else {"x": 0, "y": 0, "width": 1600, "height": top_px}
+    page.screenshot(path=str(IMAGES / f"{name}.png"), clip=clip)
 
 
 def _start(page) -> None:
@@ -96,7 +108,7 @@ def test_the_banner_follows_a_run_from_ready_to_placed(page):
     assert page.get_by_role("button", name="Start", exact=True).is_disabled()
     assert page.get_by_role("button", name="Present part", exact=True).is_disabled()
     wait_for_status(page, r"cycle ([3-9]\d|\d{3})")
-    _shot(page, "banner-running")
+    _shot(page, "banner-running", top_px=None)
 
     placed = wait_for_banner(page, "placed", r"PLACED: job demo", timeout_s=120)
     assert banner(page)[2] == _rgb(Kind.PLACED) and "press Start" in placed and "mm from its taught place" in placed
@@ -112,6 +124,8 @@ def test_the_banner_says_e_stopped_in_red_and_start_waits_for_reset(page):
     assert banner(page)[2] == _rgb(Kind.ESTOPPED) and "press Reset" in stopped and "e-stop pressed" in stopped
     assert page.get_by_role("button", name="Start", exact=True).is_disabled()
     assert not page.get_by_role("button", name=re.compile("^Reset")).is_disabled()
+    status = page.get_by_text(re.compile("flange X")).first.locator("xpath=..")
+    assert status.evaluate(SHOWN_WHOLE), status.inner_text()  # the status line is never cut off
     _shot(page, "banner-estopped")
     page.get_by_role("button", name=re.compile("^Reset")).click()
     wait_for_banner(page, "ready", "READY", timeout_s=30)
@@ -159,5 +173,7 @@ def test_history_opens_on_the_newest_run_and_its_replay_plays_pauses_seeks_and_s
             break
         time.sleep(0.1)
     assert (frame, run) == (frames, 1), _replay_state(page)
-    assert page.get_by_text("replay: how far the part is from the taught view").first.is_visible()
-    _shot(page, "replay")
+    chart = page.get_by_text("replay: how far the part is from the taught view").first
+    chart.scroll_into_view_if_needed()
+    assert chart.is_visible()
+    _shot(page, "replay", top_px=None)
