@@ -39,7 +39,8 @@ IMAGES = Path(os.environ.get("VSERVO_DOC_IMAGES") or os.environ.get("VSERVO_ARTI
 SHOWN_WHOLE = """(element) => {
     for (let node = element.parentElement, level = 0; node && level < 12; node = node.parentElement, level++) {
         const overflow = getComputedStyle(node).overflowY;
-        if ((overflow === 'auto' || overflow === 'scroll' || overflow === 'hidden') && node.scrollHeight > node.clientHeight + 1) {
+        const clips = overflow === 'auto' || overflow === 'scroll' || overflow === 'hidden';
+        if (clips && node.scrollHeight > node.clientHeight + 1) {
             return false;
         }
     }

@@ -233,6 +233,7 @@ class CellController:
         self.state_subscribers: list[Callable[[ControllerState], None]] = []
         self.frame_subscribers: list[Callable[[FrameView], None]] = []
         self.rig.robot.connect()
+        self._state = replace(self._state, **self._robot_readout())  # the first state shows the real pose
         status = self.rig.robot.status()
         if status.held:  # an earlier session's e-stop or fault: motion only after an explicit reset
             self._state = replace(self._state, phase=Phase.FAULT.value,
