@@ -1,12 +1,17 @@
-"""The state at a glance and the live buttons: app/banner.py's two maps of the phase, without a browser."""
+"""The state at a glance and the live buttons (app/banner.py's two maps of the phase), no made-up
+or leftover poses: without a browser."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from vservo.app.banner import Button, Kind, Situation, banner_for, live_buttons, stage_words
+from vservo.app.scene3d import PartTracker
+from vservo.app.session import Session
 from vservo.app.status import flange_text, status_markdown
-from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg
+from vservo.core.cell.config import load_cell
+from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg, transform
 from vservo.core.production.assembly import Outcome, Phase
 
 
@@ -91,3 +96,27 @@ def test_angles_near_a_half_turn_do_not_flip():
                    for psi in (179.99, -179.99)]
     assert either_side == ["flange X -400.00 Y 0.00 Z 300.00 mm, phi 179.99 theta 0.00 psi 0.00 deg",
                            "flange X -400.00 Y 0.00 Z 300.00 mm, phi 180.01 theta 0.00 psi 0.00 deg"]
+
+
+def test_a_released_part_is_shown_in_the_pocket_not_beside_it():
+    config = load_cell()
+    tracker = PartTracker(config.nominal.mount, config.nominal.camera)
+    side = 0.020
+    bMe = matrix_from_pose(pose_from_mm_deg([-400.0, 100.0, 60.0, 180.0, 0.0, 30.0]))
+    bMp = transform(t=(-0.395, 0.104, 0.0))  # the pocket, a few mm off where the cup let go
+    tracker.update({"bMe": bMe.tolist(), "holding_part": True, "phase": "placing"}, None, side, bMp)
+    released = tracker.update({"bMe": bMe.tolist(), "holding_part": False, "phase": "placing"}, None, side, bMp)
+    bottom_centre = (released @ transform(t=(side / 2, side / 2, -side)))[:3, 3]
+    assert bottom_centre == pytest.approx(bMp[:3, 3], abs=1e-9)
+    done = tracker.update({"bMe": bMe.tolist(), "holding_part": False, "phase": "done"}, None, side, bMp)
+    assert np.allclose(done, released)
+
+
+def test_a_new_teach_clears_the_last_runs_charts_and_path():
+    session = Session()
+    for k in range(1, 4):
+        session.on_state({"phase": "servoing", "run_id": 1, "iteration": k, "error_px": 10.0 / k, "time_s": float(k),
+                          "cVc": [0.0] * 6, "bMe": transform(t=(0.01 * k, 0.0, 0.0)).tolist()})
+    assert len(session.view().trace.errors_px) == 3 and len(session.view().trace.path_m) == 3
+    session.on_state({"phase": "teaching", "run_id": 1, "time_s": 5.0, "bMe": np.eye(4).tolist()})
+    assert len(session.view().trace.errors_px) == 0 and len(session.view().trace.path_m) == 0
