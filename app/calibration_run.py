@@ -14,9 +14,7 @@ Viser-free.
 from __future__ import annotations
 
 import json
-import os
 import re
-import signal
 import subprocess
 import sys
 import threading
@@ -96,9 +94,7 @@ class CalibrationRun:
         self._cancelled.set()
         process = self._process
         if process is not None and process.poll() is None:
-            # The whole group: a step's own workers keep its standard error open, and the step
-            # would run on to its end while they live.
-            os.killpg(process.pid, signal.SIGTERM)
+            process.terminate()
 
     def wait(self, timeout_s: float | None = None) -> None:
         self._thread.join(timeout_s)
@@ -121,8 +117,7 @@ class CalibrationRun:
 
     def _step(self, step: str, index: int) -> dict[str, Any]:
         command = step_command(step, self.folder, self.preset, self.cell)
-        self._process = process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                                  start_new_session=True)
+        self._process = process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         # Standard output (one JSON object) is small and read at the end; standard error
         # carries the progress lines as they come.
         last_line = ""
