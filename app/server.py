@@ -5,8 +5,9 @@
 The app starts the controller (app/controller_process.py), connects to it with the key,
 and serves one page to every browser:
 
-- at the top, for everyone: the E-STOP, the cell's status line; per browser: Reset and
-  the control box (operator token, Take control / Release);
+- across the top of every page, the banner: the cell's state at a glance and what to do
+  next (app/banner.py); under it, for everyone, the E-STOP and the cell's status line; per
+  browser: Reset and the control box (operator token, Take control / Release);
 - tabs Assemble, Teach, History, Calibrate (shared displays, per-browser controls that
   only the operator's page enables);
 - the live camera panel (image with overlays, feature error and camera twist plots) and
@@ -55,6 +56,8 @@ log = logging.getLogger("vservo.app")
 
 IMAGE_PERIOD_S = 1 / 30  # the live image at up to 30 frames per second
 TEXT_PERIOD_S = 0.1
+SCENE_PERIOD_S = 0.1
+PLOT_PERIOD_S = 0.25
 BANNER_HEIGHT_PX = 96
 SAFETY_WIDTH_PX = 440
 SAFETY_HEIGHT_PX = 310  # the E-STOP and five lines of status: never cut off
@@ -64,8 +67,6 @@ BANNER_STYLE = f"""<style>
 .vservo-banner {{ position: fixed; top: 0; left: 0; right: 0; height: {BANNER_HEIGHT_PX}px; z-index: 1000;
   color: white; padding: 8px 20px; box-sizing: border-box; overflow: hidden; line-height: 1.3; }}
 </style>"""
-SCENE_PERIOD_S = 0.1
-PLOT_PERIOD_S = 0.25
 
 
 class OperatorApp:
@@ -194,8 +195,12 @@ class OperatorApp:
         def done(reply: Any) -> None:
             with self._lock:
                 view = self.views.get(client_id)
-            if view is not None:  # red even when it worked: the robot is held, nothing to celebrate
-                view.report("E-STOP")(reply) if not reply.ok else view.notify("E-STOP", "robot held", error=True)
+            if view is None:
+                return
+            if reply.ok:  # red even when it worked: the robot is held, nothing to celebrate
+                view.notify("E-STOP", "robot held", error=True)
+            else:
+                view.report("E-STOP")(reply)
         return done
 
     # -- browsers --------------------------------------------------------------------
