@@ -15,15 +15,16 @@ import numpy as np
 import viser
 
 from vservo.app import live_image
+from vservo.app.banner import Button, Kind, banner_for
 from vservo.app.client_view import ClientView
 from vservo.app.context import AppContext
 from vservo.app.session import MOVING_PHASES, LiveFrame, RunTrace, SessionView
-from vservo.app.status import outcome_markdown, run_progress
-from vservo.core.production.assembly import Phase
+from vservo.app.status import engineering_markdown, outcome_markdown, run_progress
 
 TWIST_NAMES = ("vx m/s", "vy m/s", "vz m/s", "wx rad/s", "wy rad/s", "wz rad/s")
 TWIST_COLOURS = ("#d62728", "#2ca02c", "#1f77b4", "#ff7f0e", "#9467bd", "#8c564b")
 BLANK = np.zeros((480, 640, 3), np.uint8)
+PROGRESS_COLOURS = {Kind.PLACED: "green", Kind.MISSED: "orange", Kind.FAULT: "red", Kind.ESTOPPED: "red"}
 
 
 def plot_data(trace: RunTrace) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
@@ -51,13 +52,17 @@ class AssemblePanel:
                                        format="jpeg")
             blank_error, blank_twist = plot_data(RunTrace())
             self.error_plot = gui.add_uplot(
-                blank_error, ({"label": "cycle"}, {"label": "feature error px", "stroke": "#d62728",
-                                                                   "width": 2}),
-                title="feature error (px)", aspect=2.2, scales={"x": {"time": False}, "y": {"distr": 3}})
-            self.twist_plot = gui.add_uplot(
-                blank_twist, ({"label": "cycle"}, *({"label": name, "stroke": colour, "width": 1.5}
-                                                          for name, colour in zip(TWIST_NAMES, TWIST_COLOURS))),
-                title="camera twist cVc", aspect=2.2, scales={"x": {"time": False}})
+                blank_error, ({"label": "cycle"}, {"label": "off the taught view, px", "stroke": "#d62728",
+                                                   "width": 2}),
+                title="how far the part is from the taught view (px)", aspect=2.2,
+                scales={"x": {"time": False}, "y": {"distr": 3}})
+            # What an engineer reads (the law's stage, its error norm, the commanded twist), folded away.
+            with gui.add_folder("Engineering", expand_by_default=False):
+                self.engineering = gui.add_markdown("")
+                self.twist_plot = gui.add_uplot(
+                    blank_twist, ({"label": "cycle"}, *({"label": name, "stroke": colour, "width": 1.5}
+                                                        for name, colour in zip(TWIST_NAMES, TWIST_COLOURS))),
+                    title="camera twist cVc", aspect=2.2, scales={"x": {"time": False}})
         self._lock = threading.Lock()
         self._job_shown: str | None = None
         self._threshold_px = 3.0
@@ -71,11 +76,13 @@ class AssemblePanel:
             job = view.control(gui.add_dropdown("Job", names, initial_value="demo" if "demo" in names else names[0],
                                                 order=11))
             if self.app.session.state.get("can_present_part"):  # only where the cell has a part feeder
-                present = view.control(gui.add_button("Present part", icon=viser.Icon.BOX, order=12,
-                                                      hint="A new part arrives near where the job was taught"))
+                present = view.button(Button.PRESENT_PART, gui.add_button(
+                    "Present part", icon=viser.Icon.BOX, order=12, disabled=True,
+                    hint="A new part arrives near where the job was taught"))
                 present.on_click(lambda _: self.app.send(view, "Present part", "present_part",
                                                          "a new part is on the table"))
-            start = view.control(gui.add_button("Start", icon=viser.Icon.PLAYER_PLAY, color="green", order=13))
+            start = view.button(Button.START, gui.add_button("Start", icon=viser.Icon.PLAYER_PLAY, color="green",
+                                                             order=13, disabled=True))
         start.on_click(lambda _: self.app.send(view, "Start", "start", job=job.value))
         view.handles["assemble_job"] = job
 
@@ -97,13 +104,12 @@ class AssemblePanel:
         state = view.state
         self._follow_job(state.get("job") or "demo")
         phase = state.get("phase")
-        running = phase in MOVING_PHASES
-        words = {Phase.SERVOING: f"servoing, stage {state.get('stage') or '-'}", Phase.PICKING: "picking the part",
-                 Phase.PLACING: "placing the part in the metal part"}
-        self.stage.content = (f"**{words.get(phase, phase)}** · {state.get('detail') or ''}" if running
-                              else f"**{phase}** · {state.get('detail') or ''}")
+        banner = banner_for(state)
+        self.stage.content = f"**{banner.title}** · {banner.detail}"
+        self.engineering.content = engineering_markdown(state)
         self.progress.value = run_progress(state, view.trace, self._threshold_px)
-        self.progress.color = "red" if phase in (Phase.FAULT, Phase.ESTOPPED) else "green" if phase == Phase.DONE else None
+        # The bar takes the outcome's colour (placed green, missed amber, fault red), blue while running.
+        self.progress.color = None if phase in MOVING_PHASES else PROGRESS_COLOURS.get(banner.kind)
         self.outcome.content = outcome_markdown(state.get("last_outcome"), state.get("run_id"))
 
     def refresh_plots(self, view: SessionView) -> None:

@@ -160,7 +160,26 @@ def dismiss_notifications(page: Any) -> None:
 
 def status_text(page: Any) -> str:
     """The status line under the E-STOP (phase, run, stage, cycle, error, detail, flange pose)."""
-    return page.get_by_text(re.compile("flange X")).first.locator("xpath=..").inner_text()
+    return page.get_by_text(re.compile("flange (X|pose not known)")).first.locator("xpath=..").inner_text()
+
+
+def banner(page: Any) -> tuple[str, str, str]:
+    """The banner over the page (app/banner.py): its kind, its words and its background colour."""
+    element = page.locator(".vservo-banner").first
+    return (element.get_attribute("data-kind") or "", element.inner_text(),
+            element.evaluate("(e) => getComputedStyle(e).backgroundColor"))
+
+
+def wait_for_banner(page: Any, kind: str, pattern: str = "", timeout_s: float = 60.0) -> str:
+    """Poll the banner until it is of ``kind`` and its words match ``pattern`` (regex); its words."""
+    deadline = time.monotonic() + timeout_s
+    shown = ("", "", "")
+    while time.monotonic() < deadline:
+        shown = banner(page)
+        if shown[0] == kind and re.search(pattern, shown[1]):
+            return shown[1]
+        time.sleep(0.1)
+    raise TimeoutError(f"the banner never showed {kind} {pattern!r}; last: {shown!r}")
 
 
 def wait_for_status(page: Any, pattern: str, timeout_s: float = 60.0) -> str:

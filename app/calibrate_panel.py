@@ -22,15 +22,12 @@ from typing import Any
 import viser
 
 from vservo.app import commission_text
+from vservo.app.banner import Button
 from vservo.app.calibration_run import PRESETS, QUICK, CalibrationProgress, CalibrationRun, results_markdown
 from vservo.app.client_view import ClientView
 from vservo.app.context import AppContext
 from vservo.app.session import SessionView
-from vservo.core.production.assembly import Phase
 from vservo.core.production.channel import Reply
-
-# Commissioning starts, and is applied, only from these phases (as the controller checks).
-READY_PHASES = (Phase.IDLE, Phase.DONE, Phase.FAULT)
 
 
 class CalibratePanel:
@@ -50,61 +47,47 @@ class CalibratePanel:
             self.results = gui.add_markdown("", order=32)
         self._run: CalibrationRun | None = None
         self._lock = threading.Lock()
-        self._views: dict[int, ClientView] = {}
 
     def add_client(self, view: ClientView) -> None:
         gui = view.client.gui
         with self.tab:
             steps = {step: view.control(gui.add_checkbox(f"Step {step}", True, order=2 + k))
                      for k, step in enumerate(commission_text.STEP_WORDS)}
-            start = view.control(gui.add_button("Start commissioning", icon=viser.Icon.PLAYER_PLAY, order=6,
-                                                hint="The robot moves: it shows the camera the board"))
-            apply = view.control(gui.add_button("Apply", icon=viser.Icon.DEVICE_FLOPPY, order=9, disabled=True,
-                                                hint="Write the commissioned cell file and run on it"))
+            start = view.button(Button.START_COMMISSIONING, gui.add_button(
+                "Start commissioning", icon=viser.Icon.PLAYER_PLAY, order=6, disabled=True,
+                hint="The robot moves: it shows the camera the board"))
+            apply = view.button(Button.APPLY_COMMISSIONING, gui.add_button(
+                "Apply", icon=viser.Icon.DEVICE_FLOPPY, order=9, disabled=True,
+                hint="Write the commissioned cell file and run on it"))
             preset = view.control(gui.add_dropdown("Preset", tuple(PRESETS), initial_value=QUICK, order=21))
-            run = view.control(gui.add_button("Run calibration", icon=viser.Icon.PLAYER_PLAY, order=22))
-            stop = view.control(gui.add_button("Stop calibration", icon=viser.Icon.PLAYER_STOP, order=23))
+            run = view.button(Button.RUN_CALIBRATION, gui.add_button("Run calibration", icon=viser.Icon.PLAYER_PLAY,
+                                                                     order=22, disabled=True))
+            stop = view.button(Button.STOP_CALIBRATION, gui.add_button("Stop calibration", icon=viser.Icon.PLAYER_STOP,
+                                                                       order=23, disabled=True))
         start.on_click(lambda _: self.app.send(view, "Start commissioning", "commission", "commissioning started",
                                                steps=[step for step, box in steps.items() if box.value]))
         apply.on_click(lambda _: self._confirm_apply(view))
         run.on_click(lambda _: self._start(view, preset.value))
         stop.on_click(lambda _: self._stop(view))
-        view.handles["commission_start"], view.handles["commission_apply"] = start, apply
-        # A change of operator enables every control; what the cell is doing decides again.
-        view.on_role(lambda _: self._enable(view, self.app.session.state))
-        with self._lock:
-            self._views[view.client_id] = view
 
     def remove_client(self, client_id: int) -> None:
-        with self._lock:
-            self._views.pop(client_id, None)
+        pass  # a browser's elements go with its connection
 
     def lists_changed(self, views: list[ClientView]) -> None:
         pass
 
     def refresh(self, view: SessionView) -> None:
-        """The commissioning's progress and results, and which buttons each browser may press
-        (the study reports its own progress, _on_change)."""
+        """The commissioning's progress and results (the study reports its own progress, _on_change)."""
         state = view.state
         record = state.get("commissioning")
         _set(self.commission_progress, commission_text.progress_markdown(record, state.get("cell_file", "")))
         _set(self.commission_results, commission_text.results_markdown(record))
-        with self._lock:
-            views = list(self._views.values())
-        for client in views:
-            self._enable(client, state)
 
-    def _enable(self, view: ClientView, state: dict) -> None:
-        """Start while the cell is ready; Apply once a good commissioning waits to be applied."""
-        record = state.get("commissioning") or {}
-        ready = state.get("phase") in READY_PHASES
-        summary = record.get("summary")
-        can_apply = ready and bool(summary) and summary["good"] and not record.get("applied")
-        for key, allowed in (("commission_start", ready), ("commission_apply", can_apply)):
-            button = view.handles[key]
-            disabled = not (view.is_operator and allowed)
-            if button.disabled != disabled:
-                button.disabled = disabled
+    @property
+    def calibrating(self) -> bool:
+        """Whether the calibration study runs (its Stop is live, its Run is not)."""
+        with self._lock:
+            return self._run is not None and not self._run.progress.finished
 
     def _confirm_apply(self, view: ClientView) -> None:
         """Apply asks first: the modal names the file it writes."""
@@ -140,7 +123,8 @@ class CalibratePanel:
                 view.notify("Run calibration", "a calibration is already running", error=True)
                 return
             folder = self.app.options.data / "calibration" / time.strftime("%Y%m%d-%H%M%S")
-            self._run = CalibrationRun(folder, preset, self.app.options.cell, self._on_change).start()
+            self._run = CalibrationRun(folder, preset, self.app.options.cell, self._on_change)
+        self._run.start()
         self.results.content = ""
 
     def _stop(self, view: ClientView) -> None:
@@ -164,6 +148,7 @@ class CalibratePanel:
             self.bar.color = None
             self.status.content = f"**{progress.step}** ({elapsed:.0f} s): `{progress.line}`"
         self.results.content = results_markdown(progress.results)
+        self.app.refresh_buttons()  # Run and Stop swap as the study starts and ends
 
     def _folder(self) -> Any:
         with self._lock:

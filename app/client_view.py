@@ -4,6 +4,10 @@ Every panel registers the controls it adds for a browser here; a change of opera
 enables them in the operator's page and disables them in every other one. Disabling is
 the visible half of the roles; the other half is the server-side check in
 app/commands.py, which refuses a command from a monitor even if a click arrives.
+
+The buttons whose use depends on what the cell does (app/banner.py's ``Button``) are
+registered by name: each is enabled only where this browser may press it AND it can act
+now (``live_buttons`` of the phase, which the display thread passes to ``set_live``).
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from typing import Any
 
 import viser
 
+from vservo.app.banner import Button
 from vservo.app.roles import RoleRefused, Roles
 from vservo.core.production.channel import Reply
 
@@ -27,6 +32,8 @@ class ClientView:
         self._role_listeners: list[Callable[[bool], None]] = []
         self._lock = threading.Lock()
         self.handles: dict[str, Any] = {}  # panels keep this browser's displays here by name
+        self._buttons: dict[Button, tuple[Any, bool]] = {}  # button -> (handle, operator only)
+        self._live: frozenset[Button] = frozenset()
 
     def control(self, handle: Any) -> Any:
         """Register a control that only the operator may use; returns it. Button groups
@@ -35,6 +42,27 @@ class ClientView:
             self._controls.append(handle)
             _enable(handle, self.is_operator)
         return handle
+
+    def button(self, which: Button, handle: Any, operator_only: bool = True) -> Any:
+        """Register one of the buttons the cell's phase enables; returns it."""
+        with self._lock:
+            self._buttons[which] = (handle, operator_only)
+            self._apply_live()
+        return handle
+
+    def set_live(self, live: frozenset[Button]) -> None:
+        """The buttons that can act now (app/banner.py's live_buttons); only changes are sent."""
+        with self._lock:
+            if live == self._live or self.gone:
+                return
+            self._live = live
+            self._apply_live()
+
+    def _apply_live(self) -> None:
+        for which, (handle, operator_only) in self._buttons.items():
+            disabled = not ((self.is_operator or not operator_only) and which in self._live)
+            if handle.disabled != disabled:
+                handle.disabled = disabled
 
     def on_role(self, listener: Callable[[bool], None]) -> None:
         """Call ``listener(is_operator)`` whenever this browser gains or loses control."""
@@ -52,6 +80,7 @@ class ClientView:
             self.is_operator = is_operator
             for handle in self._controls:
                 _enable(handle, is_operator)
+            self._apply_live()
         for listener in list(self._role_listeners):
             listener(is_operator)
 

@@ -50,6 +50,10 @@ class AppContext(Protocol):
         """Fetch jobs and runs from the controller; every tab's lists follow."""
         ...
 
+    def refresh_buttons(self) -> None:
+        """Enable every browser's phase-dependent buttons from what the cell does now."""
+        ...
+
     def job_detail(self, name: str | None) -> dict | None: ...
 
     def forget_job(self, name: str) -> None:

@@ -30,6 +30,7 @@ from vservo.core.cell.scene import Cube, MetalPart
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
 from vservo.core.geometry.spatial import Matrix, inverse, rot_x, transform
+from vservo.core.production.assembly import Phase
 from vservo.robot_models.loader import load_arm
 
 RAY_LENGTH_M = 0.3  # the beam drawn when no part is known to end it on
@@ -89,14 +90,16 @@ def laser_ray(bMe: Matrix, eMl: Matrix, part_top_z_m: float | None) -> tuple[Mat
 
 
 class PartTracker:
-    """Where the app shows the part: seen (PnP), or carried by the cup, or last known."""
+    """Where the app shows the part: seen (PnP), or carried by the cup, or in the pocket once
+    placed, or last known."""
 
     def __init__(self, mount: ToolMount, camera: CameraModel) -> None:
         self.mount, self.camera = mount, camera
         self.bMo: Matrix | None = None
         self._vMo: Matrix | None = None  # the part in the cup frame while it is held
 
-    def update(self, state: dict, overlay: Overlay | None, side_m: float) -> Matrix | None:
+    def update(self, state: dict, overlay: Overlay | None, side_m: float, bMp: Matrix | None = None) -> Matrix | None:
+        """bMp: the shown job's pocket frame, where a placed part sits."""
         bMe = np.asarray(state["bMe"], float)
         bMv = bMe @ self.mount.eMv
         if state.get("holding_part"):
@@ -106,8 +109,12 @@ class PartTracker:
                     inverse(transform(rot_x(np.pi), (side_m / 2, side_m / 2, 0.0)))
             self.bMo = bMv @ self._vMo
             return self.bMo
+        if self._vMo is not None and bMp is not None and state.get("phase") in (Phase.PLACING, Phase.DONE):
+            # Released in the pocket: the part's bottom face on the pocket's floor, as it hung from the cup.
+            self.bMo = bMv @ self._vMo
+            self.bMo[:3, 3] += bMp[:3, 3] - (self.bMo @ transform(t=(side_m / 2, side_m / 2, -side_m)))[:3, 3]
         self._vMo = None
-        if overlay is not None:
+        if overlay is not None and state.get("phase") != Phase.DONE:
             seen = part_pose_from_corners(overlay.corners_px, bMe, self.mount.eMc, self.camera, side_m)
             if seen is not None:
                 self.bMo = seen
@@ -141,13 +148,14 @@ class CellScene:
         scene = server.scene
         self.frustum = scene.add_camera_frustum(
             "/cell/camera", fov=2 * np.arctan2(intrinsics.height / 2, intrinsics.fy),
-            aspect=intrinsics.width / intrinsics.height, scale=0.05, thickness=0.002, color=CAMERA_RGB)
+            aspect=intrinsics.width / intrinsics.height, scale=0.05, thickness=0.002, color=CAMERA_RGB,
+            visible=False)  # shown once the robot's pose is known (its first readout)
         self.part = scene.add_box("/cell/part", PART_RGB, (0.02, 0.02, 0.02), visible=False)
         self.tools = {
-            "cup": scene.add_cylinder("/cell/tools/cup", CUP_RADIUS_M, CUP_HEIGHT_M, CUP_RGB),
-            "camera": scene.add_box("/cell/tools/camera", CAMERA_RGB, CAMERA_BODY_M),
-            "laser": scene.add_cylinder("/cell/tools/laser", LASER_RADIUS_M, LASER_LENGTH_M, LASER_RGB),
-        }
+            "cup": scene.add_cylinder("/cell/tools/cup", CUP_RADIUS_M, CUP_HEIGHT_M, CUP_RGB, visible=False),
+            "camera": scene.add_box("/cell/tools/camera", CAMERA_RGB, CAMERA_BODY_M, visible=False),
+            "laser": scene.add_cylinder("/cell/tools/laser", LASER_RADIUS_M, LASER_LENGTH_M, LASER_RGB, visible=False),
+        }  # shown, like the frustum, once the robot's pose is known
         self.metal: list = []
         self.tracker = PartTracker(self.mount, self.camera)
         self.job: _Job | None = None
@@ -173,18 +181,20 @@ class CellScene:
                 f"/cell/metal_part/{index}", METAL_RGB, 2 * box.half_extents, wxyz=_wxyz(box.bMx), position=box.bMx[:3, 3]))
 
     def update(self, state: dict, overlay: Overlay | None, path_m: Matrix) -> None:
-        if state.get("q"):
-            self.robot.display(np.asarray(state["q"], float))
+        if not state.get("q"):
+            return  # no readout of the robot yet: no camera or beam at a made-up pose
+        self.robot.display(np.asarray(state["q"], float))
         bMe = np.asarray(state["bMe"], float)
         bMc = bMe @ self.mount.eMc
-        self.frustum.wxyz, self.frustum.position = _wxyz(bMc), bMc[:3, 3]
+        self.frustum.wxyz, self.frustum.position, self.frustum.visible = _wxyz(bMc), bMc[:3, 3], True
         bodies = tool_bodies(bMe, self.mount)
         for name, bMx in bodies.items():
-            self.tools[name].wxyz, self.tools[name].position = _wxyz(bMx), bMx[:3, 3]
+            self.tools[name].wxyz, self.tools[name].position, self.tools[name].visible = _wxyz(bMx), bMx[:3, 3], True
         brackets = np.array([[bMe[:3, 3], bMx[:3, 3]] for bMx in bodies.values()])
         self.server.scene.add_line_segments("/cell/tools/brackets", brackets, BRACKET_RGB, thickness=0.004)
         side = self.job.side_m if self.job else 0.020
-        bMo = self.tracker.update(state, overlay, side)
+        bMp = placed_part_frame(self.job.bMe_place, self.mount.eMv, side) if self.job else None
+        bMo = self.tracker.update(state, overlay, side, bMp)
         if bMo is not None:
             centre = bMo @ transform(t=(side / 2, side / 2, -side / 2))
             self.part.dimensions = (side, side, side)

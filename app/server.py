@@ -5,8 +5,9 @@
 The app starts the controller (app/controller_process.py), connects to it with the key,
 and serves one page to every browser:
 
-- at the top, for everyone: the E-STOP, the cell's status line; per browser: Reset and
-  the control box (operator token, Take control / Release);
+- across the top of every page, the banner: the cell's state at a glance and what to do
+  next (app/banner.py); under it, for everyone, the E-STOP and the cell's status line; per
+  browser: Reset and the control box (operator token, Take control / Release);
 - tabs Assemble, Teach, History, Calibrate (shared displays, per-browser controls that
   only the operator's page enables);
 - the live camera panel (image with overlays, feature error and camera twist plots) and
@@ -36,6 +37,7 @@ import viser
 
 from vservo.app import live_image
 from vservo.app.assemble_panel import AssemblePanel
+from vservo.app.banner import Button, Situation, banner_for, live_buttons
 from vservo.app.calibrate_panel import CalibratePanel
 from vservo.app.client_view import ClientView
 from vservo.app.commands import CommandQueue
@@ -56,6 +58,15 @@ IMAGE_PERIOD_S = 1 / 30  # the live image at up to 30 frames per second
 TEXT_PERIOD_S = 0.1
 SCENE_PERIOD_S = 0.1
 PLOT_PERIOD_S = 0.25
+BANNER_HEIGHT_PX = 96
+SAFETY_WIDTH_PX = 440
+SAFETY_HEIGHT_PX = 310  # the E-STOP and five lines of status: never cut off
+# The banner sits fixed over the top of the window; viser's root (#root > div) gives it room.
+BANNER_STYLE = f"""<style>
+#root > div {{ padding-top: {BANNER_HEIGHT_PX}px; box-sizing: border-box; }}
+.vservo-banner {{ position: fixed; top: 0; left: 0; right: 0; height: {BANNER_HEIGHT_PX}px; z-index: 1000;
+  color: white; padding: 8px 20px; box-sizing: border-box; overflow: hidden; line-height: 1.3; }}
+</style>"""
 
 
 class OperatorApp:
@@ -77,17 +88,21 @@ class OperatorApp:
         server.gui.set_panel_label("vservo cell")
         server.gui.main_panel.dock_left()
         server.gui.main_panel.set_width(470)
-        # The E-STOP and the status line float over the 3D view in a panel of their own, so no
-        # scrolling of the long tabs ever takes the E-STOP out of sight; at the bottom, where the
-        # notifications (top left) never cover it.
+        # The banner: the cell's state at a glance, full width over the top of every page
+        # (app/banner.py); the panels start below it. Viser has no such element: one HTML
+        # element, fixed to the window, with the style that makes room for it.
+        self.banner = server.gui.add_html(banner_for(session.state).html(), order=-100)
+        server.gui.add_html(BANNER_STYLE, order=-99)
+        # The E-STOP and the status line float over the 3D view in a panel of their own, at the
+        # top under the banner: the same place in every tab, and no scrolling ever hides it.
         self.safety = server.gui.add_panel()
         with self.safety.add_tab("Cell", viser.Icon.ALERT_TRIANGLE):
             estop = server.gui.add_button("E-STOP", color="red", icon=viser.Icon.HAND_STOP,
                                           hint="Hold the robot now. Every browser may stop the cell.")
-            server.gui.add_html(f"<style>button[id='{estop._impl.uuid}'] {{height: 3.2em; font-size: 1.5em; "
+            server.gui.add_html(f"<style>button[id='{estop._impl.uuid}'] {{height: 84px !important; font-size: 1.8em; "
                                 "font-weight: 800; letter-spacing: 0.12em}</style>")  # large: viser has no button size
             self.status = server.gui.add_markdown("")
-        self.safety.float(x=-15, y=-15, width=440, height=190)
+        self.safety.float(x=15, y=BANNER_HEIGHT_PX + 10, width=SAFETY_WIDTH_PX, height=SAFETY_HEIGHT_PX)
         estop.on_click(lambda event: self.commands.estop(event.client_id, self._estop_reply(event.client_id)))
         self.tabs = server.gui.add_tab_group(order=10)
         self.scene = CellScene(server, config)
@@ -137,6 +152,7 @@ class OperatorApp:
             views = list(self.views.values())
         for panel in self.panels:
             panel.lists_changed(views)
+        self.refresh_buttons()
 
     def job_detail(self, name: str | None) -> dict | None:
         """A job's stored content (poses, settings), fetched once per name and save."""
@@ -160,12 +176,31 @@ class OperatorApp:
         with self._lock:
             return [job["name"] for job in self.jobs if not job.get("problem")]
 
+    def refresh_buttons(self) -> None:
+        """Every browser's phase-dependent buttons from what the cell does now (app/banner.py)."""
+        state = self.session.state
+        commissioning = state.get("commissioning") or {}
+        summary = commissioning.get("summary")
+        with self._lock:
+            has_runs = any(run.get("recording") and run.get("outcome") for run in self.runs)
+            views = list(self.views.values())
+        situation = Situation(can_present_part=bool(state.get("can_present_part")),
+                              commissioning_to_apply=bool(summary and summary["good"] and not commissioning.get("applied")),
+                              calibrating=self.calibrate.calibrating, has_runs=has_runs)
+        live = live_buttons(state.get("phase") or "idle", situation)
+        for view in views:
+            view.set_live(live)
+
     def _estop_reply(self, client_id: int | None) -> Callable[[Any], None]:
         def done(reply: Any) -> None:
             with self._lock:
                 view = self.views.get(client_id)
-            if view is not None:
-                view.report("E-STOP", "robot held")(reply)
+            if view is None:
+                return
+            if reply.ok:  # red even when it worked: the robot is held, nothing to celebrate
+                view.notify("E-STOP", "robot held", error=True)
+            else:
+                view.report("E-STOP")(reply)
         return done
 
     # -- browsers --------------------------------------------------------------------
@@ -179,6 +214,7 @@ class OperatorApp:
         with self._lock:
             self.views[client.client_id] = view
         view.set_operator(self.roles.is_operator(client.client_id))
+        self.refresh_buttons()
 
     def _on_disconnect(self, client: viser.ClientHandle) -> None:
         with self._lock:
@@ -189,8 +225,8 @@ class OperatorApp:
 
     def _add_control_box(self, view: ClientView) -> None:
         gui = view.client.gui
-        reset = view.control(gui.add_button("Reset (after e-stop, fault or a finished run)", icon=viser.Icon.REFRESH,
-                                            order=2))
+        reset = view.button(Button.RESET, gui.add_button("Reset (after e-stop, fault or a finished run)",
+                                                         icon=viser.Icon.REFRESH, order=2, disabled=True))
         reset.on_click(lambda _: self.send(view, "Reset", "reset", "ready"))
         folder = gui.add_folder("Control", order=3)
         with folder:
@@ -263,7 +299,11 @@ class OperatorApp:
             time.sleep(max(0.0, IMAGE_PERIOD_S - (time.monotonic() - now)))
 
     def _refresh_text(self, view: SessionView) -> None:
+        banner = banner_for(view.state, view.controller_gone).html()
+        if self.banner.content != banner:
+            self.banner.content = banner
         self.status.content = status_markdown(view.state, self.roles.operator is not None, view.controller_gone)
+        self.refresh_buttons()
         for panel in self.panels:
             panel.refresh(view)
 

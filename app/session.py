@@ -91,6 +91,8 @@ class Session:
             phase, run_id = state.get("phase"), state.get("run_id")
             if phase in MOVING_PHASES and run_id is not None and run_id != self._run_id:
                 self._run_id, self._rows, self._path = run_id, [], []
+            elif phase == Phase.TEACHING and self._run_id is not None:
+                self._run_id, self._rows, self._path = None, [], []  # a new job: the last run's charts go
             if run_id == self._run_id and phase in MOVING_PHASES:
                 self._add_cycle(state)
                 self._add_path_point(state)

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from vservo.app.banner import stage_words
 from vservo.app.session import RunTrace
 from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
 from vservo.core.production.assembly import Outcome, Phase
@@ -42,18 +43,41 @@ def status_markdown(state: dict, operator_present: bool, controller_gone: str | 
     if state.get("run_id") is not None and state.get("phase") not in (Phase.IDLE, Phase.TEACHING):
         parts.append(f"run {state['run_id']}")
         if state.get("stage"):
-            parts.append(f"stage {state['stage']}")
+            parts.append(stage_words(state["stage"]))
         parts.append(f"cycle {state.get('iteration', 0)}")
         parts.append(f"error {_number(state.get('error_px'), 1, ' px')}")
     control = "an operator holds control" if operator_present else "no operator"
     robot = f"{state.get('robot', '')} on {state.get('backend', '')}".strip()
     detail = state.get("detail") or ""
-    return f"{' · '.join(parts)}  \n{detail}  \n<small>{robot} · {flange_text(state.get('bMe'))} · {control}</small>"
+    # Until the controller has read the robot (its first command) the pose is unknown: never a made-up one.
+    flange = flange_text(state["bMe"]) if state.get("q") else "flange pose not known yet"
+    return f"{' · '.join(parts)}  \n{detail}  \n<small>{robot} · {flange} · {control}</small>"
+
+
+# The laws' equations per stage (section 4.4; docs/thesis-notes.md), for the engineering fold.
+STAGE_EQUATIONS = {"1A": "eqs. 4-26 .. 4-29", "1B": "eq. 4-36", "2": "eqs. 4-39 .. 4-49", "3": "eqs. 4-50, 4-51",
+                   "ibvs": "eq. 4-14", "pbvs": "eq. 2-47"}
+
+
+def engineering_markdown(state: dict) -> str:
+    """The servo's own terms: stage code and its equations, cycle, ||f_id - f|| and the twist cVc."""
+    stage = state.get("stage")
+    if not stage:
+        return "No servo stage under way."
+    twist = ", ".join(_number(v, 4) for v in state.get("cVc") or [])
+    return (f"stage `{stage}` ({STAGE_EQUATIONS.get(str(stage), 'no equation on record')}) · cycle "
+            f"{state.get('iteration', 0)} · ||f_id - f|| = {_number(state.get('error_px'), 2, ' px')}  \n"
+            f"cVc = [{twist}] (m/s, rad/s)")
 
 
 def flange_text(bMe: object) -> str:
-    """The flange pose as the robot's pendant shows it: X Y Z in mm, phi theta psi in deg (eq. 2-13)."""
-    x, y, z, phi, theta, psi = np.round(pose_to_mm_deg(pose_from_matrix(np.asarray(bMe, float))), 2) + 0.0  # no "-0.00"
+    """The flange pose as the robot's pendant shows it: X Y Z in mm, phi theta psi in deg (eq. 2-13).
+
+    Angles in [-90, 270): a tool pointing down has an angle of 180 deg, which in (-180, 180]
+    would flip between 179.99 and -179.99 at every tremor."""
+    pose = np.array(pose_to_mm_deg(pose_from_matrix(np.asarray(bMe, float))), float)
+    pose[3:] = (pose[3:] + 90.0) % 360.0 - 90.0
+    x, y, z, phi, theta, psi = np.round(pose, 2) + 0.0  # no "-0.00"
     return f"flange X {x:.2f} Y {y:.2f} Z {z:.2f} mm, phi {phi:.2f} theta {theta:.2f} psi {psi:.2f} deg"
 
 
@@ -108,18 +132,7 @@ def run_label(run: dict) -> str:
     return f"#{run['id']} {run['job']} {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))}"
 
 
-def stage_timeline(run: dict, width: int = 40) -> str:
-    """The run's servo stages in order, each with its share of the cycles as a bar."""
-    stages = run.get("stages") or []
-    total = sum(int(s.get("iterations", 0)) for s in stages)
-    lines = [f"**Run {run['id']}** ({run['job']}): {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))}, "
-             f"{run.get('reason') or ''}"]
-    if not total:
-        return lines[0] + "  \nNo servo cycles recorded."
-    lines.append("```")
-    for stage in stages:
-        count = int(stage.get("iterations", 0))
-        bar = "#" * max(1, round(width * count / total))
-        lines.append(f"{str(stage.get('stage')):>4} {bar} {count}")
-    lines.append("```")
-    return "\n".join(lines)
+def run_heading(run: dict) -> str:
+    """One run in a line: its number, job, outcome and why (its stages are app/stage_chart.py's chart)."""
+    return (f"**Run {run['id']}** ({run['job']}): {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))}, "
+            f"{run.get('reason') or ''}")

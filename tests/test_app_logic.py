@@ -15,7 +15,7 @@ from vservo.app.commands import CommandQueue
 from vservo.app.roles import RoleRefused, Roles, new_token
 from vservo.app.scene3d import PartTracker, laser_ray, part_pose_from_corners, placed_part_frame
 from vservo.app.session import Session
-from vservo.app.status import flange_text, outcome_markdown, run_progress, runs_table, stage_timeline, status_markdown
+from vservo.app.status import flange_text, outcome_markdown, run_heading, run_progress, runs_table, status_markdown
 from vservo.app.teach_panel import jog_step
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg
@@ -238,8 +238,7 @@ def test_history_texts():
            "stages": [{"stage": "1A", "iterations": 30}, {"stage": "3", "iterations": 10}]}
     table = runs_table([run])
     assert "| 3 | demo | E-STOPPED | 2.5 s | - | - |" in table
-    timeline = stage_timeline(run, width=40)
-    assert "  1A " + "#" * 30 + " 30" in timeline and "   3 " + "#" * 10 + " 10" in timeline
+    assert run_heading(run) == "**Run 3** (demo): E-STOPPED, e-stop pressed"
 
 
 def test_flange_text_is_the_pendants_pose():

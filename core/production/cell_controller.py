@@ -288,6 +288,7 @@ class CellController:
         if interrupted:
             log.warning("runs %s were found unfinished (their controller died): marked interrupted", interrupted)
         self.rig.robot.connect()
+        self._state = replace(self._state, **self._robot_readout())  # the first state shows the real pose
         status = self.rig.robot.status()
         if status.held:  # an earlier session's e-stop or fault: motion only after an explicit reset
             self._state = replace(self._state, phase=Phase.FAULT.value,
@@ -434,6 +435,7 @@ class CellController:
             self._draft = draft
             self._check_image = None
             # The job shown is the template taught from; a new job has none until it is saved.
+            self._desired = None  # the last job's desired corners are no part of the new one
             self._update(phase=Phase.TEACHING.value, detail="jog to the desired view and capture it", job=template or None,
                          teach_missing=draft.missing(), teach_optional=draft.optional_missing())
 
