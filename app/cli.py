@@ -93,14 +93,16 @@ def _add_ui_bench(bench: BenchCommand) -> None:
     from vservo.app.light_monitor import LIGHT_COUNTS, Monitors
 
     ui = bench.add("ui", "camera frames per second reaching the monitors, their CPU and the controller's loop rate: "
-                   "light WebSocket clients (none, then 1, 5, 20) and 1 and 5 headless Chromium pages", _cmd_bench_ui)
+                   "light WebSocket clients (1, 5, 20, each against none) and 1 and 5 headless Chromium pages",
+                   _cmd_bench_ui)
     ui.add_argument("--monitors", choices=[kind.value for kind in Monitors], default=Monitors.BOTH.value,
                     help="ui: light (WebSocket clients that decode every message, render nothing), chromium "
                     "(headless pages) or both (default both)")
     ui.add_argument("--light-clients", type=positive(int), nargs="+", default=list(LIGHT_COUNTS), metavar="N",
-                    help=f"ui: numbers of light clients, each measured after a reference with none (default "
-                    f"{' '.join(map(str, LIGHT_COUNTS))})")
-    ui.add_argument("--runs", type=positive(int), default=3, help="ui: assemblies per monitor count (default 3)")
+                    help=f"ui: numbers of light clients, each paired run for run with runs without any "
+                    f"(default {' '.join(map(str, LIGHT_COUNTS))})")
+    ui.add_argument("--runs", type=positive(int), default=3,
+                    help="ui: assemblies per monitor count (default 3; with light clients, as many again without any)")
     ui.add_argument("--cycle-period", type=float, default=0.0, metavar="S",
                     help="ui: shortest servo cycle in s (default 0: free-running)")
 
