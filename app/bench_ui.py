@@ -66,7 +66,6 @@ CLOCK_TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 class CpuSample:
     """The CPU time (user + system, s) a process has used, read from /proc at a monotonic time."""
 
-    pid: int
     cpu_s: float
     at_s: float
 
@@ -74,7 +73,7 @@ class CpuSample:
     def of(cls, pid: int) -> CpuSample:
         stat = Path(f"/proc/{pid}/stat").read_text()
         fields = stat[stat.rindex(")") + 2:].split()  # after "pid (name) ", the state is field 3
-        return cls(pid, (int(fields[11]) + int(fields[12])) / CLOCK_TICKS_PER_S, time.monotonic())
+        return cls((int(fields[11]) + int(fields[12])) / CLOCK_TICKS_PER_S, time.monotonic())
 
     def percent_since(self, earlier: CpuSample) -> float:
         """The process's CPU between the two samples, in % of one core."""
