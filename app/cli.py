@@ -56,10 +56,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 def _cmd_bench_ui(args: argparse.Namespace) -> int:
     from vservo.app.bench_ui import bench_ui
     from vservo.app.browser import ChromiumMissing
+    from vservo.app.light_monitor import Monitors
 
     config = load_cell(args.cell)
     try:
-        result = bench_ui(config, seed=args.seed, runs=args.runs, cycle_period_s=args.cycle_period, cell=args.cell)
+        result = bench_ui(config, seed=args.seed, runs=args.runs, monitors=Monitors(args.monitors),
+                          light_counts=tuple(args.light_clients), cycle_period_s=args.cycle_period, cell=args.cell)
     except ChromiumMissing as exc:
         print(f"vservo bench: error: {exc}", file=sys.stderr)
         return 2
@@ -88,9 +90,19 @@ def _add_serve_command(commands: argparse._SubParsersAction) -> None:
 
 
 def _add_ui_bench(bench: BenchCommand) -> None:
-    ui = bench.add("ui", "camera frames per second in the browser and the controller's loop rate, with 1 and 5 "
-                   "headless Chromium pages connected", _cmd_bench_ui)
-    ui.add_argument("--runs", type=positive(int), default=3, help="ui: assemblies per browser count (default 3)")
+    from vservo.app.light_monitor import LIGHT_COUNTS, Monitors
+
+    ui = bench.add("ui", "camera frames per second reaching the monitors, their CPU and the controller's loop rate: "
+                   "light WebSocket clients (1, 5, 20, each against none) and 1 and 5 headless Chromium pages",
+                   _cmd_bench_ui)
+    ui.add_argument("--monitors", choices=[kind.value for kind in Monitors], default=Monitors.BOTH.value,
+                    help="ui: light (WebSocket clients that decode every message, render nothing), chromium "
+                    "(headless pages) or both (default both)")
+    ui.add_argument("--light-clients", type=positive(int), nargs="+", default=list(LIGHT_COUNTS), metavar="N",
+                    help=f"ui: numbers of light clients, each paired run for run with runs without any "
+                    f"(default {' '.join(map(str, LIGHT_COUNTS))})")
+    ui.add_argument("--runs", type=positive(int), default=3,
+                    help="ui: assemblies per monitor count (default 3; with light clients, as many again without any)")
     ui.add_argument("--cycle-period", type=float, default=0.0, metavar="S",
                     help="ui: shortest servo cycle in s (default 0: free-running)")
 
