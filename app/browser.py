@@ -194,6 +194,15 @@ def wait_for_status(page: Any, pattern: str, timeout_s: float = 60.0) -> str:
     raise TimeoutError(f"the status never matched {pattern!r}; last: {text!r}")
 
 
+
+def present_part_and_start(page: Any) -> int:
+    """Present a new part, press Start on the Assemble tab; the run's number once it servoes."""
+    page.get_by_role("button", name="Present part", exact=True).click()
+    wait_for_status(page, r"a new part is on the table")
+    page.get_by_role("button", name="Start", exact=True).click()
+    running = wait_for_status(page, r"Servoing .*run (\d+)")
+    return int(re.search(r"run (\d+)", running).group(1))
+
 def cycle_of(text: str) -> int | None:
     match = STATUS_CYCLE.search(text)
     return int(match.group(1)) if match else None

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.chromium import chromium_or_fail
 from vservo.app.browser import (
-    ChromiumMissing,
     ServeProcess,
     choose,
     count_image_updates,
@@ -31,7 +31,6 @@ from vservo.app.browser import (
     image_updates,
     launch_chromium,
     open_pages,
-    require_chromium,
     status_text,
     take_control,
     type_into,
@@ -49,10 +48,7 @@ FORCE_REACT_CLICK = """(button) => {
 
 @pytest.fixture(scope="module")
 def app(tmp_path_factory):
-    try:
-        require_chromium()
-    except ChromiumMissing as exc:
-        pytest.fail(str(exc))
+    chromium_or_fail()
     serve = ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.02)
     yield serve
     if serve.process.poll() is None:

@@ -12,15 +12,12 @@ import os
 import re
 from pathlib import Path
 
-import pytest
-
+from tests.chromium import chromium_or_fail
 from vservo.app.browser import (
-    ChromiumMissing,
     ServeProcess,
     dismiss_notifications,
     launch_chromium,
     open_pages,
-    require_chromium,
     take_control,
     wait_for_status,
 )
@@ -31,10 +28,7 @@ ARTIFACTS = Path(os.environ.get("VSERVO_ARTIFACTS", Path(__file__).resolve().par
 
 
 def test_commission_the_simulated_cell_from_the_calibrate_tab_and_apply(tmp_path):
-    try:
-        require_chromium()
-    except ChromiumMissing as exc:
-        pytest.fail(str(exc))
+    chromium_or_fail()
     from playwright.sync_api import sync_playwright
 
     data = tmp_path / "data"

@@ -14,17 +14,15 @@ from __future__ import annotations
 import re
 import time
 
-import pytest
-
+from tests.chromium import chromium_or_fail
 from tests.virtual_cell_process import VirtualCellProcess
 from vservo.app.browser import (
-    ChromiumMissing,
     ServeProcess,
     choose,
     free_port,
     launch_chromium,
     open_pages,
-    require_chromium,
+    present_part_and_start,
     status_text,
     take_control,
     wait_for_status,
@@ -34,23 +32,12 @@ TOKEN = "e2e-lost-cell-token"
 FAULT_SHOWN_WITHIN_S = 2.0
 
 
-def _present_and_start(page) -> int:
-    page.get_by_role("button", name="Present part", exact=True).click()
-    wait_for_status(page, r"a new part is on the table")
-    page.get_by_role("button", name="Start", exact=True).click()
-    running = wait_for_status(page, r"Servoing .*run (\d+)")
-    return int(re.search(r"run (\d+)", running).group(1))
-
-
 def _reset(page) -> None:
     page.get_by_role("button", name=re.compile("^Reset")).click()
 
 
 def test_the_virtual_cell_killed_mid_run_shows_the_fault_and_reset_reconnects_once_it_is_back(tmp_path):
-    try:
-        require_chromium()
-    except ChromiumMissing as exc:
-        pytest.fail(str(exc))
+    chromium_or_fail()
     addresses = ("--seed", "4", "--jrc-link", str(tmp_path / "jrc"), "--camera-port", str(free_port()),
                  "--fixture-port", str(free_port()), "--out", str(tmp_path / "cell.toml"))
     cell = VirtualCellProcess(*addresses)
@@ -65,7 +52,7 @@ def test_the_virtual_cell_killed_mid_run_shows_the_fault_and_reset_reconnects_on
             page.get_by_role("tab", name="Assemble").click()
             choose(page, "Job", "demo")
 
-            run = _present_and_start(page)
+            run = present_part_and_start(page)
             wait_for_status(page, rf"Servoing .*run {run}.*cycle [2-9]", timeout_s=60)
             cell.process.kill()
             killed_at = time.monotonic()
@@ -83,7 +70,7 @@ def test_the_virtual_cell_killed_mid_run_shows_the_fault_and_reset_reconnects_on
             cell = VirtualCellProcess(*addresses)
             _reset(page)
             wait_for_status(page, r"Idle", timeout_s=30)
-            again = _present_and_start(page)
+            again = present_part_and_start(page)
             assert again == run + 1
             wait_for_status(page, rf"Servoing .*run {again}.*cycle [2-9]", timeout_s=60)
             page.get_by_role("button", name="E-STOP", exact=True).click()

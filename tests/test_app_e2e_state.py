@@ -18,15 +18,14 @@ from pathlib import Path
 
 import pytest
 
+from tests.chromium import chromium_or_fail
 from vservo.app.banner import Kind
 from vservo.app.browser import (
-    ChromiumMissing,
     ServeProcess,
     banner,
     dismiss_notifications,
     launch_chromium,
     open_pages,
-    require_chromium,
     take_control,
     wait_for_banner,
     wait_for_status,
@@ -56,10 +55,7 @@ def _rgb(kind: Kind) -> str:
 
 @pytest.fixture(scope="module")
 def page(tmp_path_factory):
-    try:
-        require_chromium()
-    except ChromiumMissing as exc:
-        pytest.fail(str(exc))
+    chromium_or_fail()
     from playwright.sync_api import sync_playwright
 
     IMAGES.mkdir(parents=True, exist_ok=True)

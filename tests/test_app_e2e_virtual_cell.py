@@ -15,15 +15,15 @@ import time
 
 import pytest
 
+from tests.chromium import chromium_or_fail
 from tests.virtual_cell_process import VirtualCellProcess
 from vservo.app.browser import (
-    ChromiumMissing,
     ServeProcess,
     choose,
     cycle_of,
     launch_chromium,
     open_pages,
-    require_chromium,
+    present_part_and_start,
     status_text,
     take_control,
     wait_for_status,
@@ -42,10 +42,7 @@ def virtual_cell():
 
 @pytest.fixture(scope="module")
 def app(virtual_cell, tmp_path_factory):
-    try:
-        require_chromium()
-    except ChromiumMissing as exc:
-        pytest.fail(str(exc))
+    chromium_or_fail()
     serve = ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.0,
                                cell=virtual_cell.addresses["cell_file"])
     yield serve
@@ -67,16 +64,8 @@ def operator(app):
         chromium.close()
 
 
-def _present_and_start(page) -> int:
-    page.get_by_role("button", name="Present part", exact=True).click()
-    wait_for_status(page, r"a new part is on the table")
-    page.get_by_role("button", name="Start", exact=True).click()
-    running = wait_for_status(page, r"Servoing .*run (\d+)")
-    return int(re.search(r"run (\d+)", running).group(1))
-
-
 def _assemble(page, virtual_cell) -> None:
-    run = _present_and_start(page)
+    run = present_part_and_start(page)
     done = wait_for_status(page, rf"Done .*run {run}", timeout_s=RUN_TIMEOUT_S)
     seen = re.search(r"part seen (\d+\.\d+) mm from its taught place", done)
     assert seen, done
@@ -89,7 +78,7 @@ def _assemble(page, virtual_cell) -> None:
 def test_present_assemble_estop_reset_and_assemble_again_on_the_virtual_cell(app, virtual_cell, operator):
     _assemble(operator, virtual_cell)
 
-    run = _present_and_start(operator)
+    run = present_part_and_start(operator)
     wait_for_status(operator, rf"Servoing .*run {run}.*cycle ([2-9]\d|\d{{3}})", timeout_s=60)
     operator.get_by_role("button", name="E-STOP", exact=True).click()
     stopped = wait_for_status(operator, r"E-STOPPED", timeout_s=10)

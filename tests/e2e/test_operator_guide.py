@@ -19,15 +19,14 @@ from pathlib import Path
 
 import pytest
 
+from tests.chromium import chromium_or_fail
 from vservo.app.browser import (
-    ChromiumMissing,
     ServeProcess,
     choose,
     dismiss_notifications,
     flange_of,
     launch_chromium,
     open_pages,
-    require_chromium,
     status_text,
     take_control,
     type_into,
@@ -45,10 +44,7 @@ CUP_ON_IT = re.compile(r"Cup on it: ((?:-?[\d.]+ ){5}-?[\d.]+)")
 
 @pytest.fixture(scope="module")
 def page(tmp_path_factory):
-    try:
-        require_chromium()
-    except ChromiumMissing as exc:
-        pytest.fail(str(exc))
+    chromium_or_fail()
     from playwright.sync_api import sync_playwright
 
     serve = ServeProcess.start(tmp_path_factory.mktemp("guide-data"), TOKEN, cycle_period_s=0.02)
