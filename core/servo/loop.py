@@ -142,16 +142,17 @@ def hold_spot(features: ImageFeatures, last_seen: ImageFeatures | None) -> Image
     """
     if features.laser_visible or last_seen is None:
         return features
-    moved_px = np.linalg.norm(_centroid_px(features.corners_px) - _centroid_px(last_seen.corners_px))
-    if not moved_px <= 2.0 * pattern_scale(last_seen.corners_px[np.isfinite(last_seen.corners_px).all(axis=1)]):
-        return features  # moved too far, or no corner seen to tell (NaN)
+    now, then = _seen_corners(features.corners_px), _seen_corners(last_seen.corners_px)
+    if not (len(now) and len(then)):
+        return features  # no corner seen to tell how far the part moved
+    if np.linalg.norm(now.mean(axis=0) - then.mean(axis=0)) > 2.0 * pattern_scale(then):
+        return features
     return replace(features, laser_spot_px=last_seen.laser_spot_px, laser_depth_m=last_seen.laser_depth_m)
 
 
-def _centroid_px(corners_px: Matrix) -> Matrix:
-    """The centroid of the corners seen (NaN when none is)."""
-    seen = corners_px[np.isfinite(corners_px).all(axis=1)]
-    return seen.mean(axis=0) if len(seen) else np.full(2, np.nan)
+def _seen_corners(corners_px: Matrix) -> Matrix:
+    """The corners seen, (n, 2), n from 0 to 4."""
+    return corners_px[np.isfinite(corners_px).all(axis=1)]
 
 
 def corner_area_px2(corners_px: Matrix) -> float:
