@@ -239,7 +239,7 @@ class ControllerServer:
                 return False
             return True
         except (AuthenticationError, EOFError, OSError, ValueError) as exc:
-            log.warning("connection refused: %r", exc)
+            log.warning("channel: a client failed the handshake: %r", exc)
             return False
         finally:
             deadline.cancel()
