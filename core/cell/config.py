@@ -658,7 +658,7 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     home_deg = robot.vector("home_joints_deg", None, None)
     lower, upper = np.degrees(joint_limits(arm))
     if home_deg.shape != lower.shape:
-        raise robot.fail("home_joints_deg", home_deg.tolist(), f"the {arm} has {lower.size} joints")
+        raise robot.fail("home_joints_deg", home_deg.tolist(), f"{home_deg.size} values, the {arm} arm has {lower.size} joints")
     if np.any(home_deg < lower) or np.any(home_deg > upper):
         limits = ", ".join(f"[{lo:.1f}, {hi:.1f}]" for lo, hi in zip(lower, upper))
         raise robot.fail("home_joints_deg", home_deg.tolist(), f"beyond the {arm}'s joint limits (deg) {limits}")

@@ -181,6 +181,17 @@ class _Subscriber:
             if payload is not None:
                 self.connection.send_bytes(payload)
 
+    def close(self) -> None:
+        """Close the connection, never under a send of another thread.
+
+        A send that had read the descriptor before a plain close would write into whatever
+        connection the next accept gave that descriptor, in the middle of its key challenge.
+        Shutting down first makes a send blocked on a peer that stopped reading fail at once.
+        """
+        _shut_down(self.connection)
+        with self.send_lock:
+            self.connection.close()
+
 
 class ControllerServer:
     """Serves a CellController on 127.0.0.1 to apps that hold the key."""
@@ -243,6 +254,7 @@ class ControllerServer:
             return False
         finally:
             deadline.cancel()
+            deadline.join()  # a deadline firing just now must not reach a descriptor closed and reused after us
 
     def _serve(self, connection: Connection) -> None:
         if not self._handshake(connection):
@@ -276,7 +288,7 @@ class ControllerServer:
             with subscriber.pending:
                 subscriber.closed = True
                 subscriber.pending.notify()
-            connection.close()
+            subscriber.close()
             if last_gone and not self._stopping.is_set() and self.controller.in_motion:
                 log.warning(APP_GONE)
                 self.controller.estop(APP_GONE)
@@ -336,8 +348,10 @@ class ControllerServer:
     def close(self) -> None:
         self._stopping.set()
         self.listener.close()
+        # Shut down, not close: each connection's own thread closes it as its read ends, and
+        # two threads closing one Connection at once may close a descriptor reused meanwhile.
         for subscriber in list(self.subscribers):
-            subscriber.connection.close()
+            _shut_down(subscriber.connection)
 
 
 def _shut_down(connection: Connection) -> None:
