@@ -409,8 +409,13 @@ class ControllerClient:
                         self._replies[message["id"]] = Reply(message["ok"], message.get("result"), message.get("error"))
                         self._reply_ready.notify_all()
         except (EOFError, OSError, TypeError):
-            pass  # the controller went away, or close() took the connection from under recv (TypeError)
+            pass  # the controller went away, or close() shut the connection down
         finally:
+            # The reader closes the connection, as it ends and not under a send: a descriptor
+            # closed under a read or a write in progress may be reused by the next connection
+            # of this process, which would then lose its bytes to us.
+            with self._send_lock:
+                self.connection.close()
             with self._reply_ready:
                 self.connected = False
                 self._reply_ready.notify_all()
@@ -433,8 +438,7 @@ class ControllerClient:
             return self._replies.pop(request)
 
     def close(self) -> None:
-        # Shut the socket down before closing it: a close alone neither wakes our reader
-        # blocked in recv nor tells the controller we are gone (the reader holds the socket).
+        # Shut the socket down: it wakes our reader blocked in recv, which closes it, and
+        # tells the controller we are gone.
         _shut_down(self.connection)
-        self.connection.close()
         self._reader.join(5.0)
