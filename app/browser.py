@@ -21,11 +21,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from vservo.app.roles import TOKEN_ENVIRONMENT
+
 CHROMIUM = Path(os.environ.get("VSERVO_CHROMIUM", "/usr/bin/chromium"))
 CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
                   "--enable-unsafe-swiftshader", "--use-angle=swiftshader")
-URL_LINE = re.compile(r"vservo serve: (http://\S+)\s+operator token: (\S+)")
+URL_LINE = re.compile(r"vservo serve: (http://\S+)")
 STATUS_CYCLE = re.compile(r"cycle (\d+)")
 STATUS_FLANGE = re.compile(r"flange X (-?[\d.]+) Y (-?[\d.]+) Z (-?[\d.]+) mm, phi (-?[\d.]+) theta (-?[\d.]+) "
                            r"psi (-?[\d.]+) deg")
@@ -76,15 +78,16 @@ class ServeProcess:
         Path(data).mkdir(parents=True, exist_ok=True)
         cell_option = ["--cell", cell] if cell else []
         command = [sys.executable, "-m", "vservo.app.cli", *cell_option, "serve", "--port", str(free_port()), "--data", str(data),
-                   "--token", token, "--cycle-period", str(cycle_period_s), "--seed", str(seed)]
+                   "--cycle-period", str(cycle_period_s), "--seed", str(seed)]
+        environment = {**os.environ, TOKEN_ENVIRONMENT: token}  # not --token: ps would show it
         with open(stderr_path, "w") as stderr:
-            process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=stderr, text=True)
+            process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=stderr, text=True, env=environment)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if select.select([process.stdout], [], [], 0.5)[0]:
                 match = URL_LINE.search(process.stdout.readline())
                 if match:
-                    return cls(process, match.group(1), match.group(2), stderr_path)
+                    return cls(process, match.group(1), token, stderr_path)
             if process.poll() is not None:
                 break
         process.kill()

@@ -34,18 +34,23 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     import logging
 
     from vservo.app.controller_process import ControllerStartError
-    from vservo.app.roles import TOKEN_ENVIRONMENT, new_token
+    from vservo.app.roles import TokenError, TokenSource, operator_token
     from vservo.app.server import ServeOptions, serve
+    from vservo.app.web_guard import normalise_origin
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
-    token = args.token or os.environ.get(TOKEN_ENVIRONMENT) or new_token()
-    if not token.strip():
-        print("vservo serve: error: --token: the operator token is empty", file=sys.stderr)
+    try:
+        token = operator_token(args.token, args.token_file, os.environ, args.host,
+                               warn=lambda line: print(f"vservo serve: warning: {line}", file=sys.stderr))
+        origins = tuple(normalise_origin(origin) for origin in args.allow_origin)
+    except (TokenError, ValueError) as exc:
+        print(f"vservo serve: error: {exc}", file=sys.stderr)
         return 2
     config = load_cell(args.cell)
     options = ServeOptions(backend=args.backend or config.robot_backend, host=args.host, port=args.port,
-                           data=Path(args.data or default_data_dir()), seed=args.seed, token=token,
-                           cycle_period_s=args.cycle_period, cell=args.cell)
+                           data=Path(args.data or default_data_dir()), seed=args.seed, token=token.value,
+                           cycle_period_s=args.cycle_period, cell=args.cell,
+                           show_token=token.source is TokenSource.GENERATED, allowed_origins=origins)
     try:
         return serve(options, config, announce=lambda line: print(line, flush=True))
     except ControllerStartError as exc:
@@ -82,8 +87,14 @@ def _add_serve_command(commands: argparse._SubParsersAction) -> None:
                        "one if taken)")
     serve.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
     serve.add_argument("--seed", type=int, default=None, help="seed of the simulated cell and of the parts' arrival")
-    serve.add_argument("--token", help="operator token (default $VSERVO_OPERATOR_TOKEN, else a new random one; a "
-                       "token on the command line is visible to other users in ps, the variable is not)")
+    token = serve.add_mutually_exclusive_group()
+    token.add_argument("--token-file", metavar="FILE", help="read the operator token from FILE (default "
+                       "$VSERVO_OPERATOR_TOKEN, else a new random one, printed); beyond 127.0.0.1 at least 16 characters")
+    token.add_argument("--token", help="operator token, on this PC's loopback only: other users see it in ps (a "
+                       "warning says so); --token-file or $VSERVO_OPERATOR_TOKEN do not show")
+    serve.add_argument("--allow-origin", action="append", default=[], metavar="URL",
+                       help="a web page's origin (http://host:port) besides the app's own that may open its "
+                       "WebSocket, e.g. a reverse proxy; repeat for more")
     serve.add_argument("--cycle-period", type=float, default=0.05, metavar="S",
                        help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
     serve.set_defaults(run=_cmd_serve)

@@ -29,6 +29,8 @@ class ServeOptions:
     token: str = ""
     cycle_period_s: float = 0.05
     cell: str | None = None
+    show_token: bool = True  # print it when serving starts: only a generated one, which nobody else knows yet
+    allowed_origins: tuple[str, ...] = ()  # web pages besides the app's own that may open its WebSocket
 
 
 class AppContext(Protocol):

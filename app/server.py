@@ -49,6 +49,7 @@ from vservo.app.scene3d import CellScene
 from vservo.app.session import Session, SessionView
 from vservo.app.status import status_markdown
 from vservo.app.teach_panel import TeachPanel
+from vservo.app.web_guard import OriginPolicy, origin_checked_server
 from vservo.core.cell.config import CellConfig
 from vservo.core.production.channel import ChannelError, ControllerClient
 
@@ -237,7 +238,7 @@ class OperatorApp:
 
         def on_take(_: Any) -> None:
             try:
-                self.roles.take(view.client_id, token.value)
+                self.roles.take(view.client_id, token.value, self._client_address(view.client_id))
             except RoleRefused as exc:
                 view.refused("Take control", exc)
                 return
@@ -252,6 +253,14 @@ class OperatorApp:
         take.on_click(on_take)
         release.on_click(lambda _: self.roles.release(view.client_id))
         view.on_role(on_role)
+
+    def _client_address(self, client_id: int) -> str | None:
+        """The browser's IP address, which wrong tokens are counted against (a reload must not reset them).
+
+        viser's client handle does not give it; its server keeps each live client's websockets connection.
+        """
+        connection = self.server._websock_server._live_connections.get(client_id)
+        return None if connection is None else str(connection.remote_address[0])
 
     def _on_operator_change(self, old: int | None, new: int | None) -> None:
         with self._lock:
@@ -349,8 +358,9 @@ def start_app(options: ServeOptions, config: CellConfig) -> RunningApp:
         channel = ControllerClient(controller.address, controller.key, on_state=session.on_state,
                                    on_frame=session.on_frame)
         session.on_state(channel.state)  # the welcome's state (ignored if a newer one came first)
+        policy = OriginPolicy.allowing(options.allowed_origins)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner whatever verbose says; ours is below
-            server = viser.ViserServer(host=options.host, port=options.port, verbose=False)
+            server = origin_checked_server(options.host, options.port, policy)
         port = server.get_port()
         if port != options.port:
             log.warning("port %d was taken: serving on %d", options.port, port)
@@ -369,7 +379,8 @@ def serve(options: ServeOptions, config: CellConfig, announce: Callable[[str], N
     threading.excepthook = _log_thread_exception
     running = start_app(options, config)
     try:
-        announce(f"vservo serve: {running.url}  operator token: {options.token}  "
+        token = options.token if options.show_token else "(the one given)"
+        announce(f"vservo serve: {running.url}  operator token: {token}  "
                  f"(backend {options.backend}, data {options.data})")
         while not stop.wait(0.5):
             if not running.controller.alive:

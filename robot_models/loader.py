@@ -7,6 +7,7 @@ against the package's installed share directory.
 
 from __future__ import annotations
 
+import functools
 import importlib.metadata
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,3 +57,13 @@ def load_arm(name: str) -> ArmDescription:
     if not model.existFrame(flange_frame):
         raise ValueError(f"{urdf} has no frame {flange_frame!r} for the flange of arm {name!r}")
     return ArmDescription(name, model, visual_model, collision_model, flange_frame)
+
+
+@functools.cache
+def joint_limits(name: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The arm ``name``'s joint limits in rad, (lower, upper): its kinematic model only, no meshes."""
+    if name not in ARM_NAMES:
+        raise ValueError(f"unknown arm {name!r}: choose one of {', '.join(ARM_NAMES)}")
+    urdf, _, _ = _urdf_and_package_dirs(name)
+    model = pin.buildModelFromUrdf(str(urdf))
+    return tuple(model.lowerPositionLimit), tuple(model.upperPositionLimit)

@@ -211,3 +211,21 @@ def test_the_6dof_inputs_are_height_and_the_rotation_away_from_tool_down():
     assert np.allclose(inputs[0, 5:], 0.0, atol=1e-12)
     assert np.allclose(inputs[1, 5:], [0.03, -0.02, 0.1])
     assert network_inputs("planar", inputs[:, :2], np.array([tool_down, tilted])).shape == (2, 4)
+
+
+def test_a_network_with_a_zero_output_scale_is_refused_at_load(tmp_path):
+    from dataclasses import replace
+
+    model = replace(untrained(), trained=True, normalisation=Normalisation(np.zeros(4), np.ones(4), np.array([0.2, 0.0])))
+    path = model.save(tmp_path / "flat.npz")
+    with pytest.raises(ModelFileError, match=r"flat.npz: output_scale = \[0.2, 0.0\]: both scales must be positive"):
+        NNCalibration.load(path)
+
+
+def test_a_dataset_of_all_zero_poses_is_refused_at_load_and_at_training(tmp_path):
+    data = planar_dataset()
+    zero = np.zeros_like(data.bMe)
+    with pytest.raises(DatasetError, match=r"zero.npz: bMe\[0\] = \[\[0.0, .*is not a rigid transform"):
+        CalibrationDataset.load(write_dataset(tmp_path / "zero.npz", bMe=zero))
+    with pytest.raises(DatasetError, match=r"bMe\[0\] = .* is not a rigid transform"):
+        train_nn(CalibrationDataset(data.pixels_px, data.world_m, data.view, zero), settings=LMSettings(epochs=2))

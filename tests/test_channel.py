@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import socket
 import threading
 
 import cv2
@@ -11,7 +13,14 @@ import pytest
 from vservo.core.cell.config import load_cell
 from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController
-from vservo.core.production.channel import APP_GONE, ChannelError, ControllerClient, ControllerServer, new_key
+from vservo.core.production.channel import (
+    APP_GONE,
+    HANDSHAKE_DEADLINE_S,
+    ChannelError,
+    ControllerClient,
+    ControllerServer,
+    new_key,
+)
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.safety import SafetyLayer
@@ -265,3 +274,71 @@ def test_the_last_app_leaving_while_idle_changes_nothing(served):
     ControllerClient(server.address, key).close()
     assert controller.state.phase == "idle"
     assert not controller.rig.robot.status().held
+
+
+def _raw_command(client: ControllerClient, request: int, name, args) -> None:
+    """A command as a buggy or hostile app could send it (ControllerClient.call always sends an object)."""
+    client.connection.send_bytes(json.dumps({"type": "command", "id": request, "name": name, "args": args}).encode())
+
+
+def _reply(client: ControllerClient, request: int):
+    with client._reply_ready:
+        assert client._reply_ready.wait_for(lambda: request in client._replies, 10.0), f"no reply to {request}"
+        return client._replies.pop(request)
+
+
+def test_commands_with_bad_arguments_get_an_error_and_the_connection_keeps_working(served):
+    _, server, key = served
+    client = ControllerClient(server.address, key)
+    try:
+        bad = [("list_runs", [1]), ("list_runs", {"limit": 10**30}), ("list_runs", {"limit": "many"}),
+               ("list_runs", {"limit": 0}), ("jog", {"translation_m": "up"}), ("set_settings", {"gain": [1]}),
+               ("get_job", None), (["list_jobs"], {}), ("fly", {})]
+        for request, (name, args) in enumerate(bad, start=1000):
+            _raw_command(client, request, name, args)
+            reply = _reply(client, request)
+            assert not reply.ok and reply.error, (name, args)
+        assert "limit must be a whole number" in client.call("list_runs", limit=10**30).error
+        assert [job["name"] for job in client.call("list_jobs").result] == ["demo"]
+        assert client.call("list_runs", limit=5).ok
+    finally:
+        client.close()
+
+
+def _connect_and_list(address, key, results: list, index: int) -> None:
+    client = ControllerClient(address, key)
+    try:
+        results[index] = client.call("list_jobs", timeout_s=60.0).ok
+    finally:
+        client.close()
+
+
+def test_idle_connections_without_the_key_do_not_block_an_app(served):
+    _, server, key = served
+    idle = [socket.create_connection(server.address) for _ in range(5)]
+    try:
+        results = [False]
+        app = threading.Thread(target=_connect_and_list, args=(server.address, key, results, 0), daemon=True)
+        app.start()
+        app.join(3.0)  # a handshake takes milliseconds; behind the idle sockets it used to wait for ever
+        assert results == [True]
+        # Each silent connection is dropped at the handshake's deadline.
+        for connection in idle:
+            connection.settimeout(HANDSHAKE_DEADLINE_S + 10.0)
+            while connection.recv(4096):
+                pass  # the server's challenge, then the end of the connection
+    finally:
+        for connection in idle:
+            connection.close()
+
+
+def test_300_apps_connecting_at_once_all_get_through(served):
+    _, server, key = served
+    results = [False] * 300
+    apps = [threading.Thread(target=_connect_and_list, args=(server.address, key, results, i), daemon=True)
+            for i in range(len(results))]
+    for app in apps:
+        app.start()
+    for app in apps:
+        app.join(120.0)
+    assert sum(results) == len(results)

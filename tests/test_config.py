@@ -108,7 +108,15 @@ def test_truth_overrides_change_the_truth_only():
         (lambda d: d["safety"].update(workspace_max_mm=[-700.0, 400.0, 450.0]),
          ["safety.workspace_max_mm", "[-700.0, 400.0, 450.0]", "must exceed workspace_min_mm"]),
         (lambda d: d["safety"].update(max_step_mm=float("inf")), ["safety.max_step_mm", "finite"]),
-        (lambda d: d["safety"].update(watchdog_s=-2.0), ["safety.watchdog_s", "-2.0", "positive"]),
+        (lambda d: d["safety"].update(watchdog_s=-2.0), ["safety.watchdog_s", "-2.0", "more than 0"]),
+        (lambda d: d["safety"].update(watchdog_s=1e300), ["safety.watchdog_s", "1e+300", "at most 600 s"]),
+        (lambda d: d["safety"].update(watchdog_s=float("nan")), ["safety.watchdog_s", "nan", "finite"]),
+        (lambda d: d["robot"].update(home_joints_deg=[0.0, 500.0, 150.0, 0.0, -75.0, 0.0]),
+         ["robot.home_joints_deg", "500.0", "beyond the upj's joint limits", "[-85.0, 90.0]"]),
+        (lambda d: d["robot"].update(home_joints_deg=[0.0, 45.0, 150.0]),
+         ["robot.home_joints_deg", "3 values, the upj arm has 6 joints"]),
+        (lambda d: d["camera"].update(image_size_px=[1e6, 1e6]),
+         ["camera.image_size_px", "[1000000.0, 1000000.0]", "from 1 to 20000"]),
         (lambda d: d["camera"].update(source={"kind": "webcam"}), ["camera.source.kind", "'webcam'",
                                                                     "simulated, capture, folder"]),
         (lambda d: d["camera"].update(source={"kind": "capture"}), ["missing key camera.source.device"]),
@@ -156,6 +164,10 @@ def test_missing_and_malformed_files(tmp_path):
     broken.write_text("[camera\nfocal_length_mm = 6\n")
     with pytest.raises(ConfigError, match=r"broken.toml: not valid TOML"):
         load_cell(broken)
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(b"seed\xaa\xff\x00")
+    with pytest.raises(ConfigError, match=r"binary.toml: not a text file \(byte 4 is not UTF-8\)"):
+        load_cell(binary)
 
 
 def test_a_cell_file_on_disk_round_trips(tmp_path):

@@ -165,10 +165,3 @@ def test_corners_outside_the_image_are_not_measured():
     assert np.isnan(seen.corners_px).all()
     # The laser still hits the table and is seen.
     assert seen.laser_visible
-
-
-def test_home_joints_must_match_the_arm():
-    data = cell_data()
-    data["robot"]["home_joints_deg"] = [0.0, 45.0, 150.0]
-    with pytest.raises(ValueError, match="home_joints_deg has 3 values, the upj arm has 6 joints"):
-        SimulatedCell(parse_cell(data))

@@ -196,3 +196,12 @@ def test_a_simulated_camera_is_a_frame_source(cell_config):
         assert not np.array_equal(first.image, second.image)  # fresh noise every frame
         # The current view, whichever clock the robot's motion ended on (the host's for the JRC link).
         assert camera.read_after(time.monotonic()).index == 2
+
+
+def test_detect_on_an_empty_file_says_so_in_one_line(tmp_path):
+    empty = tmp_path / "empty.png"
+    empty.write_bytes(b"")
+    result = subprocess.run([sys.executable, "-m", "vservo.app.cli", "detect", str(empty)],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    assert result.stderr.splitlines() == [f"vservo detect: error: cannot decode image {str(empty)!r}: the file is empty"]

@@ -82,6 +82,10 @@ class CalibrationDataset:
                 where = np.argwhere(bad)[0]
                 raise DatasetError(f"{name}: {label} holds {int(bad.sum())} NaN or infinite values "
                                    f"(first at index {where.tolist()})")
+        bad_pose = _first_non_rigid(np.asarray(self.bMe, dtype=float))
+        if bad_pose is not None:
+            raise DatasetError(f"{name}: bMe[{bad_pose}] = {np.asarray(self.bMe[bad_pose]).tolist()} is not a rigid "
+                               "transform (a rotation and a translation over [0, 0, 0, 1])")
         if not np.issubdtype(np.asarray(self.view).dtype, np.integer):
             raise DatasetError(f"{name}: view indices must be integers, got {np.asarray(self.view).dtype}")
         if n and (self.view.min() < 0 or self.view.max() >= len(self.bMe)):
@@ -120,6 +124,19 @@ class CalibrationDataset:
             raise DatasetError(f"{path}: missing array {missing[0]}")
         return cls(arrays["pixels_px"], arrays["world_m"], arrays["view"], arrays["bMe"], metadata).validate(
             str(path), min_corners)
+
+
+RIGID_TOLERANCE = 1e-3  # a robot's reported rotation is orthonormal far better than this
+
+
+def _first_non_rigid(bMe: Matrix) -> int | None:
+    """The index of the first pose that is no rotation plus translation (an all-zero pose, say), or None."""
+    rotations = bMe[:, :3, :3]
+    orthonormal = np.abs(rotations @ np.swapaxes(rotations, 1, 2) - np.eye(3)).max(axis=(1, 2)) <= RIGID_TOLERANCE
+    proper = np.abs(np.linalg.det(rotations) - 1.0) <= RIGID_TOLERANCE
+    bottom = np.all(bMe[:, 3, :] == [0.0, 0.0, 0.0, 1.0], axis=1)
+    bad = np.flatnonzero(~(orthonormal & proper & bottom))
+    return int(bad[0]) if bad.size else None
 
 
 def network_inputs(input_set: str, pixels_px: Matrix, bMe: Matrix) -> Matrix:

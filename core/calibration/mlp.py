@@ -160,6 +160,9 @@ class NNCalibration:
                 raise ModelFileError(f"{path}: {name} has shape {arrays[name].shape}, a {k}-{hidden}-2 network needs {shape}")
             if not np.all(np.isfinite(arrays[name])):
                 raise ModelFileError(f"{path}: {name} holds NaN or infinite values")
+        if np.any(arrays["output_scale"] <= 0.0):  # eq. 2-43 scales by max|X_0|, max|Y_0|: never zero
+            raise ModelFileError(f"{path}: output_scale = {arrays['output_scale'].tolist()}: both scales must be "
+                                 "positive (the largest |X_0| and |Y_0| of the training data)")
         normalisation = Normalisation(arrays["input_min"], arrays["input_max"], arrays["output_scale"])
         return cls(stored_set, hidden, arrays["params"], normalisation, True, meta.get("training", {}))
 
@@ -211,6 +214,7 @@ def train_nn(
     on_epoch: Callable[[int, float], None] | None = None,
 ) -> NNCalibration:
     """Train the MLP by Levenberg-Marquardt (module docstring); seeded, reproducible."""
+    train.validate(str(train.metadata.get("source", "the training data")), min_corners=0)  # the corner count: below
     raw = train.network_inputs(input_set)
     normalisation = Normalisation.fit(raw, train.world_m)
     k = raw.shape[1]

@@ -36,6 +36,12 @@ from vservo.core.geometry.spatial import Matrix, matrix_from_pose, pose_from_mm_
 DEFAULT_CELL = "cell.toml"
 
 
+# Bounds of sanity, not of any one cell: beyond them a value is a typo that would break a
+# thread or an allocation far from the file (a wait longer than the OS timer, a 1e6 x 1e6 image).
+MAX_IMAGE_SIDE_PX = 20_000
+MAX_WATCHDOG_S = 600.0
+
+
 class ConfigError(ValueError):
     """A cell configuration that cannot be used; the message names the key and value."""
 
@@ -351,8 +357,8 @@ def _camera(t: _Table) -> CameraModel:
         raise t.fail("pixel_size_mm", pixel.tolist(), "both sizes must be positive")
     principal = t.vector("principal_point_px", 2, [320.0, 240.0])
     size = t.vector("image_size_px", 2, [640, 480])
-    if np.any(size < 1) or np.any(size != np.round(size)):
-        raise t.fail("image_size_px", size.tolist(), "must be two positive whole numbers")
+    if np.any(size < 1) or np.any(size != np.round(size)) or np.any(size > MAX_IMAGE_SIDE_PX):
+        raise t.fail("image_size_px", size.tolist(), f"must be two whole numbers from 1 to {MAX_IMAGE_SIDE_PX}")
     distortion = Distortion(*t.vector("distortion", 5, [0.0] * 5))
     measured = "focal_length_px" in t._data
     focal_px = t.vector("focal_length_px", 2, [1.0, 1.0])
@@ -597,7 +603,8 @@ def _safety(t: _Table) -> SafetyConfig:
         max_step_rad=math.radians(t.number("max_step_deg", 15.0, check=_positive, why="must be positive")),
         max_speed_m_s=t.number("max_speed_mm_s", 250.0, check=_positive, why="must be positive") / 1000.0,
         joint_margin_rad=math.radians(t.number("joint_margin_deg", 0.0, check=_non_negative, why="must be >= 0")),
-        watchdog_s=t.number("watchdog_s", 5.0, check=_positive, why="must be positive"),
+        watchdog_s=t.number("watchdog_s", 5.0, check=lambda s: 0.0 < s <= MAX_WATCHDOG_S,
+                            why=f"must be more than 0 and at most {MAX_WATCHDOG_S:g} s"),
     )
     t.finish()
     return safety
@@ -646,13 +653,20 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     is reported under the nominal key it overrides. ``base_dir``: the folder relative
     paths in the file are read from (the cell file's own).
     """
-    from vservo.robot_models.loader import ARM_NAMES
+    from vservo.robot_models.loader import ARM_NAMES, joint_limits
 
     data, wiring = _split_wiring(data)
     root = _Table(data, "", source)
     robot = root.table("robot")
     arm = robot.choice("arm", ARM_NAMES, "upj")
-    home_q = np.deg2rad(robot.vector("home_joints_deg", None, None))
+    home_deg = robot.vector("home_joints_deg", None, None)
+    lower, upper = np.degrees(joint_limits(arm))
+    if home_deg.shape != lower.shape:
+        raise robot.fail("home_joints_deg", home_deg.tolist(), f"{home_deg.size} values, the {arm} arm has {lower.size} joints")
+    if np.any(home_deg < lower) or np.any(home_deg > upper):
+        limits = ", ".join(f"[{lo:.1f}, {hi:.1f}]" for lo, hi in zip(lower, upper))
+        raise robot.fail("home_joints_deg", home_deg.tolist(), f"beyond the {arm}'s joint limits (deg) {limits}")
+    home_q = np.deg2rad(home_deg)
     backend = robot.choice("backend", ROBOT_BACKENDS, "sim")
     robot.finish()
 
@@ -699,6 +713,8 @@ def read_cell_data(path: str | Path | None = None) -> tuple[dict[str, Any], str]
     raw, source = read_cell_bytes(path)
     try:
         return tomllib.loads(raw.decode("utf-8")), source
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{source}: not a text file (byte {exc.start} is not UTF-8)") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from None
 

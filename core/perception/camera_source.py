@@ -157,9 +157,12 @@ def read_mono8(path: str | Path) -> NDArray[np.uint8]:
     has a layout ``to_mono8`` does not take.
     """
     try:
-        raw = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        data = np.fromfile(path, dtype=np.uint8)
     except OSError as exc:
         raise CameraSourceError(f"cannot read image {str(path)!r}: {exc.strerror or exc}") from None
+    if data.size == 0:  # cv2.imdecode asserts on an empty buffer instead of returning None
+        raise CameraSourceError(f"cannot decode image {str(path)!r}: the file is empty")
+    raw = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise CameraSourceError(f"cannot decode image {str(path)!r}")
     try:

@@ -4,6 +4,9 @@ Transport: ``multiprocessing.connection`` over TCP on the loopback interface. Bo
 prove they hold the shared key (an HMAC challenge each way) before a byte of a message
 is read, so another program on the PC cannot drive the robot. The key is handed to the
 controller process in the environment (never on a command line, where ``ps`` shows it).
+Each connection is served by a thread of its own from the moment it is accepted, and the
+challenge and the hello must be done within HANDSHAKE_DEADLINE_S: a program that connects
+and says nothing holds only its own thread, for a few seconds, never the next app.
 
 Messages are JSON objects with a ``type``; a camera frame is a ``frame`` object followed
 by one binary message, the JPEG. The app's side:
@@ -15,6 +18,9 @@ by one binary message, the JPEG. The app's side:
 
 State and frames are sent newest-first: a slow reader skips to the latest one instead
 of queueing the past, so one stalled browser never slows the controller.
+
+A command the controller cannot carry out (unknown, arguments of the wrong shape or
+type, numbers out of range) is answered with an error reply; the connection goes on.
 
 Commands of one app are carried out in the order sent, one at a time, except ``estop``:
 it is carried out the moment it arrives, even while a long move of that app is under
@@ -32,7 +38,8 @@ import socket
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from multiprocessing.connection import Client, Connection, Listener
+from multiprocessing import AuthenticationError
+from multiprocessing.connection import Client, Connection, Listener, answer_challenge, deliver_challenge
 from typing import Any
 
 import cv2
@@ -48,6 +55,10 @@ PROTOCOL_VERSION = 1
 KEY_ENVIRONMENT = "VSERVO_CONTROLLER_KEY"
 LIVE_VIEW_PERIOD_S = 0.1  # the camera image while no run owns the camera
 JPEG_QUALITY = 85
+HANDSHAKE_DEADLINE_S = 5.0  # key challenge and hello; a loopback app needs milliseconds
+ACCEPT_BACKLOG = 128  # connects waiting for the accept thread (the default, 1, drops a burst of them)
+MAX_LIST_LIMIT = 10_000  # rows of a list command
+MAX_HELLO_BYTES = 1024
 
 
 class ChannelError(RuntimeError):
@@ -84,6 +95,12 @@ def _jobs(controller: CellController) -> list[dict]:
             for e in controller.store.list_jobs()]
 
 
+def _limit(value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= MAX_LIST_LIMIT:
+        raise CommandRefused(f"limit must be a whole number from 1 to {MAX_LIST_LIMIT}, got {value!r}")
+    return value
+
+
 def _runs(controller: CellController, limit: int = 50) -> list[dict]:
     return [r.__dict__ for r in controller.store.list_runs(limit)]
 
@@ -114,7 +131,7 @@ COMMANDS: dict[str, Callable[[CellController, dict], Any]] = {
     "estop": lambda c, a: c.estop(),
     "reset": lambda c, a: c.reset(),
     "list_jobs": lambda c, a: _jobs(c),
-    "list_runs": lambda c, a: _runs(c, int(a.get("limit", 50))),
+    "list_runs": lambda c, a: _runs(c, _limit(a.get("limit", 50))),
     "get_job": lambda c, a: c.store.load_job(str(a.get("name", ""))).as_dict(),
 }
 IMMEDIATE = "estop"  # never waits behind another command of the same app
@@ -167,13 +184,27 @@ class _Subscriber:
             if payload is not None:
                 self.connection.send_bytes(payload)
 
+    def close(self) -> None:
+        """Close the connection, never under a send of another thread.
+
+        A send that had read the descriptor before a plain close would write into whatever
+        connection the next accept gave that descriptor, in the middle of its key challenge.
+        Shutting down first makes a send blocked on a peer that stopped reading fail at once.
+        """
+        _shut_down(self.connection)
+        with self.send_lock:
+            self.connection.close()
+
 
 class ControllerServer:
     """Serves a CellController on 127.0.0.1 to apps that hold the key."""
 
     def __init__(self, controller: CellController, authkey: bytes, host: str = "127.0.0.1", port: int = 0) -> None:
         self.controller = controller
-        self.listener = Listener((host, port), authkey=authkey)
+        # No authkey here: Listener.accept would run the key challenge on the accept thread,
+        # where one silent client blocks every later one. Each client's thread runs it.
+        self.listener = Listener((host, port), backlog=ACCEPT_BACKLOG)
+        self._authkey = authkey
         self.address: tuple[str, int] = self.listener.address
         self.subscribers: list[_Subscriber] = []
         self._lock = threading.Lock()
@@ -197,22 +228,44 @@ class ControllerServer:
         while not self._stopping.is_set():
             try:
                 connection = self.listener.accept()
-            except Exception as exc:  # a client failing the key challenge, or the listener closed
+            except OSError as exc:  # the listener closed, or the client left before it was accepted
                 if self._stopping.is_set():
                     return
-                log.warning("connection refused: %r", exc)
+                log.warning("accept failed: %r", exc)
                 continue
             threading.Thread(target=self._serve, args=(connection,), name="channel-client", daemon=True).start()
 
+    def _handshake(self, connection: Connection) -> bool:
+        """The key challenge both ways and the hello, within HANDSHAKE_DEADLINE_S; False if refused.
+
+        The deadline shuts the socket down, which ends whatever read the client keeps waiting.
+        """
+        deadline = threading.Timer(HANDSHAKE_DEADLINE_S, _shut_down, args=(connection,))
+        deadline.start()
+        try:
+            deliver_challenge(connection, self._authkey)
+            answer_challenge(connection, self._authkey)
+            hello = json.loads(connection.recv_bytes(MAX_HELLO_BYTES))
+            version = hello.get("version") if isinstance(hello, dict) else None
+            if not isinstance(hello, dict) or hello.get("type") != "hello" or version != PROTOCOL_VERSION:
+                connection.send_bytes(json.dumps({"type": "refused", "error": "this controller speaks channel "
+                                                  f"version {PROTOCOL_VERSION}, the app sent {version!r}"}).encode())
+                return False
+            return True
+        except (AuthenticationError, EOFError, OSError, ValueError) as exc:
+            log.warning("channel: a client failed the handshake: %r", exc)
+            return False
+        finally:
+            deadline.cancel()
+            deadline.join()  # a deadline firing just now must not reach a descriptor closed and reused after us
+
     def _serve(self, connection: Connection) -> None:
+        if not self._handshake(connection):
+            connection.close()
+            return
         subscriber = _Subscriber(connection)
         commands: queue.Queue[dict | None] = queue.Queue()
         try:
-            hello = json.loads(connection.recv_bytes())
-            if hello.get("type") != "hello" or hello.get("version") != PROTOCOL_VERSION:
-                subscriber.send({"type": "refused", "error": f"this controller speaks channel version {PROTOCOL_VERSION}, "
-                                 f"the app sent {hello.get('version')!r}"})
-                return
             subscriber.send({"type": "welcome", "version": PROTOCOL_VERSION, "state": self.controller.state.as_dict()})
             with self._lock:
                 self.subscribers.append(subscriber)
@@ -221,7 +274,7 @@ class ControllerServer:
                              daemon=True).start()
             while True:
                 message = json.loads(connection.recv_bytes())
-                if message.get("type") != "command":
+                if not isinstance(message, dict) or message.get("type") != "command":
                     continue
                 if message.get("name") == IMMEDIATE:
                     subscriber.send(self._execute(message))
@@ -238,7 +291,7 @@ class ControllerServer:
             with subscriber.pending:
                 subscriber.closed = True
                 subscriber.pending.notify()
-            connection.close()
+            subscriber.close()
             if last_gone and not self._stopping.is_set() and self.controller.in_motion:
                 log.warning(APP_GONE)
                 self.controller.estop(APP_GONE)
@@ -253,15 +306,20 @@ class ControllerServer:
                 return
 
     def _execute(self, message: dict) -> dict:
-        name, args = message.get("name"), message.get("args") or {}
+        name, args = message.get("name"), message.get("args", {})
         reply = {"type": "reply", "id": message.get("id")}
-        command = COMMANDS.get(name)
+        command = COMMANDS.get(name) if isinstance(name, str) else None
         if command is None:
             return {**reply, "ok": False, "error": f"unknown command {name!r}"}
+        if not isinstance(args, dict):
+            return {**reply, "ok": False, "error": f"{name}: the arguments must be an object of names, got {args!r}"}
         try:
             return {**reply, "ok": True, "result": command(self.controller, args)}
         except (CommandRefused, JobError, KeyError, TypeError, ValueError) as exc:
             return {**reply, "ok": False, "error": str(exc)}
+        except Exception as exc:  # a command that fails otherwise is still answered: the app waits for it
+            log.exception("command %s failed", name)
+            return {**reply, "ok": False, "error": f"{name} failed: {exc!r}"}
 
     def _push(self, subscriber: _Subscriber) -> None:
         while True:
@@ -293,8 +351,19 @@ class ControllerServer:
     def close(self) -> None:
         self._stopping.set()
         self.listener.close()
+        # Shut down, not close: each connection's own thread closes it as its read ends, and
+        # two threads closing one Connection at once may close a descriptor reused meanwhile.
         for subscriber in list(self.subscribers):
-            subscriber.connection.close()
+            _shut_down(subscriber.connection)
+
+
+def _shut_down(connection: Connection) -> None:
+    """End the reads and writes under way on ``connection`` (a close alone wakes neither)."""
+    try:
+        with socket.fromfd(connection.fileno(), socket.AF_INET, socket.SOCK_STREAM) as duplicate:
+            duplicate.shutdown(socket.SHUT_RDWR)
+    except OSError:
+        pass  # already closed or shut down by the other end
 
 
 @dataclass
@@ -343,8 +412,13 @@ class ControllerClient:
                         self._replies[message["id"]] = Reply(message["ok"], message.get("result"), message.get("error"))
                         self._reply_ready.notify_all()
         except (EOFError, OSError, TypeError):
-            pass  # the controller went away, or close() took the connection from under recv (TypeError)
+            pass  # the controller went away, or close() shut the connection down
         finally:
+            # The reader closes the connection, as it ends and not under a send: a descriptor
+            # closed under a read or a write in progress may be reused by the next connection
+            # of this process, which would then lose its bytes to us.
+            with self._send_lock:
+                self.connection.close()
             with self._reply_ready:
                 self.connected = False
                 self._reply_ready.notify_all()
@@ -367,12 +441,7 @@ class ControllerClient:
             return self._replies.pop(request)
 
     def close(self) -> None:
-        # Shut the socket down before closing it: a close alone neither wakes our reader
-        # blocked in recv nor tells the controller we are gone (the reader holds the socket).
-        try:
-            with socket.fromfd(self.connection.fileno(), socket.AF_INET, socket.SOCK_STREAM) as duplicate:
-                duplicate.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass  # already closed or shut down by the other end
-        self.connection.close()
+        # Shut the socket down: it wakes our reader blocked in recv, which closes it, and
+        # tells the controller we are gone.
+        _shut_down(self.connection)
         self._reader.join(5.0)

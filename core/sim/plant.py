@@ -151,11 +151,6 @@ class SimulatedCell:
             raise ConfigError(f"{config.source}: no [simulation] table: this file describes no plant to simulate")
         self.rng = np.random.default_rng(config.simulation.seed if seed is None else seed)
         self.jrc_arm = ArmKinematics(load_arm(config.arm), config.nominal.mount)
-        if config.home_q.shape != (self.jrc_arm.dof,):
-            raise ValueError(
-                f"{config.source}: robot.home_joints_deg has {config.home_q.size} values, "
-                f"the {config.arm} arm has {self.jrc_arm.dof} joints"
-            )
         self.truth = CellTruth.from_config(config, self.jrc_arm, self.rng)
         self.state = PlantState(0.0, config.home_q.copy(), np.eye(4), config.simulation.scene)
         self.source = config.source
