@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import threading
+from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
@@ -18,13 +19,28 @@ from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
 
 
-@pytest.fixture
-def controller(tmp_path):
+def with_the_thesis_policy(config: CellConfig) -> CellConfig:
+    return replace(config, motion=replace(config.motion, policy=StepPolicyKind.THESIS))
+
+
+def controller_of(config: CellConfig, tmp_path: Path) -> Iterator[CellController]:
     store = Store(tmp_path / "data")
-    controller = CellController(simulated_rig(load_cell(), seed=3), store, seed=3)
+    controller = CellController(simulated_rig(config, seed=3), store, seed=3)
     yield controller
     controller.close()
     store.close()
+
+
+@pytest.fixture
+def controller(tmp_path):
+    """A controller of the simulated shipped cell (the fast step policy)."""
+    yield from controller_of(load_cell(), tmp_path)
+
+
+@pytest.fixture
+def thesis_controller(tmp_path):
+    """The same with the thesis's step policy: hundreds of servo cycles, one per 2 s."""
+    yield from controller_of(with_the_thesis_policy(load_cell()), tmp_path)
 
 
 def test_demo_job_places_the_part(controller):
@@ -62,9 +78,7 @@ def test_the_demo_job_places_the_part_through_the_jrc_link_in_fewer_steps_than_t
     assert fast.outcome is Outcome.PLACED, fast.reason
     assert fast.placement_error_mm < 1.0
     assert len(fast_moves) > fast.iterations and all(m.startswith("MOVL") for m in fast_moves)
-    config = load_cell()
-    thesis, _ = assemble_through_the_jrc_link(replace(config, motion=replace(config.motion, policy=StepPolicyKind.THESIS)),
-                                              tmp_path / "thesis")
+    thesis, _ = assemble_through_the_jrc_link(with_the_thesis_policy(load_cell()), tmp_path / "thesis")
     assert thesis.outcome is Outcome.PLACED, thesis.reason
     # The cell clock is the emulated JRC's (its speed-up undone, the link at 9600 baud):
     # the thesis policy's 2 s a step against the fast one's few large steps.
@@ -90,7 +104,8 @@ def test_a_part_out_of_reach_of_the_cup_is_a_fault_with_the_robot_held(controlle
     controller.jog([0.0, 0.0, 0.01])
 
 
-def test_estop_stops_the_arm_within_one_cycle_and_refuses_moves_until_reset(controller):
+def test_estop_stops_the_arm_within_one_cycle_and_refuses_moves_until_reset(thesis_controller):
+    controller = thesis_controller  # a servo long enough to press the e-stop in
     cell = controller.rig.cell
     period = controller.rig.config.motion.sampling_period_s
     servoing = threading.Event()
