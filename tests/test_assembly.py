@@ -11,16 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.jrc_fixtures import with_the_thesis_policy
 from vservo.app.cli import main
-from vservo.core.cell.config import CellConfig, StepPolicyKind, load_cell
+from vservo.core.cell.config import CellConfig, load_cell
 from vservo.core.production.assembly import AssemblyOutcome, Outcome, Phase
 from vservo.core.production.cell_controller import CellController, CommandRefused
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
-
-
-def with_the_thesis_policy(config: CellConfig) -> CellConfig:
-    return replace(config, motion=replace(config.motion, policy=StepPolicyKind.THESIS))
 
 
 def controller_of(config: CellConfig, tmp_path: Path) -> Iterator[CellController]:
