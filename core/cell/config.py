@@ -167,9 +167,9 @@ class MotionConfig:
     sampling_period_s: float
     speed_m_s: float
     dt_s: float
-    policy: StepPolicyKind = StepPolicyKind.THESIS  # for mode = "position_steps"
-    fast: FastStepConfig = FastStepConfig(0.04, math.radians(10.0), 0.1)
-    move_speed_m_s: float = 0.05  # taught moves (start, pick, place, check); approach and press at half
+    policy: StepPolicyKind  # for mode = "position_steps"
+    fast: FastStepConfig
+    move_speed_m_s: float  # taught moves (start, pick, place, check); approach and press at half
 
 
 @dataclass(frozen=True)
