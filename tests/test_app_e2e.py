@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.jrc_fixtures import thesis_policy_cell_file
 from vservo.app.browser import (
     ChromiumMissing,
     ServeProcess,
@@ -53,7 +54,9 @@ def app(tmp_path_factory):
         require_chromium()
     except ChromiumMissing as exc:
         pytest.fail(str(exc))
-    serve = ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.02)
+    # The thesis's step policy: servos long enough to watch and to press E-STOP in.
+    serve = ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.02,
+                               cell=thesis_policy_cell_file(tmp_path_factory.mktemp("cell")))
     yield serve
     if serve.process.poll() is None:
         serve.stop()
