@@ -32,6 +32,12 @@ def test_default_cell_holds_the_thesis_values():
     assert motion.policy is StepPolicyKind.THESIS
     assert (motion.fast.max_step_m, motion.fast.speed_m_s) == (pytest.approx(0.04), pytest.approx(0.1))
     assert motion.move_speed_m_s == pytest.approx(0.05)
+    # The fast policy's limits are held against [safety] only where it is the policy.
+    data["safety"].update(max_step_mm=10.0)
+    assert parse_cell(data).motion.fast.max_step_m == pytest.approx(0.04)
+    data["motion"]["policy"] = "fast"
+    with pytest.raises(ConfigError, match=r"motion.fast.max_step_mm = 40.0: exceeds \[safety\] max_step_mm = 10"):
+        parse_cell(data)
     assert cell.arm == "upj" and cell.home_q.shape == (6,)
     assert cell.simulation.scene.cube.side_m == pytest.approx(0.020)
 
@@ -103,8 +109,7 @@ def test_truth_overrides_change_the_truth_only():
         (lambda d: (d["safety"].update(max_speed_mm_s=80.0)),
          ["motion.fast.speed_mm_s = 100.0", "exceeds [safety] max_speed_mm_s = 80"]),
         (lambda d: d["motion"]["fast"].update(gain=0.5), ["unknown key motion.fast.gain"]),
-        (lambda d: d["motion"].update(move_speed_mm_s=300.0),
-         ["motion.move_speed_mm_s = 300.0", "exceeds [safety] max_speed_mm_s = 250"]),
+        (lambda d: d["motion"].update(move_speed_mm_s=0.0), ["motion.move_speed_mm_s = 0.0", "positive"]),
         (lambda d: d["simulation"].update(pixel_noise_px=-1), ["simulation.pixel_noise_px", ">= 0"]),
         (lambda d: d["simulation"].update(seed=1.5), ["simulation.seed", "integer"]),
         (lambda d: d["simulation"]["scene"].pop("object_pose"), ["simulation.scene.object_pose"]),

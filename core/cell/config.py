@@ -561,26 +561,31 @@ def _scene(t: _Table, board: BoardConfig | None) -> tuple[Scene, LaidBoard | Non
 
 
 def _motion(t: _Table, safety: SafetyConfig) -> MotionConfig:
+    policy = StepPolicyKind(t.choice("policy", tuple(StepPolicyKind), StepPolicyKind.THESIS))
     motion = MotionConfig(
         mode=t.choice("mode", ("position_steps", "velocity"), "position_steps"),
         divide_factor=t.number("divide_factor", 50.0, check=lambda v: v >= 1.0, why="must be at least 1"),
         sampling_period_s=t.number("sampling_period_s", 2.0, check=_positive, why="must be positive"),
         speed_m_s=t.number("speed_mm_s", 50.0, check=_positive, why="must be positive") / 1000.0,
         dt_s=t.number("dt_s", 0.05, check=_positive, why="must be positive"),
-        policy=StepPolicyKind(t.choice("policy", tuple(StepPolicyKind), StepPolicyKind.THESIS)),
-        fast=_fast_steps(t.table("fast"), safety),
-        move_speed_m_s=_within(t, "move_speed_mm_s", 50.0, 1000.0 * safety.max_speed_m_s, "max_speed_mm_s") / 1000.0,
+        policy=policy,
+        fast=_fast_steps(t.table("fast"), safety if policy is StepPolicyKind.FAST else None),
+        # A taught move faster than [safety] allows is refused when it is sent, as a jog's is.
+        move_speed_m_s=t.number("move_speed_mm_s", 50.0, check=_positive, why="must be positive") / 1000.0,
     )
     t.finish()
     return motion
 
 
-def _fast_steps(t: _Table, safety: SafetyConfig) -> FastStepConfig:
-    """[motion.fast]; a step or speed the safety layer would refuse is refused here, before any move."""
+def _fast_steps(t: _Table, safety: SafetyConfig | None) -> FastStepConfig:
+    """[motion.fast]. For the fast policy (``safety`` given) a step or speed beyond the
+    [safety] limits is refused here: the safety layer would refuse every such step mid-servo."""
+    step_mm, step_deg, speed_mm_s = ((1000.0 * safety.max_step_m, math.degrees(safety.max_step_rad),
+                                      1000.0 * safety.max_speed_m_s) if safety else (math.inf,) * 3)
     fast = FastStepConfig(
-        max_step_m=_within(t, "max_step_mm", 40.0, 1000.0 * safety.max_step_m, "max_step_mm") / 1000.0,
-        max_step_rad=math.radians(_within(t, "max_step_deg", 10.0, math.degrees(safety.max_step_rad), "max_step_deg")),
-        speed_m_s=_within(t, "speed_mm_s", 100.0, 1000.0 * safety.max_speed_m_s, "max_speed_mm_s") / 1000.0,
+        max_step_m=_within(t, "max_step_mm", 40.0, step_mm, "max_step_mm") / 1000.0,
+        max_step_rad=math.radians(_within(t, "max_step_deg", 10.0, step_deg, "max_step_deg")),
+        speed_m_s=_within(t, "speed_mm_s", 100.0, speed_mm_s, "max_speed_mm_s") / 1000.0,
     )
     t.finish()
     return fast
@@ -590,7 +595,7 @@ def _within(t: _Table, key: str, default: float, limit: float, safety_key: str) 
     """A positive number at most the [safety] limit ``safety_key`` (``limit``), which would refuse more."""
     value = t.number(key, default, check=_positive, why="must be positive")
     if value > limit:
-        raise t.fail(key, value, f"exceeds [safety] {safety_key} = {limit:g}, which refuses such a move")
+        raise t.fail(key, value, f"exceeds [safety] {safety_key} = {limit:g} (policy = \"fast\"), which refuses such a move")
     return value
 
 
