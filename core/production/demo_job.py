@@ -57,7 +57,8 @@ def teach_demo_job(config: CellConfig) -> tuple[Job, np.ndarray, np.ndarray]:
     # turned as the camera is at the desired view (DESIRED_cMo's rotation is rot_y(pi)): a
     # square face leaves the cup's turn free, and so the pick and the look from the check
     # pose move the flange without turning it half a turn (at the JRC's rotation rate,
-    # about 6 s each way).
+    # about 6 s each way). The price is reach: the flange stands on the cup's other side,
+    # and a part 20 mm nearer the base than taught puts joint 3 at its limit.
     bMv_pick = scene.cube.bMo @ transform(rot_y(np.pi), (side / 2, side / 2, -PICK_PRESS_M))
     bMe_pick = bMv_pick @ inverse(model.eMv)
     # The part in the pocket: its bottom on the pocket floor, centred, edges along the pocket's.
