@@ -11,7 +11,6 @@ import json
 import re
 import subprocess
 import sys
-from dataclasses import replace
 from importlib import resources
 from pathlib import Path
 
@@ -68,11 +67,7 @@ def test_a_real_cell_assembles_through_the_jrc_and_an_image_folder_without_loadi
     as taught) and no gauge figure (a real cell has none), and its process imported no module of
     the simulator (``python -X importtime`` lists every module a process imports)."""
     store = Store(tmp_path / "data")
-    # The job starts where it was taught: its pick, made for the servo's end, is then
-    # within the UPJ's reach (from the start pose, 20 mm nearer the base, joint 3 would
-    # meet its limit on the lifted approach).
-    demo = replace(store.load_job("demo"), start_bMe=store.load_job("demo").taught_bMe)
-    store.save_job(demo)
+    demo = store.load_job("demo")
     store.close()
     shipped = load_cell()
     # The part lies where, seen from the job's start pose, it looks as it did when taught:

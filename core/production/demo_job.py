@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from vservo.core.cell.config import CellConfig, load_cell
-from vservo.core.geometry.spatial import Pose6, inverse, matrix_from_pose, rot_y, transform
+from vservo.core.geometry.spatial import Pose6, inverse, matrix_from_pose, rot_x, transform
 from vservo.core.production.jobs import Job, TaughtModel, write_job_file
 from vservo.core.production.placement_check import CheckView
 from vservo.core.production.simulated_rig import simulated_rig
@@ -53,13 +53,8 @@ def teach_demo_job(config: CellConfig) -> tuple[Job, np.ndarray, np.ndarray]:
     desired = desired_from_features(features, model.camera, side)
     taught_bMe = robot.read_pose()
 
-    # The cup on the middle of the top face, pointing down, its x along the part's edge and
-    # turned as the camera is at the desired view (DESIRED_cMo's rotation is rot_y(pi)): a
-    # square face leaves the cup's turn free, and so the pick and the look from the check
-    # pose move the flange without turning it half a turn (at the JRC's rotation rate,
-    # about 6 s each way). The price is reach: the flange stands on the cup's other side,
-    # and a part 20 mm nearer the base than taught puts joint 3 at its limit.
-    bMv_pick = scene.cube.bMo @ transform(rot_y(np.pi), (side / 2, side / 2, -PICK_PRESS_M))
+    # The cup on the middle of the top face, pointing down, its x along the part's edge.
+    bMv_pick = scene.cube.bMo @ transform(rot_x(np.pi), (side / 2, side / 2, -PICK_PRESS_M))
     bMe_pick = bMv_pick @ inverse(model.eMv)
     # The part in the pocket: its bottom on the pocket floor, centred, edges along the pocket's.
     bMo_placed = scene.metal_part.bMp @ transform(t=(-side / 2, -side / 2, side))
