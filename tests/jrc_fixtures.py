@@ -2,17 +2,38 @@
 
 import threading
 from contextlib import contextmanager
+from dataclasses import replace
+from importlib import resources
+from pathlib import Path
 
 import pytest
 
 from tests.test_config import default_data
-from vservo.core.cell.config import parse_cell
+from vservo.core.cell.config import CellConfig, StepPolicyKind, parse_cell
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.sim.jrc_emulator import FaultPlan, JrcEmulator
 
 # Timers short enough for tests, long enough for a loaded 2-core machine.
 TEST_LINE = {"timer_a_s": 0.05, "timer_b_s": 0.5, "retry_1": 3, "retry_2": 3, "jwait_slice_s": 0.2}
 TIME_SCALE = 50.0
+
+
+def with_the_thesis_policy(config: CellConfig) -> CellConfig:
+    """A cell servoed with the thesis's step policy: hundreds of servo cycles, one per 2 s,
+    long enough for a test to act in the middle of a servo (the shipped fast policy's takes
+    a handful)."""
+    return replace(config, motion=replace(config.motion, policy=StepPolicyKind.THESIS))
+
+
+def thesis_policy_cell_file(folder: Path) -> str:
+    """The shipped cell file with the thesis's step policy, written into ``folder``, for a
+    test's child process (`vservo run`, `vservo virtual-cell`)."""
+    shipped = resources.files("vservo.static").joinpath("cell.toml").read_text()
+    thesis = shipped.replace('\npolicy = "fast"', '\npolicy = "thesis"')
+    assert thesis != shipped, "the shipped cell names no fast policy"
+    path = folder / "thesis-policy-cell.toml"
+    path.write_text(thesis)
+    return str(path)
 
 
 def short_timer_cell(**sections):

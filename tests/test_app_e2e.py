@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from tests.chromium import chromium_or_fail
+from tests.jrc_fixtures import thesis_policy_cell_file
 from vservo.app.browser import (
     ServeProcess,
     choose,
@@ -49,7 +50,9 @@ FORCE_REACT_CLICK = """(button) => {
 @pytest.fixture(scope="module")
 def app(tmp_path_factory):
     chromium_or_fail()
-    serve = ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.02)
+    # The thesis's step policy: servos long enough to watch and to press E-STOP in.
+    serve = ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.02,
+                               cell=thesis_policy_cell_file(tmp_path_factory.mktemp("cell")))
     yield serve
     if serve.process.poll() is None:
         serve.stop()

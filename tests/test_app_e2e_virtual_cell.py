@@ -16,6 +16,7 @@ import time
 import pytest
 
 from tests.chromium import chromium_or_fail
+from tests.jrc_fixtures import thesis_policy_cell_file
 from tests.virtual_cell_process import VirtualCellProcess
 from vservo.app.browser import (
     ServeProcess,
@@ -34,8 +35,9 @@ RUN_TIMEOUT_S = 300
 
 
 @pytest.fixture(scope="module")
-def virtual_cell():
-    cell = VirtualCellProcess("--seed", "4")
+def virtual_cell(tmp_path_factory):
+    # The thesis's step policy: a servo long enough to press E-STOP in its middle.
+    cell = VirtualCellProcess("--seed", "4", "--cell", thesis_policy_cell_file(tmp_path_factory.mktemp("cell")))
     yield cell
     assert cell.stop() == 0, cell.log()[-2000:]
 

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.jrc_fixtures import with_the_thesis_policy
 from vservo.app import commission_text, live_image
 from vservo.app.calibration_run import bar_fraction, results_markdown
 from vservo.app.commands import CommandQueue
@@ -113,9 +114,10 @@ def test_a_queued_command_is_dropped_when_control_changes_hands_before_it_is_sen
 
 @pytest.fixture(scope="module")
 def recorded_run(tmp_path_factory):
-    """Every state a real assembly publishes, as the channel hands them to the app."""
+    """Every state a real assembly publishes, as the channel hands them to the app; with the
+    thesis's step policy, for a long trace of small steps."""
     store = Store(tmp_path_factory.mktemp("data"))
-    controller = CellController(simulated_rig(load_cell(), seed=2), store, seed=2)
+    controller = CellController(simulated_rig(with_the_thesis_policy(load_cell()), seed=2), store, seed=2)
     states: list[dict] = []
     controller.state_subscribers.append(lambda state: states.append(state.as_dict()))
     controller.present_part()

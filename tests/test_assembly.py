@@ -4,26 +4,40 @@ from __future__ import annotations
 
 import json
 import threading
+from collections.abc import Iterator
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.jrc_fixtures import with_the_thesis_policy
 from vservo.app.cli import main
-from vservo.core.cell.config import load_cell
-from vservo.core.production.assembly import Outcome, Phase
+from vservo.core.cell.config import CellConfig, load_cell
+from vservo.core.production.assembly import AssemblyOutcome, Outcome, Phase
 from vservo.core.production.cell_controller import CellController, CommandRefused
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
 
 
-@pytest.fixture
-def controller(tmp_path):
+def controller_of(config: CellConfig, tmp_path: Path) -> Iterator[CellController]:
     store = Store(tmp_path / "data")
-    controller = CellController(simulated_rig(load_cell(), seed=3), store, seed=3)
+    controller = CellController(simulated_rig(config, seed=3), store, seed=3)
     yield controller
     controller.close()
     store.close()
+
+
+@pytest.fixture
+def controller(tmp_path):
+    """A controller of the simulated shipped cell (the fast step policy)."""
+    yield from controller_of(load_cell(), tmp_path)
+
+
+@pytest.fixture
+def thesis_controller(tmp_path):
+    """The same with the thesis's step policy: hundreds of servo cycles, one per 2 s."""
+    yield from controller_of(with_the_thesis_policy(load_cell()), tmp_path)
 
 
 def test_demo_job_places_the_part(controller):
@@ -40,23 +54,33 @@ def test_demo_job_places_the_part(controller):
     assert controller.state.phase == Phase.DONE.value
 
 
-def test_the_demo_job_places_the_part_through_the_jrc_link(tmp_path):
-    """The same assembly, every move a BSC exchange over a pty with the emulated JRC."""
+def assemble_through_the_jrc_link(config: CellConfig, tmp_path: Path) -> tuple[AssemblyOutcome, list[str]]:
+    """The demo job once on the simulated cell, every move a BSC exchange over a pty with
+    the emulated JRC; its outcome and the motion commands the JRC executed."""
     store = Store(tmp_path / "data")
-    rig = simulated_rig(load_cell(), seed=3, backend="jrc", jrc_time_scale=1000.0)
+    rig = simulated_rig(config, seed=3, backend="jrc", jrc_time_scale=1000.0)
     controller = CellController(rig, store, seed=3)
     try:
         controller.present_part()
         controller.start("demo")
         controller.wait()
-        outcome = controller.last_outcome
-        assert outcome.outcome is Outcome.PLACED, outcome.reason
-        assert outcome.placement_error_mm < 1.0
-        moves = rig.emulator.executed
-        assert len(moves) > outcome.iterations and all(m.startswith("MOVL") for m in moves)
+        return controller.last_outcome, rig.emulator.executed
     finally:
         controller.close()
         store.close()
+
+
+def test_the_demo_job_places_the_part_through_the_jrc_link_in_fewer_steps_than_the_thesis_policy(tmp_path):
+    fast, fast_moves = assemble_through_the_jrc_link(load_cell(), tmp_path / "fast")
+    assert fast.outcome is Outcome.PLACED, fast.reason
+    assert fast.placement_error_mm < 1.0
+    assert len(fast_moves) > fast.iterations and all(m.startswith("MOVL") for m in fast_moves)
+    thesis, _ = assemble_through_the_jrc_link(with_the_thesis_policy(load_cell()), tmp_path / "thesis")
+    assert thesis.outcome is Outcome.PLACED, thesis.reason
+    # The cell clock is the emulated JRC's (its speed-up undone, the link at 9600 baud):
+    # the thesis policy's 2 s a step against the fast one's few large steps.
+    assert fast.iterations < thesis.iterations / 5
+    assert fast.cell_time_s < thesis.cell_time_s / 5
 
 
 def test_a_part_out_of_reach_of_the_cup_is_a_fault_with_the_robot_held(controller):
@@ -77,7 +101,8 @@ def test_a_part_out_of_reach_of_the_cup_is_a_fault_with_the_robot_held(controlle
     controller.jog([0.0, 0.0, 0.01])
 
 
-def test_estop_stops_the_arm_within_one_cycle_and_refuses_moves_until_reset(controller):
+def test_estop_stops_the_arm_within_one_cycle_and_refuses_moves_until_reset(thesis_controller):
+    controller = thesis_controller  # a servo long enough to press the e-stop in
     cell = controller.rig.cell
     period = controller.rig.config.motion.sampling_period_s
     servoing = threading.Event()

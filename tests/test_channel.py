@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.jrc_fixtures import with_the_thesis_policy
 from vservo.core.cell.config import load_cell
 from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController
@@ -247,7 +248,9 @@ def test_the_last_app_leaving_during_a_jog_holds_the_robot(slow_served):
 
 def test_the_last_app_leaving_during_a_run_holds_the_robot_and_the_run_says_why(tmp_path):
     store = Store(tmp_path)
-    controller = CellController(simulated_rig(load_cell(), seed=2), store, seed=2, cycle_period_s=0.05)
+    # The thesis's step policy: a run long enough to leave in the middle of.
+    controller = CellController(simulated_rig(with_the_thesis_policy(load_cell()), seed=2), store, seed=2,
+                                cycle_period_s=0.05)
     key = new_key()
     server = ControllerServer(controller, key)
     try:

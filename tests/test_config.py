@@ -7,7 +7,7 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from vservo.core.cell.config import ConfigError, load_cell, parse_cell
+from vservo.core.cell.config import ConfigError, StepPolicyKind, load_cell, parse_cell
 from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg
 
@@ -24,6 +24,20 @@ def test_default_cell_holds_the_thesis_values():
     assert np.allclose(cell.nominal.laser.cMl, LaserPointer.in_plane(0.030, np.radians(80.0)).cMl)
     assert np.allclose(cell.nominal.eMc, np.eye(4))
     assert cell.motion.divide_factor == 50 and cell.motion.sampling_period_s == 2.0
+    # The shipped cell servos with the fast policy; a file that names none, the thesis's.
+    assert cell.motion.policy is StepPolicyKind.FAST
+    data = default_data()
+    del data["motion"]["policy"], data["motion"]["fast"], data["motion"]["move_speed_mm_s"]
+    motion = parse_cell(data).motion
+    assert motion.policy is StepPolicyKind.THESIS
+    assert (motion.fast.max_step_m, motion.fast.speed_m_s) == (pytest.approx(0.04), pytest.approx(0.1))
+    assert motion.move_speed_m_s == pytest.approx(0.05)
+    # The fast policy's limits are held against [safety] only where it is the policy.
+    data["safety"].update(max_step_mm=10.0)
+    assert parse_cell(data).motion.fast.max_step_m == pytest.approx(0.04)
+    data["motion"]["policy"] = "fast"
+    with pytest.raises(ConfigError, match=r"motion.fast.max_step_mm = 40.0: exceeds \[safety\] max_step_mm = 10"):
+        parse_cell(data)
     assert cell.arm == "upj" and cell.home_q.shape == (6,)
     assert cell.simulation.scene.cube.side_m == pytest.approx(0.020)
 
@@ -88,6 +102,14 @@ def test_truth_overrides_change_the_truth_only():
         (lambda d: d.update(cameras={}), ["unknown key cameras"]),
         (lambda d: d["motion"].update(mode="teleport"), ["motion.mode", "position_steps, velocity"]),
         (lambda d: d["motion"].update(divide_factor=0.5), ["motion.divide_factor", "at least 1"]),
+        (lambda d: d["motion"].update(policy="quick"), ["motion.policy", "'quick'", "thesis, fast"]),
+        (lambda d: d["motion"]["fast"].update(max_step_mm=60.0),
+         ["motion.fast.max_step_mm = 60.0", "exceeds [safety] max_step_mm = 50"]),
+        (lambda d: d["motion"]["fast"].update(max_step_deg=0.0), ["motion.fast.max_step_deg", "positive"]),
+        (lambda d: (d["safety"].update(max_speed_mm_s=80.0)),
+         ["motion.fast.speed_mm_s = 100.0", "exceeds [safety] max_speed_mm_s = 80"]),
+        (lambda d: d["motion"]["fast"].update(gain=0.5), ["unknown key motion.fast.gain"]),
+        (lambda d: d["motion"].update(move_speed_mm_s=0.0), ["motion.move_speed_mm_s = 0.0", "positive"]),
         (lambda d: d["simulation"].update(pixel_noise_px=-1), ["simulation.pixel_noise_px", ">= 0"]),
         (lambda d: d["simulation"].update(seed=1.5), ["simulation.seed", "integer"]),
         (lambda d: d["simulation"]["scene"].pop("object_pose"), ["simulation.scene.object_pose"]),

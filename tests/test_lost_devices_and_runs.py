@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.jrc_fixtures import TIME_SCALE, short_timer_cell
+from tests.jrc_fixtures import TIME_SCALE, short_timer_cell, thesis_policy_cell_file, with_the_thesis_policy
 from tests.virtual_cell_process import VirtualCellProcess
 from vservo.core.cell.config import load_cell
 from vservo.core.perception.recording import Recording
@@ -82,7 +82,8 @@ def test_a_leftover_run_folder_leaves_the_run_going_unrecorded_and_says_so(tmp_p
 
 def test_a_recording_whose_folder_goes_away_mid_run_stops_and_the_run_ends_on_record(tmp_path):
     store = Store(tmp_path / "data")
-    controller = CellController(simulated_rig(load_cell(), seed=3), store, seed=3, cycle_period_s=0.01)
+    controller = CellController(simulated_rig(with_the_thesis_policy(load_cell()), seed=3), store, seed=3,
+                                cycle_period_s=0.01)
     controller.present_part()
     run_id = controller.start("demo")
     _wait_for(lambda: controller.state.iteration >= 5, 60, "5 cycles")
@@ -96,8 +97,10 @@ def test_a_recording_whose_folder_goes_away_mid_run_stops_and_the_run_ends_on_re
 
 
 def _vservo(*args: str, data: Path) -> subprocess.Popen:
+    """`vservo run` of the demo job with the thesis's step policy: a servo long enough to act in."""
     return subprocess.Popen([sys.executable, "-m", "vservo.app.cli", "run", "--job", "demo", "--data", str(data),
-                             *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+                             "--cell", thesis_policy_cell_file(data.parent), *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
 
 
 def _recorded_frames(data: Path) -> int:
@@ -155,7 +158,7 @@ def test_the_estop_behind_a_silent_link_answers_within_a_second_and_says_the_hol
     run's request keeps the line for tens of seconds; the e-stop returns at once and the
     state says the hold is not confirmed. Once the cell answers again the hold gets
     through and the state says so."""
-    cell = VirtualCellProcess("--seed", "4")
+    cell = VirtualCellProcess("--seed", "4", "--cell", thesis_policy_cell_file(tmp_path))
     try:
         store = Store(tmp_path / "data")
         controller = CellController(build_rig(load_cell(cell.addresses["cell_file"])), store)

@@ -1,17 +1,18 @@
 """The simulated cell: measurements come from the truth, readouts from the nominal model."""
 
 import tomllib
+from dataclasses import replace
 from importlib import resources
 
 import cv2
 import numpy as np
 import pytest
 
-from vservo.core.cell.config import parse_cell
+from vservo.core.cell.config import StepPolicyKind, load_cell, parse_cell
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Pose6, exp_twist, inverse, matrix_from_pose, pose_error, transform, twist_transform
 from vservo.core.robot.commands import PositionCommand, VelocityCommand
-from vservo.core.servo.step_policy import DividedPositionStep, IntegratedVelocity
+from vservo.core.servo.step_policy import DividedPositionStep, IntegratedVelocity, LargestSafeStep, step_policy_from_config
 from vservo.core.sim.plant import IK_TOLERANCE_M, SimulatedCell
 
 # Task 1 of Table 5-1: cube 162 mm in front of the camera, centred near the laser spot.
@@ -117,6 +118,37 @@ def test_jrc_style_steps_move_a_divided_step_per_sampling_period():
     # A long move outlasts the period.
     far = PositionCommand(after.bMe @ transform(t=(0.0, 0.0, -0.15)), 0.05, 2.0)
     assert cell.execute(far).duration_s == pytest.approx(3.0)
+
+
+def test_fast_steps_move_the_whole_correction_within_the_step_limits_with_no_sampling_wait():
+    cell = at_teach_pose(cell_data())
+    policy = LargestSafeStep(max_step_m=0.04, max_step_rad=np.radians(10.0), speed_m_s=0.1)
+    before = cell.measure()
+    # Near the goal the whole correction, unscaled: the fine steps of the end.
+    small = np.array([0.002, -0.001, 0.003, 0.01, 0.0, -0.02])
+    command = policy.command(before.bMe, small)
+    assert np.allclose(command.bMe_target, before.bMe @ exp_twist(small))
+    assert command.period_s == 0.0 and command.speed_m_s == 0.1
+    # Far from it, scaled as a whole (its direction kept) to the limit it reaches first.
+    for far, limited_by in ((np.array([0.0, 0.08, 0.06, 0.0, 0.0, 0.05]), "translation"),
+                            (np.array([0.0, 0.0, 0.01, 0.0, 0.0, np.radians(40.0)]), "rotation")):
+        command = policy.command(before.bMe, far)
+        scale = 0.04 / 0.1 if limited_by == "translation" else 0.25
+        assert np.allclose(command.bMe_target, before.bMe @ exp_twist(scale * far)), limited_by
+        translation, rotation = pose_error(before.bMe, command.bMe_target)
+        assert translation <= 0.04 + 1e-12 and rotation <= np.radians(10.0) + 1e-12
+    # A zero twist stays put.
+    assert np.allclose(policy.command(before.bMe, np.zeros(6)).bMe_target, before.bMe)
+    # The move takes its own time at its speed, not a sampling period.
+    report = cell.execute(policy.command(before.bMe, np.array([0.03, 0.0, 0.0, 0.0, 0.0, 0.0])))
+    assert report.duration_s == pytest.approx(0.3)
+
+
+def test_the_cell_file_chooses_the_step_policy():
+    motion = load_cell().motion
+    assert step_policy_from_config(motion) == LargestSafeStep(0.04, np.radians(10.0), 0.1)
+    assert step_policy_from_config(replace(motion, policy=StepPolicyKind.THESIS)) == DividedPositionStep(50.0, 2.0, 0.05)
+    assert step_policy_from_config(replace(motion, mode="velocity")) == IntegratedVelocity(0.05)
 
 
 def test_an_unreachable_target_leaves_the_arm_where_it_was():

@@ -21,6 +21,7 @@ import math
 import tomllib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from enum import StrEnum
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -146,6 +147,23 @@ class VacuumDeviceConfig:
     grip_input: int | None = None
 
 
+class StepPolicyKind(StrEnum):
+    """Which position steps a JRC-style robot is servoed with (core/servo/step_policy.py)."""
+
+    THESIS = "thesis"  # each step divided by divide_factor, one per sampling period (section 5.3)
+    FAST = "fast"  # the law's whole correction within [motion.fast]'s limits, no sampling wait
+
+
+@dataclass(frozen=True)
+class FastStepConfig:
+    """[motion.fast]: the largest step of the fast policy and the speed it is moved at;
+    within the [safety] limits, which refuse a larger move."""
+
+    max_step_m: float
+    max_step_rad: float
+    speed_m_s: float
+
+
 @dataclass(frozen=True)
 class MotionConfig:
     """How moves reach the robot (section 5.3: the JRC takes one target at a time)."""
@@ -155,6 +173,9 @@ class MotionConfig:
     sampling_period_s: float
     speed_m_s: float
     dt_s: float
+    policy: StepPolicyKind  # for mode = "position_steps"
+    fast: FastStepConfig
+    move_speed_m_s: float  # taught moves (start, pick, place, check); approach and press at half
 
 
 @dataclass(frozen=True)
@@ -545,16 +566,43 @@ def _scene(t: _Table, board: BoardConfig | None) -> tuple[Scene, LaidBoard | Non
     return Scene(table_height, cube, part), laid
 
 
-def _motion(t: _Table) -> MotionConfig:
+def _motion(t: _Table, safety: SafetyConfig) -> MotionConfig:
+    policy = StepPolicyKind(t.choice("policy", tuple(StepPolicyKind), StepPolicyKind.THESIS))
     motion = MotionConfig(
         mode=t.choice("mode", ("position_steps", "velocity"), "position_steps"),
         divide_factor=t.number("divide_factor", 50.0, check=lambda v: v >= 1.0, why="must be at least 1"),
         sampling_period_s=t.number("sampling_period_s", 2.0, check=_positive, why="must be positive"),
         speed_m_s=t.number("speed_mm_s", 50.0, check=_positive, why="must be positive") / 1000.0,
         dt_s=t.number("dt_s", 0.05, check=_positive, why="must be positive"),
+        policy=policy,
+        fast=_fast_steps(t.table("fast"), safety if policy is StepPolicyKind.FAST else None),
+        # A taught move faster than [safety] allows is refused when it is sent, as a jog's is.
+        move_speed_m_s=t.number("move_speed_mm_s", 50.0, check=_positive, why="must be positive") / 1000.0,
     )
     t.finish()
     return motion
+
+
+def _fast_steps(t: _Table, safety: SafetyConfig | None) -> FastStepConfig:
+    """[motion.fast]. For the fast policy (``safety`` given) a step or speed beyond the
+    [safety] limits is refused here: the safety layer would refuse every such step mid-servo."""
+    step_mm, step_deg, speed_mm_s = ((1000.0 * safety.max_step_m, math.degrees(safety.max_step_rad),
+                                      1000.0 * safety.max_speed_m_s) if safety else (math.inf,) * 3)
+    fast = FastStepConfig(
+        max_step_m=_within(t, "max_step_mm", 40.0, step_mm, "max_step_mm") / 1000.0,
+        max_step_rad=math.radians(_within(t, "max_step_deg", 10.0, step_deg, "max_step_deg")),
+        speed_m_s=_within(t, "speed_mm_s", 100.0, speed_mm_s, "max_speed_mm_s") / 1000.0,
+    )
+    t.finish()
+    return fast
+
+
+def _within(t: _Table, key: str, default: float, limit: float, safety_key: str) -> float:
+    """A positive number at most the [safety] limit ``safety_key`` (``limit``), which would refuse more."""
+    value = t.number(key, default, check=_positive, why="must be positive")
+    if value > limit:
+        raise t.fail(key, value, f"exceeds [safety] {safety_key} = {limit:g} (policy = \"fast\"), which refuses such a move")
+    return value
 
 
 # The baud rates of RS033 (150 .. 19200).
@@ -674,12 +722,12 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     simulation_data = data.get("simulation", {})
     truth_data = simulation_data.get("truth", {}) if isinstance(simulation_data, dict) else {}
     truth = _cell_model(_Table(_truth_tables(data, truth_data, source), "", f"{source} [simulation.truth]"))
-    motion = _motion(root.table("motion"))
     board = _board(root.table("board"))
     # A controller's file for a real cell may leave the plant out: only a simulator reads it.
     simulation = _simulation(root.table("simulation"), truth, board) if "simulation" in data else None
     jrc = _jrc(root.table("jrc"))
     safety = _safety(root.table("safety"))
+    motion = _motion(root.table("motion"), safety)
     fixture_url = _fixture_url(root.table("fixture"))
     commissioning = _commissioning(root.table("commissioning"), base_dir)
     root.finish()

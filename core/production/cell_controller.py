@@ -713,7 +713,8 @@ class CellController:
         try:
             outcome = run_assembly(
                 job, self.rig.robot, self.rig.gripper, perception, self.rig.config.nominal, self.rig.policy,
-                dof=self.rig.dof, on_event=on_event, measure_placement=self.rig.measure_placement,
+                dof=self.rig.dof, speed_m_s=self.rig.config.motion.move_speed_m_s, on_event=on_event,
+                measure_placement=self.rig.measure_placement,
                 estopped=self._estop.is_set, locator=self.rig.locator,
             )
         except CameraSourceError as exc:

@@ -24,7 +24,7 @@ from vservo.core.robot.gripper import NoVacuum, VacuumGripper
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.robot.jrc_vacuum import JrcVacuum
 from vservo.core.robot.safety import SafetyLayer
-from vservo.core.servo.step_policy import DividedPositionStep, step_policy_from_config
+from vservo.core.servo.step_policy import PositionStepPolicy, step_policy_from_config
 from vservo.robot_models.loader import load_arm
 
 
@@ -44,7 +44,7 @@ def build_rig(config: CellConfig, seed: int | None = None, backend: str | None =
 def real_rig(config: CellConfig) -> Rig:
     """The real cell's devices: the JRC, the camera of [camera.source], the cup on the JRC's I/O."""
     policy = step_policy_from_config(config.motion)
-    if not isinstance(policy, DividedPositionStep):
+    if not isinstance(policy, PositionStepPolicy):
         raise ConfigError(f"{config.source}: the JRC takes position steps; set [motion] mode = \"position_steps\"")
     model = config.nominal
     intrinsics = model.camera.intrinsics

@@ -25,7 +25,7 @@ from vservo.core.robot.gripper import NoVacuum, VacuumGripper
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.robot.jrc_vacuum import JrcVacuum
 from vservo.core.robot.safety import SafetyLayer
-from vservo.core.servo.step_policy import DividedPositionStep, step_policy_from_config
+from vservo.core.servo.step_policy import DividedPositionStep, PositionStepPolicy, step_policy_from_config
 from vservo.core.sim.backend import SimulatedBackend
 from vservo.core.sim.camera import SimulatedCamera
 from vservo.core.sim.jrc_emulator import JrcEmulator
@@ -63,14 +63,15 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
             raise ValueError(f"{config.source}: vacuum.device = 'jrc_io' needs the JRC: use the jrc backend")
         robot = SafetyLayer.from_config(SimulatedBackend(cell), config)
     else:
-        if not isinstance(policy, DividedPositionStep):
+        if not isinstance(policy, PositionStepPolicy):
             raise ValueError(f"{config.source}: the JRC takes position steps; set [motion] mode = \"position_steps\"")
         emulator = JrcEmulator(cell, config.jrc, time_scale=jrc_time_scale, vacuum=vacuum)
         jrc = JrcBackend(replace(config.jrc, time_scale=jrc_time_scale), emulator.start_on_pty())
         robot = SafetyLayer.from_config(jrc, config)
         if vacuum.device == "jrc_io":
             gripper = JrcVacuum(jrc, vacuum.suction_output, vacuum.grip_input)
-        policy = replace(policy, sampling_period_s=policy.sampling_period_s / jrc_time_scale)
+        if isinstance(policy, DividedPositionStep):  # the period in the emulator's time
+            policy = replace(policy, sampling_period_s=policy.sampling_period_s / jrc_time_scale)
     # The emulator's thread moves the plant: the table changes between its commands.
     lock = emulator.lock if emulator is not None else nullcontext()
 

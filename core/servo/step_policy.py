@@ -5,7 +5,8 @@ the thesis cannot: it takes one Cartesian target at a time and ignores a new one
 the previous is reached (section 5.3). The thesis therefore divided "the calculated value
 of each iteration" by a constant factor (50) and sampled every 2 s: with all gains 1
 the control law's output is the whole estimated correction, and each step moves a
-fiftieth of it.
+fiftieth of it. The fast policy moves the whole correction at once, within a step limit
+(docs/robot-link.md, "Servo steps").
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
-from vservo.core.cell.config import MotionConfig
+from vservo.core.cell.config import MotionConfig, StepPolicyKind
 from vservo.core.geometry.spatial import Matrix, exp_twist
 from vservo.core.robot.commands import PositionCommand, RobotCommand, VelocityCommand
 
@@ -49,7 +50,41 @@ class DividedPositionStep:
         return PositionCommand(bMe @ exp_twist(step), self.speed_m_s, self.sampling_period_s)
 
 
+@dataclass(frozen=True)
+class LargestSafeStep:
+    """Fewer, larger JRC steps: target = bMe exp(s eVe), s = min(1, max_step_m / |v|, max_step_rad / |w|).
+
+    With all gains 1, holding the law's twist for 1 s is the whole correction its
+    interaction matrix predicts (eq. 4-14), so s = 1 is one look-and-move step to the
+    goal as far as the linearisation holds. Far from the goal it does not hold: there the
+    twist is scaled down as a whole (its direction kept) to the step limits, so the
+    camera approaches in long straight steps and a wrong prediction costs one bounded
+    step, seen and corrected by the next look. The steps shrink with the error; the fine
+    ones come only at the end. No sampling period: the JRC takes the next target as soon
+    as the last is reached, and the next look waits for that anyway.
+    """
+
+    max_step_m: float
+    max_step_rad: float
+    speed_m_s: float
+
+    def command(self, bMe: Matrix, eVe: Matrix) -> PositionCommand:
+        step = np.asarray(eVe, dtype=float)
+        # |translation of exp(step)| <= |v|: bounding v and w bounds the move the safety layer checks.
+        sizes = (float(np.linalg.norm(step[:3])), float(np.linalg.norm(step[3:])))
+        scale = min([1.0] + [limit / size for limit, size in zip((self.max_step_m, self.max_step_rad), sizes)
+                             if size > 0.0])
+        return PositionCommand(bMe @ exp_twist(scale * step), self.speed_m_s, 0.0)
+
+
+PositionStepPolicy = DividedPositionStep | LargestSafeStep
+"""The policies a JRC can be servoed with: one Cartesian target at a time."""
+
+
 def step_policy_from_config(motion: MotionConfig) -> StepPolicy:
     if motion.mode == "velocity":
         return IntegratedVelocity(motion.dt_s)
+    if motion.policy is StepPolicyKind.FAST:
+        fast = motion.fast
+        return LargestSafeStep(fast.max_step_m, fast.max_step_rad, fast.speed_m_s)
     return DividedPositionStep(motion.divide_factor, motion.sampling_period_s, motion.speed_m_s)

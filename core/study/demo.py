@@ -9,11 +9,12 @@ operator's eyes would; every reported measurement comes from the plant's sensors
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from vservo.core.cell.config import CellConfig
+from vservo.core.cell.config import CellConfig, StepPolicyKind
 from vservo.core.geometry.spatial import (
     Matrix,
     Pose6,
@@ -69,9 +70,10 @@ def run_demo(config: CellConfig, seed: int | None = None, steps: int = 5) -> dic
         "true_depth_of_cube_face_mm": round(true_depth * 1000.0, 3),
     })
 
-    # Steps through the cell's own step policy: on the JRC, each control step divided by
-    # the factor and one target per sampling period.
-    motion = config.motion
+    # Steps through the cell's motion mode with the thesis's policy, whichever the cell
+    # servos with: on the JRC, each control step divided by the factor and one target per
+    # sampling period (section 5.3).
+    motion = replace(config.motion, policy=StepPolicyKind.THESIS)
     policy = step_policy_from_config(motion)
     eVe = twist_transform(nominal.eMc) @ DEMO_cVc
     start = cell.measure()
