@@ -117,9 +117,13 @@ class LaserIbvs:
 
     def _stage_1(self, features: ImageFeatures, desired: DesiredImage, error_px: float) -> ControlOutput:
         if not features.laser_visible:
-            return ControlOutput.stop(Stage.ALIGN_1A, error_px, Failure.FEATURES_LOST, "laser spot not seen")
+            # The beam lands nowhere the camera sees (it passes beside the part and off the
+            # table, from a camera looking across the cell): turn the part onto where the
+            # spot lies in the desired image, where the beam meets the part at the desired
+            # depth. Once the camera looks at the part the beam lands on or by it.
+            return self._stage_1b(features, error_px, desired.laser_spot_px, note="laser spot not seen: aiming")
         if not features.all_corners_visible:
-            return self._stage_1b(features, error_px)
+            return self._stage_1b(features, error_px, features.laser_spot_px)
 
         # Stage 1.A: imaginary features, Fig. 4-5, at the scale of the current pattern.
         f_id = imaginary_features(desired, features)
@@ -144,15 +148,17 @@ class LaserIbvs:
                                  note=f"1A -> 2: turned as far as turning helps (||f_id - f|| = {stage_error:.2f} px)")
         return ControlOutput(self._with_compensation(w), Stage.ALIGN_1A, error_px, stage_error)
 
-    def _stage_1b(self, features: ImageFeatures, error_px: float) -> ControlOutput:
+    def _stage_1b(self, features: ImageFeatures, error_px: float, spot_px: Matrix, note: str = "") -> ControlOutput:
+        """Turn the visible region's centroid onto spot_px (eq. 4-36): the laser spot, or
+        where it lies in the desired image while the beam lands out of sight."""
         region = features.region
         if not region.seen:
             return ControlOutput.stop(Stage.CENTRE_1B, error_px, Failure.FEATURES_LOST, "object not in the image")
-        e = region.centroid_px - features.laser_spot_px
+        e = region.centroid_px - spot_px
         J = rotational_jacobian(self.camera, region.centroid_px)[:, :2]  # w_x, w_y only (eq. 4-31)
         w_xy = -self.k_rotation_1b * checked_pinv(J) @ e
         w = np.array([w_xy[0], w_xy[1], 0.0])
-        return ControlOutput(self._with_compensation(w), Stage.CENTRE_1B, error_px, float(np.linalg.norm(e)))
+        return ControlOutput(self._with_compensation(w), Stage.CENTRE_1B, error_px, float(np.linalg.norm(e)), note=note)
 
     def _stage_2(self, features: ImageFeatures, desired: DesiredImage, error_px: float, note: str) -> ControlOutput:
         if not (features.all_corners_visible and features.laser_visible):
