@@ -16,6 +16,7 @@ from vservo.core.sim.free_camera import FreeCameraBackend, simulated_robot
 from vservo.core.sim.plant import Arm, CellStateError, SimulatedCell
 from vservo.core.study.montecarlo import run_montecarlo
 from vservo.core.study.run import RunSettings, run_task
+from vservo.core.study.simulate import simulate
 from vservo.core.study.tasks import TASKS
 
 
@@ -94,3 +95,14 @@ def test_simulate_takes_the_free_camera_and_a_scene_the_arm_cannot_serve():
 def test_a_wrong_arm_gets_one_line_and_exit_2():
     result = vservo("montecarlo", "--arm", "kuka")
     assert result.returncode == 2 and "--arm: invalid choice: 'kuka'" in result.stderr
+
+
+def test_stage_1_aims_the_part_at_the_desired_spot_while_the_beam_lands_out_of_sight():
+    """Monte Carlo seed 0, sample 75 (free camera): the camera looks across the cell, the
+    beam passes beside the part and off the table. The law stopped at the first frame
+    ("laser spot not seen"); stage 1.B now turns the part onto the desired spot's place,
+    the beam lands, and the run converges."""
+    result = simulate(initial=np.array([0.102, -0.026, 0.254, -2.889, -0.194, 1.661]), arm=Arm.NONE, seed=0)
+    first = result.outcome.cycles[0]
+    assert not first.features.laser_visible and first.output.stage == "1B"
+    assert result.outcome.converged, result.outcome.reason

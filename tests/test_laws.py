@@ -177,10 +177,18 @@ def test_a_lost_corner_after_stage_1_stops_with_zero_twist(stage):
     assert out.failure is Failure.FEATURES_LOST and np.array_equal(out.cVc, np.zeros(6))
 
 
-def test_no_spot_stops_the_laser_method():
+def test_with_no_spot_stage_1_turns_the_part_onto_the_desired_spot_and_stage_2_stops():
+    """The beam lands out of sight (docs/thesis-notes.md section 5): stage 1.B aims the
+    region's centroid at the spot's place in the desired image; stage 2 needs the spot."""
     desired = desired_image()
-    out = laser_law().step(features(desired.corners_px + 40.0, spot_px=[np.nan, np.nan], depth=np.nan), desired, None)
-    assert out.failure is Failure.FEATURES_LOST and "laser" in out.note
+    unseen = features(desired.corners_px + 40.0, spot_px=[np.nan, np.nan], depth=np.nan)
+    out = laser_law().step(unseen, desired, None)
+    assert out.failure is None and out.stage == Stage.CENTRE_1B and "not seen" in out.note
+    centroid = unseen.region.centroid_px
+    velocity = rotational_jacobian(CAMERA, centroid) @ out.cVc[3:]
+    assert velocity @ (DESIRED_SPOT - centroid) > 0.9 * np.linalg.norm(velocity) * np.linalg.norm(DESIRED_SPOT - centroid)
+    out = laser_law().step(unseen, desired, Stage.APPROACH_2)
+    assert out.failure is Failure.FEATURES_LOST and np.array_equal(out.cVc, np.zeros(6))
 
 
 @pytest.mark.parametrize("law", [ClassicIbvs(CAMERA), Pbvs(CAMERA), Hybrid25D(CAMERA)])
