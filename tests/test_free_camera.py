@@ -15,6 +15,7 @@ from vservo.core.robot.commands import PositionCommand, VelocityCommand
 from vservo.core.sim.free_camera import FreeCameraBackend, simulated_robot
 from vservo.core.sim.plant import Arm, CellStateError, SimulatedCell
 from vservo.core.study.montecarlo import run_montecarlo
+from vservo.core.study.provenance import reproduce_command
 from vservo.core.study.run import RunSettings, run_task
 from vservo.core.study.simulate import simulate
 from vservo.core.study.tasks import TASKS
@@ -83,9 +84,8 @@ def vservo(*args):
     return subprocess.run([sys.executable, "-m", "vservo.app.cli", *args], capture_output=True, text=True, timeout=300)
 
 
-def test_simulate_takes_the_free_camera_and_a_scene_the_arm_cannot_serve():
-    """--arm none with --initial/--desired: a view from below the table's edge, 0.55 m away,
-    turned 2.6 rad, which no placement of the cube lets the UPJ follow."""
+def test_simulate_takes_the_free_camera_and_a_scene_given_by_its_poses():
+    """--arm none with --initial/--desired, as with the arm: 0.55 m away, turned 2.6 rad."""
     scene = ("--initial=0.05,-0.06,0.55,2.6,0.3,-2.9", "--desired=0.011,-0.01,0.162,3.1416,0,-3.1416")
     free = vservo("simulate", "--arm", "none", "--method", "pbvs", *scene, "--json")
     assert free.returncode == 0, free.stderr
@@ -106,3 +106,8 @@ def test_stage_1_aims_the_part_at_the_desired_spot_while_the_beam_lands_out_of_s
     first = result.outcome.cycles[0]
     assert not first.features.laser_visible and first.output.stage == "1B"
     assert result.outcome.converged, result.outcome.reason
+
+
+def test_a_free_camera_snapshot_records_its_arm_and_the_thesis_one_keeps_its_command(tmp_path):
+    assert reproduce_command(tmp_path, None, 0, 0, Arm.NONE).endswith("--seed 0 --arm none")
+    assert reproduce_command(tmp_path, None, 0, 0).endswith("--seed 0")
