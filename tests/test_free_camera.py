@@ -87,7 +87,7 @@ def vservo(*args):
 def test_simulate_takes_the_free_camera_and_a_scene_given_by_its_poses():
     """--arm none with --initial/--desired, as with the arm: 0.55 m away, turned 2.6 rad."""
     scene = ("--initial=0.05,-0.06,0.55,2.6,0.3,-2.9", "--desired=0.011,-0.01,0.162,3.1416,0,-3.1416")
-    free = vservo("simulate", "--arm", "none", "--method", "pbvs", *scene, "--json")
+    free = vservo("simulate", "--arm", "none", *scene, "--json")
     assert free.returncode == 0, free.stderr
     assert json.loads(free.stdout)["converged"]
 
