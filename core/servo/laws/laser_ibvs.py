@@ -96,7 +96,7 @@ class LaserIbvs:
     k_final: float = 1.0  # stage 3
     f0_px: float = 10.0  # eq. 4-27
     f0_laser_px: float = 10.0  # eq. 4-43
-    f0_turn_px: float = 1.0  # stage 1.A also ends when a turn can remove no more than this of its error
+    f0_turn_px: float = 1.0  # stages 1.A and 2 also end when their step moves the corners no more than this
     final_threshold_px: float = 1.0
     name: str = "laser"
 
@@ -177,7 +177,18 @@ class LaserIbvs:
         centroid = features.corners_px.mean(axis=0)
         e_r = centroid - features.laser_spot_px
         w = -self.k_rotation * checked_pinv(rotational_jacobian(self.camera, centroid)) @ e_r
-        return ControlOutput(np.concatenate([v, w]), Stage.APPROACH_2, error_px, laser_error_px, note=note)
+        cVc = np.concatenate([v, w])
+        # How far this step still moves the corners (linearised, per unit of gain). From a
+        # view tilted well off the desired direction (a close start, turned in place by
+        # stage 1) the translation and the rotation of eq. 4-49 balance with the spot a few
+        # px beyond f0^l, and stage 2 would creep on forever; stage 3 regulates the corners
+        # themselves and takes the view round.
+        moving_px = float(np.linalg.norm(
+            pixel_interaction_matrix(self.camera, features.corners_px, features.laser_depth_m) @ cVc)) / self.k_translation
+        if moving_px <= self.f0_turn_px:
+            switch = f"2 -> 3: stage 2 moves the corners no more ({moving_px:.2f} px, ||f_d^l - f^l|| = {laser_error_px:.2f} px)"
+            return self._stage_3(features, desired, error_px, note=f"{note}; {switch}" if note else switch)
+        return ControlOutput(cVc, Stage.APPROACH_2, error_px, laser_error_px, note=note)
 
     def _stage_3(self, features: ImageFeatures, desired: DesiredImage, error_px: float, note: str) -> ControlOutput:
         if not features.all_corners_visible:
