@@ -111,3 +111,14 @@ def test_stage_1_aims_the_part_at_the_desired_spot_while_the_beam_lands_out_of_s
 def test_a_free_camera_snapshot_records_its_arm_and_the_thesis_one_keeps_its_command(tmp_path):
     assert reproduce_command(tmp_path, None, 0, 0, Arm.NONE).endswith("--seed 0 --arm none")
     assert reproduce_command(tmp_path, None, 0, 0).endswith("--seed 0")
+
+
+def test_stage_2_hands_over_to_stage_3_where_its_translation_and_rotation_balance():
+    """Monte Carlo seed 0, sample 123 (free camera): a close start, 0.13 m, tilted. Stage
+    1 turns in place and leaves the view about 30 deg off the desired direction; stage 2's
+    translation and rotation then balanced with the spot 11 .. 14 px from its place
+    (f0^l = 10 px) and crept until "no progress". Stage 3 now takes over and converges."""
+    result = simulate(initial=np.array([-0.045, -0.013, 0.128, -0.639, -0.589, -3.086]), arm=Arm.NONE, seed=0)
+    assert result.outcome.converged, result.outcome.reason
+    handover = next(c.output.note for c in result.outcome.cycles if c.output.stage == "3")
+    assert "moves the corners no more" in handover
