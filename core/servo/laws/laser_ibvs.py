@@ -49,6 +49,7 @@ import numpy as np
 
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.interaction import pixel_interaction_matrix
+from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage, ImageFeatures, pattern_scale
 from vservo.core.servo.laws.base import ControlOutput, Failure, SingularJacobian, Stage, checked_pinv, feature_error_px
@@ -75,6 +76,11 @@ def image_rotation(from_px: Matrix, to_px: Matrix) -> float:
     return float(np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b)))
 
 
+def _largest_extent(points_px: Matrix) -> float:
+    """The largest distance between two of the points (px)."""
+    return float(np.max(np.linalg.norm(points_px[:, None, :] - points_px[None, :, :], axis=2)))
+
+
 def imaginary_features(desired: DesiredImage, features: ImageFeatures) -> Matrix:
     """The desired corners moved with the laser spot (Fig. 4-5) and scaled to the current
     pattern about the spot: where the corners are when the spot lies on the part as in
@@ -89,6 +95,7 @@ class LaserIbvs:
 
     camera: CameraModel
     cTe: Matrix  # position of the flange E in the camera frame (stage 1.C)
+    laser: LaserPointer  # where the beam runs, to aim it while its spot is not seen
     k_rotation_1a: float = 1.0  # K_l, eq. 4-29
     k_rotation_1b: float = 1.0  # K_l2, eq. 4-36
     k_translation: float = 1.0  # K1, eq. 4-49
@@ -118,10 +125,11 @@ class LaserIbvs:
     def _stage_1(self, features: ImageFeatures, desired: DesiredImage, error_px: float) -> ControlOutput:
         if not features.laser_visible:
             # The beam lands nowhere the camera sees (it passes beside the part and off the
-            # table, from a camera looking across the cell): turn the part onto where the
-            # spot lies in the desired image, where the beam meets the part at the desired
-            # depth. Once the camera looks at the part the beam lands on or by it.
-            return self._stage_1b(features, error_px, desired.laser_spot_px, note="laser spot not seen: aiming")
+            # table, from a camera looking across the cell): turn the part onto the beam's
+            # image at the part's estimated depth. Once the camera looks at the part the
+            # beam lands on or by it.
+            aim_px = self._beam_at_part(features, desired)
+            return self._stage_1b(features, error_px, aim_px, note="laser spot not seen: aiming")
         if not features.all_corners_visible:
             return self._stage_1b(features, error_px, features.laser_spot_px)
 
@@ -147,6 +155,18 @@ class LaserIbvs:
             return self._stage_2(features, desired, error_px,
                                  note=f"1A -> 2: turned as far as turning helps (||f_id - f|| = {stage_error:.2f} px)")
         return ControlOutput(self._with_compensation(w), Stage.ALIGN_1A, error_px, stage_error)
+
+    def _beam_at_part(self, features: ImageFeatures, desired: DesiredImage) -> Matrix:
+        """The beam's image point at the part's depth, estimated from the pattern's largest
+        extent against the desired one (the extent a tilted view foreshortens least); at
+        the desired depth Z* with fewer than two corners seen."""
+        seen = features.corners_px[features.corners_visible]
+        depth_m = desired.depth_m
+        if len(seen) >= 2:
+            depth_m *= _largest_extent(desired.corners_px) / _largest_extent(seen)
+        origin, direction = self.laser.origin_c, self.laser.direction_c
+        point_c = origin + direction * (depth_m - origin[2]) / direction[2]
+        return self.camera.project(point_c[None, :])[0]
 
     def _stage_1b(self, features: ImageFeatures, error_px: float, spot_px: Matrix, note: str = "") -> ControlOutput:
         """Turn the visible region's centroid onto spot_px (eq. 4-36): the laser spot, or
