@@ -122,3 +122,14 @@ def test_stage_2_hands_over_to_stage_3_where_its_translation_and_rotation_balanc
     assert result.outcome.converged, result.outcome.reason
     handover = next(c.output.note for c in result.outcome.cycles if c.output.stage == "3")
     assert "moves the corners no more" in handover
+
+
+def test_stage_1_aims_the_beam_at_the_parts_depth_not_at_the_desired_one():
+    """Monte Carlo seed 1, sample 277 (free camera): the camera almost level with the part,
+    0.35 m away, no spot seen. Aimed at the desired spot's place (where the beam meets a
+    part at the desired 0.16 m), the beam passed the part and stage 1.B sat still with no
+    spot until "no progress"; aimed at the beam's image at the part's estimated depth, it
+    lands and the run converges."""
+    result = simulate(initial=np.array([0.088, 0.087, 0.347, -1.024, -1.373, 1.112]), arm=Arm.NONE, seed=1)
+    assert not result.outcome.cycles[0].features.laser_visible
+    assert result.outcome.converged, result.outcome.reason
