@@ -170,7 +170,7 @@ class LaserIbvs:
 
     def _stage_1b(self, features: ImageFeatures, error_px: float, spot_px: Matrix, note: str = "") -> ControlOutput:
         """Turn the visible region's centroid onto spot_px (eq. 4-36): the laser spot, or
-        where it lies in the desired image while the beam lands out of sight."""
+        the beam's image at the part's depth while the spot is not seen."""
         region = features.region
         if not region.seen:
             return ControlOutput.stop(Stage.CENTRE_1B, error_px, Failure.FEATURES_LOST, "object not in the image")
