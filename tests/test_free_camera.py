@@ -12,8 +12,9 @@ from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import exp_twist, pose_error, rot_x, transform
 from vservo.core.robot.backend import carry_out
 from vservo.core.robot.commands import PositionCommand, VelocityCommand
+from vservo.core.sim import Arm
 from vservo.core.sim.free_camera import FreeCameraBackend, simulated_robot
-from vservo.core.sim.plant import Arm, CellStateError, SimulatedCell
+from vservo.core.sim.plant import CellStateError, SimulatedCell
 from vservo.core.study.montecarlo import run_montecarlo
 from vservo.core.study.provenance import reproduce_command
 from vservo.core.study.run import RunSettings, run_task

@@ -14,8 +14,9 @@ import numpy as np
 
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.robot.backend import RobotBackend
+from vservo.core.sim import Arm
 from vservo.core.sim.backend import SimulatedBackend
-from vservo.core.sim.plant import Arm, SimulatedCell
+from vservo.core.sim.plant import SimulatedCell
 
 
 class FreeCameraBackend(SimulatedBackend):

@@ -20,7 +20,6 @@ laser, the scene and the pixel noise stay what they are.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from enum import StrEnum
 
 import numpy as np
 
@@ -31,6 +30,7 @@ from vservo.core.geometry.spatial import Matrix, exp_twist, inverse, pose_error,
 from vservo.core.perception.features import ObjectRegion, polygon_moments
 from vservo.core.perception.measurement import Measurement
 from vservo.core.robot.commands import PositionCommand, RobotCommand, VelocityCommand
+from vservo.core.sim import Arm
 from vservo.robot_models.loader import load_arm
 
 # The vacuum cup sits on a spring-loaded level compensator: it grips when its face is
@@ -45,13 +45,6 @@ ROTATION_SPEED_RAD_S = 0.5
 # enough to converge near singularities where 1e-9 takes too many iterations.
 IK_TOLERANCE_M = 1e-7
 IK_TOLERANCE_RAD = 1e-7
-
-
-class Arm(StrEnum):
-    """What carries the camera in a simulated cell."""
-
-    UPJ = "upj"  # the cell's arm, moved by its controller (the JRC's logic)
-    NONE = "none"  # nothing: a free-flying camera, to study a control law alone
 
 
 class CellStateError(RuntimeError):

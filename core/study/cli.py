@@ -12,7 +12,7 @@ import numpy as np
 
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import Matrix
-from vservo.core.sim.plant import Arm
+from vservo.core.sim import Arm
 from vservo.core.terminal.command_line import BenchCommand, fraction, positive, print_result
 
 

@@ -26,7 +26,8 @@ import numpy as np
 from vservo.core.cell.config import CellConfig
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, exp_twist, inverse
-from vservo.core.sim.plant import Arm, visible_region
+from vservo.core.sim import Arm
+from vservo.core.sim.plant import visible_region
 from vservo.core.study.run import RunSettings, run_task
 from vservo.core.study.tasks import TASKS
 

@@ -15,7 +15,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from vservo.core.sim.plant import Arm
+from vservo.core.sim import Arm
 
 UNKNOWN = "unknown"
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from vservo.core.cell.config import CellConfig, parse_cell, read_cell_bytes, read_cell_data
 from vservo.core.servo.methods import METHODS
-from vservo.core.sim.plant import Arm
+from vservo.core.sim import Arm
 from vservo.core.study import canvas, plots, provenance
 from vservo.core.study.montecarlo import run_montecarlo
 from vservo.core.study.run import RunResult, RunSettings, run_task

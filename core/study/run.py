@@ -27,9 +27,10 @@ from vservo.core.servo.loop import Cycle, LoopLimits, Perception, ProjectedPerce
 from vservo.core.servo.methods import LawSettings, build_law
 from vservo.core.servo.step_policy import IntegratedVelocity, StepPolicy
 from vservo.core.servo.teaching import desired_from_features
+from vservo.core.sim import Arm
 from vservo.core.sim.camera import SimulatedCamera
 from vservo.core.sim.free_camera import simulated_robot
-from vservo.core.sim.plant import Arm, SimulatedCell
+from vservo.core.sim.plant import SimulatedCell
 from vservo.core.sim.render_settings import RenderSettings
 from vservo.core.study.tasks import ServoTask
 

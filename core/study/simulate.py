@@ -8,7 +8,7 @@ from pathlib import Path
 from vservo.core.cell.config import parse_cell, read_cell_data
 from vservo.core.cell.kinematics import ArmKinematics
 from vservo.core.geometry.spatial import Matrix, matrix_from_pose
-from vservo.core.sim.plant import Arm
+from vservo.core.sim import Arm
 from vservo.core.study.run import RunResult, RunSettings, run_task
 from vservo.core.study.tasks import ServoTask, find_placement, robustness_cell, servo_task
 from vservo.robot_models.loader import load_arm
