@@ -8,6 +8,7 @@ import pytest
 
 from tests.servo_fixtures import CAMERA, CORNERS_O, DESIRED_SPOT, DESIRED_cMo, desired_image, features, project, rotate_about
 from vservo.core.geometry.camera import CameraModel, Intrinsics
+from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import exp_twist, inverse, matrix_from_pose, transform, twist_transform
 from vservo.core.perception.features import ImageFeatures, ObjectRegion
 from vservo.core.servo.laws.base import Failure, SingularJacobian, Stage, checked_pinv
@@ -17,6 +18,8 @@ from vservo.core.servo.laws.laser_ibvs import LaserIbvs, image_rotation, rotatio
 from vservo.core.servo.laws.pbvs import Pbvs
 from vservo.core.servo.loop import hold_spot
 from vservo.core.sim.plant import visible_region
+
+LASER = LaserPointer.in_plane(0.030, np.radians(80.0))  # the thesis's beam, where DESIRED_SPOT lies at Z*
 
 H = 1e-6
 
@@ -84,7 +87,7 @@ def test_half_turn_makes_current_feature_ibvs_retreat():
 
 
 def laser_law(**settings):
-    return LaserIbvs(CAMERA, cTe=np.zeros(3), **settings)
+    return LaserIbvs(CAMERA, cTe=np.zeros(3), laser=LASER, **settings)
 
 
 def test_stage_1a_starts_and_switches_to_2_on_the_imaginary_features():
@@ -137,7 +140,7 @@ def test_stage_1b_turns_the_visible_region_onto_the_spot_with_two_dof():
 
 def test_stage_1c_keeps_the_flange_in_place_while_the_camera_turns():
     eMc = matrix_from_pose([0.02, -0.03, 0.05, 0.1, 0.2, -0.1])
-    law = LaserIbvs(CAMERA, cTe=inverse(eMc)[:3, 3])
+    law = LaserIbvs(CAMERA, cTe=inverse(eMc)[:3, 3], laser=LASER)
     desired = desired_image()
     out = law.step(features(rotate_about(desired.corners_px, DESIRED_SPOT, 0.5)), desired, None)
     eVe = twist_transform(eMc) @ out.cVc
@@ -177,10 +180,18 @@ def test_a_lost_corner_after_stage_1_stops_with_zero_twist(stage):
     assert out.failure is Failure.FEATURES_LOST and np.array_equal(out.cVc, np.zeros(6))
 
 
-def test_no_spot_stops_the_laser_method():
+def test_with_no_spot_stage_1_turns_the_part_onto_the_desired_spot_and_stage_2_stops():
+    """The beam lands out of sight (docs/thesis-notes.md section 5): stage 1.B aims the
+    region's centroid at the spot's place in the desired image; stage 2 needs the spot."""
     desired = desired_image()
-    out = laser_law().step(features(desired.corners_px + 40.0, spot_px=[np.nan, np.nan], depth=np.nan), desired, None)
-    assert out.failure is Failure.FEATURES_LOST and "laser" in out.note
+    unseen = features(desired.corners_px + 40.0, spot_px=[np.nan, np.nan], depth=np.nan)
+    out = laser_law().step(unseen, desired, None)
+    assert out.failure is None and out.stage == Stage.CENTRE_1B and "not seen" in out.note
+    centroid = unseen.region.centroid_px
+    velocity = rotational_jacobian(CAMERA, centroid) @ out.cVc[3:]
+    assert velocity @ (DESIRED_SPOT - centroid) > 0.9 * np.linalg.norm(velocity) * np.linalg.norm(DESIRED_SPOT - centroid)
+    out = laser_law().step(unseen, desired, Stage.APPROACH_2)
+    assert out.failure is Failure.FEATURES_LOST and np.array_equal(out.cVc, np.zeros(6))
 
 
 @pytest.mark.parametrize("law", [ClassicIbvs(CAMERA), Pbvs(CAMERA), Hybrid25D(CAMERA)])
@@ -214,7 +225,7 @@ def test_stage_3_tolerates_the_intrinsics_errors_of_table_5_3(swap):
     desired = desired_image()
     desired = replace(desired, corners_px=project(DESIRED_cMo, camera=seeing))
     cMo = matrix_from_pose([0.015, -0.005, 0.175, np.pi - 0.1, 0.05, -np.pi + 0.05])
-    out = LaserIbvs(believed, cTe=np.zeros(3)).step(features(project(cMo, camera=seeing)), desired, Stage.FINISH_3)
+    out = LaserIbvs(believed, cTe=np.zeros(3), laser=LASER).step(features(project(cMo, camera=seeing)), desired, Stage.FINISH_3)
     before = project(cMo, camera=seeing) - desired.corners_px
     after = project(moved(cMo, out.cVc, 0.1), camera=seeing) - desired.corners_px
     # A tenth of the correction with the right model; the wrong one shortens the step.

@@ -39,6 +39,7 @@ def build_law(model: CellModel, settings: LawSettings) -> ControlLaw:
         return LaserIbvs(
             camera,
             cTe=inverse(model.eMc)[:3, 3],
+            laser=model.laser,
             k_rotation_1a=gain,
             k_rotation_1b=gain,
             k_translation=gain,

@@ -45,7 +45,7 @@ class SimulatedBackend:
 
     def read_pose(self) -> Matrix:
         self._require_connection()
-        return self.cell.jrc_arm.fk(self.cell.state.q)
+        return self.cell.flange_readout()
 
     def servo(self, on: bool) -> None:
         self._require_connection()

@@ -11,6 +11,10 @@ into one, except through the ``ground_truth_*`` accessors that exist for evaluat
 Moves follow the JRC's logic: the target flange pose is turned into joints
 by the JRC's nominal inverse kinematics, and the real arm ends where its true
 kinematics put those joints, plus a settling (repeatability) error.
+
+With ``Arm.NONE`` no arm carries the camera: the flange flies free (core/sim/free_camera.py
+moves it), exactly where it is sent, with no joints, limits or settling; the camera, the
+laser, the scene and the pixel noise stay what they are.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from vservo.core.geometry.spatial import Matrix, exp_twist, inverse, pose_error,
 from vservo.core.perception.features import ObjectRegion, polygon_moments
 from vservo.core.perception.measurement import Measurement
 from vservo.core.robot.commands import PositionCommand, RobotCommand, VelocityCommand
+from vservo.core.sim import Arm
 from vservo.robot_models.loader import load_arm
 
 # The vacuum cup sits on a spring-loaded level compensator: it grips when its face is
@@ -109,6 +114,7 @@ class PlantState:
     eMe_settle: Matrix  # repeatability: where the true flange sits relative to fk_true(q)
     scene: Scene  # where the table, the cube and the metal part really are
     vMo_held: Matrix | None = None  # the cube on the vacuum cup: its pose in the true cup frame V
+    bMe_free: Matrix | None = None  # with no arm: the flange's pose (q then stays at home, unused)
 
 
 @dataclass(frozen=True)
@@ -146,13 +152,15 @@ class SimulatedCell:
     seeded generator, so a cell is reproducible from (config, seed).
     """
 
-    def __init__(self, config: CellConfig, seed: int | None = None) -> None:
+    def __init__(self, config: CellConfig, seed: int | None = None, arm: Arm = Arm.UPJ) -> None:
         if config.simulation is None:
             raise ConfigError(f"{config.source}: no [simulation] table: this file describes no plant to simulate")
         self.rng = np.random.default_rng(config.simulation.seed if seed is None else seed)
         self.jrc_arm = ArmKinematics(load_arm(config.arm), config.nominal.mount)
         self.truth = CellTruth.from_config(config, self.jrc_arm, self.rng)
-        self.state = PlantState(0.0, config.home_q.copy(), np.eye(4), config.simulation.scene)
+        self.arm = Arm(arm)
+        bMe_free = self.jrc_arm.fk(config.home_q) if self.arm is Arm.NONE else None
+        self.state = PlantState(0.0, config.home_q.copy(), np.eye(4), config.simulation.scene, bMe_free=bMe_free)
         self.source = config.source
         self.board = config.simulation.board  # the TRUE board, where it lies when laid
 
@@ -181,9 +189,8 @@ class SimulatedCell:
         images has no use for the projected ones): the camera fields are then unseen.
         """
         if not look:
-            q = self.state.q.copy()
             unseen = np.full(2, np.nan)
-            return Measurement(self.state.time_s, q, self.jrc_arm.fk(q), np.full((4, 2), np.nan), unseen,
+            return Measurement(self.state.time_s, self.state.q.copy(), self.flange_readout(), np.full((4, 2), np.nan), unseen,
                                ObjectRegion(0.0, unseen), np.full(4, np.nan), unseen)
         bMc = self.ground_truth_bMe() @ self.truth.model.eMc
         cMb = inverse(bMc)
@@ -213,10 +220,15 @@ class SimulatedCell:
         if spot_b is not None:
             spot_px = self._observe(camera.project((cMb[:3, :3] @ spot_b + cMb[:3, 3])[None, :]))[0]
 
-        q = self.state.q.copy()
-        return Measurement(
-            self.state.time_s, q, self.jrc_arm.fk(q), corners_px, spot_px, region, corners_c[:, 2].copy(), reference_px
-        )
+        return Measurement(self.state.time_s, self.state.q.copy(), self.flange_readout(), corners_px, spot_px, region,
+                           corners_c[:, 2].copy(), reference_px)
+
+    def flange_readout(self) -> Matrix:
+        """The flange pose the robot reports: the JRC's nominal model of its joints; a free
+        camera's own pose (no arm, so no model to be wrong)."""
+        if self.state.bMe_free is not None:
+            return self.state.bMe_free.copy()
+        return self.jrc_arm.fk(self.state.q)
 
     def _visible_spot_b(self, bMc: Matrix) -> Matrix | None:
         """Where the true beam lands, in B, if the true camera sees that point."""
@@ -239,7 +251,7 @@ class SimulatedCell:
 
     def execute(self, command: RobotCommand) -> MoveReport:
         """Carry out one command (see vservo.core.servo.step_policy); raises UnreachableTarget unmoved."""
-        bMe = self.jrc_arm.fk(self.state.q)
+        bMe = self.flange_readout()
         if isinstance(command, VelocityCommand):
             return self.move(command.target(bMe), command.dt_s)
         if isinstance(command, PositionCommand):
@@ -250,7 +262,7 @@ class SimulatedCell:
     def travel_time_s(self, bMe_target: Matrix, speed_m_s: float) -> float:
         """How long a linear move from here to bMe_target takes at speed_m_s (or at the
         controller's rotation rate, when the rotation takes longer)."""
-        translation, rotation = pose_error(self.jrc_arm.fk(self.state.q), bMe_target)
+        translation, rotation = pose_error(self.flange_readout(), bMe_target)
         return max(translation / speed_m_s, rotation / ROTATION_SPEED_RAD_S)
 
     def jrc_ik(self, bMe_target: Matrix) -> Matrix:
@@ -261,16 +273,31 @@ class SimulatedCell:
 
     def move(self, bMe_target: Matrix, duration_s: float) -> MoveReport:
         """The arm moves to the JRC's joints for bMe_target in duration_s and settles."""
+        self._require_arm()
         return self.move_joints(self.jrc_ik(bMe_target), duration_s)
+
+    def fly(self, bMe_target: Matrix, duration_s: float) -> MoveReport:
+        """The free camera's flange reaches bMe_target exactly after duration_s."""
+        if self.state.bMe_free is None:
+            raise CellStateError(f"an arm carries this cell's camera ({self.arm}): it moves by its joints, not free")
+        bMe = np.array(bMe_target, dtype=float)
+        self.state = replace(self.state, time_s=self.state.time_s + duration_s, bMe_free=bMe)
+        self._carry_held_part()
+        return MoveReport(duration_s, self.state.q.copy(), bMe.copy())
 
     def move_joints(self, q: Matrix, duration_s: float, settle: bool = True) -> MoveReport:
         """The arm reaches joints q after duration_s; ``settle=False`` passes through q
         (a point along a move in progress), without a repeatability error."""
+        self._require_arm()
         q = np.array(q, dtype=float)
         eMe_settle = self._settle() if settle else np.eye(4)
         self.state = replace(self.state, time_s=self.state.time_s + duration_s, q=q, eMe_settle=eMe_settle)
         self._carry_held_part()
         return MoveReport(duration_s, q.copy(), self.jrc_arm.fk(q))
+
+    def _require_arm(self) -> None:
+        if self.state.bMe_free is not None:
+            raise CellStateError("no arm carries this cell's camera (arm none): it has no joints to move")
 
     def pass_time(self, seconds: float) -> None:
         """Time passes with the arm standing still (a host's sampling period, a pause)."""
@@ -358,6 +385,7 @@ class SimulatedCell:
 
     def set_joints(self, q: Matrix) -> MoveReport:
         """Move straight to a joint configuration (set-up of a scenario, not a servo step)."""
+        self._require_arm()
         q = np.asarray(q, dtype=float)
         if not self.jrc_arm.within_limits(q):
             raise ValueError(f"joints {np.rad2deg(q).round(2).tolist()} deg are outside the joint limits")
@@ -374,6 +402,9 @@ class SimulatedCell:
         """
         bMc = self.state.scene.cube.bMo @ inverse(np.asarray(cMo, dtype=float))
         bMe = bMc @ inverse(self.truth.model.eMc)
+        if self.state.bMe_free is not None:
+            self.state = replace(self.state, bMe_free=bMe)
+            return
         q = self.truth.arm.ik(bMe, self.state.q).q
         self.state = replace(self.state, q=q, eMe_settle=np.eye(4))
 
@@ -381,6 +412,8 @@ class SimulatedCell:
 
     def ground_truth_bMe(self) -> Matrix:
         """The true flange pose."""
+        if self.state.bMe_free is not None:
+            return self.state.bMe_free.copy()
         return self.truth.arm.fk(self.state.q) @ self.state.eMe_settle
 
     def ground_truth_placement(self) -> Placement:

@@ -12,6 +12,7 @@ import numpy as np
 
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import Matrix
+from vservo.core.sim import Arm
 from vservo.core.terminal.command_line import BenchCommand, fraction, positive, print_result
 
 
@@ -60,6 +61,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         dt_s=args.dt,
         features=args.features,
         record_to=args.record,
+        arm=Arm(args.arm),
     )
     summary = result.summary()
     if args.json:
@@ -83,7 +85,7 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
     config = load_cell(args.cell)
     progress = Progress(args.n, f"montecarlo {args.method}")
     summary = run_montecarlo(
-        config, RunSettings(method=args.method), args.n, args.seed, args.processes,
+        config, RunSettings(method=args.method, arm=Arm(args.arm)), args.n, args.seed, args.processes,
         on_sample=lambda outcome: progress.advance("ok" if outcome.converged else outcome.failure),
     )
     progress.close()
@@ -100,7 +102,7 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
 def _cmd_reproduce(args: argparse.Namespace) -> int:
     from vservo.core.study.report import reproduce
 
-    summaries = reproduce(Path(args.out), args.cell, args.montecarlo, args.seed)
+    summaries = reproduce(Path(args.out), args.cell, args.montecarlo, args.seed, arm=Arm(args.arm))
     print(f"wrote {args.out}/results.json, {args.out}/report.md and {len(summaries['figures'])} figures")
     return 0
 
@@ -149,6 +151,12 @@ def _cmd_bench_jrc(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_arm_option(command: argparse.ArgumentParser) -> None:
+    command.add_argument("--arm", choices=tuple(arm.value for arm in Arm), default=Arm.UPJ.value,
+                         help="what carries the camera: upj, the cell's arm (default), or none, a free camera that "
+                              "moves as the control law commands (no joints, limits or workspace)")
+
+
 def add_study_commands(commands: argparse._SubParsersAction) -> None:
     """Register ``vservo demo``, ``simulate``, ``montecarlo``, ``reproduce`` and ``replay``."""
     demo = commands.add_parser("demo", help="a tour of the simulated cell: arm, camera, laser, JRC-style steps")
@@ -175,6 +183,7 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
     simulate.add_argument("--features", choices=("projected", "rendered"), default="projected",
                           help="projected points, or detections in the simulated camera's images")
     simulate.add_argument("--record", metavar="FOLDER", help="record the run (frames, features, commands, stages)")
+    _add_arm_option(simulate)
     simulate.add_argument("--json", action="store_true", help="one JSON object")
     simulate.set_defaults(run=_cmd_simulate)
 
@@ -185,6 +194,7 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
     montecarlo.add_argument("--n", type=positive(int), default=100, help="number of initial poses (default 100)")
     montecarlo.add_argument("--seed", type=int, default=0, help="seed of the initial poses (default 0)")
     montecarlo.add_argument("--processes", type=positive(int), default=None, help="worker processes (default: all cores)")
+    _add_arm_option(montecarlo)
     montecarlo.add_argument("--json", action="store_true", help="one JSON object")
     montecarlo.set_defaults(run=_cmd_montecarlo)
 
@@ -195,6 +205,7 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
     reproduce.add_argument("--montecarlo", type=int, default=500, metavar="N",
                            help="random initial poses per method for the Monte Carlo table (default 500, 0 skips it)")
     reproduce.add_argument("--seed", type=int, default=0, help="seed of the Monte Carlo poses (default 0)")
+    _add_arm_option(reproduce)
     reproduce.set_defaults(run=_cmd_reproduce)
 
     replay_command = commands.add_parser(

@@ -6,7 +6,8 @@ random axis by an angle uniform in [0, pi] and a translation in a uniformly rand
 direction with a length uniform in [0, 0.4] m. A sample is kept when the camera looks
 at the cube from above the table, the cube's face is 0.08 .. 0.6 m in front of it, at
 least part of the face is in the image (so partly visible starts are included), and
-the arm can reach the pose; otherwise it is drawn again. "From above" is at least 30 mm
+the arm can reach the pose (a free camera, ``arm`` none, reaches every pose); otherwise
+it is drawn again. "From above" is at least 30 mm
 over the plane of the face. Sample i depends only on
 (seed, i), so every method meets the same initial poses.
 """
@@ -25,6 +26,7 @@ import numpy as np
 from vservo.core.cell.config import CellConfig
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, exp_twist, inverse
+from vservo.core.sim import Arm
 from vservo.core.sim.plant import visible_region
 from vservo.core.study.run import RunSettings, run_task
 from vservo.core.study.tasks import TASKS
@@ -70,6 +72,7 @@ class SampleOutcome:
     index: int
     converged: bool
     failure: str | None
+    stage: str  # the stage the run ended in
     path_length_m: float
     iterations: int
     draws: int
@@ -86,7 +89,9 @@ def run_sample(config: CellConfig, settings: RunSettings, seed: int, index: int)
         except UnreachableTarget:
             continue  # the arm cannot start there: not a failure of the method
         summary = result.summary()
-        return SampleOutcome(index, summary["converged"], summary["failure"], result.path_length_m, summary["iterations"], draw)
+        last_stage = str(result.outcome.cycles[-1].output.stage) if result.outcome.cycles else ""
+        return SampleOutcome(index, summary["converged"], summary["failure"], last_stage, result.path_length_m,
+                             summary["iterations"], draw)
     raise RuntimeError(f"sample {index}: no reachable initial pose in {MAX_DRAWS} draws")
 
 
@@ -112,7 +117,7 @@ def run_montecarlo(
             outcomes.append(outcome)
             if on_sample is not None:
                 on_sample(outcome)
-    return summarize(settings.method, n, seed, sorted(outcomes, key=lambda o: o.index))
+    return summarize(settings.method, n, seed, sorted(outcomes, key=lambda o: o.index), Arm(settings.arm))
 
 
 def _stats(values: list[float]) -> dict[str, float | None]:
@@ -121,22 +126,27 @@ def _stats(values: list[float]) -> dict[str, float | None]:
     return {"median": round(float(np.median(values)), 6), "p95": round(float(np.percentile(values, 95)), 6)}
 
 
-def summarize(method: str, n: int, seed: int, outcomes: list[SampleOutcome]) -> dict[str, Any]:
+def summarize(method: str, n: int, seed: int, outcomes: list[SampleOutcome], arm: Arm = Arm.UPJ) -> dict[str, Any]:
     """Success rate; median and 95th percentile of path and iterations over the converged runs."""
     converged = [o for o in outcomes if o.converged]
+    kept = "reachable" if arm is Arm.UPJ else "carried by no arm (a free camera)"
     return {
         "method": method,
+        "arm": arm.value,
         "n": n,
         "seed": seed,
         "success_rate": round(len(converged) / n, 4) if n else None,
         "path_length_m": _stats([o.path_length_m for o in converged]),
         "iterations": _stats([float(o.iterations) for o in converged]),
         "failures": dict(sorted(Counter(o.failure for o in outcomes if not o.converged).items())),
+        # The same failures by the stage they ended in ("no_progress in 1A"), and which samples.
+        "failures_by_stage": dict(sorted(Counter(f"{o.failure} in {o.stage}" for o in outcomes if not o.converged).items())),
+        "failed_samples": [o.index for o in outcomes if not o.converged],
         # How strongly the arm's reach filters the distribution: draws per kept pose.
         "draws_per_sample": round(float(np.mean([o.draws for o in outcomes])), 2) if outcomes else None,
         "distribution": (
             f"initial camera: rotation uniform in [0, pi] about a random axis and translation uniform in "
             f"[0, {MAX_TRANSLATION_M}] m in a random direction from task 2's desired pose; kept when the face "
-            f"is {DEPTH_RANGE_M[0]}..{DEPTH_RANGE_M[1]} m in front, at least partly in the image, and reachable"
+            f"is {DEPTH_RANGE_M[0]}..{DEPTH_RANGE_M[1]} m in front, at least partly in the image, and {kept}"
         ),
     }

@@ -15,6 +15,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from vservo.core.sim import Arm
+
 UNKNOWN = "unknown"
 
 
@@ -53,9 +55,12 @@ def source_commit() -> str:
     return f"{commit}-dirty" if dirty else commit
 
 
-def reproduce_command(out: Path, cell_path: str | Path | None, montecarlo_n: int, seed: int) -> str:
+def reproduce_command(out: Path, cell_path: str | Path | None, montecarlo_n: int, seed: int,
+                      arm: Arm = Arm.UPJ) -> str:
     """The ``vservo reproduce`` command line that makes a snapshot with these arguments."""
     args = ["vservo", "reproduce", "--out", str(out), "--montecarlo", str(montecarlo_n), "--seed", str(seed)]
+    if arm is not Arm.UPJ:  # the arm is the default: a snapshot of the thesis's cell keeps its command
+        args += ["--arm", arm.value]
     if cell_path is not None:
         args += ["--cell", str(cell_path)]
     return shlex.join(args)

@@ -17,6 +17,7 @@ import numpy as np
 
 from vservo.core.cell.config import CellConfig, parse_cell, read_cell_bytes, read_cell_data
 from vservo.core.servo.methods import METHODS
+from vservo.core.sim import Arm
 from vservo.core.study import canvas, plots, provenance
 from vservo.core.study.montecarlo import run_montecarlo
 from vservo.core.study.run import RunResult, RunSettings, run_task
@@ -314,7 +315,8 @@ def report_markdown(summaries: dict[str, Any]) -> str:
         draws = first["draws_per_sample"]
         reach = (f"On average {draws} poses that passed the view checks were drawn for each one the arm could reach: "
                  "the arm's reach filters the distribution." if draws > 1
-                 else "The arm could reach every pose that passed the view checks.")
+                 else "The arm could reach every pose that passed the view checks." if first.get("arm", Arm.UPJ) == Arm.UPJ
+                 else "No arm carries the camera (a free camera): every pose that passed the view checks is kept.")
         lines += ["", f"## Monte Carlo: {first['n']} random initial poses, seed {first['seed']}", "",
                   f"{first['distribution']}. {reach} Every method meets the same poses.", "",
                   "| method | success rate | path median (m) | path p95 (m) | iterations median | iterations p95 | failures |",
@@ -356,31 +358,32 @@ def study_cells(data: dict[str, Any], source: str) -> tuple[CellConfig, CellConf
     return parse_cell(data, source), parse_cell(robustness_cell(data), f"{source} with the errors of Table 5-3")
 
 
-def run_study(config: CellConfig, robust_config: CellConfig, dt_s: float) -> StudyRuns:
-    """The four tasks with every method and the robustness test, each run once (seeded, deterministic)."""
+def run_study(config: CellConfig, robust_config: CellConfig, dt_s: float, arm: Arm = Arm.UPJ) -> StudyRuns:
+    """The four tasks with every method and the robustness test, each run once (seeded,
+    deterministic), the camera on the arm or, with ``arm`` none, free."""
     progress = Progress(len(TASKS) * len(METHODS) + 1, "reproduce")
     results: dict[tuple[int, str], RunResult] = {}
     for task_number, task in TASKS.items():
         for method in METHODS:
-            results[task_number, method] = run_task(config, task, RunSettings(method=method, dt_s=dt_s))
+            results[task_number, method] = run_task(config, task, RunSettings(method=method, dt_s=dt_s, arm=arm))
             progress.advance(f"task {task_number} {method}")
-    robust = run_task(robust_config, ROBUSTNESS_TASK, RunSettings(method="laser", dt_s=dt_s))
+    robust = run_task(robust_config, ROBUSTNESS_TASK, RunSettings(method="laser", dt_s=dt_s, arm=arm))
     progress.advance("robustness")
     progress.close()
     return StudyRuns(results, robust)
 
 
 def reproduce(out: Path, cell_path: str | Path | None = None, montecarlo_n: int = 500, seed: int = 0,
-              dt_s: float = 0.1) -> dict[str, Any]:
+              dt_s: float = 0.1, arm: Arm = Arm.UPJ) -> dict[str, Any]:
     """Run the whole study, write results.json, report.md and the figures into ``out``.
 
     The provenance is taken first, before anything in ``out`` changes: regenerating the
     committed snapshot must not mark its own commit dirty.
     """
     cell_bytes, source = read_cell_bytes(cell_path)
-    made = provenance.record(source, cell_bytes, provenance.reproduce_command(out, cell_path, montecarlo_n, seed))
+    made = provenance.record(source, cell_bytes, provenance.reproduce_command(out, cell_path, montecarlo_n, seed, arm))
     config, robust_config = study_cells(*read_cell_data(cell_path))
-    study = run_study(config, robust_config, dt_s)
+    study = run_study(config, robust_config, dt_s, arm)
 
     summaries: dict[str, Any] = {"provenance": made.as_dict(), "dt_s": dt_s, **study.summaries()}
     if montecarlo_n > 0:
@@ -388,7 +391,7 @@ def reproduce(out: Path, cell_path: str | Path | None = None, montecarlo_n: int 
         for method in MONTECARLO_METHODS:
             bar = Progress(montecarlo_n, f"montecarlo {method}")
             summaries["montecarlo"][method] = run_montecarlo(
-                config, RunSettings(method=method, dt_s=dt_s), montecarlo_n, seed,
+                config, RunSettings(method=method, dt_s=dt_s, arm=arm), montecarlo_n, seed,
                 on_sample=lambda outcome, bar=bar: bar.advance("ok" if outcome.converged else outcome.failure),
             )
             bar.close()

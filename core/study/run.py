@@ -27,8 +27,9 @@ from vservo.core.servo.loop import Cycle, LoopLimits, Perception, ProjectedPerce
 from vservo.core.servo.methods import LawSettings, build_law
 from vservo.core.servo.step_policy import IntegratedVelocity, StepPolicy
 from vservo.core.servo.teaching import desired_from_features
-from vservo.core.sim.backend import SimulatedBackend
+from vservo.core.sim import Arm
 from vservo.core.sim.camera import SimulatedCamera
+from vservo.core.sim.free_camera import simulated_robot
 from vservo.core.sim.plant import SimulatedCell
 from vservo.core.sim.render_settings import RenderSettings
 from vservo.core.study.tasks import ServoTask
@@ -44,6 +45,7 @@ class RunSettings(LawSettings):
     features: str = "projected"  # or "rendered": detected in the simulated camera's images
     render: RenderSettings = RenderSettings()
     record_to: str | None = None  # a folder for the run's recording (frames and cycles)
+    arm: Arm = Arm.UPJ  # what carries the camera: the cell's arm, or nothing (a free camera)
 
 
 def perception_for(cell: SimulatedCell, model: CellModel, settings: RunSettings, camera: FrameSource | None = None
@@ -128,12 +130,13 @@ def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: i
     ``on_cycle`` sees every cycle as the loop does (for benchmarks and recordings).
     ``robot(cell)`` returns the connected, enabled robot that moves the simulated cell
     (say the JRC link to an emulator of it, behind the safety layer); by default the loop
-    drives the simulator directly. ``policy`` replaces the study's velocity steps of
-    ``settings.dt_s`` (the JRC takes position steps). ``camera`` makes the servo's frame
+    drives the simulator directly (the arm, or the free camera of ``settings.arm`` none).
+    ``policy`` replaces the study's velocity steps of ``settings.dt_s`` (the JRC takes
+    position steps). ``camera`` makes the servo's frame
     source on the cell for rendered features (a camera that drops frames, one that times
     them).
     """
-    cell = SimulatedCell(config, seed)
+    cell = SimulatedCell(config, seed, settings.arm)
     scene = config.simulation.scene
     cell.place_cube(task.placement.bMo(scene.table_height_m, scene.cube.side_m))
     model = config.nominal
@@ -169,7 +172,7 @@ def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: i
         LoopLimits(max_iterations=settings.max_iterations),
         on_cycle=record,
         perception=perception,
-        robot=robot(cell) if robot is not None else SimulatedBackend.enabled(cell),
+        robot=(robot or simulated_robot)(cell),
     )
     path.append(cell.ground_truth_bMe()[:3, 3])
     if recorder is not None:

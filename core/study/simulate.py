@@ -8,6 +8,7 @@ from pathlib import Path
 from vservo.core.cell.config import parse_cell, read_cell_data
 from vservo.core.cell.kinematics import ArmKinematics
 from vservo.core.geometry.spatial import Matrix, matrix_from_pose
+from vservo.core.sim import Arm
 from vservo.core.study.run import RunResult, RunSettings, run_task
 from vservo.core.study.tasks import ServoTask, find_placement, robustness_cell, servo_task
 from vservo.robot_models.loader import load_arm
@@ -26,6 +27,7 @@ def simulate(
     dt_s: float = 0.1,
     features: str = "projected",
     record_to: str | None = None,
+    arm: Arm = Arm.UPJ,
 ) -> RunResult:
     """Run a task (default task 2) or a scene given by its poses; see ``vservo simulate --help``."""
     data, source = read_cell_data(cell_path)
@@ -35,20 +37,22 @@ def simulate(
 
     task = servo_task(task_number or 2, robust)
     if initial is not None or desired is not None:
-        task = _scene_task(task, initial, desired, config)
+        task = _scene_task(task, initial, desired, config, arm)
     settings = RunSettings(method=method, gain=gain, dt_s=dt_s, max_iterations=max_iterations, features=features,
-                           record_to=record_to)
+                           record_to=record_to, arm=arm)
     return run_task(config, task, settings, seed)
 
 
-def _scene_task(task: ServoTask, initial: Matrix | None, desired: Matrix | None, config) -> ServoTask:
-    """The task with its poses replaced, placed where the arm can serve it."""
+def _scene_task(task: ServoTask, initial: Matrix | None, desired: Matrix | None, config, arm: Arm) -> ServoTask:
+    """The task with its poses replaced, placed where the arm can serve it (a free camera
+    serves the task's own placement)."""
     initial_cMo = matrix_from_pose(initial) if initial is not None else task.initial_cMo
     desired_cMo = matrix_from_pose(desired) if desired is not None else task.desired_cMo
-    arm = ArmKinematics(load_arm(config.arm), config.nominal.mount)
-    scene = config.simulation.scene
-    placement, _ = find_placement(
-        arm, config.home_q, scene.table_height_m, scene.cube.side_m, initial_cMo, desired_cMo, config.simulation.truth.eMc
-    )
+    placement = task.placement
+    if arm is Arm.UPJ:
+        kinematics = ArmKinematics(load_arm(config.arm), config.nominal.mount)
+        scene = config.simulation.scene
+        placement, _ = find_placement(kinematics, config.home_q, scene.table_height_m, scene.cube.side_m, initial_cMo,
+                                      desired_cMo, config.simulation.truth.eMc)
     return replace(task, name="scene", initial_cMo=initial_cMo, desired_cMo=desired_cMo, placement=placement,
                    description="poses given on the command line")

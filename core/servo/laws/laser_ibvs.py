@@ -49,6 +49,7 @@ import numpy as np
 
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.interaction import pixel_interaction_matrix
+from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage, ImageFeatures, pattern_scale
 from vservo.core.servo.laws.base import ControlOutput, Failure, SingularJacobian, Stage, checked_pinv, feature_error_px
@@ -75,6 +76,11 @@ def image_rotation(from_px: Matrix, to_px: Matrix) -> float:
     return float(np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b)))
 
 
+def _largest_extent(points_px: Matrix) -> float:
+    """The largest distance between two of the points (px)."""
+    return float(np.max(np.linalg.norm(points_px[:, None, :] - points_px[None, :, :], axis=2)))
+
+
 def imaginary_features(desired: DesiredImage, features: ImageFeatures) -> Matrix:
     """The desired corners moved with the laser spot (Fig. 4-5) and scaled to the current
     pattern about the spot: where the corners are when the spot lies on the part as in
@@ -89,6 +95,7 @@ class LaserIbvs:
 
     camera: CameraModel
     cTe: Matrix  # position of the flange E in the camera frame (stage 1.C)
+    laser: LaserPointer  # where the beam runs, to aim it while its spot is not seen
     k_rotation_1a: float = 1.0  # K_l, eq. 4-29
     k_rotation_1b: float = 1.0  # K_l2, eq. 4-36
     k_translation: float = 1.0  # K1, eq. 4-49
@@ -96,7 +103,7 @@ class LaserIbvs:
     k_final: float = 1.0  # stage 3
     f0_px: float = 10.0  # eq. 4-27
     f0_laser_px: float = 10.0  # eq. 4-43
-    f0_turn_px: float = 1.0  # stage 1.A also ends when a turn can remove no more than this of its error
+    f0_turn_px: float = 1.0  # stages 1.A and 2 also end when their step moves the corners no more than this
     final_threshold_px: float = 1.0
     name: str = "laser"
 
@@ -117,9 +124,14 @@ class LaserIbvs:
 
     def _stage_1(self, features: ImageFeatures, desired: DesiredImage, error_px: float) -> ControlOutput:
         if not features.laser_visible:
-            return ControlOutput.stop(Stage.ALIGN_1A, error_px, Failure.FEATURES_LOST, "laser spot not seen")
+            # The beam lands nowhere the camera sees (it passes beside the part and off the
+            # table, from a camera looking across the cell): turn the part onto the beam's
+            # image at the part's estimated depth. Once the camera looks at the part the
+            # beam lands on or by it.
+            aim_px = self._beam_at_part(features, desired)
+            return self._stage_1b(features, error_px, aim_px, note="laser spot not seen: aiming")
         if not features.all_corners_visible:
-            return self._stage_1b(features, error_px)
+            return self._stage_1b(features, error_px, features.laser_spot_px)
 
         # Stage 1.A: imaginary features, Fig. 4-5, at the scale of the current pattern.
         f_id = imaginary_features(desired, features)
@@ -144,15 +156,29 @@ class LaserIbvs:
                                  note=f"1A -> 2: turned as far as turning helps (||f_id - f|| = {stage_error:.2f} px)")
         return ControlOutput(self._with_compensation(w), Stage.ALIGN_1A, error_px, stage_error)
 
-    def _stage_1b(self, features: ImageFeatures, error_px: float) -> ControlOutput:
+    def _beam_at_part(self, features: ImageFeatures, desired: DesiredImage) -> Matrix:
+        """The beam's image point at the part's depth, estimated from the pattern's largest
+        extent against the desired one (the extent a tilted view foreshortens least); at
+        the desired depth Z* with fewer than two corners seen."""
+        seen = features.corners_px[features.corners_visible]
+        depth_m = desired.depth_m
+        if len(seen) >= 2:
+            depth_m *= _largest_extent(desired.corners_px) / _largest_extent(seen)
+        origin, direction = self.laser.origin_c, self.laser.direction_c
+        point_c = origin + direction * (depth_m - origin[2]) / direction[2]
+        return self.camera.project(point_c[None, :])[0]
+
+    def _stage_1b(self, features: ImageFeatures, error_px: float, spot_px: Matrix, note: str = "") -> ControlOutput:
+        """Turn the visible region's centroid onto spot_px (eq. 4-36): the laser spot, or
+        the beam's image at the part's depth while the spot is not seen."""
         region = features.region
         if not region.seen:
             return ControlOutput.stop(Stage.CENTRE_1B, error_px, Failure.FEATURES_LOST, "object not in the image")
-        e = region.centroid_px - features.laser_spot_px
+        e = region.centroid_px - spot_px
         J = rotational_jacobian(self.camera, region.centroid_px)[:, :2]  # w_x, w_y only (eq. 4-31)
         w_xy = -self.k_rotation_1b * checked_pinv(J) @ e
         w = np.array([w_xy[0], w_xy[1], 0.0])
-        return ControlOutput(self._with_compensation(w), Stage.CENTRE_1B, error_px, float(np.linalg.norm(e)))
+        return ControlOutput(self._with_compensation(w), Stage.CENTRE_1B, error_px, float(np.linalg.norm(e)), note=note)
 
     def _stage_2(self, features: ImageFeatures, desired: DesiredImage, error_px: float, note: str) -> ControlOutput:
         if not (features.all_corners_visible and features.laser_visible):
@@ -171,7 +197,18 @@ class LaserIbvs:
         centroid = features.corners_px.mean(axis=0)
         e_r = centroid - features.laser_spot_px
         w = -self.k_rotation * checked_pinv(rotational_jacobian(self.camera, centroid)) @ e_r
-        return ControlOutput(np.concatenate([v, w]), Stage.APPROACH_2, error_px, laser_error_px, note=note)
+        cVc = np.concatenate([v, w])
+        # How far this step still moves the corners (linearised, per unit of gain). From a
+        # view tilted well off the desired direction (a close start, turned in place by
+        # stage 1) the translation and the rotation of eq. 4-49 balance with the spot a few
+        # px beyond f0^l, and stage 2 would creep on forever; stage 3 regulates the corners
+        # themselves and takes the view round.
+        moving_px = float(np.linalg.norm(
+            pixel_interaction_matrix(self.camera, features.corners_px, features.laser_depth_m) @ cVc)) / self.k_translation
+        if moving_px <= self.f0_turn_px:
+            switch = f"2 -> 3: stage 2 moves the corners no more ({moving_px:.2f} px, ||f_d^l - f^l|| = {laser_error_px:.2f} px)"
+            return self._stage_3(features, desired, error_px, note=f"{note}; {switch}" if note else switch)
+        return ControlOutput(cVc, Stage.APPROACH_2, error_px, laser_error_px, note=note)
 
     def _stage_3(self, features: ImageFeatures, desired: DesiredImage, error_px: float, note: str) -> ControlOutput:
         if not features.all_corners_visible:
