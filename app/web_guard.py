@@ -8,6 +8,11 @@ itself was loaded from (the ``Host`` the browser asked for) or one the operator 
 with ``vservo serve --allow-origin``. A client that sends no ``Origin`` is no browser's
 page, and is refused as well.
 
+The page's own origin alone is not enough: a foreign site can point its own name at this
+PC's address once its page is loaded (DNS rebinding), and its page's ``Origin`` and the
+``Host`` it asks for are then its own name. So the ``Host`` must also be a name this PC
+answers to: an IP address, ``localhost``, this PC's host name, or an allowed origin's host.
+
 viser builds its websockets server inside its own thread with no way to pass a request
 check, so ``origin_checked_server`` wraps the ``websockets.asyncio.server.serve`` that
 viser calls, only while a ViserServer starts (its constructor returns once it serves).
@@ -17,7 +22,9 @@ from __future__ import annotations
 
 import contextlib
 import http
+import ipaddress
 import logging
+import socket
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -40,15 +47,32 @@ def normalise_origin(origin: str) -> str:
     return f"{parts.scheme}://{parts.netloc}".lower()
 
 
+def this_pcs_names() -> frozenset[str]:
+    """The names a browser may use for this PC besides its IP addresses (lower case)."""
+    return frozenset(name.lower() for name in ("localhost", socket.gethostname(), socket.getfqdn()) if name)
+
+
 @dataclass(frozen=True)
 class OriginPolicy:
-    """The page's own origin, plus ``allowed`` (normalised origins, e.g. a reverse proxy's address)."""
+    """The page's own origin, plus ``allowed`` (normalised origins, e.g. a reverse proxy's
+    address); the page's own only under ``host_names`` (this PC's names) or an IP address."""
 
     allowed: frozenset[str] = frozenset()
+    host_names: frozenset[str] = frozenset({"localhost"})
 
     @classmethod
     def allowing(cls, origins: tuple[str, ...] | list[str]) -> OriginPolicy:
-        return cls(frozenset(normalise_origin(origin) for origin in origins))
+        allowed = frozenset(normalise_origin(origin) for origin in origins)
+        return cls(allowed, this_pcs_names() | {urlsplit(origin).hostname for origin in allowed})
+
+    def names_this_pc(self, host: str) -> bool:
+        """Whether a ``Host`` header (``name[:port]``) names this PC rather than a rebound foreign name."""
+        name = urlsplit(f"//{host}").hostname or ""
+        try:
+            ipaddress.ip_address(name)
+            return True
+        except ValueError:
+            return name.rstrip(".") in self.host_names
 
     def refusal(self, headers: Headers) -> str | None:
         """Why a WebSocket handshake with these headers is refused, or None to accept it."""
@@ -59,10 +83,13 @@ class OriginPolicy:
             parts = urlsplit(origin)
         except ValueError:
             return f"malformed Origin {origin!r}"
-        own_page = host is not None and parts.scheme in ("http", "https") and parts.netloc.lower() == host.lower()
-        if own_page or origin.lower() in self.allowed:
+        if origin.lower() in self.allowed:
             return None
-        return f"Origin {origin!r} is neither this page ({host!r}) nor an allowed origin"
+        if host is None or parts.scheme not in ("http", "https") or parts.netloc.lower() != host.lower():
+            return f"Origin {origin!r} is neither this page ({host!r}) nor an allowed origin"
+        if not self.names_this_pc(host):
+            return f"Host {host!r} is not a name of this PC (a foreign name pointed at it?): allow it with --allow-origin"
+        return None
 
     def check(self, connection: ServerConnection, request: Request) -> Response | None:
         """websockets' ``process_request``: a 403 for a refused WebSocket handshake, None to go on."""

@@ -4,6 +4,7 @@ when the app serves beyond this PC."""
 
 from __future__ import annotations
 
+import http.client
 import logging
 import subprocess
 import sys
@@ -54,6 +55,30 @@ def test_a_foreign_origin_is_refused_at_the_handshake(page, origin, caplog):
         _open(page, origin)
     assert refused.value.response.status_code == 403
     assert "WebSocket from 127.0.0.1 refused" in caplog.text
+
+
+def _handshake_status(port: int, host: str, origin: str) -> int:
+    """A WebSocket handshake sent to 127.0.0.1 as a browser sends it for a page at ``origin``
+    under the name ``host`` (what a foreign name pointed at this PC makes the browser send)."""
+    connection = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    try:
+        connection.putrequest("GET", "/", skip_host=True)
+        for name, value in (("Host", host), ("Origin", origin), ("Upgrade", "websocket"), ("Connection", "Upgrade"),
+                            ("Sec-WebSocket-Key", "dGhlIHNhbXBsZSBub25jZQ=="), ("Sec-WebSocket-Version", "13"),
+                            ("Sec-WebSocket-Protocol", VISER_SUBPROTOCOL)):
+            connection.putheader(name, value)
+        connection.endheaders()
+        return connection.getresponse().status
+    finally:
+        connection.close()
+
+
+def test_a_foreign_name_pointed_at_this_pc_is_refused_and_this_pcs_own_names_are_not(page, caplog):
+    with caplog.at_level(logging.WARNING, logger="vservo.app.web"):
+        assert _handshake_status(page, f"evil.example:{page}", f"http://evil.example:{page}") == 403
+    assert "is not a name of this PC" in caplog.text
+    for name in ("localhost", "127.0.0.1"):
+        assert _handshake_status(page, f"{name}:{page}", f"http://{name}:{page}") == 101
 
 
 def test_an_allowed_origin_must_be_an_origin():
