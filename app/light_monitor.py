@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from importlib.metadata import version
 from typing import Any
+from urllib.parse import urlsplit
 
 import msgspec.msgpack
 import numpy as np
@@ -98,6 +99,8 @@ class LightMonitor:
 
     def __init__(self, url: str) -> None:
         self.url = url.replace("http://", "ws://", 1).replace("https://", "wss://", 1)
+        page = urlsplit(url)  # the Origin the page's browser sends: the server accepts only its own page
+        self.origin = f"{page.scheme}://{page.netloc}"
         self.images: dict[str, ImageStream] = {}
         self.messages = 0
         self.received_bytes = 0
@@ -123,7 +126,7 @@ class LightMonitor:
         """Read the server until ``stop`` is set (or the server closes the connection)."""
         decompressor = zstandard.ZstdDecompressor()
         async with websockets.asyncio.client.connect(self.url, subprotocols=[f"viser-v{version('viser')}"],
-                                                     max_size=None) as connection:
+                                                     origin=self.origin, max_size=None) as connection:
             self.connected.set()
             stopping = asyncio.ensure_future(stop.wait())
             try:

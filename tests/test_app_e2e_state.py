@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from tests.chromium import chromium_or_fail
+from tests.jrc_fixtures import thesis_policy_cell_file
 from vservo.app.banner import Kind
 from vservo.app.browser import (
     ServeProcess,
@@ -59,7 +60,9 @@ def page(tmp_path_factory):
     from playwright.sync_api import sync_playwright
 
     IMAGES.mkdir(parents=True, exist_ok=True)
-    serve = ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.02)
+    # The thesis's step policy: a servo long enough to see running and to press E-STOP in.
+    serve = ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.02,
+                               cell=thesis_policy_cell_file(tmp_path_factory.mktemp("cell")))
     try:
         with sync_playwright() as playwright:
             chromium = launch_chromium(playwright)

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.jrc_fixtures import thesis_policy_cell_file
 from vservo.app.browser import free_port
 from vservo.app.context import ServeOptions
 from vservo.app.light_monitor import LightMonitor, LightMonitors, MonitorError
@@ -33,9 +34,11 @@ DEADLINE_S = 180.0  # an assembly's servo sends a frame every few hundredths of 
 
 @pytest.fixture(scope="module")
 def running(tmp_path_factory):
+    # The thesis's step policy: an assembly long enough to send a monitor many frames.
+    cell = thesis_policy_cell_file(tmp_path_factory.mktemp("cell"))
     options = ServeOptions(port=free_port(), data=tmp_path_factory.mktemp("serve-data"), seed=3,
-                           token="light-monitor-token", cycle_period_s=0.02)
-    running = start_app(options, load_cell())
+                           token="light-monitor-token", cycle_period_s=0.02, cell=cell)
+    running = start_app(options, load_cell(cell))
     yield running
     running.close()
 

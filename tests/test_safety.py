@@ -178,7 +178,7 @@ class Approach:
 
 def test_the_loop_stops_with_the_safety_layers_reason(backend_name):
     """A servo whose steps exceed max_step stops at once, names the limit, and moves nothing."""
-    config = short_timer_cell(safety={"max_step_mm": 0.1})
+    config = short_timer_cell(safety={"max_step_mm": 0.1}, motion={"policy": "thesis"})
     with guarded(backend_name, config) as (robot, cell):
         scene = config.simulation.scene
         cell.place_cube(TASKS[2].placement.bMo(scene.table_height_m, scene.cube.side_m))
