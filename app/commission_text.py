@@ -111,7 +111,7 @@ def results_markdown(record: dict | None) -> str:
               f"{kept('laser')}",
               "",
               f"<small>{summary['views']['used']} of {summary['views']['taken']} views used · "
-              f"{summary['robot_clock_s']:.0f} s of robot time · views and network in "
+              f"{summary['cell_time_s']:.0f} s of cell time · views and network in "
               f"`{record['out'].removesuffix('.toml')}-commissioning`</small>"]
     return "\n".join(lines)
 

@@ -277,7 +277,7 @@ def commissioning_record(nn_verdict: str = "good") -> dict:
                   "nn": {"views": 25, "corners": 1000, "validation_mean_mm": 0.2984, "validation_max_mm": 0.8561,
                          "verdict": nn_verdict, "why": nn_why}},
         "acceptance": {"corners": 4, "mean_mm": 0.0101, "max_mm": 0.0152},
-        "good": nn_verdict == "good", "views": {"taken": 90, "used": 62}, "robot_clock_s": 98.3,
+        "good": nn_verdict == "good", "views": {"taken": 90, "used": 62}, "cell_time_s": 98.3,
     }
     return {"steps": ["camera", "nn"], "out": "/cells/line3-commissioned.toml", "step": "acceptance",
             "progress": {"tilted": {"done": 24, "total": 24, "note": "40 corners"},

@@ -13,6 +13,7 @@ import pytest
 
 from vservo.core.cell.config import load_cell
 from vservo.core.production.cell_rig import build_rig
+from vservo.core.production.commissioning import CommissionSettings
 from vservo.core.production.locate import LocateError, PartLocator
 from vservo.core.production.rig import Rig
 from vservo.core.study.locate_bench import survey_pose
@@ -47,6 +48,8 @@ def test_commission_measures_the_cell_and_writes_a_new_file(commissioned):
     assert summary["laser"]["baseline_mm"] == pytest.approx(30.0, abs=0.5)
     assert summary["laser"]["alpha_deg"] == pytest.approx(80.0, abs=0.2)
     assert summary["acceptance"]["max_mm"] < 0.5
+    assert summary["acceptance"]["corners"] == CommissionSettings().acceptance_corners  # unreachable corners skipped
+    assert summary["cell_time_s"] > 0.0
     config = load_cell(out)
     assert config.commissioning.nn_path.is_file()
     assert config.nominal.camera.intrinsics.fx == pytest.approx(summary["camera"]["fx_px"], abs=1e-3)

@@ -66,7 +66,7 @@ def commissioned_tables(tables: dict[str, Any], result: CommissionResult, out_pa
         "data_folder": str(data_folder),
         "steps": [str(s) for s in steps],
         "wall_time_s": round(result.wall_time_s, 1),
-        "robot_clock_s": round(result.robot_clock_s, 1),
+        "cell_time_s": round(result.cell_time_s, 1),
         **{str(step): r.as_dict() for step, r in result.steps.items()},
         **({"acceptance": result.acceptance} if result.acceptance else {}),
     })

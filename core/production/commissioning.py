@@ -156,7 +156,7 @@ class CommissionResult:
     acceptance: dict[str, Any] | None
     nn_path: Path | None
     views: list[ViewRecord] = field(default_factory=list)
-    robot_clock_s: float = 0.0  # the robot's own clock: the plant's on a simulated cell, the wall's on a JRC
+    cell_time_s: float = 0.0  # how long the real cell would take (RobotBackend.cell_clock_s)
     wall_time_s: float = 0.0
 
     @property
@@ -285,7 +285,7 @@ class Commissioning:
     # -- the procedure ------------------------------------------------------------------------
 
     def run(self, steps: Sequence[Step] = ALL_STEPS) -> CommissionResult:
-        started_wall, started_clock = time.monotonic(), self.rig.robot.clock_s()
+        started_wall, started_clock = time.monotonic(), self.rig.robot.cell_clock_s()
         (self.folder / "views").mkdir(parents=True, exist_ok=True)
         if self.rig.lay_board is not None:
             self.rig.lay_board(True)
@@ -296,7 +296,7 @@ class Commissioning:
             if self.rig.lay_board is not None:
                 self.rig.lay_board(False)
         return replace(result, views=list(self.views), wall_time_s=time.monotonic() - started_wall,
-                       robot_clock_s=self.rig.robot.clock_s() - started_clock)
+                       cell_time_s=self.rig.robot.cell_clock_s() - started_clock)
 
     def _run(self, steps: set[Step]) -> CommissionResult:
         results: dict[Step, StepResult] = {}
@@ -437,22 +437,30 @@ class Commissioning:
 
     def _acceptance(self) -> dict[str, Any]:
         """The camera over a few board corners, each at a fresh turn: where the calibrated
-        model puts the corner found there, against where the board says it is."""
+        model puts the corner found there, against where the board says it is. Corners are
+        taken in a random order, skipping those the arm cannot look at, until enough are seen."""
         corners = self.board.corners_board()
-        picks = self.rng.choice(len(corners), size=min(self.settings.acceptance_corners, len(corners)), replace=False)
-        seen = []
-        for k, index in enumerate(picks):
+        wanted = min(self.settings.acceptance_corners, len(corners))
+        seen: list[AcceptanceCheck] = []
+        looks = 0
+        for index in self.rng.permutation(len(corners)):
+            if len(seen) == wanted:
+                break
             corner_b = (self.bMboard @ np.append(corners[index], 1.0))[:3]
             # A fresh turn where the wrist allows one, else none.
             turns = (self.rng.uniform(-np.pi / 4, np.pi / 4), self.rng.uniform(-np.pi / 8, np.pi / 8), 0.0)
             views = [self._down_view(corner_b, self.settings.acceptance_height_m, turn_rad=t) for t in turns]
-            found = self._look("acceptance", k, next((v for v in views if self._reachable(v)), views[-1]))
-            self._report("acceptance", k + 1, len(picks), self.views[-1].found)
+            view_bMe = next((v for v in views if self._reachable(v)), None)
+            if view_bMe is None:
+                continue
+            found = self._look("acceptance", looks, view_bMe)
+            looks += 1
             if found is not None:
                 bMe, view, _ = found
                 at = np.flatnonzero(np.all(np.isclose(view.corners_board, corners[index]), axis=1))
                 if len(at):
                     seen.append(AcceptanceCheck(bMe, corners[index], view.corners_px[at[0]]))
+                    self._report("acceptance", len(seen), wanted, self.views[-1].found)
         if not seen:
             raise CommissioningError("the acceptance check saw the board from none of its poses")
         errors = acceptance_errors(BoardPlaneModel(self.model.camera, self.model.eMc, self.bMboard), self.bMboard, seen)
@@ -500,7 +508,7 @@ def commission_summary(result: CommissionResult) -> dict[str, Any]:
         "good": result.good,
         "views": {"taken": len(result.views), "used": sum(1 for v in result.views if "corners" in v.found)},
         "wall_time_s": round(result.wall_time_s, 1),
-        "robot_clock_s": round(result.robot_clock_s, 1),
+        "cell_time_s": round(result.cell_time_s, 1),
         "nn_file": None if result.nn_path is None else str(result.nn_path),
     }
 
