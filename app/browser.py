@@ -108,6 +108,13 @@ class ServeProcess:
     def stderr(self) -> str:
         return self.stderr_path.read_text()
 
+    def __enter__(self) -> ServeProcess:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        if self.process.poll() is None:  # a test may have stopped it itself
+            self.stop()
+
 
 # -- page helpers ----------------------------------------------------------------------------
 

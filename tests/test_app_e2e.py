@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.chromium import chromium_or_fail
+from tests.chromium import chromium_or_fail, headless_chromium
 from tests.jrc_fixtures import thesis_policy_cell_file
 from vservo.app.browser import (
     ServeProcess,
@@ -30,7 +30,6 @@ from vservo.app.browser import (
     dismiss_notifications,
     flange_of,
     image_updates,
-    launch_chromium,
     open_pages,
     status_text,
     take_control,
@@ -51,21 +50,15 @@ FORCE_REACT_CLICK = """(button) => {
 def app(tmp_path_factory):
     chromium_or_fail()
     # The thesis's step policy: servos long enough to watch and to press E-STOP in.
-    serve = ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.02,
-                               cell=thesis_policy_cell_file(tmp_path_factory.mktemp("cell")))
-    yield serve
-    if serve.process.poll() is None:
-        serve.stop()
+    with ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.02,
+                           cell=thesis_policy_cell_file(tmp_path_factory.mktemp("cell"))) as serve:
+        yield serve
 
 
 @pytest.fixture(scope="module")
 def browser(app):
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as playwright:
-        chromium = launch_chromium(playwright)
+    with headless_chromium() as chromium:
         yield chromium
-        chromium.close()
 
 
 @pytest.fixture(scope="module")

@@ -15,14 +15,13 @@ import time
 
 import pytest
 
-from tests.chromium import chromium_or_fail
+from tests.chromium import chromium_or_fail, headless_chromium
 from tests.jrc_fixtures import thesis_policy_cell_file
 from tests.virtual_cell_process import VirtualCellProcess
 from vservo.app.browser import (
     ServeProcess,
     choose,
     cycle_of,
-    launch_chromium,
     open_pages,
     present_part_and_start,
     status_text,
@@ -45,25 +44,19 @@ def virtual_cell(tmp_path_factory):
 @pytest.fixture(scope="module")
 def app(virtual_cell, tmp_path_factory):
     chromium_or_fail()
-    serve = ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.0,
-                               cell=virtual_cell.addresses["cell_file"])
-    yield serve
-    if serve.process.poll() is None:
-        serve.stop()
+    with ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.0,
+                           cell=virtual_cell.addresses["cell_file"]) as serve:
+        yield serve
 
 
 @pytest.fixture(scope="module")
 def operator(app):
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as playwright:
-        chromium = launch_chromium(playwright)
+    with headless_chromium() as chromium:
         page = open_pages(chromium, app.url, [(1400, 900)])[0]
         take_control(page, app.token)
         page.get_by_role("tab", name="Assemble").click()
         choose(page, "Job", "demo")
         yield page
-        chromium.close()
 
 
 def _assemble(page, virtual_cell) -> None:

@@ -11,13 +11,11 @@ import threading
 import pytest
 import viser
 
+from tests.chromium import headless_chromium
 from vservo.app.browser import (
-    ChromiumMissing,
     ServeProcess,
     free_port,
-    launch_chromium,
     open_pages,
-    require_chromium,
     type_into,
 )
 from vservo.app.roles import MAX_TOKEN_FAILURES
@@ -33,24 +31,14 @@ OPEN_WEBSOCKET = """(url) => new Promise((resolve) => {
 
 @pytest.fixture(scope="module")
 def app(tmp_path_factory):
-    try:
-        require_chromium()
-    except ChromiumMissing as exc:
-        pytest.fail(str(exc))
-    serve = ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.05)
-    yield serve
-    if serve.process.poll() is None:
-        serve.stop()
+    with ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.05) as serve:
+        yield serve
 
 
 @pytest.fixture(scope="module")
 def browser(app):
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as playwright:
-        chromium = launch_chromium(playwright)
+    with headless_chromium() as chromium:
         yield chromium
-        chromium.close()
 
 
 @pytest.fixture
