@@ -19,16 +19,17 @@ Table 5-4). The least squares keeps the camera's motion as close to the commande
 the free joints allow (the path bends around the limit), the closed loop corrects the
 rest at the next look. This is the inequality-constrained form of the kinematic control
 of Kanoun, Lamiraux and Wieber (IEEE T-RO 2011), with the bounded-variable least squares
-of Stark and Parker (Comput. Stat. 1995) as the solver; ViSP's joint-limit avoidance
-(Marey and Chaumette, ICRA 2010) acts in the same band, through the task's null space,
-which a 6-joint arm servoing a 6-dof task does not have.
+of Stark and Parker (Comput. Stat. 1995) as the solver. ViSP's joint-limit avoidance
+(Marey and Chaumette, ICRA 2010) also acts only within a band near each limit, but
+through the task's null space, which a 6-joint arm servoing a 6-dof task does not have.
 
 It acts ONLY when a joint is within a band of its limit and the model's inverse
 kinematics of the commanded target would take it past the margin; then every joint is
 bounded. Otherwise the policy's command is returned as it came, bit for bit, so the
-thesis's tasks, which come near the limits but never cross them, run exactly as before. A bent step lands the flange on the
-model's forward kinematics of q + dq*, so the controller's own inverse kinematics finds
-joints inside the limits.
+thesis's tasks, which come near the limits but never cross them, run exactly as before
+(docs/thesis-notes.md, "The arm's joint limits in the law"). A bent step lands the
+flange on the model's forward kinematics of q + dq*, so the controller's own inverse
+kinematics finds joints inside the limits.
 """
 
 from __future__ import annotations
@@ -181,8 +182,8 @@ class JointLimitedSteps:
     def _keeps_clear(self, bMe_target: Matrix, q: Matrix, near: Matrix) -> bool:
         """Whether the model's joints for bMe_target, followed from q, keep the joints near
         their limits outside the margins. The exact inverse kinematics, not eq. 4-17's
-        linearisation: a long step of the thesis's task 3 passes within 1.6 mrad of joint
-        3's limit, where the linear prediction of the same step overshoots it by 2 deg."""
+        linearisation: a long step of the thesis's task 3 stops 1.6 mrad short of joint
+        3's limit, where the linear prediction of the same step overshoots it by 0.9 deg."""
         try:
             q_next = self.arm.ik(bMe_target, q, tolerance_m=IK_TOLERANCE_M, tolerance_rad=IK_TOLERANCE_RAD, restarts=0).q
         except UnreachableTarget:
