@@ -178,7 +178,6 @@ class JointLimitedSteps:
         bMe_target = bMe @ inverse(self.arm.fk(q)) @ self.arm.fk(q + dq)
         return LimitedStep(_retargeted(command, bMe, bMe_target), held)
 
-
     def _keeps_clear(self, bMe_target: Matrix, q: Matrix, near: Matrix) -> bool:
         """Whether the model's joints for bMe_target, followed from q, keep the joints near
         their limits outside the margins. The exact inverse kinematics, not eq. 4-17's
