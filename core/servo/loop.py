@@ -31,6 +31,7 @@ from vservo.core.perception.features import DesiredImage, ImageFeatures, pattern
 from vservo.core.perception.measurement import Measurement, features_from_measurement
 from vservo.core.robot.backend import RobotBackend, RobotError, carry_out
 from vservo.core.robot.safety import SafetyLayer, Watchdog
+from vservo.core.servo.joint_limits import JointBound, JointLimitedSteps
 from vservo.core.servo.laws.base import ControlLaw, ControlOutput, Failure, Stage
 from vservo.core.servo.step_policy import StepPolicy
 
@@ -170,19 +171,22 @@ def run_servo(
     perception: Perception | None = None,
     *,
     robot: RobotBackend,
+    joint_limits: JointLimitedSteps | None = None,
 ) -> ServoOutcome:
     """Servo to the desired image with the control law ``law``; ``model`` is the nominal cell.
 
     ``cell`` is the camera side: its measurements feed ``perception``, by default the
     simulator's projected points. ``robot`` carries out the moves; it must be connected
     with servo power on. Behind a SafetyLayer the watchdog is armed for the run.
+    ``joint_limits`` bends each step around the joint limits of the arm's model (it needs
+    the measurement's joints); without it the steps go as the policy makes them.
     """
     perception = perception or ProjectedPerception(model.camera, model.laser)
     watchdog = robot.watchdog if isinstance(robot, SafetyLayer) else None
     if watchdog is not None:
         watchdog.arm()
     try:
-        return _servo(cell, law, desired, model, policy, limits, on_cycle, perception, robot, watchdog)
+        return _servo(cell, law, desired, model, policy, limits, on_cycle, perception, robot, watchdog, joint_limits)
     finally:
         if watchdog is not None:
             watchdog.disarm()
@@ -190,7 +194,7 @@ def run_servo(
 
 def _servo(cell: MeasurementSource, law: ControlLaw, desired: DesiredImage, model: CellModel, policy: StepPolicy,
            limits: LoopLimits, on_cycle: Callable[[Cycle], None] | None, perception: Perception, robot: RobotBackend,
-           watchdog: Watchdog | None) -> ServoOutcome:
+           watchdog: Watchdog | None, joint_limits: JointLimitedSteps | None) -> ServoOutcome:
     eVc = twist_transform(model.eMc)
     desired_area = corner_area_px2(desired.corners_px)
     first_area = float("nan")
@@ -199,6 +203,7 @@ def _servo(cell: MeasurementSource, law: ControlLaw, desired: DesiredImage, mode
     last_spot: ImageFeatures | None = None  # the last frame that saw the laser spot
     lost_for = 0  # consecutive cycles held with the features lost
     recent_errors: deque[float] = deque(maxlen=limits.progress_window + 1)  # of the current stage
+    held: tuple[JointBound, ...] = ()  # the joints the last step held at their limits
     # The robot stands still when the loop starts (its caller waited for the last move),
     # so the first frame must merely be newer than now; later ones newer than each move.
     motion_ended_s = robot.clock_s()
@@ -248,15 +253,21 @@ def _servo(cell: MeasurementSource, law: ControlLaw, desired: DesiredImage, mode
         stage = output.stage
         recent_errors.append(output.stage_error)
         if len(recent_errors) == recent_errors.maxlen and recent_errors[-1] > (1.0 - limits.progress_fraction) * recent_errors[0]:
-            return finish(
-                False, Failure.NO_PROGRESS, f"stage {stage} error {recent_errors[-1]:.2f} after {limits.progress_window} cycles"
-            )
+            stalled = f"stage {stage} error {recent_errors[-1]:.2f} after {limits.progress_window} cycles"
+            if held:
+                # Stuck against the limits: the goal lies beyond what the arm can reach from here.
+                return finish(False, Failure.UNREACHABLE, f"{stalled}, {', '.join(map(str, held))}")
+            return finish(False, Failure.NO_PROGRESS, stalled)
 
         try:
             # The cycle's one reading of the flange (on a real cell FlangeReadout took it
             # from the robot): a second read would cost another RPOSC on the JRC.
             bMe = measurement.bMe
-            motion_ended_s = carry_out(robot, policy.command(bMe, eVc @ output.cVc), bMe)
+            command = policy.command(bMe, eVc @ output.cVc)
+            if joint_limits is not None:
+                step = joint_limits.limit(command, bMe, measurement.q)
+                command, held = step.command, step.held
+            motion_ended_s = carry_out(robot, command, bMe)
         except UnreachableTarget as exc:
             return finish(False, Failure.UNREACHABLE, str(exc))
         except RobotError as exc:

@@ -16,12 +16,14 @@ from typing import Any
 import numpy as np
 
 from vservo.core.cell.config import CellConfig, CellModel
+from vservo.core.cell.kinematics import ArmKinematics
 from vservo.core.geometry.spatial import Matrix, inverse, pose_error
 from vservo.core.perception.camera_source import FrameSource
 from vservo.core.perception.features import DesiredImage
 from vservo.core.perception.recording import RunRecorder
 from vservo.core.perception.vision.pipeline import CameraPerception, ImageFeatureExtractor, front_winding
 from vservo.core.robot.backend import RobotBackend
+from vservo.core.servo.joint_limits import JointLimitedSteps
 from vservo.core.servo.laws.base import Stage
 from vservo.core.servo.loop import Cycle, LoopLimits, Perception, ProjectedPerception, ServoOutcome, cycle_record, run_servo
 from vservo.core.servo.methods import LawSettings, build_law
@@ -33,6 +35,7 @@ from vservo.core.sim.free_camera import simulated_robot
 from vservo.core.sim.plant import SimulatedCell
 from vservo.core.sim.render_settings import RenderSettings
 from vservo.core.study.tasks import ServoTask
+from vservo.robot_models.loader import load_arm
 
 
 @dataclass(frozen=True)
@@ -173,6 +176,9 @@ def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: i
         on_cycle=record,
         perception=perception,
         robot=(robot or simulated_robot)(cell),
+        # The arm's limits, on the controller's model of it; a free camera has none.
+        joint_limits=JointLimitedSteps(ArmKinematics(load_arm(config.arm), model.mount)) if settings.arm is Arm.UPJ
+        else None,
     )
     path.append(cell.ground_truth_bMe()[:3, 3])
     if recorder is not None:
