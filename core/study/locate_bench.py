@@ -18,6 +18,8 @@ counted. Every run is an ordinary assembly of the controller.
 
 from __future__ import annotations
 
+import re
+from collections import Counter
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -106,6 +108,14 @@ def _moved(bMe: Matrix, shift: Matrix) -> Matrix:
     return moved
 
 
+def failure_kind(reason: str) -> str:
+    """A failed run's reason without its figures, so that alike failures count together:
+    the words before the first parenthesis, and the joint at its limit if one is named."""
+    limit = re.search(r"\w+ at its (upper|lower) limit", reason)
+    head = reason.split(" (")[0]
+    return f"{head}, {limit.group(0)}" if limit else head
+
+
 def _inside(polygon: Matrix, point: Matrix) -> bool:
     """Whether ``point`` lies in the convex ``polygon`` (corners in order)."""
     edges = np.roll(polygon, -1, axis=0) - polygon
@@ -174,4 +184,6 @@ def bench_locate(config: CellConfig, job_name: str, runs: int, seed: int, data: 
             "footprint_mm": np.round(1000 * footprint, 1).tolist(),
             "placement_error_mm": {"median": round(float(np.median(errors)), 4) if errors else None,
                                    "max": round(float(np.max(errors)), 4) if errors else None},
+            "failures_by_reason": dict(Counter(failure_kind(r["reason"]) for r in results
+                                               if r["outcome"] != Outcome.PLACED).most_common()),
             "failures": [r for r in results if r["outcome"] != Outcome.PLACED], "results": results}
