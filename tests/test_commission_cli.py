@@ -16,7 +16,7 @@ from vservo.core.production.cell_rig import build_rig
 from vservo.core.production.commissioning import CommissionSettings
 from vservo.core.production.locate import LocateError, PartLocator
 from vservo.core.production.rig import Rig
-from vservo.core.study.locate_bench import survey_pose
+from vservo.core.study.locate_bench import bench_locate, survey_pose
 
 SHIPPED = Path(__file__).resolve().parents[1] / "static" / "cell.toml"
 
@@ -106,3 +106,14 @@ def test_a_survey_the_network_was_not_trained_for_is_refused(commissioned):
     aside[0, 3] += 0.3
     with pytest.raises(LocateError, match="outside the grid"):
         locator.check_survey(aside)
+
+
+def test_a_locating_job_assembles_the_parts_its_bench_draws_where_the_arm_can_serve_them(commissioned, tmp_path):
+    """Seeded: the bench's servable check predicts where the servo ends (the desired view
+    of the part as its mark numbers its corners), so the places it draws are served. When
+    the start was a quarter turn short of that, two of these three runs ended with the
+    pick beyond the arm's reach."""
+    out, _ = commissioned
+    result = bench_locate(load_cell(out), "demo", 3, 2, tmp_path)
+    assert result["placed"] == 3, result["failures"]
+    assert result["placement_error_mm"]["max"] < 0.3

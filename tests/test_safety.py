@@ -117,6 +117,43 @@ def test_a_long_move_refused_on_its_way_moves_nothing(safe):
     assert np.array_equal(arm_pose(cell), before)
 
 
+def tool_down(x, y, z):
+    bMe = transform(t=(x, y, z))
+    bMe[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    return bMe
+
+
+def test_a_transfer_whose_straight_line_leaves_the_arms_shell_goes_on_the_joint_space_line(safe):
+    """Two tool-down poses 412 and 390 mm from the base axis at z = 50 mm: the straight line
+    between them passes 361 mm from it, inside the hole of the UPJ's tool-down shell there."""
+    robot, cell = safe
+    here, there = tool_down(-0.36, -0.20, 0.05), tool_down(-0.36, 0.15, 0.05)
+    robot.move_joint(here, SPEED)
+    assert pose_error(arm_pose(cell), here)[0] < 1e-4
+    with pytest.raises(BeyondJointLimits, match="no joints within the limits reach the target"):
+        robot.move_linear(there, SPEED)
+    assert pose_error(arm_pose(cell), here)[0] < 1e-4  # refused whole: nothing moved
+    sent = []
+    move_to = robot.robot.move_to
+    robot.robot.move_to = lambda bMe, speed: (sent.append((arm_pose(cell), bMe)), move_to(bMe, speed))[1]
+    robot.move_joint(there, SPEED)
+    assert pose_error(arm_pose(cell), there)[0] < 1e-4 and pose_error(arm_pose(cell), there)[1] < 1e-4
+    assert len(sent) == 9  # 350 mm of chord, a longer arc, in steps of at most 45 mm
+    steps = [pose_error(before, after) for before, after in sent]
+    assert max(t for t, _ in steps) <= 0.05 and max(r for _, r in steps) <= np.radians(15.0)
+    # On the way the flange swung out round the base axis, never in through the hole.
+    radii = [np.linalg.norm(after[:2, 3]) for _, after in sent]
+    assert min(radii) > 0.389
+
+
+def test_a_joint_move_to_a_pose_out_of_reach_is_refused_and_nothing_moves(safe):
+    robot, cell = safe
+    before = arm_pose(cell)
+    with pytest.raises(BeyondJointLimits, match="no joints within the limits reach the path's ends"):
+        robot.move_joint(tool_down(-0.60, 0.0, 0.05), SPEED)  # beyond the arm's reach tool-down
+    assert np.array_equal(arm_pose(cell), before)
+
+
 def test_joints_too_close_to_their_limits_are_refused(backend_name):
     """Home has joint 3 at 150 deg, 25 deg from its limit: a 30 deg margin refuses any move there."""
     with guarded(backend_name, short_timer_cell(safety={"joint_margin_deg": 30.0})) as (robot, cell):

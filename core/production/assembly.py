@@ -183,7 +183,9 @@ def run_assembly(
     """Run the job once; the robot must be connected with servo power on.
 
     Taught moves (start, pick, place) go out as linear moves cut into safety-sized steps
-    (SafetyLayer.move_linear); the servo's steps as the step policy makes them.
+    (SafetyLayer.move_linear), a locating job's moves to its survey pose and on to the
+    located part's start pose as joint moves (SafetyLayer.move_joint); the servo's steps
+    as the step policy makes them.
     """
     started = time.monotonic()
     cell_started_s = robot.cell_clock_s()
@@ -223,7 +225,9 @@ def run_assembly(
                 return end(Outcome.FAULT, "the job locates its part and this cell has no network to locate it with: "
                                           "commission the nn step (docs/commissioning.md)")
             on_event(PhaseChange(Phase.SERVOING, "surveying the table for the part"))
-            move(job.survey_bMe)
+            # Transfers over the table on the joint-space line: the straight one between two far
+            # tool-down poses can leave the arm's thin tool-down shell (SafetyLayer.joint_path).
+            robot.move_joint(job.survey_bMe, speed_m_s)
             # A frame exposed after the move ended, from the pose the robot reports.
             survey = perception.perceive(FlangeReadout(robot, dof).measure(), robot.clock_s())
             try:
@@ -234,7 +238,10 @@ def run_assembly(
             on_event(PhaseChange(Phase.SERVOING, f"part located at ({1000 * located.bMo[0, 3]:.1f}, "
                                                  f"{1000 * located.bMo[1, 3]:.1f}) mm"))
         on_event(PhaseChange(Phase.SERVOING, "moving to the start pose"))
-        move(start_bMe)
+        if job.survey_bMe is None:
+            move(start_bMe)
+        else:
+            robot.move_joint(start_bMe, speed_m_s)
         on_event(PhaseChange(Phase.SERVOING, f"servoing with the {job.method} method"))
         law = build_law(model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
         servo = run_servo(FlangeReadout(robot, dof), law, job.desired, model, policy, limits,

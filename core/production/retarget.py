@@ -33,7 +33,7 @@ import numpy as np
 from vservo.core.cell.config import CellModel
 from vservo.core.cell.scene import Cube
 from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
-from vservo.core.geometry.spatial import Matrix, inverse, rot_z, rotation_angle, transform
+from vservo.core.geometry.spatial import Matrix, inverse
 from vservo.core.perception.features import DesiredImage
 from vservo.core.production.jobs import Job, JobError, TaughtModel
 from vservo.core.production.placement_check import CheckView
@@ -122,18 +122,15 @@ def start_pose_for_part(job: Job, model: TaughtModel, bMo: Matrix) -> Matrix:
 
     The part stood at bMo_taught = taught_bMe eMc cdMo when the desired image was taken;
     the start pose relative to it is oMe_start = bMo_taught^-1 start_bMe, and the start for
-    the part found is bMo' oMe_start. A cube looks the same after a quarter turn about its
-    top face's centre, so bMo' is the one of bMo's four quarter turns nearest in rotation to
-    bMo_taught: the servo then has at most 45 deg to turn.
+    the part found is bMo oMe_start, turned with the part all the way. The vision numbers
+    the corners from the orientation mark (corner 0 nearest it), so the servo ends at the
+    desired view of the part as marked, whatever its turn: a start a quarter turn short of
+    that (a cube's face looks the same) would leave the servo the quarter turn to make,
+    its path wandering far from both ends, and the pick where the servo ends, not where
+    the start promised.
 
     model: the model the job was taught through (``job.taught_model``; for a job without
     one, the cell's current model).
     """
     bMo_taught = job.taught_bMe @ model.eMc @ job.desired.cdMo
-    oMe_start = inverse(bMo_taught) @ job.start_bMe
-    centre = transform(t=(job.part_side_m / 2, job.part_side_m / 2, 0.0))
-    turns = [np.asarray(bMo, dtype=float) @ centre @ transform(rot_z(k * np.pi / 2)) @ inverse(centre)
-             for k in range(4)]
-    nearest = min(turns, key=lambda bMo_k: rotation_angle(bMo_taught[:3, :3].T @ bMo_k[:3, :3]))
-    return nearest @ oMe_start
-
+    return np.asarray(bMo, dtype=float) @ inverse(bMo_taught) @ job.start_bMe

@@ -36,6 +36,10 @@ log = logging.getLogger("vservo.safety")
 # The safety check asks only whether joints within the limits exist: a micrometre and a
 # microradian are far inside any arm's repeatability.
 CHECK_TOLERANCE = 1e-6
+# A long move's steps go up to this share of the step limits (the rest absorbs where the
+# arm really stopped); a joint-space path is sampled this finely to place them.
+STEP_FILL = 0.9
+JOINT_SAMPLE_RAD = np.deg2rad(0.5)
 
 
 class SafetyRefusal(RobotError):
@@ -177,9 +181,11 @@ class SafetyLayer:
 
     # -- checks ------------------------------------------------------------------------
 
-    def check_target(self, bMe_target: Matrix, speed_m_s: float, bMe_now: Matrix | None = None) -> Matrix:
+    def check_target(self, bMe_target: Matrix, speed_m_s: float, bMe_now: Matrix | None = None,
+                     q_seed: Matrix | None = None) -> Matrix:
         """Raise a SafetyRefusal unless a linear move to bMe_target at speed_m_s is allowed;
-        returns the joints the nominal IK finds for it. ``bMe_now`` defaults to the robot's pose."""
+        returns the joints the nominal IK finds for it. ``bMe_now`` defaults to the robot's
+        pose, ``q_seed`` (where the IK starts) to the joints of the last move sent."""
         self._refuse_if_stopped("move")
         bMe_target = np.asarray(bMe_target, dtype=float)
         limits = self.limits
@@ -212,7 +218,8 @@ class SafetyLayer:
                                f"{np.degrees(limits.max_step_rad):.2f} deg")
 
         try:
-            q = self.arm.ik(bMe_target, self._q_seed, tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE).q
+            q = self.arm.ik(bMe_target, self._q_seed if q_seed is None else q_seed,
+                            tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE).q
         except UnreachableTarget as exc:
             raise BeyondJointLimits(f"move refused: no joints within the limits reach the target ({exc})") from exc
         margins = np.minimum(q - self.arm.lower, self.arm.upper - q)
@@ -273,19 +280,72 @@ class SafetyLayer:
         self._link(self.robot.move_by, bMe_increment, speed_m_s)
 
     def move_linear(self, bMe_target: Matrix, speed_m_s: float) -> None:
-        """A taught move of any length (to a start, pick or place pose): the straight line
-        cut into steps within max_step_m / max_step_rad. The whole path is checked
-        before the first step goes out, so a refusal (SafetyRefusal) moves nothing; then
-        each step is sent and waited for (MotionStopped if the robot stops short)."""
-        bMe_from = self._current_pose()
+        """A taught move of any length (to a start, pick or place pose) on the straight line,
+        as steps within max_step_m / max_step_rad (linear_path). The whole path is
+        checked before the first step goes out, so a refusal (SafetyRefusal) moves
+        nothing; then each step is sent and waited for (MotionStopped if the robot stops short)."""
+        self._follow(self.linear_path(self._current_pose(), bMe_target, speed_m_s), speed_m_s)
+
+    def move_joint(self, bMe_target: Matrix, speed_m_s: float) -> None:
+        """A long move on the joint-space line (joint_path), checked whole first and sent
+        as steps as move_linear's are: the way a transfer between two far poses keeps to
+        the arm's workspace where the straight line between them leaves it."""
+        self._follow(self.joint_path(self._current_pose(), bMe_target, speed_m_s), speed_m_s)
+
+    def linear_path(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float) -> list[Matrix]:
+        """The steps of a straight move from bMe_from to bMe_target, each step checked
+        (check_target; SafetyRefusal names the first refused), no motion."""
         translation, rotation = pose_error(bMe_from, np.asarray(bMe_target, dtype=float))
-        # Steps of at most 90 % of the limits: the next step starts where the arm really
-        # stopped (repeatability), not exactly on the line.
-        fill = max(translation / self.limits.max_step_m, rotation / self.limits.max_step_rad) / 0.9
+        # Steps of at most STEP_FILL of the limits: the next step starts where the arm
+        # really stopped (repeatability), not exactly on the line.
+        fill = max(translation / self.limits.max_step_m, rotation / self.limits.max_step_rad) / STEP_FILL
         steps = max(1, int(np.ceil(fill)))
         waypoints = [interpolate(bMe_from, bMe_target, k / steps) for k in range(1, steps + 1)]
-        for bMe_before, bMe_waypoint in zip([bMe_from, *waypoints], waypoints):  # the whole path first
-            self.check_target(bMe_waypoint, speed_m_s, bMe_before)
+        q = None  # each step's IK starts from the step before, as the controller's does
+        for bMe_before, bMe_waypoint in zip([bMe_from, *waypoints], waypoints):
+            q = self.check_target(bMe_waypoint, speed_m_s, bMe_before, q)
+        return waypoints
+
+    def joint_path(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float,
+                   q_seed: Matrix | None = None) -> list[Matrix]:
+        """The steps of a move from bMe_from to bMe_target on the straight line between
+        their joints (the nominal IK of each, the target's from the start's), each step
+        checked (check_target), no motion.
+
+        The joint limits are a box, so every point of the joint-space line between two
+        poses within them is within them too, where the straight Cartesian line between
+        the same poses can cut through the hole inside an arm's thin tool-down shell (the
+        UPJ's at the table's heights); the workspace box is checked at every step.
+        The line is sampled every JOINT_SAMPLE_RAD (of the joint that moves most) and a
+        step ends at the last sample within STEP_FILL of the step limits; the arm goes
+        from step to step on short straight lines (the chord of a 45 mm step strays less
+        than a millimetre from the joint-space curve). ``q_seed``: where the start's IK
+        starts (the joints of the last move sent by default).
+        """
+        bMe_target = np.asarray(bMe_target, dtype=float)
+        try:
+            q_from = self.arm.ik(bMe_from, self._q_seed if q_seed is None else q_seed,
+                                 tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE).q
+            q_to = self.arm.ik(bMe_target, q_from, tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE).q
+        except UnreachableTarget as exc:
+            raise BeyondJointLimits(f"move refused: no joints within the limits reach the path's ends ({exc})") from exc
+        samples = max(1, int(np.ceil(np.max(np.abs(q_to - q_from)) / JOINT_SAMPLE_RAD)))
+        qs = [q_from + (k / samples) * (q_to - q_from) for k in range(1, samples + 1)]
+        poses = [self.arm.fk(q) for q in qs[:-1]] + [bMe_target]
+        max_m, max_rad = STEP_FILL * self.limits.max_step_m, STEP_FILL * self.limits.max_step_rad
+        steps, bMe_last = [], np.asarray(bMe_from, dtype=float)
+        for k in range(samples):
+            if k < samples - 1:
+                translation, rotation = pose_error(bMe_last, poses[k + 1])
+                if translation <= max_m and rotation <= max_rad:
+                    continue  # the next sample is still within one step
+            steps.append((bMe_last, poses[k], qs[k]))
+            bMe_last = poses[k]
+        for bMe_before, bMe_step, q in steps:
+            self.check_target(bMe_step, speed_m_s, bMe_before, q)
+        return [bMe_step for _, bMe_step, _ in steps]
+
+    def _follow(self, waypoints: list[Matrix], speed_m_s: float) -> None:
         for bMe_waypoint in waypoints:
             move_and_wait(self, bMe_waypoint, speed_m_s)
 

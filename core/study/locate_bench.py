@@ -10,13 +10,16 @@ part of the table the survey camera sees, a margin inside the image's edges (thr
 cell file's calibrated model), at a random turn, where the arm can serve it: the start
 pose, the desired view and the pick pose moved with the part, and every pose 5 mm around
 them, must be reachable (the UPJ's tool-down workspace at the taught heights is a thin
-shell around its base, and the servo's path wanders about those poses). Places
+shell around its base, and the servo's path wanders about those poses), and the moves
+the run makes between them must pass the safety layer's checks all along their paths. Places
 the fixture refuses (on the metal part) or the arm cannot serve are drawn again, and
 counted. Every run is an ordinary assembly of the controller.
 """
 
 from __future__ import annotations
 
+import re
+from collections import Counter
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -65,21 +68,30 @@ def survey_footprint(locator: PartLocator, bMe: Matrix, part_side_m: float, marg
 
 
 def _servable(rig: Rig, job: Job, bMo: Matrix) -> bool:
-    """Whether the arm reaches the job's start pose, desired view and pick pose for a part
-    at bMo, and the poses SERVO_MARGIN_M from them radially and vertically (the servo's
-    path wanders about them): the safety layer's reach and workspace checks, no motion."""
+    """Whether the arm serves a part at bMo on the paths the run takes (run_assembly): the
+    joint move from the survey pose to the start pose, the straight moves from the desired
+    view down to the pick and from above the pick to above the place, each step through
+    the safety layer's checks (SafetyLayer.joint_path / linear_path, as the run's moves
+    plan them), and the poses SERVO_MARGIN_M around the start pose, the desired view and
+    the pick, radially and vertically (the servo's path wanders about them). No motion."""
     taught = job.taught_model or TaughtModel.of(rig.config.nominal)
     start = start_pose_for_part(job, taught, bMo)
     view = start_pose_for_part(replace(job, start_bMe=job.taught_bMe), taught, bMo)
     pick = view @ job.eMe_pick
-    poses = [start, view, pick, lifted(pick, job.approach_m)]
-    # The poses themselves first: most places that fail, fail there, and a failed IK is slow.
-    candidates = poses + [_moved(bMe, shift) for bMe in poses for shift in _margin_shifts(bMe)]
-    for bMe in candidates:
-        try:
-            rig.robot.check_target(bMe, 0.05, bMe_now=bMe)
-        except (SafetyRefusal, UnreachableTarget):
-            return False
+    above_pick, above_place = lifted(pick, job.approach_m), lifted(job.bMe_place, job.approach_m)
+    poses = [start, view, pick, above_pick]
+    speed_m_s = rig.config.motion.move_speed_m_s
+    robot = rig.robot
+    try:
+        # The poses themselves first: most places that fail, fail there, and a failed IK is slow.
+        for bMe in poses + [_moved(bMe, shift) for bMe in poses for shift in _margin_shifts(bMe)]:
+            robot.check_target(bMe, speed_m_s, bMe_now=bMe)
+        robot.joint_path(job.survey_bMe, start, speed_m_s)
+        robot.linear_path(view, above_pick, speed_m_s)
+        robot.linear_path(above_pick, pick, speed_m_s)
+        robot.linear_path(above_pick, above_place, speed_m_s)
+    except (SafetyRefusal, UnreachableTarget):
+        return False
     return True
 
 
@@ -94,6 +106,14 @@ def _moved(bMe: Matrix, shift: Matrix) -> Matrix:
     moved = np.array(bMe, dtype=float)
     moved[:3, 3] += shift
     return moved
+
+
+def failure_kind(reason: str) -> str:
+    """A failed run's reason without its figures, so that alike failures count together:
+    the words before the first parenthesis, and the joint at its limit if one is named."""
+    limit = re.search(r"\w+ at its (upper|lower) limit", reason)
+    head = reason.split(" (")[0]
+    return f"{head}, {limit.group(0)}" if limit else head
 
 
 def _inside(polygon: Matrix, point: Matrix) -> bool:
@@ -164,4 +184,6 @@ def bench_locate(config: CellConfig, job_name: str, runs: int, seed: int, data: 
             "footprint_mm": np.round(1000 * footprint, 1).tolist(),
             "placement_error_mm": {"median": round(float(np.median(errors)), 4) if errors else None,
                                    "max": round(float(np.max(errors)), 4) if errors else None},
+            "failures_by_reason": dict(Counter(failure_kind(r["reason"]) for r in results
+                                               if r["outcome"] != Outcome.PLACED).most_common()),
             "failures": [r for r in results if r["outcome"] != Outcome.PLACED], "results": results}
