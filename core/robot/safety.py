@@ -277,17 +277,21 @@ class SafetyLayer:
         cut into steps within max_step_m / max_step_rad. The whole path is checked
         before the first step goes out, so a refusal (SafetyRefusal) moves nothing; then
         each step is sent and waited for (MotionStopped if the robot stops short)."""
-        bMe_from = self._current_pose()
+        for bMe_waypoint in self.check_linear(self._current_pose(), bMe_target, speed_m_s):
+            move_and_wait(self, bMe_waypoint, speed_m_s)
+
+    def check_linear(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float) -> list[Matrix]:
+        """The steps of a taught move from bMe_from to bMe_target (move_linear), each
+        checked (check_target): raises the first step's SafetyRefusal; nothing moves."""
         translation, rotation = pose_error(bMe_from, np.asarray(bMe_target, dtype=float))
         # Steps of at most 90 % of the limits: the next step starts where the arm really
         # stopped (repeatability), not exactly on the line.
         fill = max(translation / self.limits.max_step_m, rotation / self.limits.max_step_rad) / 0.9
         steps = max(1, int(np.ceil(fill)))
         waypoints = [interpolate(bMe_from, bMe_target, k / steps) for k in range(1, steps + 1)]
-        for bMe_before, bMe_waypoint in zip([bMe_from, *waypoints], waypoints):  # the whole path first
+        for bMe_before, bMe_waypoint in zip([bMe_from, *waypoints], waypoints):
             self.check_target(bMe_waypoint, speed_m_s, bMe_before)
-        for bMe_waypoint in waypoints:
-            move_and_wait(self, bMe_waypoint, speed_m_s)
+        return waypoints
 
     def move_timed(self, bMe_target: Matrix, duration_s: float) -> None:
         bMe_now = self._current_pose()
