@@ -12,7 +12,6 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from tests.jrc_fixtures import with_the_thesis_policy
 from vservo.core.cell.config import CellConfig, CellModel, load_cell
 from vservo.core.cell.scene import Cube
 from vservo.core.geometry.camera import CameraModel, Intrinsics
@@ -186,11 +185,16 @@ def test_a_part_found_far_from_its_taught_place_is_assembled_from_the_start_pose
     bMo = (transform(t=(0.015, 0.03, 0.0)) @ shipped.simulation.scene.cube.bMo @ centre
            @ transform(rot_z(np.deg2rad(100.0))) @ inverse(centre))
     found = replace(demo, name="found", start_bMe=start_pose_for_part(demo, demo.taught_model, bMo))
-    # The thesis's step policy: this part is at the edge of the UPJ's reach, and the fast
-    # policy's servo ends where the lifted pick is 1.6 mm beyond it (joint 2 at its limit).
-    outcome = run_once(with_the_thesis_policy(shipped), found, tmp_path, seed=4, bMo=bMo)
+    # This part is at the edge of the UPJ's reach: the servo ends where the taught grasp's
+    # lifted pick is beyond it (joint 2 at its limit); one of its quarter-turned grasps is not.
+    outcome = run_once(shipped, found, tmp_path, seed=4, bMo=bMo)
     assert outcome.outcome is Outcome.PLACED, outcome.reason
     assert outcome.gauge_inside and outcome.gauge_placement_error_mm < 0.5
+    # The same part said to have no symmetry: the taught grasp alone, out of reach.
+    taught_grasp_only = run_once(shipped, replace(found, name="asymmetric", grasp_symmetry=1), tmp_path, seed=4,
+                                 bMo=bMo)
+    assert taught_grasp_only.outcome is Outcome.FAULT
+    assert "limit" in taught_grasp_only.reason
 
 
 def test_from_the_start_pose_for_a_part_turned_a_quarter_the_camera_sees_what_it_saw_from_the_taught_start(
