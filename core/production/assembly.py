@@ -151,7 +151,8 @@ class CellTimePhase(StrEnum):
 
 
 class CellTimer:
-    """The cell clock's time spent in each CellTimePhase, in the order they ran."""
+    """The cell clock's time spent in each CellTimePhase, in the order they ran; they add
+    up to the run's."""
 
     def __init__(self, robot: RobotBackend) -> None:
         self.robot = robot
@@ -169,9 +170,10 @@ class CellTimer:
         return self._since_s - self.started_s
 
     def _close(self) -> None:
+        if self._phase is None:  # before the first phase: its time counts in the first
+            return
         now_s = self.robot.cell_clock_s()
-        if self._phase is not None:
-            self.by_phase[self._phase.value] = self.by_phase.get(self._phase.value, 0.0) + now_s - self._since_s
+        self.by_phase[self._phase.value] = self.by_phase.get(self._phase.value, 0.0) + now_s - self._since_s
         self._since_s = now_s
 
 
@@ -281,8 +283,8 @@ def run_assembly(
             if locator is None:
                 return end(Outcome.FAULT, "the job locates its part and this cell has no network to locate it with: "
                                           "commission the nn step (docs/commissioning.md)")
-            on_event(PhaseChange(Phase.SERVOING, "surveying the table for the part"))
             timer.enter(CellTimePhase.LOCATE)
+            on_event(PhaseChange(Phase.SERVOING, "surveying the table for the part"))
             move(job.survey_bMe)
             # A frame exposed after the move ended, from the pose the robot reports.
             survey = perception.perceive(FlangeReadout(robot, dof).measure(), robot.clock_s())
@@ -293,11 +295,11 @@ def run_assembly(
             start_bMe = start_pose_for_part(job, job.taught_model or TaughtModel.of(model), located.bMo)
             on_event(PhaseChange(Phase.SERVOING, f"part located at ({1000 * located.bMo[0, 3]:.1f}, "
                                                  f"{1000 * located.bMo[1, 3]:.1f}) mm"))
-        on_event(PhaseChange(Phase.SERVOING, "moving to the start pose"))
         timer.enter(CellTimePhase.START)
+        on_event(PhaseChange(Phase.SERVOING, "moving to the start pose"))
         move(start_bMe)
-        on_event(PhaseChange(Phase.SERVOING, f"servoing with the {job.method} method"))
         timer.enter(CellTimePhase.SERVO)
+        on_event(PhaseChange(Phase.SERVOING, f"servoing with the {job.method} method"))
         law = build_law(model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
         servo = run_servo(FlangeReadout(robot, dof), law, job.desired, model, policy, limits,
                           on_cycle=lambda cycle: on_event(ServoCycle(cycle)), perception=perception, robot=robot)
@@ -306,8 +308,8 @@ def run_assembly(
                 return end(Outcome.ESTOPPED, "e-stop pressed")
             return end(Outcome.FAULT, f"servo failed: {servo.failure.value if servo.failure else ''} ({servo.reason})")
 
-        on_event(PhaseChange(Phase.PICKING, f"servo converged, feature error {servo.final_error_px:.2f} px"))
         timer.enter(CellTimePhase.PICK)
+        on_event(PhaseChange(Phase.PICKING, f"servo converged, feature error {servo.final_error_px:.2f} px"))
         # The part in the flange at the pick: where the servo's end puts it (eMc cdMo), seen from the pick.
         bMe_end = robot.read_pose()
         pMo = inverse(job.eMe_pick) @ model.eMc @ job.desired.cdMo
@@ -324,8 +326,8 @@ def run_assembly(
             return end(Outcome.FAULT, "the vacuum sensor reports no part on the cup after suction on")
         move(lifted(bMe_pick, job.approach_m))
 
-        on_event(PhaseChange(Phase.PLACING, "carrying the part to the metal part"))
         timer.enter(CellTimePhase.PLACE)
+        on_event(PhaseChange(Phase.PLACING, "carrying the part to the metal part"))
         # The place turned as far as the part's symmetry allows, to turn the flange least
         # from the lifted pick and on to the check pose.
         bMe_check = None if job.check is None else job.check.check_bMe
@@ -344,8 +346,8 @@ def run_assembly(
         move(lifted(bMe_place, job.approach_m))
         seen = None
         if job.check is not None:
-            on_event(PhaseChange(Phase.PLACING, "looking at the placed part from the check pose"))
             timer.enter(CellTimePhase.CHECK)
+            on_event(PhaseChange(Phase.PLACING, "looking at the placed part from the check pose"))
             move(job.check.check_bMe)
             # A frame exposed after the move ended: the part as it lies, seen from where it was taught.
             features = perception.perceive(FlangeReadout(robot, dof).measure(), robot.clock_s())
