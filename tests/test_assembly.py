@@ -81,6 +81,11 @@ def test_the_demo_job_places_the_part_through_the_jrc_link_in_fewer_steps_than_t
     # the thesis policy's 2 s a step against the fast one's few large steps.
     assert fast.iterations < thesis.iterations / 5
     assert fast.cell_time_s < thesis.cell_time_s / 5
+    # Split by phase, the servo is where the two differ.
+    for run in (fast, thesis):
+        assert list(run.cell_time_by_phase_s) == ["start", "servo", "pick", "place", "check"]
+        assert sum(run.cell_time_by_phase_s.values()) == pytest.approx(run.cell_time_s)
+    assert thesis.cell_time_by_phase_s["servo"] > 0.9 * thesis.cell_time_s
 
 
 def test_a_part_out_of_reach_of_the_cup_is_a_fault_with_the_robot_held(controller):

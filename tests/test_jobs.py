@@ -38,6 +38,8 @@ def test_a_job_survives_the_file_round_trip(tmp_path, demo):
         (lambda d: d.update(start_bMe=(2 * np.eye(4)).tolist()), "start_bMe: not a rigid transform"),
         (lambda d: d.update(name="../etc"), "job name '../etc'"),
         (lambda d: d.pop("placement_tolerance_mm"), "placement_tolerance_mm: missing"),
+        (lambda d: d.update(grasp_symmetry=3), "job.json: grasp_symmetry: 3 is not one of 1, 2, 4"),
+        (lambda d: d.update(grasp_symmetry=True), "grasp_symmetry: True is not one of"),
         (lambda d: d.update(placement_tolerance_mm=0), "placement_tolerance_mm: 0 must be positive"),
         (lambda d: d.update(check=[1, 2]), "job.json: check: not a job"),
         (lambda d: d["check"].update(corners_px=[[1, 2]] * 3), "check: corners_px: shape (3, 2), expected (4, 2)"),
@@ -60,6 +62,14 @@ def test_a_broken_job_is_refused_naming_the_field(demo, change, message):
     change(data)
     with pytest.raises(JobError, match=message.replace("(", r"\(").replace(")", r"\)")):
         job_from_dict(data, "job.json")
+
+
+def test_a_job_file_without_a_grasp_symmetry_is_of_a_square_part_and_the_key_survives_the_round_trip(demo):
+    data = json.loads(json.dumps(demo.as_dict()))
+    data.pop("grasp_symmetry")
+    assert job_from_dict(data, "old.json").grasp_symmetry == 4
+    data["grasp_symmetry"] = 1
+    assert job_from_dict(json.loads(json.dumps(job_from_dict(data, "job.json").as_dict())), "again").grasp_symmetry == 1
 
 
 def test_a_version_1_job_reads_as_a_job_without_a_check_view(demo):

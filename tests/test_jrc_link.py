@@ -564,3 +564,20 @@ def test_the_cell_clock_undoes_the_emulators_speed_up_and_counts_the_wire(cell, 
             robot.read_pose()
         wire = robot.cell_clock_s() - before
         assert wire >= 10 * line.wire_time_s(len("RPOSC 0,0") + 40)  # at least the command and a short pose
+
+
+
+def test_the_cell_clock_counts_the_motion_from_the_move_to_its_end_whatever_the_host_does_meanwhile(cell, config):
+    """The arm moves from the JRC's taking the MOVL, not from the host's JWAIT: a host
+    busy elsewhere for most of a 4 s motion (80 ms on the wall at 50 x) still counts the
+    4 s; counting only the JWAIT's exchange 50 times would count the rest of it."""
+    line = replace(config.jrc, time_scale=TIME_SCALE)
+    with jrc_link(cell, replace(config, jrc=line)) as (robot, _):
+        robot.servo(True)
+        start = robot.read_pose()
+        before = robot.cell_clock_s()
+        robot.move_to(transform(t=(0.04, 0.0, 0.0)) @ start, 0.01)
+        time.sleep(0.06)  # 3 s of the arm's 4
+        assert robot.wait_motion()
+        moved = robot.cell_clock_s() - before
+    assert 4.0 <= moved <= 4.0 + 1.5  # the motion, plus MOVL's and the JWAITs' bytes

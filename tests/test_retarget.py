@@ -179,6 +179,24 @@ def test_the_start_pose_for_a_part_moves_with_the_part(demo):
             abs(yaw_deg), abs=1e-9)
 
 
+def test_a_part_found_far_from_its_taught_place_is_assembled_from_the_start_pose_moved_with_it(demo, shipped, tmp_path):
+    """34 mm away and turned 100 deg (the part feeder's arrivals stay within 15 mm and 10 deg)."""
+    centre = transform(t=(demo.part_side_m / 2, demo.part_side_m / 2, 0.0))
+    bMo = (transform(t=(0.015, 0.03, 0.0)) @ shipped.simulation.scene.cube.bMo @ centre
+           @ transform(rot_z(np.deg2rad(100.0))) @ inverse(centre))
+    found = replace(demo, name="found", start_bMe=start_pose_for_part(demo, demo.taught_model, bMo))
+    # This part is at the edge of the UPJ's reach: the servo ends where the taught grasp's
+    # lifted pick is beyond it (joint 2 at its limit); one of its quarter-turned grasps is not.
+    outcome = run_once(shipped, found, tmp_path, seed=4, bMo=bMo)
+    assert outcome.outcome is Outcome.PLACED, outcome.reason
+    assert outcome.gauge_inside and outcome.gauge_placement_error_mm < 0.5
+    # The same part said to have no symmetry: the taught grasp alone, out of reach.
+    taught_grasp_only = run_once(shipped, replace(found, name="asymmetric", grasp_symmetry=1), tmp_path, seed=4,
+                                 bMo=bMo)
+    assert taught_grasp_only.outcome is Outcome.FAULT
+    assert "limit" in taught_grasp_only.reason
+
+
 def test_from_the_start_pose_for_a_part_turned_a_quarter_the_camera_sees_what_it_saw_from_the_taught_start(
         demo, shipped):
     centre = transform(t=(demo.part_side_m / 2, demo.part_side_m / 2, 0.0))
@@ -201,17 +219,3 @@ def test_from_the_start_pose_for_a_part_turned_a_quarter_the_camera_sees_what_it
     # part and the camera) and the same spot: the servo has nothing to turn.
     assert np.all(np.linalg.norm(taught.corners_px - found.corners_px, axis=1) < 1.0)
     assert np.linalg.norm(taught.laser_spot_px - found.laser_spot_px) < 1.0
-
-
-def test_a_part_found_far_from_its_taught_place_is_assembled_from_the_start_pose_moved_with_it(demo, shipped, tmp_path):
-    """34 mm away and turned 100 deg (the part feeder's arrivals stay within 15 mm and 10 deg).
-
-    Moved (30, 15) mm: moved (15, 30) mm instead, the desired view of a part turned so
-    puts the pick 1.7 mm beyond the UPJ's reach (joint 2 at its limit), whatever the start."""
-    centre = transform(t=(demo.part_side_m / 2, demo.part_side_m / 2, 0.0))
-    bMo = (transform(t=(0.03, 0.015, 0.0)) @ shipped.simulation.scene.cube.bMo @ centre
-           @ transform(rot_z(np.deg2rad(100.0))) @ inverse(centre))
-    found = replace(demo, name="found", start_bMe=start_pose_for_part(demo, demo.taught_model, bMo))
-    outcome = run_once(shipped, found, tmp_path, seed=4, bMo=bMo)
-    assert outcome.outcome is Outcome.PLACED, outcome.reason
-    assert outcome.gauge_inside and outcome.gauge_placement_error_mm < 0.5

@@ -28,16 +28,17 @@ import numpy as np
 
 from vservo.core.cell.config import CellModel
 from vservo.core.cell.kinematics import UnreachableTarget
-from vservo.core.geometry.spatial import Matrix
+from vservo.core.geometry.spatial import Matrix, inverse
 from vservo.core.perception.features import ObjectRegion
 from vservo.core.perception.measurement import Measurement
+from vservo.core.production.grasp import GraspChoice, grasp_choice
 from vservo.core.production.jobs import Job, TaughtModel
 from vservo.core.production.locate import LocateError, PartLocator
 from vservo.core.production.placement_check import PlacementCheck, check_placement
 from vservo.core.production.retarget import start_pose_for_part
 from vservo.core.robot.backend import RobotBackend, RobotError
 from vservo.core.robot.gripper import VacuumGripper
-from vservo.core.robot.safety import SafetyLayer
+from vservo.core.robot.safety import SafetyLayer, SafetyRefusal
 from vservo.core.servo.loop import Cycle, LoopLimits, Perception, run_servo
 from vservo.core.servo.methods import LawSettings, build_law
 from vservo.core.servo.step_policy import StepPolicy
@@ -113,6 +114,7 @@ class AssemblyOutcome:
     gauge_inside: bool | None = None
     notes: tuple[str, ...] = ()  # what the operator should know of how the job was run (retargeting)
     cell_time_s: float | None = None  # the cell clock's time for the run (RobotBackend.cell_clock_s)
+    cell_time_by_phase_s: dict[str, float] | None = None  # the same, split by CellTimePhase (the phases run)
 
     def summary(self) -> dict:
         """The JSON object of ``vservo run --json``."""
@@ -125,6 +127,8 @@ class AssemblyOutcome:
             "gauge_inside": self.gauge_inside,
             "duration_s": round(self.duration_s, 3),
             "cell_time_s": _rounded(self.cell_time_s),
+            "cell_time_by_phase_s": None if self.cell_time_by_phase_s is None else {
+                phase: _rounded(seconds) for phase, seconds in self.cell_time_by_phase_s.items()},
             "iterations": self.iterations,
             "stages": self.stages,
             "notes": list(self.notes),
@@ -133,6 +137,44 @@ class AssemblyOutcome:
 
 def _rounded(value: float | None) -> float | None:
     return None if value is None or not np.isfinite(value) else round(float(value), 4)
+
+
+class CellTimePhase(StrEnum):
+    """The parts of a run its cell time is split into (``cell_time_by_phase_s``)."""
+
+    LOCATE = "locate"  # the survey move and its frame
+    START = "start"  # the move to the start pose
+    SERVO = "servo"
+    PICK = "pick"  # down onto the part, suction, up
+    PLACE = "place"  # over the metal part, down, release, up
+    CHECK = "check"  # the move to the check pose and its frame
+
+
+class CellTimer:
+    """The cell clock's time spent in each CellTimePhase, in the order they ran; they add
+    up to the run's."""
+
+    def __init__(self, robot: RobotBackend) -> None:
+        self.robot = robot
+        self.started_s = robot.cell_clock_s()
+        self._phase: CellTimePhase | None = None
+        self._since_s = self.started_s
+        self.by_phase: dict[str, float] = {}
+
+    def enter(self, phase: CellTimePhase) -> None:
+        self._close()
+        self._phase = phase
+
+    def total_s(self) -> float:
+        self._close()
+        return self._since_s - self.started_s
+
+    def _close(self) -> None:
+        if self._phase is None:  # before the first phase: its time counts in the first
+            return
+        now_s = self.robot.cell_clock_s()
+        self.by_phase[self._phase.value] = self.by_phase.get(self._phase.value, 0.0) + now_s - self._since_s
+        self._since_s = now_s
 
 
 @dataclass(frozen=True)
@@ -164,6 +206,24 @@ def lifted(bMe: Matrix, height_m: float) -> Matrix:
     return above
 
 
+def _passes(robot: SafetyLayer, poses: list[Matrix], speeds: list[float]) -> bool:
+    """Whether the taught moves through ``poses`` (pairs of consecutive ones, at ``speeds``)
+    pass the safety layer's checks, without moving."""
+    try:
+        for bMe_from, bMe_to, speed in zip(poses, poses[1:], speeds):
+            robot.linear_path(bMe_from, bMe_to, speed)
+    except SafetyRefusal:
+        return False
+    return True
+
+
+def _grasp_detail(doing: str, choice: GraspChoice, symmetry: int) -> str:
+    turned = (f"the taught grasp turned {choice.turns * 360 // symmetry} deg" if choice.turns
+              else "the taught grasp")
+    skipped = f"; {choice.unreachable_nearer} nearer out of reach" if choice.unreachable_nearer else ""
+    return f"{doing} at {turned}, the flange turning {np.degrees(choice.turn_rad):.0f} deg{skipped}"
+
+
 def run_assembly(
     job: Job,
     robot: SafetyLayer,
@@ -188,7 +248,7 @@ def run_assembly(
     as the step policy makes them.
     """
     started = time.monotonic()
-    cell_started_s = robot.cell_clock_s()
+    timer = CellTimer(robot)
     servo = None
 
     def end(outcome: Outcome, reason: str, seen: PlacementCheck | None = None,
@@ -208,7 +268,8 @@ def run_assembly(
             final_error_px=servo.final_error_px if servo else float("nan"),
             placement_error_mm=seen.error_mm if seen else None,
             duration_s=time.monotonic() - started,
-            cell_time_s=robot.cell_clock_s() - cell_started_s,
+            cell_time_s=timer.total_s(),
+            cell_time_by_phase_s=dict(timer.by_phase),
             stages=servo.stages if servo else [],
             iterations=servo.iterations if servo else 0,
             gauge_placement_error_mm=gauge.error_mm if gauge else None,
@@ -224,6 +285,7 @@ def run_assembly(
             if locator is None:
                 return end(Outcome.FAULT, "the job locates its part and this cell has no network to locate it with: "
                                           "commission the nn step (docs/commissioning.md)")
+            timer.enter(CellTimePhase.LOCATE)
             on_event(PhaseChange(Phase.SERVOING, "surveying the table for the part"))
             # Transfers over the table on the joint-space line: the straight one between two far
             # tool-down poses can leave the arm's thin tool-down shell (SafetyLayer.joint_path).
@@ -237,11 +299,13 @@ def run_assembly(
             start_bMe = start_pose_for_part(job, job.taught_model or TaughtModel.of(model), located.bMo)
             on_event(PhaseChange(Phase.SERVOING, f"part located at ({1000 * located.bMo[0, 3]:.1f}, "
                                                  f"{1000 * located.bMo[1, 3]:.1f}) mm"))
+        timer.enter(CellTimePhase.START)
         on_event(PhaseChange(Phase.SERVOING, "moving to the start pose"))
         if job.survey_bMe is None:
             move(start_bMe)
         else:
             robot.move_joint(start_bMe, speed_m_s)
+        timer.enter(CellTimePhase.SERVO)
         on_event(PhaseChange(Phase.SERVOING, f"servoing with the {job.method} method"))
         law = build_law(model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
         servo = run_servo(FlangeReadout(robot, dof), law, job.desired, model, policy, limits,
@@ -251,8 +315,16 @@ def run_assembly(
                 return end(Outcome.ESTOPPED, "e-stop pressed")
             return end(Outcome.FAULT, f"servo failed: {servo.failure.value if servo.failure else ''} ({servo.reason})")
 
+        timer.enter(CellTimePhase.PICK)
         on_event(PhaseChange(Phase.PICKING, f"servo converged, feature error {servo.final_error_px:.2f} px"))
-        bMe_pick = robot.read_pose() @ job.eMe_pick
+        # The part in the flange at the pick: where the servo's end puts it (eMc cdMo), seen from the pick.
+        bMe_end = robot.read_pose()
+        pMo = inverse(job.eMe_pick) @ model.eMc @ job.desired.cdMo
+        pick = grasp_choice(bMe_end @ job.eMe_pick, pMo, job.part_side_m, job.grasp_symmetry, bMe_end,
+                            lambda bMe: _passes(robot, [bMe_end, lifted(bMe, job.approach_m), bMe],
+                                                [speed_m_s, speed_m_s / 2]))
+        bMe_pick = pick.bMe
+        on_event(PhaseChange(Phase.PICKING, _grasp_detail("picking", pick, job.grasp_symmetry)))
         move(lifted(bMe_pick, job.approach_m))
         move(bMe_pick, speed_m_s / 2)
         gripper.set_vacuum(True)
@@ -261,13 +333,27 @@ def run_assembly(
             return end(Outcome.FAULT, "the vacuum sensor reports no part on the cup after suction on")
         move(lifted(bMe_pick, job.approach_m))
 
+        timer.enter(CellTimePhase.PLACE)
         on_event(PhaseChange(Phase.PLACING, "carrying the part to the metal part"))
-        move(lifted(job.bMe_place, job.approach_m))
-        move(job.bMe_place, speed_m_s / 2)
+        # The place turned as far as the part's symmetry allows, to turn the flange least
+        # from the lifted pick and on to the check pose.
+        bMe_check = None if job.check is None else job.check.check_bMe
+        bMe_lifted = lifted(bMe_pick, job.approach_m)
+        place = grasp_choice(job.bMe_place, pMo, job.part_side_m, job.grasp_symmetry, bMe_lifted,
+                             lambda bMe: _passes(robot, [bMe_lifted, lifted(bMe, job.approach_m), bMe],
+                                                 [speed_m_s, speed_m_s / 2])
+                             and (bMe_check is None
+                                  or _passes(robot, [lifted(bMe, job.approach_m), bMe_check], [speed_m_s])),
+                             bMe_next=bMe_check)
+        bMe_place = place.bMe
+        on_event(PhaseChange(Phase.PLACING, _grasp_detail("placing", place, job.grasp_symmetry)))
+        move(lifted(bMe_place, job.approach_m))
+        move(bMe_place, speed_m_s / 2)
         gripper.set_vacuum(False)
-        move(lifted(job.bMe_place, job.approach_m))
+        move(lifted(bMe_place, job.approach_m))
         seen = None
         if job.check is not None:
+            timer.enter(CellTimePhase.CHECK)
             on_event(PhaseChange(Phase.PLACING, "looking at the placed part from the check pose"))
             move(job.check.check_bMe)
             # A frame exposed after the move ended: the part as it lies, seen from where it was taught.

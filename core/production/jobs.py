@@ -16,7 +16,9 @@ locates its part names the pose the camera surveys the table from (``survey_bMe`
 A job file is JSON with a format tag and version: ``read_job_file`` refuses a foreign or
 broken file with a message that names the file and the field. Version 1 files (before
 the check view) still read, as jobs without a check view; versions 1 and 2 (before the
-taught model) as jobs without a taught model, which run as they were taught.
+taught model) as jobs without a taught model, which run as they were taught. The key
+``grasp_symmetry`` is optional in every version: a file without it is of a square-faced
+part (4).
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage
 from vservo.core.perception.recording import write_atomic
+from vservo.core.production.grasp import SYMMETRIES
 from vservo.core.production.placement_check import CheckView
 from vservo.core.servo.methods import METHODS
 
@@ -106,6 +109,9 @@ class Job:
       None: a job file from before it was recorded (run as taught, never retargeted).
     survey_bMe: where the camera surveys the table to locate the part before the run;
       None: the job does not locate, the part arrives where it was taught.
+    grasp_symmetry: how many turns about the top face's vertical axis map the part onto
+      itself (4: a square face, 2: a half turn only, 1: none); a run may pick and place it
+      at the taught grasp turned by any of them (core/production/grasp.py).
     """
 
     name: str
@@ -124,9 +130,13 @@ class Job:
     placement_tolerance_mm: float = 1.0
     taught_model: TaughtModel | None = None
     survey_bMe: Matrix | None = None
+    grasp_symmetry: int = 4
 
     def __post_init__(self) -> None:
         validate_job_name(self.name)
+        if self.grasp_symmetry not in SYMMETRIES:
+            raise JobError(f"job {self.name!r}: grasp_symmetry {self.grasp_symmetry!r} is not one of "
+                           f"{', '.join(map(str, SYMMETRIES))}")
 
     def as_dict(self) -> dict[str, Any]:
         d = self.desired
@@ -158,6 +168,7 @@ class Job:
             },
             "taught_model": None if self.taught_model is None else self.taught_model.as_dict(),
             "survey_bMe": None if self.survey_bMe is None else self.survey_bMe.tolist(),
+            "grasp_symmetry": self.grasp_symmetry,
         }
 
 
@@ -250,9 +261,19 @@ def job_from_dict(data: Any, source: str) -> Job:
         start_bMe=f.pose("start_bMe"),
         eMe_pick=f.pose("eMe_pick"),
         bMe_place=f.pose("bMe_place"),
+        grasp_symmetry=_grasp_symmetry(f),
         **(_check_fields(f, source) if version >= 2 else {}),
         **(_model_fields(f, source) if version >= 3 else {}),
     )
+
+
+def _grasp_symmetry(f: _Fields) -> int:
+    """The optional grasp_symmetry (a job file without it: a square face, 4)."""
+    value = f.data.get("grasp_symmetry", 4)
+    if isinstance(value, bool) or value not in SYMMETRIES:
+        raise f.fail("grasp_symmetry", f"{value!r} is not one of {', '.join(map(str, SYMMETRIES))} (the turns "
+                                       "about the top face's vertical axis that map the part onto itself)")
+    return int(value)
 
 
 def _check_fields(f: _Fields, source: str) -> dict[str, Any]:

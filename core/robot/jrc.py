@@ -186,8 +186,9 @@ class JrcBackend:
     commands go out one at a time.
 
     The cell clock (``cell_clock_s``) undoes an emulated JRC's speed-up (the line's
-    ``time_scale``, 1 on a real JRC): the wall clock, with every wait for the arm
-    (JWAIT) and every dwell counted ``time_scale`` times, and every
+    ``time_scale``, 1 on a real JRC): the wall clock, with every motion of the arm (from
+    the JRC taking the move to its answer that the move ended) and every dwell counted
+    ``time_scale`` times, and every
     exchange at least as long as its bytes take at the line's baud rate (a
     pseudo-terminal carries them faster).
     """
@@ -198,6 +199,7 @@ class JrcBackend:
         self.line = line
         self.port = port or line.port
         self._cell_ahead_s = 0.0  # how far the cell clock runs ahead of the wall clock
+        self._motion_from_s: float | None = None  # a motion's span not yet counted starts here (_count_cell_time)
         self._serial: serial.SerialBase | None = None
         self._station: BscStation | None = None
         self._lock = threading.RLock()
@@ -269,7 +271,7 @@ class JrcBackend:
                 station.channel.discard_input()
                 station.send(Message(HOST_COMMAND, text + "\r"))
                 reply = station.receive(reply_wait_s or self.line.timer_b_s, f"the reply to {name}")
-                self._count_cell_time(name, time.monotonic() - started_s,
+                self._count_cell_time(name, reply, time.monotonic() - started_s, station.bid_at_s,
                                       station.channel.bytes_in + station.channel.bytes_out - bytes_before)
             except LinkError as exc:  # the station has ended the exchange with EOT
                 raise LinkError(f"{name} failed: {exc}; {self._hold_after_failure(name)}") from exc
@@ -435,11 +437,27 @@ class JrcBackend:
             time.sleep(seconds)
             self._cell_ahead_s += (self.line.time_scale - 1.0) * seconds
 
-    def _count_cell_time(self, name: str, wall_s: float, n_bytes: int) -> None:
-        """What one exchange cost the cell beyond its wall time (class docstring)."""
-        if name == "JWAIT":  # the emulator waited out the arm's motion time_scale times faster
-            self._cell_ahead_s += (self.line.time_scale - 1.0) * wall_s
-        self._cell_ahead_s += max(self.line.wire_time_s(n_bytes) - wall_s, 0.0)
+    def _count_cell_time(self, name: str, reply: Message, wall_s: float, bid_at_s: float, n_bytes: int) -> None:
+        """What one exchange cost the cell beyond its wall time (class docstring).
+
+        The arm's motion, which an emulator runs time_scale times faster, lasts from the
+        JRC's bid to answer the MOVL or IMOV it has just set going to its bid to answer the
+        JWAIT that finds the motion ended (``bid_at_s``, as the host sees them): that span
+        counts time_scale times, the link's exchanges outside it once. Scaling each JWAIT's
+        whole exchange instead would count its handshakes, and a loaded host's delays in
+        them, time_scale times.
+        """
+        sped_up_s = 0.0  # the part of this exchange's wall time the emulator ran time_scale times faster
+        if name in ("MOVL", "IMOV") and reply.header == STATUS_REPLY and reply.text.strip().isdigit() \
+                and int(reply.text) == 0:
+            self._motion_from_s = bid_at_s
+        elif name == "JWAIT" and self._motion_from_s is not None:
+            sped_up_s = max(bid_at_s - self._motion_from_s, 0.0)
+            # A data reply: the motion ended (done or stopped); a status: still running, go on from here.
+            self._motion_from_s = None if reply.header == DATA_REPLY else bid_at_s
+        cell_s = wall_s + (self.line.time_scale - 1.0) * sped_up_s
+        # The exchange's bytes take their time at the baud rate, during the arm's motion as on a real line.
+        self._cell_ahead_s += max(self.line.wire_time_s(n_bytes), cell_s) - wall_s
 
     # -- helpers ---------------------------------------------------------------------
 

@@ -82,7 +82,6 @@ EMULATED_ALARM = (4315, "COLLISION DETECT (EMULATED)")
 D1_PLAY, D1_REMOTE = 1 << 6, 1 << 7
 MOTION_FIELDS = 17
 NOT_ACCESSIBLE = 2110
-JWAIT_TICK_S = 0.002
 IDLE_POLL_S = 0.05
 
 
@@ -385,9 +384,16 @@ class JrcEmulator:
             raise _Refused(5170) from None
         waited_s = 0.0
         while self.motion is not None and (wait_s < 0 or waited_s < wait_s) and not self._stop.is_set():
+            # Wake at the motion's computed end (or the wait's), not on polling ticks: a
+            # tick's overshoot would delay the reply by up to a tick of wall time, which
+            # is time_scale ticks of JRC time.
+            motion = self.motion
+            left_s = (motion.duration_s if motion.stop_at_s is None else motion.stop_at_s) - motion.elapsed_s
+            if wait_s >= 0:
+                left_s = min(left_s, wait_s - waited_s)
             self.lock.release()  # handle() holds it once: while the JRC waits, a camera may look
             try:
-                time.sleep(JWAIT_TICK_S)
+                self._stop.wait(max(left_s, 0.0) / self.time_scale)
             finally:
                 self.lock.acquire()
             waited_s += self._advance()
