@@ -14,10 +14,11 @@ import pytest
 from tests.jrc_fixtures import with_the_thesis_policy
 from vservo.app.cli import main
 from vservo.core.cell.config import CellConfig, load_cell
-from vservo.core.production.assembly import AssemblyOutcome, Outcome, Phase
+from vservo.core.production.assembly import AssemblyOutcome, FlangeReadout, Outcome, Phase, joint_limited_steps
 from vservo.core.production.cell_controller import CellController, CommandRefused
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
+from vservo.core.robot.safety import SafetyLayer
 
 
 def controller_of(config: CellConfig, tmp_path: Path) -> Iterator[CellController]:
@@ -233,3 +234,21 @@ def test_vservo_run_prints_one_json_object(tmp_path, capsys):
     assert set(summary) >= {"outcome", "final_error_px", "placement_error_mm", "duration_s", "stages"}
     assert main(["run", "--job", "no-such-job", "--data", str(tmp_path)]) == 2
     assert "no job named 'no-such-job'" in capsys.readouterr().err
+
+
+def test_the_servos_readout_gives_the_arm_models_joints_and_the_bending_keeps_the_safety_margin():
+    """The JRC reports the flange alone: the joints the law's limit handling needs are the
+    safety layer's model's, and the steps it bends stop outside [safety] joint_margin_deg."""
+    config = load_cell()
+    rig = simulated_rig(config, seed=3)
+    try:
+        rig.robot.connect()
+        measurement = FlangeReadout(rig.robot).measure()
+        assert np.all(np.isfinite(measurement.q))
+        assert np.allclose(rig.robot.arm.fk(measurement.q), measurement.bMe, atol=1e-6)
+    finally:
+        rig.close()
+    margin = replace(config.safety, joint_margin_rad=np.deg2rad(2.0))
+    steps = joint_limited_steps(SafetyLayer(rig.robot.robot, margin, rig.robot.arm, config.home_q))
+    assert steps.settings.margin_rad > margin.joint_margin_rad
+    assert np.allclose(steps.upper, rig.robot.arm.upper - steps.settings.margin_rad)

@@ -39,6 +39,7 @@ from vservo.core.production.retarget import start_pose_for_part
 from vservo.core.robot.backend import RobotBackend, RobotError
 from vservo.core.robot.gripper import VacuumGripper
 from vservo.core.robot.safety import SafetyLayer, SafetyRefusal
+from vservo.core.servo.joint_limits import JointLimitedSteps, JointLimitSettings
 from vservo.core.servo.loop import Cycle, LoopLimits, Perception, run_servo
 from vservo.core.servo.methods import LawSettings, build_law
 from vservo.core.servo.step_policy import StepPolicy
@@ -188,15 +189,24 @@ class PlacementReport:
 @dataclass(frozen=True)
 class FlangeReadout:
     """The servo loop's measurement on a cell whose features come from camera frames:
-    the flange pose as the JRC reports it, nothing projected."""
+    the flange pose as the JRC reports it, the joints the arm's model puts it at (for the
+    joint limits in the law), nothing projected."""
 
-    robot: RobotBackend
-    dof: int
+    robot: SafetyLayer
 
     def measure(self, look: bool = False) -> Measurement:
         unseen = np.full(2, np.nan)
-        return Measurement(self.robot.clock_s(), np.full(self.dof, np.nan), self.robot.read_pose(),
+        bMe = self.robot.read_pose()
+        return Measurement(self.robot.clock_s(), self.robot.model_joints(bMe), bMe,
                            np.full((4, 2), np.nan), unseen, ObjectRegion(0.0, unseen), np.full(4, np.nan), unseen)
+
+
+def joint_limited_steps(robot: SafetyLayer) -> JointLimitedSteps:
+    """The servo's steps bent around the joint limits of the safety layer's arm model,
+    stopping the joints outside its [safety] joint margin (whose check they must pass)."""
+    defaults, margin_rad = JointLimitSettings(), robot.limits.joint_margin_rad
+    return JointLimitedSteps(robot.arm, JointLimitSettings(band_rad=defaults.band_rad + margin_rad,
+                                                           margin_rad=defaults.margin_rad + margin_rad))
 
 
 def lifted(bMe: Matrix, height_m: float) -> Matrix:
@@ -232,7 +242,6 @@ def run_assembly(
     model: CellModel,
     policy: StepPolicy,
     *,
-    dof: int,
     speed_m_s: float = 0.05,
     limits: LoopLimits = LoopLimits(),
     on_event: Callable[[AssemblyEvent], None] = lambda event: None,
@@ -291,7 +300,7 @@ def run_assembly(
             # tool-down poses can leave the arm's thin tool-down shell (SafetyLayer.joint_path).
             robot.move_joint(job.survey_bMe, speed_m_s)
             # A frame exposed after the move ended, from the pose the robot reports.
-            survey = perception.perceive(FlangeReadout(robot, dof).measure(), robot.clock_s())
+            survey = perception.perceive(FlangeReadout(robot).measure(), robot.clock_s())
             try:
                 located = locator.locate(survey.corners_px, robot.read_pose(), job.part_side_m)
             except LocateError as exc:
@@ -308,8 +317,9 @@ def run_assembly(
         timer.enter(CellTimePhase.SERVO)
         on_event(PhaseChange(Phase.SERVOING, f"servoing with the {job.method} method"))
         law = build_law(model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
-        servo = run_servo(FlangeReadout(robot, dof), law, job.desired, model, policy, limits,
-                          on_cycle=lambda cycle: on_event(ServoCycle(cycle)), perception=perception, robot=robot)
+        servo = run_servo(FlangeReadout(robot), law, job.desired, model, policy, limits,
+                          on_cycle=lambda cycle: on_event(ServoCycle(cycle)), perception=perception, robot=robot,
+                          joint_limits=joint_limited_steps(robot))
         if not servo.converged:
             if estopped():
                 return end(Outcome.ESTOPPED, "e-stop pressed")
@@ -357,7 +367,7 @@ def run_assembly(
             on_event(PhaseChange(Phase.PLACING, "looking at the placed part from the check pose"))
             move(job.check.check_bMe)
             # A frame exposed after the move ended: the part as it lies, seen from where it was taught.
-            features = perception.perceive(FlangeReadout(robot, dof).measure(), robot.clock_s())
+            features = perception.perceive(FlangeReadout(robot).measure(), robot.clock_s())
             seen = check_placement(job.check, features.corners_px, model.camera, job.part_side_m)
     except (RobotError, UnreachableTarget) as exc:
         if estopped():

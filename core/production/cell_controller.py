@@ -713,7 +713,7 @@ class CellController:
         try:
             outcome = run_assembly(
                 job, self.rig.robot, self.rig.gripper, perception, self.rig.config.nominal, self.rig.policy,
-                dof=self.rig.dof, speed_m_s=self.rig.config.motion.move_speed_m_s, on_event=on_event,
+                speed_m_s=self.rig.config.motion.move_speed_m_s, on_event=on_event,
                 measure_placement=self.rig.measure_placement,
                 estopped=self._estop.is_set, locator=self.rig.locator,
             )

@@ -15,7 +15,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from vservo.core.cell.config import CameraSourceConfig, CellConfig, ConfigError
-from vservo.core.cell.kinematics import ArmKinematics
 from vservo.core.perception.camera_source import FrameSource, ImageFolderSource, VideoCaptureSource, read_mono8
 from vservo.core.production.fixture import FixtureClient
 from vservo.core.production.locate import PartLocator
@@ -25,7 +24,6 @@ from vservo.core.robot.jrc import JrcBackend
 from vservo.core.robot.jrc_vacuum import JrcVacuum
 from vservo.core.robot.safety import SafetyLayer
 from vservo.core.servo.step_policy import PositionStepPolicy, step_policy_from_config
-from vservo.robot_models.loader import load_arm
 
 
 def build_rig(config: CellConfig, seed: int | None = None, backend: str | None = None) -> Rig:
@@ -60,7 +58,6 @@ def real_rig(config: CellConfig) -> Rig:
         camera=camera,
         extractor=extractor_for(config),
         policy=policy,
-        dof=ArmKinematics(load_arm(config.arm), model.mount).dof,
         # No gauge on a real cell: the assembly measures the placement by vision alone.
         measure_placement=lambda: None,
         locator=PartLocator.from_config(config),

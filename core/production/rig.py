@@ -39,7 +39,6 @@ class Rig:
     camera: FrameSource
     extractor: ImageFeatureExtractor
     policy: StepPolicy
-    dof: int
     measure_placement: Callable[[], PlacementReport | None]
     present_part: Callable[[np.random.Generator], None] | None = None
     # The checkerboard laid (True: the table cleared of the parts) or taken away (False).

@@ -94,7 +94,6 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
         camera=SimulatedCamera(cell),
         extractor=extractor_for(config),
         policy=policy,
-        dof=cell.jrc_arm.dof,
         measure_placement=measure_placement,
         present_part=present_part,
         lay_board=lay_board,

@@ -230,6 +230,14 @@ class SafetyLayer:
                 f"its limit, closer than the margin {np.degrees(limits.joint_margin_rad):.2f} deg")
         return q
 
+    def model_joints(self, bMe: Matrix) -> Matrix:
+        """The joints the nominal arm model puts the flange at bMe with, on the branch of the
+        last move sent (the JRC reports only the flange pose); NaN where no joints reach it."""
+        try:
+            return self.arm.ik(bMe, self._q_seed, tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE).q
+        except UnreachableTarget:
+            return np.full(self.arm.dof, np.nan)
+
     # -- the RobotBackend interface ----------------------------------------------------
 
     def _link(self, call: Callable, *args):

@@ -264,7 +264,7 @@ def _servo(cell: MeasurementSource, law: ControlLaw, desired: DesiredImage, mode
             # from the robot): a second read would cost another RPOSC on the JRC.
             bMe = measurement.bMe
             command = policy.command(bMe, eVc @ output.cVc)
-            if joint_limits is not None:
+            if joint_limits is not None and np.all(np.isfinite(measurement.q)):  # NaN: no joints reach bMe
                 step = joint_limits.limit(command, bMe, measurement.q)
                 command, held = step.command, step.held
             motion_ended_s = carry_out(robot, command, bMe)
