@@ -203,7 +203,7 @@ class CellScene:
     def _show_teaching(self, state: dict) -> None:
         """While teaching: the cell file's metal part instead of a job's, and the taught place's part outline."""
         teaching = state.get("phase") == Phase.TEACHING
-        placed = state.get("teach_place_bMo") if teaching else None
+        placed = (state.get("teach_poses") or {}).get("place_bMo") if teaching else None
         if (teaching, placed) == self._teaching_shown:
             return  # every update would otherwise resend them to every browser
         self._teaching_shown = (teaching, placed)

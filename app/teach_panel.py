@@ -142,6 +142,12 @@ TEACHING = Phase.TEACHING.value
 STANDING = {Phase.IDLE.value, Phase.TEACHING.value, Phase.DONE.value, Phase.FAULT.value}  # no run moves the arm
 
 
+def teach_pose(state: dict, name: str) -> Matrix | None:
+    """One of the poses the controller offers while teaching (ControllerState.teach_poses), if known."""
+    pose = (state.get("teach_poses") or {}).get(name)
+    return None if pose is None else np.asarray(pose, float)
+
+
 def teaching(state: dict) -> bool:
     return state.get("phase") == TEACHING
 
@@ -210,8 +216,9 @@ def seen_markdown(state: dict, overlay: Overlay | None, mount: ToolMount, camera
                      f"Z {1000 * centre[2]:.2f} mm, turned {turn:.2f} deg.  \n"
                      f"Flange to view it: `{pose_words(view_over_part(bMo, eMc))}`  \n"
                      f"Cup on it: `{pose_words(cup_on_part(bMo))}`")
-    if state.get("teach_pocket_bMe") is not None:
-        bMv = np.asarray(state["teach_pocket_bMe"], float) @ mount.eMv
+    pocket = teach_pose(state, "pocket_bMe")
+    if pocket is not None:
+        bMv = pocket @ mount.eMv
         lines.append(f"Cup in the pocket: `{pose_words(bMv)}`")
     return "  \n".join(lines)
 
@@ -275,20 +282,22 @@ class TeachPanel:
                               lambda s: teaching(s) and "the desired image" not in (s.get("teach_missing") or []))
             with gui.add_folder("4. Place", order=9):
                 go_pocket = button("Go above the pocket",
-                                   lambda s: teaching(s) and s.get("teach_pocket_bMe") is not None,
+                                   lambda s: teaching(s) and teach_pose(s, "pocket_bMe") is not None,
                                    hint="The carried part 30 mm over where it sits in the metal part's pocket")
                 go_place = button("Go to the template's place pose", from_template)
                 place = button("Set place pose here", lambda s: teaching(s) and bool(s.get("holding_part")),
                                hint="The part on the cup, in the metal part")
             with gui.add_folder("5. Check view", order=10):
                 go_over = button("Go over the placed part",
-                                 lambda s: teaching(s) and s.get("teach_place_bMo") is not None,
+                                 lambda s: teaching(s) and teach_pose(s, "place_bMo") is not None,
                                  hint="The camera over the part where the taught place sets it down, "
                                       "as over the part of the desired view")
                 go_check = button("Go to the template's check view", from_template)
                 check = button("Capture check view", teaching, icon=viser.Icon.CAMERA,
                                hint="The part placed in the metal part, the camera over it seeing its four corners")
             with gui.add_folder("6. Start pose", order=11):
+                go_desired = button("Go to the desired view", lambda s: teaching(s) and teach_pose(s, "view_bMe") is not None,
+                                    hint="Where the desired image was captured")
                 go_start = button("Go to the template's start pose", from_template)
                 start = button("Set start pose here", teaching)
             with gui.add_folder("Settings", order=12):
@@ -382,9 +391,11 @@ class TeachPanel:
         go_view.on_click(go_to("desired view", lambda d: d["taught_bMe"]))
         go_place.on_click(go_to("place pose", lambda d: d["bMe_place"]))
         go_pocket.on_click(lambda _: send(view, "Go above the pocket", "move_to", "arrived", bMe=above_pocket(
-            np.asarray(app.session.state["teach_pocket_bMe"], float)).tolist()))
+            teach_pose(app.session.state, "pocket_bMe")).tolist()))
+        go_desired.on_click(lambda _: send(view, "Go to the desired view", "move_to", "arrived",
+                                           bMe=teach_pose(app.session.state, "view_bMe").tolist()))
         go_over.on_click(lambda _: send(view, "Go over the placed part", "move_to", "arrived", bMe=view_over_part(
-            np.asarray(app.session.state["teach_place_bMo"], float), app.scene.mount.eMc).tolist()))
+            teach_pose(app.session.state, "place_bMo"), app.scene.mount.eMc).tolist()))
         go_check.on_click(go_to("check view", lambda d: (d.get("check") or {}).get("check_bMe")))
         go_start.on_click(go_to("start pose", lambda d: d["start_bMe"]))
         move.on_click(on_jog)

@@ -141,11 +141,10 @@ class ControllerState:
     can_present_part: bool = False  # the cell can put a new part on the table (simulated, or a test fixture)
     teach_missing: list[str] = field(default_factory=list)
     teach_optional: list[str] = field(default_factory=list)
-    # While teaching, from the cell file's [metal_part]: the flange pose that sets the picked
-    # part down centred in its pocket (once the desired image and the pick are taught), and
-    # where the taught place sets it (once the place is taught too).
-    teach_pocket_bMe: list[list[float]] | None = None
-    teach_place_bMo: list[list[float]] | None = None
+    # While teaching, the poses the Teach tab offers to go to, each once known: "view_bMe"
+    # the desired view; from the cell file's [metal_part], "pocket_bMe" the flange pose that
+    # sets the picked part down centred in its pocket, "place_bMo" where the taught place sets it.
+    teach_poses: dict[str, list[list[float]]] = field(default_factory=dict)
     last_outcome: dict | None = None
     cell_file: str = ""  # the cell file whose model the controller runs on
     # The commissioning of this session: its steps, the file Apply writes, per step of the
@@ -443,12 +442,12 @@ class CellController:
             # The job shown is the template taught from; a new job has none until it is saved.
             self._desired = None  # the last job's desired corners are no part of the new one
             self._update(phase=Phase.TEACHING.value, detail="jog to the desired view and capture it", job=template or None,
-                         teach_missing=draft.missing(), teach_optional=draft.optional_missing(), **self._pocket_aids())
+                         teach_missing=draft.missing(), teach_optional=draft.optional_missing(), teach_poses=self._teach_poses())
 
     def _set_draft(self, detail: str, **changes) -> None:
         self._draft = replace(self._draft, **changes)
         self._update(detail=detail, teach_missing=self._draft.missing(), teach_optional=self._draft.optional_missing(),
-                     **self._pocket_aids())
+                     teach_poses=self._teach_poses())
 
     def _pocket_fit(self) -> PocketFit | None:
         """Where the taught pick and place set the desired image's part down, against the
@@ -459,15 +458,18 @@ class CellController:
         return pocket_fit(draft.bMe_place @ part_on_flange(draft.taught_bMe, draft.eMe_pick, draft.seen_bMo),
                           pocket, PART_SIDE_M)
 
-    def _pocket_aids(self) -> dict:
-        """The state's teach_pocket_bMe and teach_place_bMo for the draft."""
+    def _teach_poses(self) -> dict:
+        """The state's teach_poses for the draft."""
         draft, pocket = self._draft, self.rig.config.metal_part
+        poses = {} if draft.taught_bMe is None else {"view_bMe": draft.taught_bMe.tolist()}
         if pocket is None or draft.seen_bMo is None or draft.eMe_pick is None:
-            return {"teach_pocket_bMe": None, "teach_place_bMo": None}
+            return poses
         eMo = part_on_flange(draft.taught_bMe, draft.eMe_pick, draft.seen_bMo)
+        poses["pocket_bMe"] = flange_in_pocket(eMo, pocket, PART_SIDE_M, draft.seen_bMo).tolist()
         fit = self._pocket_fit()
-        return {"teach_pocket_bMe": flange_in_pocket(eMo, pocket, PART_SIDE_M, draft.seen_bMo).tolist(),
-                "teach_place_bMo": None if fit is None else fit.bMo.tolist()}
+        if fit is not None:
+            poses["place_bMo"] = fit.bMo.tolist()
+        return poses
 
     def _place_words(self) -> str:
         """The place check (said as soon as the place is taught): how far off the pocket's
