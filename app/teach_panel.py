@@ -446,13 +446,20 @@ class TeachPanel:
 
     def refresh(self, view: SessionView) -> None:
         self.missing.content = teach_checklist(view.state)
-        overlay = Overlay.from_meta(view.frame.meta) if view.frame is not None else None
-        scene = self.app.scene  # the nominal tools and camera the controller believes in
-        self.seen.content = seen_markdown(view.state, overlay, scene.mount, scene.camera)
+        self.refresh_seen(view)
         with self._lock:
             clients = list(self._live)
         for client_id in clients:
             self._enable(client_id)
+
+    def refresh_seen(self, view: SessionView) -> None:
+        """Where the part is seen, from the newest frame (the display thread calls this on each
+        frame shown: a part presented while the arm stands still changes the frame, not the state)."""
+        overlay = Overlay.from_meta(view.frame.meta) if view.frame is not None else None
+        scene = self.app.scene  # the nominal tools and camera the controller believes in
+        seen = seen_markdown(view.state, overlay, scene.mount, scene.camera)
+        if self.seen.content != seen:
+            self.seen.content = seen
 
     def _enable(self, client_id: int) -> None:
         """Each button enabled only while it can act: the operator's browser, and the state
