@@ -177,7 +177,7 @@ def next_button(state: dict) -> str:
 def teach_checklist(state: dict) -> str:
     """What teaching still needs and the next step, or how to start it; the vacuum sensor."""
     if not teaching(state):
-        return ("Not teaching. Choose a template (or a new job) and press **Begin teaching**.  \n"
+        return ("Not teaching. Keep **(new job)** (or choose a stored job as a template) and press **Begin teaching**.  \n"
                 "**Next: Begin teaching**")
     missing = state.get("teach_missing") or []
     optional = state.get("teach_optional") or []
