@@ -33,8 +33,8 @@ class PocketFit:
     height_mm: float  # its bottom face above the pocket floor
 
     def words(self) -> str:
-        return (f"the part sits {self.offset_mm:.1f} mm and {self.turn_deg:+.1f} deg from the pocket's centre, "
-                f"{self.height_mm:+.1f} mm above its floor")
+        offset, turn, height = (round(value, 1) + 0.0 for value in (self.offset_mm, self.turn_deg, self.height_mm))
+        return f"the part sits {offset:.1f} mm and {turn:+.1f} deg from the pocket's centre, {height:+.1f} mm above its floor"
 
 
 def part_on_flange(taught_bMe: Matrix, eMe_pick: Matrix, seen_bMo: Matrix) -> Matrix:
