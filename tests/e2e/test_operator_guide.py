@@ -198,6 +198,7 @@ def test_teach_a_new_job_as_the_guide_says_and_assemble_it_three_times(page):
         outcome.wait_for(timeout=10_000)
         assert f"Run {run_id}: placed" in outcome.inner_text(), (run, outcome.inner_text(), ended)
         outcomes.append(outcome.locator("xpath=..").inner_text())  # the figures under the outcome
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
     (ARTIFACTS / "guide-runs.txt").write_text("\n".join(outcomes) + "\n")  # the figures, for the record
 
 
