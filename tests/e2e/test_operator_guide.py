@@ -56,7 +56,8 @@ def page(tmp_path_factory):
             yield operator
             chromium.close()
     finally:
-        serve.stop()
+        assert serve.stop() == 0
+        assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]  # nor a display update that failed
 
 
 def press(page, button: str, done: str, timeout_s: float = 60.0) -> None:
