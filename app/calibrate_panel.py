@@ -54,7 +54,7 @@ class CalibratePanel:
             self.bar = gui.add_progress_bar(0.0, order=31)
             self.summary = gui.add_markdown("", order=32)
             # Plain words first: residuals, codes and equations only for who unfolds them.
-            with gui.add_folder("Engineering", expand_by_default=False, order=40):
+            with gui.add_folder("Engineering (calibration)", expand_by_default=False, order=40):
                 self.commission_engineering = gui.add_markdown("")
                 self.results = gui.add_markdown("")
         self._run: CalibrationRun | None = None
