@@ -2,15 +2,15 @@
 
 Commission this cell (first): per browser (operator only) the steps to run, Start and
 Apply; shared by every browser, the progress of each part of the procedure, then each
-step's residuals and verdict, the acceptance check and the measured values
-(app/commission_text.py). The controller runs it (its ``commission`` and
+step's verdict and the acceptance check in plain words, its residuals and the measured
+values in the folded Engineering panel (app/commission_text.py). The controller runs it (its ``commission`` and
 ``apply_commissioning`` commands): the robot moves, and Apply, after a confirmation,
 writes the commissioned cell file and reloads the controller's model from it.
 
 The NN hand-eye calibration study (chapters 2-3) on the simulated cell: per browser the
-preset, Run and Stop; shared, the step under way with a progress bar, then the
-per-method result table. It runs in background processes (app/calibration_run.py) and
-does not move the cell's robot.
+preset, Run and Stop; shared, the step under way with a progress bar, then how far off
+each method is in plain words, its per-method table in the Engineering panel. It runs in
+background processes (app/calibration_run.py) and does not move the cell's robot.
 """
 
 from __future__ import annotations
@@ -23,7 +23,14 @@ import viser
 
 from vservo.app import commission_text
 from vservo.app.banner import Button
-from vservo.app.calibration_run import PRESETS, QUICK, CalibrationProgress, CalibrationRun, results_markdown
+from vservo.app.calibration_run import (
+    PRESETS,
+    QUICK,
+    CalibrationProgress,
+    CalibrationRun,
+    results_markdown,
+    summary_markdown,
+)
 from vservo.app.client_view import ClientView
 from vservo.app.context import AppContext
 from vservo.app.session import SessionView
@@ -39,12 +46,17 @@ class CalibratePanel:
                              "measures part of the cell's model (docs/commissioning.md).", order=1)
             self.commission_progress = gui.add_markdown("", order=7)
             self.commission_results = gui.add_markdown("", order=8)
-            gui.add_markdown("### NN calibration study (simulated cell)", order=20)
-            self.status = gui.add_markdown("The workflow collects checkerboard views on the simulated cell, trains "
-                                           "the network and the classical calibrations, evaluates them on held-out "
-                                           "views and tracks points with each (PBVS, eq. 2-47).", order=30)
+            gui.add_markdown("### Calibration study (simulated cell)", order=20)
+            self.status = gui.add_markdown("The study shows the camera the checkerboard on the simulated cell, "
+                                           "trains the network and the classical calibrations, and measures how far "
+                                           "off each one is on views it was not shown and when the arm follows "
+                                           "points with it.", order=30)
             self.bar = gui.add_progress_bar(0.0, order=31)
-            self.results = gui.add_markdown("", order=32)
+            self.summary = gui.add_markdown("", order=32)
+            # Plain words first: residuals, codes and equations only for who unfolds them.
+            with gui.add_folder("Engineering (calibration)", expand_by_default=False, order=40):
+                self.commission_engineering = gui.add_markdown("")
+                self.results = gui.add_markdown("")
         self._run: CalibrationRun | None = None
         self._lock = threading.Lock()
 
@@ -82,6 +94,7 @@ class CalibratePanel:
         record = state.get("commissioning")
         _set(self.commission_progress, commission_text.progress_markdown(record, state.get("cell_file", "")))
         _set(self.commission_results, commission_text.results_markdown(record))
+        _set(self.commission_engineering, commission_text.engineering_markdown(record))
 
     @property
     def calibrating(self) -> bool:
@@ -125,7 +138,7 @@ class CalibratePanel:
             folder = self.app.options.data / "calibration" / time.strftime("%Y%m%d-%H%M%S")
             self._run = CalibrationRun(folder, preset, self.app.options.cell, self._on_change)
         self._run.start()
-        self.results.content = ""
+        self.results.content = self.summary.content = ""
 
     def _stop(self, view: ClientView) -> None:
         if not view.allowed("Stop calibration", self.app.roles):
@@ -147,6 +160,7 @@ class CalibratePanel:
         else:
             self.bar.color = None
             self.status.content = f"**{progress.step}** ({elapsed:.0f} s): `{progress.line}`"
+        self.summary.content = summary_markdown(progress.results)
         self.results.content = results_markdown(progress.results)
         self.app.refresh_buttons()  # Run and Stop swap as the study starts and ends
 

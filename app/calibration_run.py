@@ -145,8 +145,24 @@ class CalibrationRun:
             raise CalibrationFailed(f"{step} printed no JSON result") from None
 
 
+# The methods as an operator would call them (the table in the Engineering fold keeps the codes).
+METHOD_WORDS = {"nn": "the network", "nn_height": "the network with the part's height",
+                "nn_pose": "the network with the camera's pose", "free_hand_eye": "hand-eye from free views",
+                "axxb": "hand-eye from turned views", "planar_homography": "the table's plane seen as a homography"}
+
+
+def summary_markdown(results: dict[str, Any]) -> str:
+    """In plain words, best first: how far each method puts board corners it did not see (mm)."""
+    held_out = (results.get("evaluate") or {}).get("methods") or {}
+    ranked = sorted((row["xy_mm"], name) for name, row in held_out.items() if row.get("xy_mm") is not None)
+    if not ranked:
+        return ""
+    lines = [f"- {METHOD_WORDS.get(name, name)}: {xy:.2f} mm off on average" for xy, name in ranked]
+    return "Where each calibration puts board corners it was not shown, best first:\n\n" + "\n".join(lines)
+
+
 def results_markdown(results: dict[str, Any]) -> str:
-    """The per-method table: errors on the held-out corners and in PBVS tracking (measured
+    """The per-method table (the Engineering fold): errors on the held-out corners and in PBVS tracking (measured
     by the calibration, and against the simulated cell's truth), mean over points, mm."""
     held_out = (results.get("evaluate") or {}).get("methods") or {}
     tracking = (results.get("track") or {}).get("methods") or {}

@@ -1,6 +1,6 @@
 """What the Calibrate tab says about commissioning, as text: the progress of each part of
-the procedure, then each step's residuals and verdict, the acceptance check and the
-measured values (docs/commissioning.md).
+the procedure, then in plain words each step's verdict and the acceptance check; for the
+Engineering fold, each step's residuals and the measured values (docs/commissioning.md).
 
 Plain functions of the state's ``commissioning`` record (core/production/cell_controller.py)
 to markdown, so every browser says the same and the wording is tested without a browser.
@@ -80,14 +80,12 @@ def _pose(values: list[float]) -> str:
 
 
 def results_markdown(record: dict | None) -> str:
-    """When commissioning has finished: each step's residuals and verdict, the acceptance
-    check (the figure to sign off) and the measured values; empty before."""
+    """When commissioning has finished, in plain words: each step's verdict (what to change
+    when it says retake) and the acceptance check, the figure to sign off; empty before."""
     summary = (record or {}).get("summary")
     if not summary:
         return ""
-    lines = ["| step | residuals | verdict |", "|---|---|---|"]
-    for step, result in summary["steps"].items():
-        lines.append(f"| {STEP_WORDS.get(step, step)} | {_residuals(step, result)} | {_verdict(result)} |")
+    lines = [f"- {STEP_WORDS.get(step, step)}: {_verdict(result)}" for step, result in summary["steps"].items()]
     acceptance = summary.get("acceptance")
     lines.append("")
     if acceptance:
@@ -96,6 +94,18 @@ def results_markdown(record: dict | None) -> str:
                      "commissioned model puts a corner the camera sees, against where the board has it).")
     else:
         lines.append("No acceptance check: it needs the camera or the hand-eye step.")
+    return "\n".join(lines)
+
+
+def engineering_markdown(record: dict | None) -> str:
+    """When commissioning has finished, for the Engineering fold: each step's residuals and
+    the measured values; empty before."""
+    summary = (record or {}).get("summary")
+    if not summary:
+        return ""
+    lines = ["| step | residuals |", "|---|---|"]
+    for step, result in summary["steps"].items():
+        lines.append(f"| {STEP_WORDS.get(step, step)} | {_residuals(step, result)} |")
     measured = set(record["steps"])
 
     def kept(step: str) -> str:

@@ -8,7 +8,9 @@
   bracket line;
 - the part where the vision puts it: the pose estimated from the four detected corners
   with the nominal camera (planar PnP), carried rigidly by the cup while it holds the part;
-- the metal part where the selected job places the part (from its place pose);
+- the metal part where the selected job places the part (from its place pose); while a job
+  is taught, where the cell file's [metal_part] says it stands, and the outline of the part
+  where the taught pick and place set it down (the place check);
 - the flange's path in the run under way.
 
 Nothing here reads the simulated cell: the view is the controller's picture of the cell.
@@ -41,6 +43,7 @@ LASER_RGB = (240, 30, 30)
 PATH_RGB = (20, 160, 90)
 CUP_RGB = (30, 30, 30)
 BRACKET_RGB = (90, 90, 90)
+OUTLINE_RGB = (20, 200, 60)  # the part where the taught place sets it down
 # The tools' bodies as drawn: the cup's bellows above its lip, the camera's housing behind
 # its lens, the laser pointer's tube behind its aperture (m).
 CUP_RADIUS_M, CUP_HEIGHT_M = 0.009, 0.020
@@ -77,6 +80,14 @@ def placed_part_frame(bMe_place: Matrix, eMv: Matrix, side_m: float) -> Matrix:
     """
     bMv = bMe_place @ eMv
     return bMv @ transform(rot_x(np.pi), (0.0, 0.0, side_m))
+
+
+def part_outline(bMo: Matrix, side_m: float) -> Matrix:
+    """The twelve edges of the part at bMo (O a top-face corner, z up) as (12, 2, 3) segments."""
+    corners = np.array([[x, y, z, 1.0] for z in (0.0, -side_m) for x, y in ((0, 0), (side_m, 0), (side_m, side_m), (0, side_m))])
+    points = (bMo @ corners.T).T[:, :3]
+    edges = [(i, (i + 1) % 4) for i in range(4)] + [(4 + i, 4 + (i + 1) % 4) for i in range(4)] + [(i, i + 4) for i in range(4)]
+    return np.array([[points[a], points[b]] for a, b in edges])
 
 
 def laser_ray(bMe: Matrix, eMl: Matrix, part_top_z_m: float | None) -> tuple[Matrix, Matrix]:
@@ -157,6 +168,14 @@ class CellScene:
             "laser": scene.add_cylinder("/cell/tools/laser", LASER_RADIUS_M, LASER_LENGTH_M, LASER_RGB, visible=False),
         }  # shown, like the frustum, once the robot's pose is known
         self.metal: list = []
+        # The cell file's metal part, drawn while a job is taught (a job's own follows its place pose).
+        self.modelled_metal = [] if config.metal_part is None else [
+            scene.add_box(f"/cell/modelled_metal_part/{index}", METAL_RGB, 2 * box.half_extents, wxyz=_wxyz(box.bMx),
+                          position=box.bMx[:3, 3], visible=False)
+            for index, box in enumerate(config.metal_part.boxes)]
+        self.place_outline = scene.add_line_segments("/cell/teach/place_outline", np.zeros((12, 2, 3)), OUTLINE_RGB,
+                                                     thickness=0.003, visible=False)
+        self._teaching_shown: tuple[bool, list | None] | None = None  # None: not shown yet
         self.tracker = PartTracker(self.mount, self.camera)
         self.job: _Job | None = None
         self._path_points = 0
@@ -171,6 +190,7 @@ class CellScene:
         for handle in self.metal:
             handle.remove()
         self.metal = []
+        self._teaching_shown = None  # the new boxes' visibility is set on the next update
         if job is None:
             self.job = None
             return
@@ -179,6 +199,21 @@ class CellScene:
         for index, box in enumerate(MetalPart(bMp).boxes):
             self.metal.append(self.server.scene.add_box(
                 f"/cell/metal_part/{index}", METAL_RGB, 2 * box.half_extents, wxyz=_wxyz(box.bMx), position=box.bMx[:3, 3]))
+
+    def _show_teaching(self, state: dict) -> None:
+        """While teaching: the cell file's metal part instead of a job's, and the taught place's part outline."""
+        teaching = state.get("phase") == Phase.TEACHING
+        placed = (state.get("teach_poses") or {}).get("place_bMo") if teaching else None
+        if (teaching, placed) == self._teaching_shown:
+            return  # every update would otherwise resend them to every browser
+        self._teaching_shown = (teaching, placed)
+        for handle in self.metal:
+            handle.visible = not (teaching and self.modelled_metal)
+        for handle in self.modelled_metal:
+            handle.visible = teaching
+        if placed is not None:
+            self.place_outline.points = part_outline(np.asarray(placed, float), self.job.side_m if self.job else 0.020)
+        self.place_outline.visible = placed is not None
 
     def update(self, state: dict, overlay: Overlay | None, path_m: Matrix) -> None:
         if not state.get("q"):
@@ -192,6 +227,7 @@ class CellScene:
             self.tools[name].wxyz, self.tools[name].position, self.tools[name].visible = _wxyz(bMx), bMx[:3, 3], True
         brackets = np.array([[bMe[:3, 3], bMx[:3, 3]] for bMx in bodies.values()])
         self.server.scene.add_line_segments("/cell/tools/brackets", brackets, BRACKET_RGB, thickness=0.004)
+        self._show_teaching(state)
         side = self.job.side_m if self.job else 0.020
         bMp = placed_part_frame(self.job.bMe_place, self.mount.eMv, side) if self.job else None
         bMo = self.tracker.update(state, overlay, side, bMp)

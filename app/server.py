@@ -294,6 +294,7 @@ class OperatorApp:
                 if view.frame is not None and view.frame.number != done_frames and now - last_image >= IMAGE_PERIOD_S:
                     done_frames, last_image = view.frame.number, now
                     self.assemble.show_frame(view.frame)
+                    self.teach.refresh_seen(view)
                 for name, period, update in (("text", TEXT_PERIOD_S, self._refresh_text),
                                              ("scene", SCENE_PERIOD_S, self._refresh_scene),
                                              ("plot", PLOT_PERIOD_S, self.assemble.refresh_plots)):

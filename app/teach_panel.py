@@ -5,9 +5,11 @@ and settings are kept until taught again); present a part where the cell can; mo
 arm: jog in Cartesian steps of a chosen size or hold a button to jog at a chosen speed,
 in the base or the tool frame, type a pose for the flange or the cup to move to, or drag
 a 3D gizmo on the flange (the arm moves when the gizmo is let go); capture the desired
-image; the cup on the part (the page shows where the part is seen and the cup pose on
-it), suction, a test pick, set the pick; carry the part into the metal part, set the
-place; the check view; the start pose; threshold, gain, approach height and placement
+image (the page shows where the part is seen and a flange pose that views it as the demo
+job's desired view does); the cup on the part (and the cup pose on it), suction, a test
+pick, set the pick; carry the part into the metal part (the cell file's, drawn in 3D: go
+above its pocket, the cup pose that sets the part in it), set the place and read the
+place check; the check view; the start pose; threshold, gain, approach height and placement
 tolerance; name and save. A button is enabled only while it can act: the operator's,
 and the teaching ones while teaching. Shared: the vacuum sensor and what is still missing.
 Viser gives the Python side no keyboard events: there are no jog keys (docs/operator-guide.md).
@@ -28,6 +30,7 @@ from vservo.app.context import AppContext
 from vservo.app.live_image import Overlay
 from vservo.app.scene3d import part_pose_from_corners
 from vservo.app.session import SessionView
+from vservo.core.cell.kinematics import ToolMount
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.spatial import (
     Matrix,
@@ -41,7 +44,8 @@ from vservo.core.geometry.spatial import (
     transform,
 )
 from vservo.core.production.assembly import Phase
-from vservo.core.production.cell_controller import PART_SIDE_M
+from vservo.core.production.cell_controller import PART_SIDE_M, TeachDraft
+from vservo.core.production.demo_job import DESIRED_cMo
 
 NEW_JOB = "(new job)"
 # Jog step: translation (m) and rotation (deg) per press.
@@ -58,6 +62,9 @@ HOLD_HZ = 5.0
 # level compensator, as an operator jogs until it presses.
 PICK_PRESS_M = 0.003
 TOOLS = ("flange", "cup")
+# "Go above the pocket" stops the carried part this high over where it sits in the pocket:
+# clear of the walls (12 mm deep), near enough to go the rest in one straight move.
+ABOVE_POCKET_M = 0.030
 NEXT_COLOR = "orange"  # the next step's button: the theme's buttons are blue already
 
 
@@ -135,6 +142,12 @@ TEACHING = Phase.TEACHING.value
 STANDING = {Phase.IDLE.value, Phase.TEACHING.value, Phase.DONE.value, Phase.FAULT.value}  # no run moves the arm
 
 
+def teach_pose(state: dict, name: str) -> Matrix | None:
+    """One of the poses the controller offers while teaching (ControllerState.teach_poses), if known."""
+    pose = (state.get("teach_poses") or {}).get(name)
+    return None if pose is None else np.asarray(pose, float)
+
+
 def teaching(state: dict) -> bool:
     return state.get("phase") == TEACHING
 
@@ -164,7 +177,7 @@ def next_button(state: dict) -> str:
 def teach_checklist(state: dict) -> str:
     """What teaching still needs and the next step, or how to start it; the vacuum sensor."""
     if not teaching(state):
-        return ("Not teaching. Choose a template (or a new job) and press **Begin teaching**.  \n"
+        return ("Not teaching. Keep **(new job)** (or choose a stored job as a template) and press **Begin teaching**.  \n"
                 "**Next: Begin teaching**")
     missing = state.get("teach_missing") or []
     optional = state.get("teach_optional") or []
@@ -174,10 +187,23 @@ def teach_checklist(state: dict) -> str:
     return f"{todo}{also}  \n**Next: {next_button(state)}** · vacuum sensor: {sensor}"
 
 
-def seen_markdown(state: dict, overlay: Overlay | None, eMc: Matrix, camera: CameraModel) -> str:
-    """Where the camera sees the part and the cup pose that picks it, for the move-to entry;
-    which way the part moves in the image for each base-frame jog."""
-    bMe = np.asarray(state["bMe"], float)
+def view_over_part(bMo: Matrix, eMc: Matrix) -> Matrix:
+    """bMe that sees the part at bMo as the demo job's desired view sees its part: the camera
+    162 mm over the top face, the four corners around the laser spot."""
+    return bMo @ inverse(DESIRED_cMo) @ inverse(eMc)
+
+
+def above_pocket(bMe_pocket: Matrix) -> Matrix:
+    """The flange ABOVE_POCKET_M over the pose that sets the carried part in the pocket."""
+    return transform(t=(0.0, 0.0, ABOVE_POCKET_M)) @ bMe_pocket
+
+
+def seen_markdown(state: dict, overlay: Overlay | None, mount: ToolMount, camera: CameraModel) -> str:
+    """Where the camera sees the part, a flange pose that views it for the desired image and
+    the cup pose that picks it, for the move-to entry; once the pick is taught, the cup pose
+    that sets the part in the cell file's pocket; which way the part moves in the image for
+    each base-frame jog."""
+    bMe, eMc = np.asarray(state["bMe"], float), mount.eMc
     directions = " · ".join(f"{b}: {image_direction(bMe, eMc, b)}" for b in TRANSLATIONS)
     lines = [f"Jog in the base frame, in the image: {directions}"]
     bMo = None if overlay is None else part_pose_from_corners(overlay.corners_px, bMe, eMc, camera, PART_SIDE_M)
@@ -188,7 +214,12 @@ def seen_markdown(state: dict, overlay: Overlay | None, eMc: Matrix, camera: Cam
         turn = np.rad2deg(np.arctan2(bMo[1, 0], bMo[0, 0]))
         lines.append(f"Part seen: top-face centre X {1000 * centre[0]:.2f} Y {1000 * centre[1]:.2f} "
                      f"Z {1000 * centre[2]:.2f} mm, turned {turn:.2f} deg.  \n"
+                     f"Flange to view it: `{pose_words(view_over_part(bMo, eMc))}`  \n"
                      f"Cup on it: `{pose_words(cup_on_part(bMo))}`")
+    pocket = teach_pose(state, "pocket_bMe")
+    if pocket is not None:
+        bMv = pocket @ mount.eMv
+        lines.append(f"Cup in the pocket: `{pose_words(bMv)}`")
     return "  \n".join(lines)
 
 
@@ -250,21 +281,33 @@ class TeachPanel:
                 pick = button("Set pick pose here",
                               lambda s: teaching(s) and "the desired image" not in (s.get("teach_missing") or []))
             with gui.add_folder("4. Place", order=9):
+                go_pocket = button("Go above the pocket",
+                                   lambda s: teaching(s) and teach_pose(s, "pocket_bMe") is not None,
+                                   hint="The carried part 30 mm over where it sits in the metal part's pocket")
                 go_place = button("Go to the template's place pose", from_template)
                 place = button("Set place pose here", lambda s: teaching(s) and bool(s.get("holding_part")),
                                hint="The part on the cup, in the metal part")
             with gui.add_folder("5. Check view", order=10):
+                go_over = button("Go over the placed part",
+                                 lambda s: teaching(s) and teach_pose(s, "place_bMo") is not None,
+                                 hint="The camera over the part where the taught place sets it down, "
+                                      "as over the part of the desired view")
                 go_check = button("Go to the template's check view", from_template)
                 check = button("Capture check view", teaching, icon=viser.Icon.CAMERA,
                                hint="The part placed in the metal part, the camera over it seeing its four corners")
             with gui.add_folder("6. Start pose", order=11):
+                go_desired = button("Go to the desired view", lambda s: teaching(s) and teach_pose(s, "view_bMe") is not None,
+                                    hint="Where the desired image was captured")
                 go_start = button("Go to the template's start pose", from_template)
                 start = button("Set start pose here", teaching)
             with gui.add_folder("Settings", order=12):
-                threshold = c(gui.add_number("Threshold (px)", 3.0, min=0.1, max=50.0, step=0.1))
-                gain = c(gui.add_number("Gain", 1.0, min=0.05, max=5.0, step=0.05))
-                approach = c(gui.add_number("Approach height (mm)", 40.0, min=5.0, max=200.0, step=1.0))
-                tolerance = c(gui.add_number("Placement tolerance (mm)", 1.0, min=0.05, max=20.0, step=0.05))
+                # A new job's settings, as the controller drafts it.
+                threshold = c(gui.add_number("Threshold (px)", TeachDraft.threshold_px, min=0.1, max=50.0, step=0.1))
+                gain = c(gui.add_number("Gain", TeachDraft.gain, min=0.05, max=5.0, step=0.05))
+                approach = c(gui.add_number("Approach height (mm)", 1000.0 * TeachDraft.approach_m, min=5.0, max=200.0,
+                                            step=1.0))
+                tolerance = c(gui.add_number("Placement tolerance (mm)", TeachDraft.placement_tolerance_mm, min=0.05,
+                                             max=20.0, step=0.05))
                 apply = button("Apply settings", teaching)
             with gui.add_folder("Save", order=13):
                 name = c(gui.add_text("Job name", ""))
@@ -347,6 +390,12 @@ class TeachPanel:
         begin.on_click(on_begin)
         go_view.on_click(go_to("desired view", lambda d: d["taught_bMe"]))
         go_place.on_click(go_to("place pose", lambda d: d["bMe_place"]))
+        go_pocket.on_click(lambda _: send(view, "Go above the pocket", "move_to", "arrived", bMe=above_pocket(
+            teach_pose(app.session.state, "pocket_bMe")).tolist()))
+        go_desired.on_click(lambda _: send(view, "Go to the desired view", "move_to", "arrived",
+                                           bMe=teach_pose(app.session.state, "view_bMe").tolist()))
+        go_over.on_click(lambda _: send(view, "Go over the placed part", "move_to", "arrived", bMe=view_over_part(
+            teach_pose(app.session.state, "place_bMo"), app.scene.mount.eMc).tolist()))
         go_check.on_click(go_to("check view", lambda d: (d.get("check") or {}).get("check_bMe")))
         go_start.on_click(go_to("start pose", lambda d: d["start_bMe"]))
         move.on_click(on_jog)
@@ -397,13 +446,20 @@ class TeachPanel:
 
     def refresh(self, view: SessionView) -> None:
         self.missing.content = teach_checklist(view.state)
-        overlay = Overlay.from_meta(view.frame.meta) if view.frame is not None else None
-        scene = self.app.scene  # the nominal tools and camera the controller believes in
-        self.seen.content = seen_markdown(view.state, overlay, scene.mount.eMc, scene.camera)
+        self.refresh_seen(view)
         with self._lock:
             clients = list(self._live)
         for client_id in clients:
             self._enable(client_id)
+
+    def refresh_seen(self, view: SessionView) -> None:
+        """Where the part is seen, from the newest frame (the display thread calls this on each
+        frame shown: a part presented while the arm stands still changes the frame, not the state)."""
+        overlay = Overlay.from_meta(view.frame.meta) if view.frame is not None else None
+        scene = self.app.scene  # the nominal tools and camera the controller believes in
+        seen = seen_markdown(view.state, overlay, scene.mount, scene.camera)
+        if self.seen.content != seen:
+            self.seen.content = seen
 
     def _enable(self, client_id: int) -> None:
         """Each button enabled only while it can act: the operator's browser, and the state

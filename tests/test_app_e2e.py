@@ -95,7 +95,7 @@ def test_teach_a_job_and_assemble_it_while_a_monitor_watches(app, pages, artifac
     operator.get_by_role("button", name="Begin teaching").click()
     wait_for_status(operator, r"Teaching")
     home = np.array(flange_of(status_text(operator)))
-    operator.get_by_role("button", name="desired view").click()
+    operator.get_by_role("button", name="Go to the template's desired view", exact=True).click()
     view = np.array(_wait_flange(operator, lambda p: np.abs(p - home).max() > 1.0, "left home"))
     choose(operator, "Step", "5 mm / 2 deg")
     operator.get_by_role("button", name="+Z", exact=True).click()

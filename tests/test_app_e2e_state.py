@@ -1,7 +1,7 @@
 """The state at a glance and the replay, end to end: `vservo serve` as a real process, headless Chromium.
 
-The banner over the page says ready, running (the stage in words), placed and e-stopped,
-each in its colour; Start is disabled while a run is under way and while e-stopped, in the
+The banner over the page says ready, running (the stage in words), placed, e-stopped,
+teaching, missed and fault, each in its colour; Start is disabled while a run is under way and while e-stopped, in the
 operator's own page; the History tab opens on the newest run, and its replay plays, pauses,
 seeks and changes speed. With VSERVO_DOC_IMAGES set (docs/images), the screenshots of each
 banner and of the replay are written there for docs/operator-guide.md; else to
@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 import re
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -24,6 +25,7 @@ from vservo.app.banner import Kind
 from vservo.app.browser import (
     ServeProcess,
     banner,
+    choose,
     dismiss_notifications,
     launch_chromium,
     open_pages,
@@ -31,6 +33,8 @@ from vservo.app.browser import (
     wait_for_banner,
     wait_for_status,
 )
+from vservo.core.geometry.spatial import transform
+from vservo.core.production.storage import Store
 
 TOKEN = "e2e-state-token"
 ROOT = Path(__file__).resolve().parent.parent
@@ -60,9 +64,11 @@ def page(tmp_path_factory):
     from playwright.sync_api import sync_playwright
 
     IMAGES.mkdir(parents=True, exist_ok=True)
-    # The thesis's step policy: a servo long enough to see running and to press E-STOP in.
-    serve = ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.02,
-                               cell=thesis_policy_cell_file(tmp_path_factory.mktemp("cell")))
+    data = tmp_path_factory.mktemp("serve-data")
+    store_a_job_that_misses(data)
+    # The thesis's step policy: a run of a few hundred cycles, long enough to watch its banner
+    # (the shipped fast policy's takes a handful).
+    serve = ServeProcess.start(data, TOKEN, cycle_period_s=0.02, cell=thesis_policy_cell_file(data))
     try:
         with sync_playwright() as playwright:
             chromium = launch_chromium(playwright)
@@ -73,6 +79,27 @@ def page(tmp_path_factory):
     finally:
         assert serve.stop() == 0
         assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]
+
+
+def store_a_job_that_misses(data: Path) -> None:
+    """`off`: the demo job with its place pose taught 4 mm aside, as a careless teach would:
+    every run sets the part on the pocket's rim, a miss."""
+    store = Store(data)
+    try:
+        demo = store.load_job("demo")
+        off = replace(demo, name="off", bMe_place=transform(t=(0.004, 0.0, 0.0)) @ demo.bMe_place)
+        store.save_job(off, store.job_image("demo"), store.job_image("demo", check=True))
+    finally:
+        store.close()
+
+
+def _colour(page) -> str:
+    """The banner's background colour; the page redraws the banner on each state it shows, and
+    a banner read as it is replaced has none yet: read it again."""
+    deadline = time.monotonic() + 10.0
+    while not (colour := banner(page)[2]) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return colour
 
 
 def _shot(page, name: str, top_px: int | None = 480) -> None:
@@ -104,14 +131,14 @@ def test_the_banner_follows_a_run_from_ready_to_placed(page):
 
     _start(page)
     running = wait_for_banner(page, "busy", r"RUNNING job demo: (turning|approaching|final)")
-    assert banner(page)[2] == _rgb(Kind.BUSY) and "keep clear" in running
+    assert _colour(page) == _rgb(Kind.BUSY) and "keep clear" in running
     assert page.get_by_role("button", name="Start", exact=True).is_disabled()
     assert page.get_by_role("button", name="Present part", exact=True).is_disabled()
     wait_for_status(page, r"cycle ([3-9]\d|\d{3})")
     _shot(page, "banner-running", top_px=None)
 
     placed = wait_for_banner(page, "placed", r"PLACED: job demo", timeout_s=120)
-    assert banner(page)[2] == _rgb(Kind.PLACED) and "press Start" in placed and "mm from its taught place" in placed
+    assert _colour(page) == _rgb(Kind.PLACED) and "press Start" in placed and "mm from its taught place" in placed
     assert not page.get_by_role("button", name="Start", exact=True).is_disabled()
     _shot(page, "banner-placed")
 
@@ -121,7 +148,7 @@ def test_the_banner_says_e_stopped_in_red_and_start_waits_for_reset(page):
     wait_for_status(page, r"Servoing .*cycle ([2-9]\d|\d{3})")
     page.get_by_role("button", name="E-STOP", exact=True).click()
     stopped = wait_for_banner(page, "estopped", r"E-STOPPED", timeout_s=10)
-    assert banner(page)[2] == _rgb(Kind.ESTOPPED) and "press Reset" in stopped and "e-stop pressed" in stopped
+    assert _colour(page) == _rgb(Kind.ESTOPPED) and "press Reset" in stopped and "e-stop pressed" in stopped
     assert page.get_by_role("button", name="Start", exact=True).is_disabled()
     assert not page.get_by_role("button", name=re.compile("^Reset")).is_disabled()
     status = page.get_by_text(re.compile("flange X")).first.locator("xpath=..")
@@ -177,3 +204,29 @@ def test_history_opens_on_the_newest_run_and_its_replay_plays_pauses_seeks_and_s
     chart.scroll_into_view_if_needed()
     assert chart.is_visible()
     _shot(page, "replay", top_px=None)
+
+
+def test_the_banner_says_teaching_missed_and_fault_each_in_its_colour(page):
+    page.get_by_role("tab", name="Teach").click()
+    page.get_by_role("button", name="Begin teaching", exact=True).click()
+    teaching = wait_for_banner(page, "busy", r"TEACHING", timeout_s=30)
+    assert _colour(page) == _rgb(Kind.BUSY) and "Teach tab" in teaching, teaching
+    _shot(page, "banner-teaching")
+    page.get_by_role("button", name="Cancel teaching", exact=True).click()
+    wait_for_banner(page, "ready", "READY", timeout_s=30)
+
+    page.get_by_role("tab", name="Assemble").click()
+    choose(page, "Job", "off")
+    _start(page)
+    missed = wait_for_banner(page, "missed", r"MISSED: job off", timeout_s=120)
+    assert _colour(page) == _rgb(Kind.MISSED) and "beyond the 1 mm tolerance" in missed, missed
+    _shot(page, "banner-missed")
+
+    # No new part: the camera at the start pose finds none, and the run faults.
+    choose(page, "Job", "demo")
+    page.get_by_role("button", name="Start", exact=True).click()
+    fault = wait_for_banner(page, "fault", r"FAULT", timeout_s=120)
+    assert _colour(page) == _rgb(Kind.FAULT) and "not in the image" in fault, fault
+    _shot(page, "banner-fault")
+    page.get_by_role("button", name=re.compile("^Reset")).click()
+    wait_for_banner(page, "ready", "READY", timeout_s=30)

@@ -11,7 +11,7 @@ import pytest
 
 from tests.jrc_fixtures import with_the_thesis_policy
 from vservo.app import commission_text, live_image
-from vservo.app.calibration_run import bar_fraction, results_markdown
+from vservo.app.calibration_run import bar_fraction, results_markdown, summary_markdown
 from vservo.app.commands import CommandQueue
 from vservo.app.roles import RoleRefused, Roles, new_token
 from vservo.app.scene3d import PartTracker, laser_ray, part_pose_from_corners, placed_part_frame
@@ -261,6 +261,9 @@ def test_calibration_progress_and_table():
                                            "corners": 10, "views": 2},
                               "track": {"methods": {"nn": {"xy_mm": 0.04, "true": {"xy_mm": 0.37}}}, "points": 10}})
     assert "| nn | 0.100 | 0.200 | 0.250 | 0.500 | 0.040 | 0.370 |" in table
+    plain = summary_markdown({"evaluate": {"methods": {"axxb": {"xy_mm": 1.73}, "nn": {"xy_mm": 0.25}}}})
+    assert plain.endswith("- the network: 0.25 mm off on average\n- hand-eye from turned views: 1.73 mm off on average")
+    assert "axxb" not in plain and "eq." not in plain
 
 
 def commissioning_record(nn_verdict: str = "good") -> dict:
@@ -299,10 +302,12 @@ def test_commissioning_texts():
 
     assert "**Commissioned**: every step is good. **Apply** writes `/cells/line3-commissioned.toml`." in (
         commission_text.progress_markdown(record, "/cells/line3.toml"))
-    table = commission_text.results_markdown(record)
-    assert "| camera | RMS 0.058 px over 24 views (worst view 0.141 px); fx known to ±0.49 px | good |" in table
-    assert "| network (nn) | validation error 0.298 mm mean, 0.856 mm max (1000 corners from 25 views) | good |" in table
-    assert "the figure to sign off**: mean error **0.010 mm**, max **0.015 mm** over 4 board corners" in table
+    plain = commission_text.results_markdown(record)
+    assert plain.startswith("- camera: good\n- network (nn): good\n") and "RMS" not in plain and "eMc" not in plain
+    assert "the figure to sign off**: mean error **0.010 mm**, max **0.015 mm** over 4 board corners" in plain
+    table = commission_text.engineering_markdown(record)
+    assert "| camera | RMS 0.058 px over 24 views (worst view 0.141 px); fx known to ±0.49 px |" in table
+    assert "| network (nn) | validation error 0.298 mm mean, 0.856 mm max (1000 corners from 25 views) |" in table
     assert "- camera: fx 811.18 px, fy 811.12 px, principal point (320.24, 239.96) px\n" in table
     assert "- laser cMl: X 29.993 Y -0.000 Z 0.000 mm, phi 0.000 theta -10.011 psi -0.003 deg (not measured" in table
     assert "- laser baseline d 29.99 mm, angle alpha 79.99 deg (not measured: the cell file's)" in table
@@ -311,7 +316,7 @@ def test_commissioning_texts():
 
     retake = commissioning_record("retake")
     assert "**Commissioned**, but nn says retake: commission again." in commission_text.progress_markdown(retake, "x")
-    assert "| **retake**: 6 grid views, validation error 14.948 mm mean |" in commission_text.results_markdown(retake)
+    assert "- network (nn): **retake**: 6 grid views, validation error 14.948 mm mean" in commission_text.results_markdown(retake)
 
     stopped = {**running, "error": "e-stop pressed"}
     assert "**Commissioning stopped**: e-stop pressed" in commission_text.progress_markdown(stopped, "x")

@@ -270,6 +270,10 @@ class CellConfig:
     fixture_url: str | None = None
     board: BoardConfig | None = None  # [board]: None when the file names no calibration board
     commissioning: CommissioningRecord | None = None  # [commissioning]: None until the cell is commissioned
+    # [metal_part] pose: where the cell's metal part stands as measured on the cell (its
+    # pocket floor's centre); None when the file does not say. Teaching draws it and checks
+    # a place pose against its pocket; the simulator's own is [simulation.scene].
+    metal_part: MetalPart | None = None
 
     @property
     def real(self) -> bool:
@@ -471,6 +475,18 @@ def _board(t: _Table) -> BoardConfig | None:
     board = BoardConfig(square, (int(corners[0]), int(corners[1])), t.pose("pose", None))
     t.finish()
     return board
+
+
+def _metal_part(t: _Table) -> MetalPart | None:
+    """[metal_part]: the pose of its pocket floor's centre (mm, deg); None when the table is absent."""
+    if not t._data:
+        return None
+    part = MetalPart(t.pose("pose", None))
+    if abs(part.bMp[2, 2]) < 1.0 - 1e-9:
+        raise t.fail("pose", t._data["pose"], "the pocket opens straight up: theta and psi must be 0 "
+                     "(phi turns it about the vertical)")
+    t.finish()
+    return part
 
 
 def _commissioning(t: _Table, base_dir: Path | None) -> CommissioningRecord | None:
@@ -730,11 +746,12 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     motion = _motion(root.table("motion"), safety)
     fixture_url = _fixture_url(root.table("fixture"))
     commissioning = _commissioning(root.table("commissioning"), base_dir)
+    metal_part = _metal_part(root.table("metal_part"))
     root.finish()
     camera_source = _camera_source(_Table(wiring.get("camera", {}), "camera", source).table("source"), base_dir)
     vacuum_device = _vacuum_device(_Table(wiring.get("vacuum", {}), "vacuum", source))
     config = CellConfig(source, arm, home_q, nominal, motion, simulation, backend, jrc, safety, camera_source,
-                        vacuum_device, fixture_url, board, commissioning)
+                        vacuum_device, fixture_url, board, commissioning, metal_part)
     _check_devices(config)
     return config
 

@@ -43,7 +43,7 @@ from vservo.core.cell.config import DEFAULT_CELL, CellConfig, ConfigError, load_
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
 from vservo.core.cell.scene import Cube
 from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
-from vservo.core.geometry.spatial import Matrix, exp_twist, inverse
+from vservo.core.geometry.spatial import Matrix, exp_twist
 from vservo.core.perception.camera_source import BaseSource, CameraSourceError, Frame, FrameSource, Size
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.perception.recording import RecordingError, RunRecorder
@@ -52,6 +52,7 @@ from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job, JobError, TaughtModel
 from vservo.core.production.locate import PartLocator
 from vservo.core.production.placement_check import CheckView
+from vservo.core.production.pocket import PocketFit, flange_in_pocket, part_on_flange, pocket_fit
 from vservo.core.production.retarget import retarget, retarget_note
 from vservo.core.production.rig import Rig, extractor_for
 from vservo.core.production.storage import Store
@@ -140,6 +141,10 @@ class ControllerState:
     can_present_part: bool = False  # the cell can put a new part on the table (simulated, or a test fixture)
     teach_missing: list[str] = field(default_factory=list)
     teach_optional: list[str] = field(default_factory=list)
+    # While teaching, the poses the Teach tab offers to go to, each once known: "view_bMe"
+    # the desired view; from the cell file's [metal_part], "pocket_bMe" the flange pose that
+    # sets the picked part down centred in its pocket, "place_bMo" where the taught place sets it.
+    teach_poses: dict[str, list[list[float]]] = field(default_factory=dict)
     last_outcome: dict | None = None
     cell_file: str = ""  # the cell file whose model the controller runs on
     # The commissioning of this session: its steps, the file Apply writes, per step of the
@@ -437,11 +442,51 @@ class CellController:
             # The job shown is the template taught from; a new job has none until it is saved.
             self._desired = None  # the last job's desired corners are no part of the new one
             self._update(phase=Phase.TEACHING.value, detail="jog to the desired view and capture it", job=template or None,
-                         teach_missing=draft.missing(), teach_optional=draft.optional_missing())
+                         teach_missing=draft.missing(), teach_optional=draft.optional_missing(), teach_poses=self._teach_poses())
 
     def _set_draft(self, detail: str, **changes) -> None:
         self._draft = replace(self._draft, **changes)
-        self._update(detail=detail, teach_missing=self._draft.missing(), teach_optional=self._draft.optional_missing())
+        self._update(detail=detail, teach_missing=self._draft.missing(), teach_optional=self._draft.optional_missing(),
+                     teach_poses=self._teach_poses())
+
+    def _pocket_fit(self) -> PocketFit | None:
+        """Where the taught pick and place set the desired image's part down, against the
+        cell file's pocket; None until all three are taught, or without a [metal_part]."""
+        draft, pocket = self._draft, self.rig.config.metal_part
+        if pocket is None or draft.seen_bMo is None or draft.eMe_pick is None or draft.bMe_place is None:
+            return None
+        return pocket_fit(draft.bMe_place @ part_on_flange(draft.taught_bMe, draft.eMe_pick, draft.seen_bMo),
+                          pocket, PART_SIDE_M)
+
+    def _teach_poses(self) -> dict:
+        """The state's teach_poses for the draft."""
+        draft, pocket = self._draft, self.rig.config.metal_part
+        poses = {} if draft.taught_bMe is None else {"view_bMe": draft.taught_bMe.tolist()}
+        if pocket is None or draft.seen_bMo is None or draft.eMe_pick is None:
+            return poses
+        eMo = part_on_flange(draft.taught_bMe, draft.eMe_pick, draft.seen_bMo)
+        poses["pocket_bMe"] = flange_in_pocket(eMo, pocket, PART_SIDE_M, draft.seen_bMo).tolist()
+        fit = self._pocket_fit()
+        if fit is not None:
+            poses["place_bMo"] = fit.bMo.tolist()
+        return poses
+
+    def _place_words(self) -> str:
+        """The place check (said as soon as the place is taught): how far off the pocket's
+        centre and how turned, modulo the part's quarter turns, every run will set the part
+        down; a warning beyond the placement tolerance or PLACE_TURN_WARNING_DEG."""
+        if self.rig.config.metal_part is None:
+            return " (the cell file has no [metal_part]: no place check)"
+        fit = self._pocket_fit()
+        if fit is None:
+            return ""
+        if abs(fit.turn_deg) > PLACE_TURN_WARNING_DEG:
+            return (f"; WARNING: {fit.words()}: the part in the desired image is turned {fit.turn_deg:+.1f} deg from "
+                    "how it must sit in the pocket; turn the cup by the opposite at the place, or teach the desired "
+                    "image with the part turned as the pocket is")
+        if fit.offset_mm > self._draft.placement_tolerance_mm:
+            return f"; WARNING: {fit.words()}: beyond the placement tolerance; move the cup over the pocket's centre"
+        return f": {fit.words()}"
 
     def capture_desired(self, part_side_m: float = PART_SIDE_M) -> DesiredImage:
         """Take the desired image here (Fig. C-2): the four corners and the laser spot must be seen."""
@@ -493,7 +538,7 @@ class CellController:
         if placed is None:
             return ""
         # The part held as the pick found it, set down by the place pose.
-        expected = draft.bMe_place @ inverse(draft.taught_bMe @ draft.eMe_pick) @ draft.seen_bMo
+        expected = draft.bMe_place @ part_on_flange(draft.taught_bMe, draft.eMe_pick, draft.seen_bMo)
         offset_mm = 1000.0 * float(np.linalg.norm(placed[:2, 3] - expected[:2, 3]))
         turn = np.arctan2(placed[1, 0], placed[0, 0]) - np.arctan2(expected[1, 0], expected[0, 0])
         turn_deg = float(np.rad2deg(np.angle(np.exp(1j * turn))))
@@ -525,7 +570,8 @@ class CellController:
             if not self._holding():
                 raise CommandRefused("the place pose is taught with the part on the cup, and the vacuum sensor "
                                      "reports none: at the pick, Suction on, then carry the part into the metal part")
-            self._set_draft("place pose set here", bMe_place=self.rig.robot.read_pose())
+            self._draft = replace(self._draft, bMe_place=self.rig.robot.read_pose())
+            self._set_draft(f"place pose set here{self._place_words()}")
 
     def _holding(self) -> bool:
         try:
