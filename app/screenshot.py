@@ -18,20 +18,9 @@ from pathlib import Path
 from vservo.app.browser import dismiss_notifications, free_port, launch_chromium, open_pages, take_control, wait_for_status
 from vservo.app.roles import new_token
 from vservo.app.server import ServeOptions, start_app
-from vservo.core.cell.config import load_cell, read_cell_bytes
+from vservo.core.cell.config import load_cell, write_thesis_policy_cell
 
 DEFAULT = Path("static/screenshots/assemble.png")
-
-
-def thesis_policy_cell_file(folder: Path) -> Path:
-    """The shipped cell file on the thesis's step policy ([motion] policy = "thesis"), written into ``folder``."""
-    shipped = read_cell_bytes()[0].decode("utf-8")
-    thesis = shipped.replace('\npolicy = "fast"', '\npolicy = "thesis"')
-    if thesis == shipped:
-        raise RuntimeError('the shipped cell file names no [motion] policy = "fast"')
-    path = folder / "thesis-policy-cell.toml"
-    path.write_text(thesis)
-    return path
 
 
 def take_screenshot(path: Path, seed: int = 0) -> Path:
@@ -39,7 +28,7 @@ def take_screenshot(path: Path, seed: int = 0) -> Path:
 
     with tempfile.TemporaryDirectory(prefix="vservo-screenshot-") as data:
         options = ServeOptions(port=free_port(), data=Path(data), seed=seed, token=new_token(), cycle_period_s=0.05)
-        cell = thesis_policy_cell_file(Path(data))
+        cell = write_thesis_policy_cell(Path(data))
         running = start_app(replace(options, cell=str(cell)), load_cell(cell))
         try:
             with sync_playwright() as playwright:

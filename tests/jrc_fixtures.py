@@ -3,13 +3,12 @@
 import threading
 from contextlib import contextmanager
 from dataclasses import replace
-from importlib import resources
 from pathlib import Path
 
 import pytest
 
 from tests.test_config import default_data
-from vservo.core.cell.config import CellConfig, StepPolicyKind, parse_cell
+from vservo.core.cell.config import CellConfig, StepPolicyKind, parse_cell, write_thesis_policy_cell
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.sim.jrc_emulator import FaultPlan, JrcEmulator
 
@@ -26,14 +25,9 @@ def with_the_thesis_policy(config: CellConfig) -> CellConfig:
 
 
 def thesis_policy_cell_file(folder: Path) -> str:
-    """The shipped cell file with the thesis's step policy, written into ``folder``, for a
-    test's child process (`vservo run`, `vservo virtual-cell`)."""
-    shipped = resources.files("vservo.static").joinpath("cell.toml").read_text()
-    thesis = shipped.replace('\npolicy = "fast"', '\npolicy = "thesis"')
-    assert thesis != shipped, "the shipped cell names no fast policy"
-    path = folder / "thesis-policy-cell.toml"
-    path.write_text(thesis)
-    return str(path)
+    """The shipped cell file on the thesis's step policy, for a test's child process
+    (`vservo run`, `vservo virtual-cell`, `vservo serve`)."""
+    return str(write_thesis_policy_cell(folder))
 
 
 def short_timer_cell(**sections):

@@ -550,12 +550,7 @@ def test_the_cell_clock_undoes_the_emulators_speed_up_and_counts_the_wire(cell, 
     line = replace(config.jrc, time_scale=TIME_SCALE)
     with jrc_link(cell, replace(config, jrc=line)) as (robot, _):
         robot.servo(True)
-        start = robot.read_pose()
-        before = robot.cell_clock_s()
-        robot.move_to(transform(t=(0.04, 0.0, 0.0)) @ start, 0.01)
-        assert robot.wait_motion()
-        moved = robot.cell_clock_s() - before
-        assert 4.0 <= moved <= 4.0 + 1.5  # the motion, plus MOVL's and the JWAITs' bytes
+        assert 4.0 <= _cell_time_of_a_4_s_move(robot) <= 4.0 + 1.5  # the motion, plus MOVL's and the JWAITs' bytes
         before = robot.cell_clock_s()
         robot.dwell(0.01)
         assert robot.cell_clock_s() - before >= 0.5
@@ -566,7 +561,6 @@ def test_the_cell_clock_undoes_the_emulators_speed_up_and_counts_the_wire(cell, 
         assert wire >= 10 * line.wire_time_s(len("RPOSC 0,0") + 40)  # at least the command and a short pose
 
 
-
 def test_the_cell_clock_counts_the_motion_from_the_move_to_its_end_whatever_the_host_does_meanwhile(cell, config):
     """The arm moves from the JRC's taking the MOVL, not from the host's JWAIT: a host
     busy elsewhere for most of a 4 s motion (80 ms on the wall at 50 x) still counts the
@@ -574,10 +568,16 @@ def test_the_cell_clock_counts_the_motion_from_the_move_to_its_end_whatever_the_
     line = replace(config.jrc, time_scale=TIME_SCALE)
     with jrc_link(cell, replace(config, jrc=line)) as (robot, _):
         robot.servo(True)
-        start = robot.read_pose()
-        before = robot.cell_clock_s()
-        robot.move_to(transform(t=(0.04, 0.0, 0.0)) @ start, 0.01)
-        time.sleep(0.06)  # 3 s of the arm's 4
-        assert robot.wait_motion()
-        moved = robot.cell_clock_s() - before
+        moved = _cell_time_of_a_4_s_move(robot, host_busy_s=0.06)  # 3 s of the arm's 4
     assert 4.0 <= moved <= 4.0 + 1.5  # the motion, plus MOVL's and the JWAITs' bytes
+
+
+def _cell_time_of_a_4_s_move(robot, host_busy_s: float = 0.0) -> float:
+    """The cell clock over a 40 mm move at 10 mm/s, the host busy elsewhere ``host_busy_s``
+    (wall) between sending it and waiting for its end."""
+    start = robot.read_pose()
+    before = robot.cell_clock_s()
+    robot.move_to(transform(t=(0.04, 0.0, 0.0)) @ start, 0.01)
+    time.sleep(host_busy_s)
+    assert robot.wait_motion()
+    return robot.cell_clock_s() - before

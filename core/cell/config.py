@@ -784,6 +784,19 @@ def read_cell_data(path: str | Path | None = None) -> tuple[dict[str, Any], str]
         raise ConfigError(f"{source}: not valid TOML: {exc}") from None
 
 
+def write_thesis_policy_cell(folder: Path) -> Path:
+    """The shipped cell file on the thesis's step policy ([motion] policy = "thesis"),
+    written into ``folder``: its servo takes hundreds of cycles, one per sampling period,
+    long enough to watch a run or act in its middle (the shipped fast policy's takes a few)."""
+    shipped = read_cell_bytes()[0].decode("utf-8")
+    thesis = shipped.replace('\npolicy = "fast"', '\npolicy = "thesis"')
+    if thesis == shipped:
+        raise ConfigError('the shipped cell file names no [motion] policy = "fast"')
+    path = Path(folder) / "thesis-policy-cell.toml"
+    path.write_text(thesis)
+    return path
+
+
 def load_cell(path: str | Path | None = None) -> CellConfig:
     """Load a cell file; ``None`` loads the default cell shipped in ``static/``."""
     data, source = read_cell_data(path)
