@@ -44,7 +44,7 @@ from vservo.app.browser import (
 from vservo.app.light_monitor import LIGHT_COUNTS, LightMonitors, Monitors
 from vservo.app.roles import new_token
 from vservo.app.server import IMAGE_PERIOD_S, RunningApp, ServeOptions, start_app
-from vservo.core.cell.config import CellConfig
+from vservo.core.cell.config import CellConfig, load_cell, write_thesis_policy_cell
 from vservo.core.production.assembly import Phase
 
 WATCH_IMAGE_TIMES = """() => {
@@ -234,6 +234,10 @@ def bench_ui(config: CellConfig, seed: int = 0, runs: int = 3, monitors: Monitor
                 "monitors)",
     }
     with tempfile.TemporaryDirectory(prefix="vservo-bench-ui-") as data:
+        if cell is None:  # the shipped fast policy's servo is over in a handful of cycles: too few to watch
+            cell = str(write_thesis_policy_cell(Path(data)))
+            config = load_cell(cell)
+            result["cell"] = "the shipped cell on the thesis's step policy"
         options = ServeOptions(port=free_port(), data=Path(data), seed=seed, token=new_token(),
                                cycle_period_s=cycle_period_s, cell=cell)
         running = start_app(options, config)
