@@ -51,6 +51,7 @@ def test_commission_the_simulated_cell_from_the_calibrate_tab_and_apply(tmp_path
                 assert verdicts.count() == 4  # camera, hand-eye, laser, network, in plain words
                 page.get_by_text("Engineering (calibration)").click()  # the residuals and measured values, folded
                 residuals = page.locator("table").filter(has_text="residuals").get_by_role("row")
+                residuals.nth(4).wait_for(timeout=30_000)  # the fold's content is drawn after the click
                 assert residuals.count() == 5  # the header and a row per step
                 page.get_by_text(re.compile(r"camera: fx \d+\.\d\d px, fy")).wait_for(timeout=5_000)
                 page.get_by_text(re.compile(r"laser baseline d \d+\.\d\d mm, angle alpha")).wait_for(timeout=5_000)
