@@ -35,7 +35,7 @@ from vservo.core.production.cell_rig import build_rig
 from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job, TaughtModel
 from vservo.core.production.locate import PartLocator
-from vservo.core.production.retarget import start_pose_for_part
+from vservo.core.production.retarget import retarget, start_pose_for_part
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.safety import SafetyRefusal
@@ -73,7 +73,14 @@ def _servable(rig: Rig, job: Job, bMo: Matrix) -> bool:
     view down to the pick and from above the pick to above the place, each step through
     the safety layer's checks (SafetyLayer.joint_path / linear_path, as the run's moves
     plan them), and the poses SERVO_MARGIN_M around the start pose, the desired view and
-    the pick, radially and vertically (the servo's path wanders about them). No motion."""
+    the pick, radially and vertically (the servo's path wanders about them). No motion.
+
+    The job as the run sees it: retargeted to the cell's model, as the controller retargets
+    every run. The servo ends where the camera sees the part at the desired cdMo, so the
+    flange's goal is bMo cdMo^-1 eMc^-1 through the cell's hand-eye: on a commissioned cell
+    whose eMc is turned by degrees from the taught one, that goal lies tens of millimetres
+    from the taught model's and may be past joint 2's or 3's limit where the taught one is not."""
+    job = retarget(job, rig.config.nominal)
     taught = job.taught_model or TaughtModel.of(rig.config.nominal)
     start = start_pose_for_part(job, taught, bMo)
     view = start_pose_for_part(replace(job, start_bMe=job.taught_bMe), taught, bMo)
