@@ -8,10 +8,11 @@ centre of the network's grid (flange tool-down at the grid's height), saved as
 ``<job>-locate`` in the bench's data folder. Each placement is drawn uniformly in the
 part of the table the survey camera sees, a margin inside the image's edges (through the
 cell file's calibrated model), at a random turn, where the arm can serve it: the start
-pose, the desired view and the pick pose moved with the part, and every pose 5 mm around
-them, must be reachable (the UPJ's tool-down workspace at the taught heights is a thin
-shell around its base, and the servo's path wanders about those poses), and the moves
-the run makes between them must pass the safety layer's checks all along their paths. Places
+pose, the desired view (through the cell's hand-eye, where the servo ends) and the pick
+pose moved with the part, and every pose 5 mm around them, must be reachable (the UPJ's
+tool-down workspace at the taught heights is a thin shell around its base, and the
+servo's path wanders about those poses), and the moves the run makes between them must
+pass the safety layer's checks all along their paths. Places
 the fixture refuses (on the metal part) or the arm cannot serve are drawn again, and
 counted. Every run is an ordinary assembly of the controller.
 """
