@@ -8,10 +8,11 @@ centre of the network's grid (flange tool-down at the grid's height), saved as
 ``<job>-locate`` in the bench's data folder. Each placement is drawn uniformly in the
 part of the table the survey camera sees, a margin inside the image's edges (through the
 cell file's calibrated model), at a random turn, where the arm can serve it: the start
-pose, the desired view and the pick pose moved with the part, and every pose 5 mm around
-them, must be reachable (the UPJ's tool-down workspace at the taught heights is a thin
-shell around its base, and the servo's path wanders about those poses), and the moves
-the run makes between them must pass the safety layer's checks all along their paths. Places
+pose, the desired view (through the cell's hand-eye, where the servo ends) and the pick
+pose moved with the part, and every pose 5 mm around them, must be reachable (the UPJ's
+tool-down workspace at the taught heights is a thin shell around its base, and the
+servo's path wanders about those poses), and the moves the run makes between them must
+pass the safety layer's checks all along their paths. Places
 the fixture refuses (on the metal part) or the arm cannot serve are drawn again, and
 counted. Every run is an ordinary assembly of the controller.
 """
@@ -35,7 +36,7 @@ from vservo.core.production.cell_rig import build_rig
 from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job, TaughtModel
 from vservo.core.production.locate import PartLocator
-from vservo.core.production.retarget import start_pose_for_part
+from vservo.core.production.retarget import retarget, start_pose_for_part
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.safety import SafetyRefusal
@@ -73,7 +74,14 @@ def _servable(rig: Rig, job: Job, bMo: Matrix) -> bool:
     view down to the pick and from above the pick to above the place, each step through
     the safety layer's checks (SafetyLayer.joint_path / linear_path, as the run's moves
     plan them), and the poses SERVO_MARGIN_M around the start pose, the desired view and
-    the pick, radially and vertically (the servo's path wanders about them). No motion."""
+    the pick, radially and vertically (the servo's path wanders about them). No motion.
+
+    The job as the run sees it: retargeted to the cell's model, as the controller retargets
+    every run. The servo ends where the camera sees the part at the desired cdMo, so the
+    flange's goal is bMo cdMo^-1 eMc^-1 through the cell's hand-eye: on a commissioned cell
+    whose eMc is turned by degrees from the taught one, that goal lies tens of millimetres
+    from the taught model's and may be past joint 2's or 3's limit where the taught one is not."""
+    job = retarget(job, rig.config.nominal)
     taught = job.taught_model or TaughtModel.of(rig.config.nominal)
     start = start_pose_for_part(job, taught, bMo)
     view = start_pose_for_part(replace(job, start_bMe=job.taught_bMe), taught, bMo)
