@@ -12,7 +12,9 @@ from vservo.core.cell.config import load_cell
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import inverse, rot_z, transform
 from vservo.core.production.cell_rig import build_rig
+from vservo.core.production.retarget import desired_view_for_part, retarget
 from vservo.core.production.storage import Store
+from vservo.core.robot.safety import SafetyRefusal
 from vservo.core.study.locate_bench import _servable, failure_kind
 
 
@@ -49,5 +51,12 @@ def test_a_place_whose_desired_view_through_the_cells_hand_eye_is_out_of_reach_i
         with pytest.raises(UnreachableTarget, match="joint_3 at its upper limit"):
             rig.robot.arm.ik(view_run, config.home_q, restarts=100)
         assert not _servable(rig, replace(job, survey_bMe=job.start_bMe), bMo)
+        # The goal a locating run checks as soon as it has found the part (run_assembly),
+        # and refuses at once instead of servoing until a joint is stuck at its limit.
+        run_job = retarget(job, config.nominal)
+        goal_bMe = desired_view_for_part(run_job, run_job.taught_model, bMo)
+        assert np.allclose(goal_bMe, view_run, atol=1e-6)
+        with pytest.raises(SafetyRefusal, match="joint_3 at its upper limit"):
+            rig.robot.check_target(goal_bMe, 0.05, bMe_now=goal_bMe)
     finally:
         rig.close()

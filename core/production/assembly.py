@@ -35,7 +35,7 @@ from vservo.core.production.grasp import GraspChoice, grasp_choice
 from vservo.core.production.jobs import Job, TaughtModel
 from vservo.core.production.locate import LocateError, PartLocator
 from vservo.core.production.placement_check import PlacementCheck, check_placement
-from vservo.core.production.retarget import start_pose_for_part
+from vservo.core.production.retarget import desired_view_for_part, start_pose_for_part
 from vservo.core.robot.backend import RobotBackend, RobotError
 from vservo.core.robot.gripper import VacuumGripper
 from vservo.core.robot.safety import SafetyLayer, SafetyRefusal
@@ -305,9 +305,15 @@ def run_assembly(
                 located = locator.locate(survey.corners_px, robot.read_pose(), job.part_side_m)
             except LocateError as exc:
                 return end(Outcome.FAULT, f"locate: {exc}")
-            start_bMe = start_pose_for_part(job, job.taught_model or TaughtModel.of(model), located.bMo)
-            on_event(PhaseChange(Phase.SERVOING, f"part located at ({1000 * located.bMo[0, 3]:.1f}, "
-                                                 f"{1000 * located.bMo[1, 3]:.1f}) mm"))
+            taught = job.taught_model or TaughtModel.of(model)
+            start_bMe = start_pose_for_part(job, taught, located.bMo)
+            where = f"part located at ({1000 * located.bMo[0, 3]:.1f}, {1000 * located.bMo[1, 3]:.1f}) mm"
+            try:  # a goal out of reach would servo until stuck against a joint limit
+                goal_bMe = desired_view_for_part(job, taught, located.bMo)
+                robot.check_target(goal_bMe, speed_m_s, bMe_now=goal_bMe)
+            except (SafetyRefusal, UnreachableTarget) as exc:
+                return end(Outcome.FAULT, f"{where}, out of the arm's reach: the servo's goal over it is refused ({exc})")
+            on_event(PhaseChange(Phase.SERVOING, where))
         timer.enter(CellTimePhase.START)
         on_event(PhaseChange(Phase.SERVOING, "moving to the start pose"))
         if job.survey_bMe is None:

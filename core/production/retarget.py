@@ -134,3 +134,10 @@ def start_pose_for_part(job: Job, model: TaughtModel, bMo: Matrix) -> Matrix:
     """
     bMo_taught = job.taught_bMe @ model.eMc @ job.desired.cdMo
     return np.asarray(bMo, dtype=float) @ inverse(bMo_taught) @ job.start_bMe
+
+
+def desired_view_for_part(job: Job, model: TaughtModel, bMo: Matrix) -> Matrix:
+    """The flange pose the servo ends at for a part found at ``bMo``: the taught desired
+    view moved with the part (for a job retargeted to the cell's model, through the cell's
+    hand-eye, as the servo sees it)."""
+    return start_pose_for_part(replace(job, start_bMe=job.taught_bMe), model, bMo)

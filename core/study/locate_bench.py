@@ -36,7 +36,7 @@ from vservo.core.production.cell_rig import build_rig
 from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job, TaughtModel
 from vservo.core.production.locate import PartLocator
-from vservo.core.production.retarget import retarget, start_pose_for_part
+from vservo.core.production.retarget import desired_view_for_part, retarget, start_pose_for_part
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.safety import SafetyRefusal
@@ -84,7 +84,7 @@ def _servable(rig: Rig, job: Job, bMo: Matrix) -> bool:
     job = retarget(job, rig.config.nominal)
     taught = job.taught_model or TaughtModel.of(rig.config.nominal)
     start = start_pose_for_part(job, taught, bMo)
-    view = start_pose_for_part(replace(job, start_bMe=job.taught_bMe), taught, bMo)
+    view = desired_view_for_part(job, taught, bMo)
     pick = view @ job.eMe_pick
     above_pick, above_place = lifted(pick, job.approach_m), lifted(job.bMe_place, job.approach_m)
     poses = [start, view, pick, above_pick]
