@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vservo.core.cell.config import DEFAULT_CELL, CellConfig, ConfigError, load_cell, read_cell_data
-from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
+from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.cell.scene import Cube
 from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
 from vservo.core.geometry.spatial import Matrix, exp_twist
@@ -60,7 +60,6 @@ from vservo.core.robot.backend import MotionStopped, RobotError, apply_increment
 from vservo.core.servo.laws.base import Stage
 from vservo.core.servo.loop import cycle_record
 from vservo.core.servo.teaching import TeachError, desired_from_features
-from vservo.robot_models.loader import load_arm
 
 if TYPE_CHECKING:  # commissioning's calibration (torch, the board finder) is imported when a cell is commissioned
     from vservo.core.production.commissioning import Commissioning, CommissionResult, CommissionSettings, Progress, Step
@@ -271,9 +270,8 @@ class CellController:
         self._lock = threading.RLock()  # one command at a time; the camera and robot are shared
         self._state = ControllerState(backend=rig.robot.name, robot=rig.config.arm,
                                       can_present_part=rig.present_part is not None, cell_file=rig.config.source)
-        # The joints drawn in 3D: a real JRC reports the flange pose; the nominal model's
-        # inverse kinematics, from the last joints shown, turns it into an arm to draw.
-        self._arm = ArmKinematics(load_arm(rig.config.arm), rig.config.nominal.mount)
+        # The joints drawn in 3D: a real JRC reports the flange pose; the safety layer's arm
+        # model's inverse kinematics, from the last joints shown, turns it into an arm to draw.
         self._shown_q = rig.config.home_q.copy()
         self._draft: TeachDraft | None = None
         self._estop = threading.Event()
@@ -343,7 +341,7 @@ class CellController:
         if self.rig.cell is not None:  # the simulated cell's plant: its true joints
             return self.rig.cell.state.q
         try:
-            self._shown_q = self._arm.ik(bMe, self._shown_q, tolerance_m=1e-6, tolerance_rad=1e-5, restarts=0).q
+            self._shown_q = self.rig.robot.arm.ik(bMe, self._shown_q, tolerance_m=1e-6, tolerance_rad=1e-5, restarts=0).q
         except UnreachableTarget:
             log.debug("no joints found for the reported flange pose; the 3D arm keeps its last pose")
         return self._shown_q
