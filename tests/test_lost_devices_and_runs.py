@@ -61,6 +61,18 @@ def test_a_lost_jrc_port_raises_link_error_and_connect_opens_it_again_when_it_is
         robot.close()
 
 
+
+def test_a_hold_that_finds_the_port_lost_says_once_that_the_robot_may_still_be_moving(tmp_path):
+    config = short_timer_cell()
+    with JrcEmulator(SimulatedCell(config), config.jrc, time_scale=TIME_SCALE) as emulator:
+        robot = JrcBackend(config.jrc, emulator.device)
+        robot.connect()
+    with pytest.raises(LinkError) as lost:
+        robot.hold(True)
+    message = str(lost.value)
+    assert message.startswith(f"HOLD failed: the serial port {emulator.device} is lost"), message
+    assert message.count("may still be moving") == 1 and "no hold could be sent" not in message, message
+
 def test_a_leftover_run_folder_leaves_the_run_going_unrecorded_and_says_so(tmp_path):
     store = Store(tmp_path / "data")
     controller = CellController(simulated_rig(load_cell(), seed=3), store, seed=3)

@@ -234,6 +234,17 @@ def _grasp_detail(doing: str, choice: GraspChoice, symmetry: int) -> str:
     return f"{doing} at {turned}, the flange turning {np.degrees(choice.turn_rad):.0f} deg{skipped}"
 
 
+def hold_after_fault(robot: RobotBackend) -> str:
+    """Hold the robot after a run failed; what to add to the fault's reason when even the
+    hold fails (the link went with the fault), the reason itself standing."""
+    try:
+        robot.hold(True)
+    except RobotError as exc:
+        log.error("hold after a fault failed: %s", exc)
+        return f"; the robot could not be held ({exc}): use the pendant's e-stop"
+    return ""
+
+
 def run_assembly(
     job: Job,
     robot: SafetyLayer,
@@ -263,10 +274,7 @@ def run_assembly(
     def end(outcome: Outcome, reason: str, seen: PlacementCheck | None = None,
             gauge: PlacementReport | None = None) -> AssemblyOutcome:
         if outcome in (Outcome.FAULT, Outcome.ESTOPPED):
-            try:
-                robot.hold(True)
-            except RobotError as exc:  # the link itself is down: say so, the reason stands
-                reason = f"{reason}; hold could not be sent: {exc}"
+            reason += hold_after_fault(robot)
             on_event(PhaseChange(Phase.ESTOPPED if outcome is Outcome.ESTOPPED else Phase.FAULT, reason))
         else:
             on_event(PhaseChange(Phase.DONE, reason))

@@ -47,7 +47,15 @@ from vservo.core.geometry.spatial import Matrix, exp_twist
 from vservo.core.perception.camera_source import BaseSource, CameraSourceError, Frame, FrameSource, Size
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.perception.recording import RecordingError, RunRecorder
-from vservo.core.production.assembly import AssemblyEvent, AssemblyOutcome, Outcome, Phase, PhaseChange, run_assembly
+from vservo.core.production.assembly import (
+    AssemblyEvent,
+    AssemblyOutcome,
+    Outcome,
+    Phase,
+    PhaseChange,
+    hold_after_fault,
+    run_assembly,
+)
 from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job, JobError, TaughtModel
 from vservo.core.production.locate import PartLocator
@@ -316,16 +324,6 @@ class CellController:
     def _publish_frame(self, view: FrameView) -> None:
         for subscriber in list(self.frame_subscribers):
             subscriber(view)
-
-    def _hold_after_fault(self) -> str:
-        """Hold the robot after a run failed outside the assembly's own checks; what to add
-        to the reason when even that fails (the link is gone with the fault)."""
-        try:
-            self.rig.robot.hold(True)
-        except RobotError as exc:
-            log.error("hold after a fault failed: %s", exc)
-            return f"; hold could not be sent: {exc}"
-        return ""
 
     def _robot_readout(self, bMe: Matrix | None = None) -> dict:
         """Flange pose (read from the robot unless given), joints and vacuum sensor for the state."""
@@ -762,11 +760,11 @@ class CellController:
                 estopped=self._estop.is_set, locator=self.rig.locator,
             )
         except CameraSourceError as exc:
-            outcome = AssemblyOutcome(Outcome.FAULT, f"camera: {exc}{self._hold_after_fault()}", float("nan"), None,
+            outcome = AssemblyOutcome(Outcome.FAULT, f"camera: {exc}{hold_after_fault(self.rig.robot)}", float("nan"), None,
                                       0.0, [], 0)
         except Exception as exc:  # a bug must still leave the robot held and the run on record
             log.exception("assembly run %d crashed", run_id)
-            outcome = AssemblyOutcome(Outcome.FAULT, f"internal error: {exc!r}{self._hold_after_fault()}",
+            outcome = AssemblyOutcome(Outcome.FAULT, f"internal error: {exc!r}{hold_after_fault(self.rig.robot)}",
                                       float("nan"), None, 0.0, [], 0)
         if outcome.outcome is Outcome.ESTOPPED:
             outcome = replace(outcome, reason=self._estop_reason)
@@ -849,7 +847,7 @@ class CellController:
             else:
                 if not isinstance(exc, CommissioningError):
                     log.exception("commissioning crashed")
-                error, phase = f"{exc}{self._hold_after_fault()}", Phase.FAULT
+                error, phase = f"{exc}{hold_after_fault(self.rig.robot)}", Phase.FAULT
             self._update(phase=phase.value, detail=f"commissioning stopped: {error}",
                          commissioning={**self._state.commissioning, "error": error}, **self._robot_readout())
             return

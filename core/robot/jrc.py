@@ -276,8 +276,8 @@ class JrcBackend:
             except LinkError as exc:  # the station has ended the exchange with EOT
                 raise LinkError(f"{name} failed: {exc}; {self._hold_after_failure(name)}") from exc
             except (OSError, serial.SerialException) as exc:  # the port itself is gone (unplugged, closed)
-                raise LinkError(f"{name} failed: {self._drop_lost_port(exc)}; no hold could be sent: the robot may "
-                                "still be moving") from exc
+                unheld = "" if name == "HOLD" else "no hold could be sent: "  # a failed HOLD says so itself
+                raise LinkError(f"{name} failed: {self._drop_lost_port(exc)}; {unheld}the robot may still be moving") from exc
         return self._parse(name, reply)
 
     def _hold_after_failure(self, failed: str) -> str:
