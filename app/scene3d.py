@@ -2,10 +2,10 @@
 
 - the UPJ from its URDF through Pinocchio's ViserVisualizer, posed from the joints the
   controller publishes (``state.q``);
-- the tools on the flange from the NOMINAL tool mount of the cell file (what the controller
-  believes, not the simulator's truth): the vacuum cup (eMv), the camera's body and view
-  frustum (eMc), the laser pointer and its beam (eMc cMl), each joined to the flange by a
-  bracket line;
+- the tools on the flange from the NOMINAL tool mount of the cell file the controller runs
+  on (what it believes, not the simulator's truth; after an applied commissioning, the
+  commissioned file's): the vacuum cup (eMv), the camera's body and view frustum (eMc),
+  the laser pointer and its beam (eMc cMl), each joined to the flange by a bracket line;
 - the part where the vision puts it: the pose estimated from the four detected corners
   with the nominal camera (planar PnP), carried rigidly by the cup while it holds the part;
 - the metal part where the selected job places the part (from its place pose); while a job
@@ -18,6 +18,7 @@ Nothing here reads the simulated cell: the view is the controller's picture of t
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,7 +27,7 @@ import viser.transforms as vtf
 from pinocchio.visualize import ViserVisualizer
 
 from vservo.app.live_image import Overlay
-from vservo.core.cell.config import CellConfig
+from vservo.core.cell.config import CellConfig, ConfigError, load_cell
 from vservo.core.cell.kinematics import ToolMount
 from vservo.core.cell.scene import Cube, MetalPart
 from vservo.core.geometry.camera import CameraModel
@@ -34,6 +35,8 @@ from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_
 from vservo.core.geometry.spatial import Matrix, inverse, rot_x, transform
 from vservo.core.production.assembly import Phase
 from vservo.robot_models.loader import load_arm
+
+log = logging.getLogger("vservo.app")
 
 RAY_LENGTH_M = 0.3  # the beam drawn when no part is known to end it on
 PART_RGB = (230, 160, 40)
@@ -148,19 +151,14 @@ class CellScene:
 
     def __init__(self, server: viser.ViserServer, config: CellConfig) -> None:
         self.server = server
-        self.mount = config.nominal.mount
-        self.camera = config.nominal.camera
         arm = load_arm(config.arm)
         self.robot = ViserVisualizer(arm.model, arm.collision_model, arm.visual_model)
         self.robot.initViewer(viewer=server)
         self.robot.loadViewerModel(rootNodeName="/cell/robot")
         self.robot.display(config.home_q)
-        intrinsics = self.camera.intrinsics
         scene = server.scene
-        self.frustum = scene.add_camera_frustum(
-            "/cell/camera", fov=2 * np.arctan2(intrinsics.height / 2, intrinsics.fy),
-            aspect=intrinsics.width / intrinsics.height, scale=0.05, thickness=0.002, color=CAMERA_RGB,
-            visible=False)  # shown once the robot's pose is known (its first readout)
+        self.frustum = scene.add_camera_frustum("/cell/camera", fov=1.0, aspect=1.0, scale=0.05, thickness=0.002,
+                                                color=CAMERA_RGB, visible=False)  # shown once the robot's pose is known
         self.part = scene.add_box("/cell/part", PART_RGB, (0.02, 0.02, 0.02), visible=False)
         self.tools = {
             "cup": scene.add_cylinder("/cell/tools/cup", CUP_RADIUS_M, CUP_HEIGHT_M, CUP_RGB, visible=False),
@@ -176,7 +174,7 @@ class CellScene:
         self.place_outline = scene.add_line_segments("/cell/teach/place_outline", np.zeros((12, 2, 3)), OUTLINE_RGB,
                                                      thickness=0.003, visible=False)
         self._teaching_shown: tuple[bool, list | None] | None = None  # None: not shown yet
-        self.tracker = PartTracker(self.mount, self.camera)
+        self._use_model(config)
         self.job: _Job | None = None
         self._path_points = 0
         self.path = None
@@ -184,6 +182,29 @@ class CellScene:
         server.scene.configure_default_lights(cast_shadow=False)
         server.initial_camera.position = (0.25, -0.95, 0.55)
         server.initial_camera.look_at = (-0.28, 0.02, 0.05)
+
+    def _use_model(self, config: CellConfig) -> None:
+        """Draw the tools and the camera's view as ``config`` has them."""
+        self.source, self.mount, self.camera = config.source, config.nominal.mount, config.nominal.camera
+        intrinsics = self.camera.intrinsics
+        self.frustum.fov = 2 * np.arctan2(intrinsics.height / 2, intrinsics.fy)
+        self.frustum.aspect = intrinsics.width / intrinsics.height
+        self.tracker = PartTracker(self.mount, self.camera)
+
+    def _follow_the_controllers_model(self, cell_file: str | None) -> None:
+        """The controller names the cell file it runs on; after an Apply it is the commissioned
+        one, and the tools are drawn where that file puts them (the arm and the metal part
+        stay: commissioning measures the camera, hand-eye and laser only)."""
+        if not cell_file or cell_file == self.source:
+            return
+        try:
+            config = load_cell(cell_file)
+        except (ConfigError, OSError) as exc:
+            log.error("the controller runs on %s, which the app cannot read (%s): the 3D view keeps the tools of %s",
+                      cell_file, exc, self.source)
+            self.source = cell_file  # said once, not at every update
+            return
+        self._use_model(config)
 
     def show_job(self, job: dict | None) -> None:
         """The metal part where ``job`` (its dict, vservo.core.production.jobs.Job.as_dict) places the part; None hides it."""
@@ -218,6 +239,7 @@ class CellScene:
     def update(self, state: dict, overlay: Overlay | None, path_m: Matrix) -> None:
         if not state.get("q"):
             return  # no readout of the robot yet: no camera or beam at a made-up pose
+        self._follow_the_controllers_model(state.get("cell_file"))
         self.robot.display(np.asarray(state["q"], float))
         bMe = np.asarray(state["bMe"], float)
         bMc = bMe @ self.mount.eMc

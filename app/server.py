@@ -74,7 +74,7 @@ class OperatorApp:
     def __init__(self, server: viser.ViserServer, client: ControllerClient, session: Session, roles: Roles,
                  config: CellConfig, options: ServeOptions) -> None:
         self.server, self.channel, self.session, self.roles = server, client, session, roles
-        self.config, self.options = config, options
+        self.options = options
         self.commands = CommandQueue(client.call, roles)
         self._lock = threading.Lock()
         self._building = threading.Lock()

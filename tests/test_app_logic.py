@@ -8,17 +8,19 @@ import threading
 import cv2
 import numpy as np
 import pytest
+import viser
 
 from tests.jrc_fixtures import with_the_thesis_policy
 from vservo.app import commission_text, live_image
+from vservo.app.browser import free_port
 from vservo.app.calibration_run import bar_fraction, results_markdown, summary_markdown
 from vservo.app.commands import CommandQueue
 from vservo.app.roles import RoleRefused, Roles, new_token
-from vservo.app.scene3d import PartTracker, laser_ray, part_pose_from_corners, placed_part_frame
+from vservo.app.scene3d import CellScene, PartTracker, laser_ray, part_pose_from_corners, placed_part_frame
 from vservo.app.session import Session
 from vservo.app.status import flange_text, outcome_markdown, run_heading, run_progress, runs_table, status_markdown
 from vservo.app.teach_panel import jog_step
-from vservo.core.cell.config import load_cell
+from vservo.core.cell.config import load_cell, read_cell_bytes
 from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg
 from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController
@@ -355,6 +357,40 @@ def test_the_part_is_placed_from_its_corners_and_carried_by_the_cup():
     start, end = laser_ray(bMe, mount.eMl, float(bMo[2, 3]))
     assert end[2] == pytest.approx(bMo[2, 3]) and np.linalg.norm(end - start) > 0.05
 
+
+
+def test_after_an_apply_the_3d_view_draws_the_tools_where_the_commissioned_file_puts_them(tmp_path):
+    """The controller's state names the cell file it runs on: the scene follows it (a real
+    viser server, no browser), and an unreadable one leaves the tools as they were."""
+    shipped = load_cell()
+    text = read_cell_bytes()[0].decode()
+    for nominal, measured in (("eMc = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]", "eMc = [12.0, -5.0, 30.0, 1.0, 0.0, 3.0]"),
+                              ("focal_length_mm = 6.0", "focal_length_mm = 6.3")):
+        assert nominal in text
+        text = text.replace(nominal, measured)
+    commissioned = tmp_path / "cell-commissioned.toml"
+    commissioned.write_text(text)
+    eMc = load_cell(commissioned).nominal.mount.eMc
+    assert not np.allclose(eMc, shipped.nominal.mount.eMc)
+
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
+    try:
+        scene = CellScene(server, shipped)
+        bMe = matrix_from_pose(pose_from_mm_deg([-300.0, 50.0, 250.0, 180.0, 0.0, 30.0]))
+        state = {"q": shipped.home_q.tolist(), "bMe": bMe.tolist(), "phase": "idle", "cell_file": shipped.source}
+        scene.update(state, None, np.zeros((0, 3)))
+        assert np.allclose(scene.frustum.position, (bMe @ shipped.nominal.mount.eMc)[:3, 3])
+        fov_shipped = scene.frustum.fov
+
+        scene.update({**state, "cell_file": str(commissioned)}, None, np.zeros((0, 3)))
+        assert np.allclose(scene.frustum.position, (bMe @ eMc)[:3, 3])
+        assert scene.frustum.fov < fov_shipped  # a longer lens sees less
+        assert scene.tracker.mount.eMc is scene.mount.eMc  # the part is placed through the new camera too
+
+        scene.update({**state, "cell_file": str(tmp_path / "gone.toml")}, None, np.zeros((0, 3)))
+        assert np.allclose(scene.frustum.position, (bMe @ eMc)[:3, 3])
+    finally:
+        server.stop()
 
 def test_the_metal_part_sits_under_the_demo_jobs_place_pose():
     config = load_cell()
