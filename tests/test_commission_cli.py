@@ -49,13 +49,17 @@ def test_commission_measures_the_cell_and_writes_a_new_file(commissioned):
     assert summary["laser"]["alpha_deg"] == pytest.approx(80.0, abs=0.2)
     assert summary["acceptance"]["max_mm"] < 0.5
     assert summary["acceptance"]["corners"] == CommissionSettings().acceptance_corners  # unreachable corners skipped
-    assert summary["cell_time_s"] > 0.0
     config = load_cell(out)
     assert config.commissioning.nn_path.is_file()
     assert config.nominal.camera.intrinsics.fx == pytest.approx(summary["camera"]["fx_px"], abs=1e-3)
     assert config.commissioning.provenance["camera"]["verdict"] == "good"
     views = json.loads((out.parent / "cell-commissioned-commissioning" / "views.json").read_text())
     assert sum("corners" in v["found"] for v in views) == summary["views"]["used"]
+    # The cell's clock: at least the flange's way from view to view at the commissioning speed
+    # (the turns, the settling and the acceptance check come on top).
+    flange_m = np.array([np.asarray(v["bMe"])[:3, 3] for v in views if v["bMe"] is not None])
+    way_m = np.linalg.norm(np.diff(flange_m, axis=0), axis=1).sum()
+    assert way_m > 1.0 and summary["cell_time_s"] >= way_m / CommissionSettings().speed_m_s
 
 
 def test_commission_never_writes_over_its_input_or_an_existing_file(commissioned):
