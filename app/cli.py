@@ -27,7 +27,7 @@ from vservo.core.study.cli import (
     add_study_commands,
     add_vision_bench,
 )
-from vservo.core.terminal.command_line import BenchCommand, Parser, positive, print_result
+from vservo.core.terminal.command_line import BenchCommand, Parser, positive, print_result, seed
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -86,7 +86,7 @@ def _add_serve_command(commands: argparse._SubParsersAction) -> None:
     serve.add_argument("--port", type=positive(int), default=8080, help="HTTP port (default 8080; the next free "
                        "one if taken)")
     serve.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
-    serve.add_argument("--seed", type=int, default=None, help="seed of the simulated cell and of the parts' arrival")
+    serve.add_argument("--seed", type=seed, default=None, help="seed of the simulated cell and of the parts' arrival")
     token = serve.add_mutually_exclusive_group()
     token.add_argument("--token-file", metavar="FILE", help="read the operator token from FILE (default "
                        "$VSERVO_OPERATOR_TOKEN, else a new random one, printed); beyond 127.0.0.1 at least 16 characters")

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from vservo.core.calibration.dataset import INPUT_SETS
-from vservo.core.terminal.command_line import BenchCommand, print_result
+from vservo.core.terminal.command_line import BenchCommand, print_result, seed
 
 
 def _number(kind: type, low: float, strict: bool) -> Any:
@@ -173,7 +173,7 @@ def add_calibrate_command(commands: argparse._SubParsersAction) -> None:
                          "(the cell file's [simulation]); default realistic")
     collect.add_argument("--noise-px", type=_number(float, 0.0, False), default=None,
                          help="Gaussian pixel noise on every corner (default 0 for ideal, 0.25 for realistic)")
-    collect.add_argument("--seed", type=int, default=1, help="seed of the simulated cell and the noise (default 1)")
+    collect.add_argument("--seed", type=seed, default=1, help="seed of the simulated cell and the noise (default 1)")
     collect.add_argument("--step-mm", type=_number(float, 0.0, True), default=20.0, help="grid step (default 20)")
     collect.add_argument("--height-mm", type=_number(float, 0.0, True), default=300.0,
                          help="camera height over the table (default 300)")
@@ -200,7 +200,7 @@ def add_calibrate_command(commands: argparse._SubParsersAction) -> None:
                        help="planar (u, v, Tx, Ty), height (+Tz) or pose (+Tz and tilt: the 6-DOF variant)")
     lm_options(train)
     train.add_argument("--validation", type=_number(int, 0, True), default=2000, help="validation corners (default 2000)")
-    train.add_argument("--seed", type=int, default=0, help="seed of the sample draw and initial weights (default 0)")
+    train.add_argument("--seed", type=seed, default=0, help="seed of the sample draw and initial weights (default 0)")
     train.add_argument("--hidden", type=_number(int, 0, True), default=20, help="hidden units (default 20, as the thesis)")
     train.set_defaults(run=_cmd_train)
 
@@ -217,13 +217,13 @@ def add_calibrate_command(commands: argparse._SubParsersAction) -> None:
                        help="sinusoid amplitude (default 40: the UPJ's shell cannot reach the thesis's 100)")
     track.add_argument("--gain", type=_number(float, 0.0, True), default=1.0, help="K of eq. 2-47 in 1/s (default 1)")
     track.add_argument("--seconds-per-point", type=_number(float, 0.0, True), default=10.0)
-    track.add_argument("--seed", type=int, default=0, help="seed of the random points (default 0)")
+    track.add_argument("--seed", type=seed, default=0, help="seed of the random points (default 0)")
     track.set_defaults(run=_cmd_track)
 
     compare = step("compare", "realistic truth at several pixel noises: every method beside Table 3-4",
                    default_dir="calibration/compare")
     compare.add_argument("--noise-px", type=_levels, default=[0.1, 0.25, 0.5], help="pixel noises (default 0.1,0.25,0.5)")
-    compare.add_argument("--seed", type=int, default=1)
+    compare.add_argument("--seed", type=seed, default=1)
     compare.add_argument("--points", type=_number(int, 0, True), default=40, help="random points per noise (default 40)")
     lm_options(compare)
     compare.set_defaults(run=_cmd_compare)

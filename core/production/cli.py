@@ -11,7 +11,7 @@ from pathlib import Path
 
 from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
 from vservo.core.production.storage import default_data_dir
-from vservo.core.terminal.command_line import print_result
+from vservo.core.terminal.command_line import print_result, seed
 
 BACKEND_HELP = ("the simulated cell's robot: sim drives the simulator directly, jrc through the JRC link to an "
                 "emulated JRC on a pseudo-terminal (default: the cell file's [robot] backend; a real cell's is its JRC)")
@@ -186,7 +186,7 @@ def add_production_commands(commands: argparse._SubParsersAction) -> None:
     run.add_argument("--job", required=True, help="job name (the shipped 'demo' is always there)")
     run.add_argument("--data", metavar="DIR", help="data folder with the jobs and runs (default $VSERVO_DATA or "
                      "~/.local/share/vservo)")
-    run.add_argument("--seed", type=int, default=None, help="seed of the simulated cell and of the part's arrival")
+    run.add_argument("--seed", type=seed, default=None, help="seed of the simulated cell and of the part's arrival")
     run.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
     run.add_argument("--json", action="store_true", help="one JSON object")
     run.set_defaults(run=_cmd_run)
@@ -196,7 +196,7 @@ def add_production_commands(commands: argparse._SubParsersAction) -> None:
     )
     controller.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (default: any free one)")
     controller.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
-    controller.add_argument("--seed", type=int, default=None, help="seed of the simulated cell")
+    controller.add_argument("--seed", type=seed, default=None, help="seed of the simulated cell")
     controller.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
     controller.add_argument("--cycle-period", type=float, default=0.05, metavar="S",
                             help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
@@ -216,7 +216,7 @@ def add_production_commands(commands: argparse._SubParsersAction) -> None:
     commission.add_argument("--reference", metavar="FILE",
                             help="a cell file to compare the measured model with: a virtual cell's --truth file, or "
                                  "the last commissioned file")
-    commission.add_argument("--seed", type=int, default=None, help="seed of the views' random tilts and turns "
+    commission.add_argument("--seed", type=seed, default=None, help="seed of the views' random tilts and turns "
                                                                    "(and of a simulated cell)")
     commission.add_argument("--force", action="store_true", help="replace NEW_FILE if it exists (never the input)")
     commission.add_argument("--json", action="store_true", help="one JSON object")

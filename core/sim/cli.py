@@ -11,7 +11,7 @@ import threading
 from pathlib import Path
 
 from vservo.core.cell.config import load_cell
-from vservo.core.terminal.command_line import fraction, positive
+from vservo.core.terminal.command_line import fraction, positive, seed
 
 
 def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
@@ -52,7 +52,7 @@ def add_jrc_emulator_command(commands: argparse._SubParsersAction) -> None:
     )
     emulator.add_argument("--port", metavar="DEV", help="serve on this serial port instead of a new pseudo-terminal")
     emulator.add_argument("--fault-rate", type=fraction, default=0.0, help="faults injected per exchange (default 0)")
-    emulator.add_argument("--seed", type=int, default=0, help="seed of the injected faults (default 0)")
+    emulator.add_argument("--seed", type=seed, default=0, help="seed of the injected faults (default 0)")
     emulator.add_argument("--time-scale", type=positive(float), default=1.0,
                           help="the simulated robot runs this many times faster than real time (default 1)")
     emulator.add_argument("--pace", action="store_true", help="send and receive bytes at the baud rate")
@@ -101,7 +101,7 @@ def add_virtual_cell_command(commands: argparse._SubParsersAction) -> None:
     virtual.add_argument("--truth", metavar="FILE", help="a cell file whose [simulation.truth.*] tables say how the "
                          "cell really differs from the nominal one, and its [simulation.scene] board_pose where the "
                          "board truly lies (default: the --cell file's own)")
-    virtual.add_argument("--seed", type=int, default=None, help="seed of the plant, its camera and its parts")
+    virtual.add_argument("--seed", type=seed, default=None, help="seed of the plant, its camera and its parts")
     virtual.add_argument("--out", metavar="FILE", help="where to write the controller's cell file (default: a "
                          "temporary folder removed on exit)")
     virtual.add_argument("--time-scale", type=positive(float), default=40.0,

@@ -13,7 +13,7 @@ import numpy as np
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.sim import Arm
-from vservo.core.terminal.command_line import BenchCommand, fraction, positive, print_result
+from vservo.core.terminal.command_line import BenchCommand, fraction, positive, print_result, seed
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -160,7 +160,7 @@ def _add_arm_option(command: argparse.ArgumentParser) -> None:
 def add_study_commands(commands: argparse._SubParsersAction) -> None:
     """Register ``vservo demo``, ``simulate``, ``montecarlo``, ``reproduce`` and ``replay``."""
     demo = commands.add_parser("demo", help="a tour of the simulated cell: arm, camera, laser, JRC-style steps")
-    demo.add_argument("--seed", type=int, default=None, help="seed of the simulated cell (default: the cell's)")
+    demo.add_argument("--seed", type=seed, default=None, help="seed of the simulated cell (default: the cell's)")
     demo.add_argument("--json", action="store_true", help="one JSON object")
     demo.set_defaults(run=_cmd_demo)
 
@@ -174,7 +174,7 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
     simulate.add_argument("--task", type=int, choices=(1, 2, 3, 4), help="task of Table 5-1 (default 2)")
     simulate.add_argument("--method", choices=("laser", "ibvs", "pbvs", "2.5d"), default="laser")
     simulate.add_argument("--robust", action="store_true", help="the calibration errors of Table 5-3")
-    simulate.add_argument("--seed", type=int, default=None, help="seed of the simulated cell")
+    simulate.add_argument("--seed", type=seed, default=None, help="seed of the simulated cell")
     simulate.add_argument("--initial", type=_pose_argument, help="initial cMo, replaces the task's")
     simulate.add_argument("--desired", type=_pose_argument, help="desired cMo, replaces the task's")
     simulate.add_argument("--gain", type=positive(float), default=1.0, help="gain of every control law (default 1)")
@@ -192,7 +192,7 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
     )
     montecarlo.add_argument("--method", choices=("laser", "ibvs", "pbvs", "2.5d"), default="laser")
     montecarlo.add_argument("--n", type=positive(int), default=100, help="number of initial poses (default 100)")
-    montecarlo.add_argument("--seed", type=int, default=0, help="seed of the initial poses (default 0)")
+    montecarlo.add_argument("--seed", type=seed, default=0, help="seed of the initial poses (default 0)")
     montecarlo.add_argument("--processes", type=positive(int), default=None, help="worker processes (default: all cores)")
     _add_arm_option(montecarlo)
     montecarlo.add_argument("--json", action="store_true", help="one JSON object")
@@ -204,7 +204,7 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
     reproduce.add_argument("--out", required=True, metavar="DIR", help="folder for the results (created)")
     reproduce.add_argument("--montecarlo", type=int, default=500, metavar="N",
                            help="random initial poses per method for the Monte Carlo table (default 500, 0 skips it)")
-    reproduce.add_argument("--seed", type=int, default=0, help="seed of the Monte Carlo poses (default 0)")
+    reproduce.add_argument("--seed", type=seed, default=0, help="seed of the Monte Carlo poses (default 0)")
     _add_arm_option(reproduce)
     reproduce.set_defaults(run=_cmd_reproduce)
 

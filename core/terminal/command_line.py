@@ -32,6 +32,17 @@ def positive(kind: type) -> Any:
     return parse
 
 
+def seed(text: str) -> int:
+    """A random seed: numpy's generators take a non-negative integer."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}")
+    return value
+
+
 def fraction(text: str) -> float:
     try:
         value = float(text)
@@ -68,7 +79,7 @@ class BenchCommand:
         self.parser = parser
         self._runs: dict[str, Callable[[argparse.Namespace], int]] = {}
         self._helps: list[str] = []
-        parser.add_argument("--seed", type=int, default=0)
+        parser.add_argument("--seed", type=seed, default=0)
         parser.set_defaults(run=lambda args: self._runs[args.what](args))
 
     def add(self, what: str, help_text: str, run: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
