@@ -14,13 +14,13 @@ import asyncio
 import json
 import subprocess
 import sys
-import time
 
 import cv2
 import numpy as np
 import pytest
 
 from tests.jrc_fixtures import thesis_policy_cell_file
+from tests.polling import wait_until
 from vservo.app.browser import free_port
 from vservo.app.context import ServeOptions
 from vservo.app.light_monitor import LightMonitor, LightMonitors, MonitorError
@@ -50,10 +50,7 @@ def _assemble(running) -> None:
     for command, args in (("present_part", {}), ("start", {"job": "demo"})):
         reply = running.channel.call(command, **args)
         assert reply.ok, reply.error
-    deadline = time.monotonic() + DEADLINE_S
-    while session.view().runs_ended == ended and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert session.view().runs_ended > ended, f"the assembly did not end within {DEADLINE_S:.0f} s"
+    wait_until(lambda: session.view().runs_ended > ended, "the assembly's end", DEADLINE_S, poll_s=0.05)
 
 
 async def _watch_an_assembly(running) -> LightMonitor:

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from tests.jrc_fixtures import TIME_SCALE, short_timer_cell, thesis_policy_cell_file, with_the_thesis_policy
+from tests.polling import wait_until
 from tests.virtual_cell_process import VirtualCellProcess
 from vservo.core.cell.config import load_cell
 from vservo.core.perception.recording import Recording
@@ -30,14 +31,6 @@ from vservo.core.sim.jrc_emulator import JrcEmulator
 from vservo.core.sim.plant import SimulatedCell
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def _wait_for(condition, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what} within {timeout_s} s")
-        time.sleep(0.01)
 
 
 def test_a_lost_jrc_port_raises_link_error_and_connect_opens_it_again_when_it_is_back(tmp_path):
@@ -98,7 +91,7 @@ def test_a_recording_whose_folder_goes_away_mid_run_stops_and_the_run_ends_on_re
                                 cycle_period_s=0.01)
     controller.present_part()
     run_id = controller.start("demo")
-    _wait_for(lambda: controller.state.iteration >= 5, 60, "5 cycles")
+    wait_until(lambda: controller.state.iteration >= 5, "5 cycles", 60, poll_s=0.01)
     folder = store.run_folder(run_id)
     while folder.exists():  # the disk unmounted, the folder removed by hand (the recorder may
         shutil.rmtree(folder, ignore_errors=True)  # write a frame into it meanwhile: remove again)
@@ -125,7 +118,7 @@ def _recorded_frames(data: Path) -> int:
 def test_a_run_killed_with_sigkill_is_marked_interrupted_at_the_next_start_with_its_recording(tmp_path):
     data = tmp_path / "data"
     run = _vservo(data=data)
-    _wait_for(lambda: _recorded_frames(data) >= 10 or run.poll() is not None, 120, "10 recorded frames")
+    wait_until(lambda: _recorded_frames(data) >= 10 or run.poll() is not None, "10 recorded frames", 120, poll_s=0.01)
     run.kill()
     run.communicate()
     assert run.returncode == -signal.SIGKILL
@@ -154,7 +147,7 @@ def test_an_old_absolute_recording_path_still_reads(tmp_path):
 def test_ctrl_c_on_vservo_run_holds_records_and_exits_130(tmp_path):
     data = tmp_path / "data"
     run = _vservo(data=data)
-    _wait_for(lambda: _recorded_frames(data) >= 5 or run.poll() is not None, 120, "5 recorded frames")
+    wait_until(lambda: _recorded_frames(data) >= 5 or run.poll() is not None, "5 recorded frames", 120, poll_s=0.01)
     run.send_signal(signal.SIGINT)
     _, stderr = run.communicate(timeout=60)
     assert run.returncode == 130, stderr
@@ -178,7 +171,7 @@ def test_the_estop_behind_a_silent_link_answers_within_a_second_and_says_the_hol
         controller = CellController(build_rig(load_cell(cell.addresses["cell_file"])), store)
         controller.present_part()
         controller.start("demo")
-        _wait_for(lambda: controller.state.iteration >= 3, 60, "3 cycles")
+        wait_until(lambda: controller.state.iteration >= 3, "3 cycles", 60, poll_s=0.01)
         os.kill(cell.process.pid, signal.SIGSTOP)
         time.sleep(0.5)  # the run's next request is under way on the silent line
         pressed = time.monotonic()
@@ -187,7 +180,8 @@ def test_the_estop_behind_a_silent_link_answers_within_a_second_and_says_the_hol
         assert controller.state.phase == Phase.ESTOPPED.value
         assert "hold NOT confirmed" in controller.state.detail, controller.state.detail
         os.kill(cell.process.pid, signal.SIGCONT)
-        _wait_for(lambda: "robot held" in controller.state.detail or not controller.running, 120, "the hold answered")
+        wait_until(lambda: "robot held" in controller.state.detail or not controller.running, "the hold answered", 120,
+                   poll_s=0.01)
         controller.wait(120)
         assert store.run(1).outcome is Outcome.ESTOPPED
         controller.close()

@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from tests.chromium import chromium_or_fail
+from tests.polling import wait_until
 from vservo.app.browser import (
     ServeProcess,
     choose,
@@ -115,14 +116,6 @@ def jog(page, button: str, times: int, axis: int, mm: float) -> None:
         before = flange_of(status_text(page))[axis]
         page.get_by_role("button", name=button, exact=True).click()
         wait_until(lambda: abs(flange_of(status_text(page))[axis] - (before + mm)) < 0.05, f"the flange moved {button}")
-
-
-def wait_until(check, what: str, timeout_s: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"{what}: not within {timeout_s} s")
-        time.sleep(0.1)
 
 
 def test_teach_a_new_job_as_the_guide_says_and_assemble_it_three_times(page):
