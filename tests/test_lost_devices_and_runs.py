@@ -103,19 +103,23 @@ def test_a_recording_whose_folder_goes_away_mid_run_stops_and_the_run_ends_on_re
     store.close()
 
 
-def _as_from_a_terminal() -> None:
-    # A shell starts a background job with SIGINT ignored, and a child inherits that: Python
-    # then installs no KeyboardInterrupt handler. `vservo run` typed at a terminal has it.
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 def _vservo(*args: str, data: Path) -> subprocess.Popen:
     """`vservo run` of the demo job with the thesis's step policy, as typed at a terminal
     (whatever way the tests were started): a servo long enough to act in."""
-    return subprocess.Popen([sys.executable, "-m", "vservo.app.cli", "run", "--job", "demo", "--data", str(data),
-                             "--cell", thesis_policy_cell_file(data.parent), *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
-                            preexec_fn=_as_from_a_terminal)
+    # A shell starts a background job with SIGINT ignored and its children inherit that, so
+    # Python would install no KeyboardInterrupt handler. A handler is not inherited: exec
+    # gives the child SIGINT's default action, as at a terminal. (Not a preexec_fn: the
+    # tests' process has threads, and a fork running Python code can deadlock.)
+    ignored = signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    if ignored:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return subprocess.Popen([sys.executable, "-m", "vservo.app.cli", "run", "--job", "demo", "--data", str(data),
+                                 "--cell", thesis_policy_cell_file(data.parent), *args],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    finally:
+        if ignored:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _recorded_frames(data: Path) -> int:
