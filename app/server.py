@@ -100,8 +100,11 @@ class OperatorApp:
         with self.safety.add_tab("Cell", viser.Icon.ALERT_TRIANGLE):
             estop = server.gui.add_button("E-STOP", color="red", icon=viser.Icon.HAND_STOP,
                                           hint="Hold the robot now. Every browser may stop the cell.")
+            # Large: viser has no button size. Viser sets its icons half their width right of
+            # their box, which at this size runs the hand into the label's "E".
             server.gui.add_html(f"<style>button[id='{estop._impl.uuid}'] {{height: 84px !important; font-size: 1.8em; "
-                                "font-weight: 800; letter-spacing: 0.12em}</style>")  # large: viser has no button size
+                                f"font-weight: 800; letter-spacing: 0.12em}} button[id='{estop._impl.uuid}'] svg "
+                                "{left: 0 !important}</style>")
             self.status = server.gui.add_markdown("")
         self.safety.float(x=15, y=BANNER_HEIGHT_PX + 10, width=SAFETY_WIDTH_PX, height=SAFETY_HEIGHT_PX)
         estop.on_click(lambda event: self.commands.estop(event.client_id, self._estop_reply(event.client_id)))

@@ -125,8 +125,11 @@ def test_the_banner_follows_a_run_from_ready_to_placed(page):
     kind, words, colour = banner(page)
     assert (kind, colour) == ("ready", _rgb(Kind.READY)) and "READY" in words and "press Start" in words
     assert page.locator(".vservo-banner").bounding_box()["width"] == 1600  # the whole width of the page
-    estop = page.get_by_role("button", name="E-STOP", exact=True).bounding_box()
+    estop_button = page.get_by_role("button", name="E-STOP", exact=True)
+    estop = estop_button.bounding_box()
     assert estop["y"] + estop["height"] < 400 and estop["height"] >= 60  # large, at the top, never below the fold
+    hand, label = estop_button.locator("svg").bounding_box(), estop_button.get_by_text("E-STOP").bounding_box()
+    assert hand["x"] + hand["width"] <= label["x"], (hand, label)  # its icon clear of its word
     _shot(page, "banner-ready")
 
     _start(page)
