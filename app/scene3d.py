@@ -180,8 +180,10 @@ class CellScene:
         self.path = None
         # No shadows: an operator PC without a GPU (and headless Chromium) renders in software.
         server.scene.configure_default_lights(cast_shadow=False)
-        server.initial_camera.position = (0.25, -0.95, 0.55)
-        server.initial_camera.look_at = (-0.28, 0.02, 0.05)
+        # Aimed above the arm, so the whole cell sits in the view's lower half, under the
+        # floating E-STOP panel that covers the view's upper left.
+        server.initial_camera.position = (0.3, -1.1, 0.85)
+        server.initial_camera.look_at = (-0.22, 0.0, 0.34)
 
     def _use_model(self, config: CellConfig) -> None:
         """Draw the tools and the camera's view as ``config`` has them."""
