@@ -102,9 +102,9 @@ class OperatorApp:
                                           hint="Hold the robot now. Every browser may stop the cell.")
             # Large: viser has no button size. Viser sets its icons half their width right of
             # their box, which at this size runs the hand into the label's "E".
-            server.gui.add_html(f"<style>button[id='{estop._impl.uuid}'] {{height: 84px !important; font-size: 1.8em; "
-                                f"font-weight: 800; letter-spacing: 0.12em}} button[id='{estop._impl.uuid}'] svg "
-                                "{left: 0 !important}</style>")
+            button = f"button[id='{estop._impl.uuid}']"
+            server.gui.add_html(f"<style>{button} {{height: 84px !important; font-size: 1.8em; font-weight: 800; "
+                                f"letter-spacing: 0.12em}} {button} svg {{left: 0 !important}}</style>")
             self.status = server.gui.add_markdown("")
         self.safety.float(x=15, y=BANNER_HEIGHT_PX + 10, width=SAFETY_WIDTH_PX, height=SAFETY_HEIGHT_PX)
         estop.on_click(lambda event: self.commands.estop(event.client_id, self._estop_reply(event.client_id)))
