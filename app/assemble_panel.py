@@ -48,21 +48,28 @@ class AssemblePanel:
             self.progress = gui.add_progress_bar(0.0, order=21)
             self.outcome = gui.add_markdown("", order=22)
         with live.add_tab("Live camera", viser.Icon.CAMERA):
-            self.image = gui.add_image(BLANK, label="camera (overlays: seen, desired, laser and its target)",
-                                       format="jpeg")
+            self.image = gui.add_image(BLANK, label="camera (overlays: seen, desired, laser and its target)", format="jpeg")
             blank_error, blank_twist = plot_data(RunTrace())
             self.error_plot = gui.add_uplot(
-                blank_error, ({"label": "cycle"}, {"label": "off the taught view, px", "stroke": "#d62728",
-                                                   "width": 2}),
-                title="how far the part is from the taught view (px)", aspect=2.2,
-                scales={"x": {"time": False}, "y": {"distr": 3}})
+                blank_error,
+                ({"label": "cycle"}, {"label": "off the taught view, px", "stroke": "#d62728", "width": 2}),
+                title="how far the part is from the taught view (px)",
+                aspect=2.2,
+                scales={"x": {"time": False}, "y": {"distr": 3}},
+            )
             # What an engineer reads (the law's stage, its error norm, the commanded twist), folded away.
             with gui.add_folder("Engineering", expand_by_default=False):
                 self.engineering = gui.add_markdown("")
                 self.twist_plot = gui.add_uplot(
-                    blank_twist, ({"label": "cycle"}, *({"label": name, "stroke": colour, "width": 1.5}
-                                                        for name, colour in zip(TWIST_NAMES, TWIST_COLOURS))),
-                    title="camera twist cVc", aspect=2.2, scales={"x": {"time": False}})
+                    blank_twist,
+                    (
+                        {"label": "cycle"},
+                        *({"label": name, "stroke": colour, "width": 1.5} for name, colour in zip(TWIST_NAMES, TWIST_COLOURS)),
+                    ),
+                    title="camera twist cVc",
+                    aspect=2.2,
+                    scales={"x": {"time": False}},
+                )
         self._lock = threading.Lock()
         self._job_shown: str | None = None
         self._threshold_px = 3.0
@@ -73,16 +80,22 @@ class AssemblePanel:
         gui = view.client.gui
         names = self.app.job_names() or ["demo"]
         with self.tab:
-            job = view.control(gui.add_dropdown("Job", names, initial_value="demo" if "demo" in names else names[0],
-                                                order=11))
+            job = view.control(gui.add_dropdown("Job", names, initial_value="demo" if "demo" in names else names[0], order=11))
             if self.app.session.state.get("can_present_part"):  # only where the cell has a part feeder
-                present = view.button(Button.PRESENT_PART, gui.add_button(
-                    "Present part", icon=viser.Icon.BOX, order=12, disabled=True,
-                    hint="A new part arrives near where the job was taught"))
-                present.on_click(lambda _: self.app.send(view, "Present part", "present_part",
-                                                         "a new part is on the table"))
-            start = view.button(Button.START, gui.add_button("Start", icon=viser.Icon.PLAYER_PLAY, color="green",
-                                                             order=13, disabled=True))
+                present = view.button(
+                    Button.PRESENT_PART,
+                    gui.add_button(
+                        "Present part",
+                        icon=viser.Icon.BOX,
+                        order=12,
+                        disabled=True,
+                        hint="A new part arrives near where the job was taught",
+                    ),
+                )
+                present.on_click(lambda _: self.app.send(view, "Present part", "present_part", "a new part is on the table"))
+            start = view.button(
+                Button.START, gui.add_button("Start", icon=viser.Icon.PLAYER_PLAY, color="green", order=13, disabled=True)
+            )
         start.on_click(lambda _: self.app.send(view, "Start", "start", job=job.value))
         view.handles["assemble_job"] = job
 

@@ -38,8 +38,12 @@ STAGE_WORDS = {
     Stage.PBVS: "moving to the taught view",
 }
 
-OUTCOME_KINDS = {Outcome.PLACED: Kind.PLACED, Outcome.MISSED: Kind.MISSED, Outcome.FAULT: Kind.FAULT,
-                 Outcome.ESTOPPED: Kind.ESTOPPED}
+OUTCOME_KINDS = {
+    Outcome.PLACED: Kind.PLACED,
+    Outcome.MISSED: Kind.MISSED,
+    Outcome.FAULT: Kind.FAULT,
+    Outcome.ESTOPPED: Kind.ESTOPPED,
+}
 
 
 @dataclass(frozen=True)
@@ -52,10 +56,12 @@ class Banner:
     def html(self) -> str:
         """The banner as the page shows it: full width over the top of the page, above every tab."""
         detail = f"<div style='font-size:0.95em;opacity:0.92'>{html.escape(self.detail)}</div>" if self.detail else ""
-        return (f"<div class='vservo-banner' data-kind='{self.kind.name.lower()}' "
-                f"style='background:{self.kind.value}'>"
-                f"<div style='font-size:1.5em;font-weight:800'>{html.escape(self.title)}</div>"
-                f"<div style='font-size:1.1em'>{html.escape(self.next_step)}</div>{detail}</div>")
+        return (
+            f"<div class='vservo-banner' data-kind='{self.kind.name.lower()}' "
+            f"style='background:{self.kind.value}'>"
+            f"<div style='font-size:1.5em;font-weight:800'>{html.escape(self.title)}</div>"
+            f"<div style='font-size:1.1em'>{html.escape(self.next_step)}</div>{detail}</div>"
+        )
 
 
 def stage_words(stage: object) -> str:
@@ -78,11 +84,14 @@ def banner_for(state: dict, controller_gone: str | None = None) -> Banner:
     if phase == Phase.TEACHING:
         return Banner(Kind.BUSY, "TEACHING", "Follow the steps in the Teach tab, then Save the job.", detail)
     if phase == Phase.COMMISSIONING:
-        return Banner(Kind.BUSY, "COMMISSIONING", "The robot shows the camera the board: keep clear of the cell.",
-                      detail)
+        return Banner(Kind.BUSY, "COMMISSIONING", "The robot shows the camera the board: keep clear of the cell.", detail)
     if phase == Phase.SERVOING:
-        return Banner(Kind.BUSY, f"RUNNING job {job}: {stage_words(state.get('stage') or '')}",
-                      "The robot moves: keep clear; E-STOP holds it.", detail)
+        return Banner(
+            Kind.BUSY,
+            f"RUNNING job {job}: {stage_words(state.get('stage') or '')}",
+            "The robot moves: keep clear; E-STOP holds it.",
+            detail,
+        )
     if phase == Phase.PICKING:
         return Banner(Kind.BUSY, f"RUNNING job {job}: picking the part", "The robot moves: keep clear.", detail)
     if phase == Phase.PLACING:
@@ -95,11 +104,9 @@ def banner_for(state: dict, controller_gone: str | None = None) -> Banner:
     outcome = (state.get("last_outcome") or {}).get("outcome")
     reason = (state.get("last_outcome") or {}).get("reason") or detail
     if outcome == Outcome.MISSED:
-        return Banner(Kind.MISSED, f"MISSED: job {job}", "Take the part out of the metal part, then press Reset.",
-                      reason)
+        return Banner(Kind.MISSED, f"MISSED: job {job}", "Take the part out of the metal part, then press Reset.", reason)
     if outcome in (Outcome.FAULT, Outcome.ESTOPPED):
-        return Banner(OUTCOME_KINDS[Outcome(outcome)], f"{Outcome(outcome).value.upper()}: job {job}",
-                      "Press Reset.", reason)
+        return Banner(OUTCOME_KINDS[Outcome(outcome)], f"{Outcome(outcome).value.upper()}: job {job}", "Press Reset.", reason)
     return Banner(Kind.PLACED, f"PLACED: job {job}", "Press Reset, present the next part and press Start.", reason)
 
 

@@ -72,7 +72,7 @@ class CpuSample:
     @classmethod
     def of(cls, pid: int) -> CpuSample:
         stat = Path(f"/proc/{pid}/stat").read_text()
-        fields = stat[stat.rindex(")") + 2:].split()  # after "pid (name) ", the state is field 3
+        fields = stat[stat.rindex(")") + 2 :].split()  # after "pid (name) ", the state is field 3
         return cls((int(fields[11]) + int(fields[12])) / CLOCK_TICKS_PER_S, time.monotonic())
 
     def percent_since(self, earlier: CpuSample) -> float:
@@ -111,8 +111,7 @@ def _watch_servo(running: RunningApp, pids: dict[str, int]) -> tuple[float, floa
             start, before = time.monotonic(), {name: CpuSample.of(pid) for name, pid in pids.items()}
         if start is not None and phase != Phase.SERVOING:
             end = time.monotonic()
-            return start, end, {name: round(CpuSample.of(pid).percent_since(before[name]), 1)
-                                for name, pid in pids.items()}
+            return start, end, {name: round(CpuSample.of(pid).percent_since(before[name]), 1) for name, pid in pids.items()}
         time.sleep(0.02)
     raise TimeoutError("the assembly's servo did not end within the bench's time limit")
 
@@ -123,8 +122,11 @@ def _finish_run(running: RunningApp, deadline: float) -> dict[str, Any]:
     trace = session.view().trace
     while session.state.get("phase") in (Phase.PICKING, Phase.PLACING) and time.monotonic() < deadline:
         time.sleep(0.05)
-    return {"loop_hz": _rounded(trace.cycle_rate_hz()), "servo_cycles": int(len(trace.iterations)),
-            "outcome": session.state.get("detail")}
+    return {
+        "loop_hz": _rounded(trace.cycle_rate_hz()),
+        "servo_cycles": int(len(trace.iterations)),
+        "outcome": session.state.get("detail"),
+    }
 
 
 # -- light monitors ----------------------------------------------------------------------------
@@ -223,23 +225,31 @@ def _chromium(running: RunningApp, token: str, runs: int, counts: tuple[int, ...
     return results
 
 
-def bench_ui(config: CellConfig, seed: int = 0, runs: int = 3, monitors: Monitors = Monitors.BOTH,
-             light_counts: tuple[int, ...] = LIGHT_COUNTS, browser_counts: tuple[int, ...] = BROWSER_COUNTS,
-             cycle_period_s: float = 0.0, cell: str | None = None) -> dict[str, Any]:
+def bench_ui(
+    config: CellConfig,
+    seed: int = 0,
+    runs: int = 3,
+    monitors: Monitors = Monitors.BOTH,
+    light_counts: tuple[int, ...] = LIGHT_COUNTS,
+    browser_counts: tuple[int, ...] = BROWSER_COUNTS,
+    cycle_period_s: float = 0.0,
+    cell: str | None = None,
+) -> dict[str, Any]:
     if monitors != Monitors.LIGHT:
         require_chromium()
     result: dict[str, Any] = {
         "what": "camera frames per second reaching each monitor during the servo, the controller's servo cycles "
-                "per second from the state stream, the processes' CPU in % of one core; medians over runs (and "
-                "monitors)",
+        "per second from the state stream, the processes' CPU in % of one core; medians over runs (and "
+        "monitors)",
     }
     with tempfile.TemporaryDirectory(prefix="vservo-bench-ui-") as data:
         if cell is None:  # the shipped fast policy's servo is over in a handful of cycles: too few to watch
             cell = str(write_thesis_policy_cell(Path(data)))
             config = load_cell(cell)
             result["cell"] = "the shipped cell on the thesis's step policy"
-        options = ServeOptions(port=free_port(), data=Path(data), seed=seed, token=new_token(),
-                               cycle_period_s=cycle_period_s, cell=cell)
+        options = ServeOptions(
+            port=free_port(), data=Path(data), seed=seed, token=new_token(), cycle_period_s=cycle_period_s, cell=cell
+        )
         running = start_app(options, config)
         try:
             if monitors != Monitors.CHROMIUM:

@@ -24,13 +24,24 @@ from typing import Any
 from vservo.app.roles import TOKEN_ENVIRONMENT
 
 CHROMIUM = Path(os.environ.get("VSERVO_CHROMIUM", "/usr/bin/chromium"))
-CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--enable-unsafe-swiftshader", "--use-angle=swiftshader")
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--enable-unsafe-swiftshader",
+    "--use-angle=swiftshader",
+)
 URL_LINE = re.compile(r"vservo serve: (http://\S+)")
 STATUS_CYCLE = re.compile(r"cycle (\d+)")
-STATUS_FLANGE = re.compile(r"flange X (-?[\d.]+) Y (-?[\d.]+) Z (-?[\d.]+) mm, phi (-?[\d.]+) theta (-?[\d.]+) "
-                           r"psi (-?[\d.]+) deg")
+STATUS_FLANGE = re.compile(
+    r"flange X (-?[\d.]+) Y (-?[\d.]+) Z (-?[\d.]+) mm, phi (-?[\d.]+) theta (-?[\d.]+) "
+    r"psi (-?[\d.]+) deg"
+)
 # Counts the camera image's updates in a page: viser swaps the <img>'s blob URL per frame.
 COUNT_IMAGE_UPDATES = """() => {
     window.__imageUpdates = 0;
@@ -46,8 +57,10 @@ class ChromiumMissing(RuntimeError):
 
 def require_chromium() -> Path:
     if not CHROMIUM.is_file():
-        raise ChromiumMissing(f"Chromium is not installed at {CHROMIUM}: install it with "
-                              "`apt-get update && apt-get install -y chromium` (.ci/run does) or set VSERVO_CHROMIUM")
+        raise ChromiumMissing(
+            f"Chromium is not installed at {CHROMIUM}: install it with "
+            "`apt-get update && apt-get install -y chromium` (.ci/run does) or set VSERVO_CHROMIUM"
+        )
     return CHROMIUM
 
 
@@ -72,13 +85,34 @@ class ServeProcess:
     stderr_path: Path
 
     @classmethod
-    def start(cls, data: Path, token: str, *, cycle_period_s: float = 0.02, seed: int = 3,
-              timeout_s: float = 120.0, cell: str | None = None) -> ServeProcess:
+    def start(
+        cls,
+        data: Path,
+        token: str,
+        *,
+        cycle_period_s: float = 0.02,
+        seed: int = 3,
+        timeout_s: float = 120.0,
+        cell: str | None = None,
+    ) -> ServeProcess:
         stderr_path = Path(data) / "serve.stderr"
         Path(data).mkdir(parents=True, exist_ok=True)
         cell_option = ["--cell", cell] if cell else []
-        command = [sys.executable, "-m", "vservo.app.cli", *cell_option, "serve", "--port", str(free_port()), "--data", str(data),
-                   "--cycle-period", str(cycle_period_s), "--seed", str(seed)]
+        command = [
+            sys.executable,
+            "-m",
+            "vservo.app.cli",
+            *cell_option,
+            "serve",
+            "--port",
+            str(free_port()),
+            "--data",
+            str(data),
+            "--cycle-period",
+            str(cycle_period_s),
+            "--seed",
+            str(seed),
+        ]
         environment = {**os.environ, TOKEN_ENVIRONMENT: token}  # not --token: ps would show it
         with open(stderr_path, "w") as stderr:
             process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=stderr, text=True, env=environment)
@@ -176,8 +210,11 @@ def status_text(page: Any) -> str:
 def banner(page: Any) -> tuple[str, str, str]:
     """The banner over the page (app/banner.py): its kind, its words and its background colour."""
     element = page.locator(".vservo-banner").first
-    return (element.get_attribute("data-kind") or "", element.inner_text(),
-            element.evaluate("(e) => getComputedStyle(e).backgroundColor"))
+    return (
+        element.get_attribute("data-kind") or "",
+        element.inner_text(),
+        element.evaluate("(e) => getComputedStyle(e).backgroundColor"),
+    )
 
 
 def wait_for_banner(page: Any, kind: str, pattern: str = "", timeout_s: float = 60.0) -> str:
@@ -204,7 +241,6 @@ def wait_for_status(page: Any, pattern: str, timeout_s: float = 60.0) -> str:
     raise TimeoutError(f"the status never matched {pattern!r}; last: {text!r}")
 
 
-
 def present_part_and_start(page: Any) -> int:
     """Present a new part, press Start on the Assemble tab; the run's number once it servoes."""
     page.get_by_role("button", name="Present part", exact=True).click()
@@ -212,6 +248,7 @@ def present_part_and_start(page: Any) -> int:
     page.get_by_role("button", name="Start", exact=True).click()
     running = wait_for_status(page, r"Servoing .*run (\d+)")
     return int(re.search(r"run (\d+)", running).group(1))
+
 
 def cycle_of(text: str) -> int | None:
     match = STATUS_CYCLE.search(text)

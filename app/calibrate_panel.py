@@ -42,15 +42,21 @@ class CalibratePanel:
         self.app, self.tab = app, tab
         gui = app.server.gui
         with tab:
-            gui.add_markdown("### Commission this cell\nThe robot shows the camera the calibration board; each step "
-                             "measures part of the cell's model (docs/commissioning.md).", order=1)
+            gui.add_markdown(
+                "### Commission this cell\nThe robot shows the camera the calibration board; each step "
+                "measures part of the cell's model (docs/commissioning.md).",
+                order=1,
+            )
             self.commission_progress = gui.add_markdown("", order=7)
             self.commission_results = gui.add_markdown("", order=8)
             gui.add_markdown("### Calibration study (simulated cell)", order=20)
-            self.status = gui.add_markdown("The study shows the camera the checkerboard on the simulated cell, "
-                                           "trains the network and the classical calibrations, and measures how far "
-                                           "off each one is on views it was not shown and when the arm follows "
-                                           "points with it.", order=30)
+            self.status = gui.add_markdown(
+                "The study shows the camera the checkerboard on the simulated cell, "
+                "trains the network and the classical calibrations, and measures how far "
+                "off each one is on views it was not shown and when the arm follows "
+                "points with it.",
+                order=30,
+            )
             self.bar = gui.add_progress_bar(0.0, order=31)
             self.summary = gui.add_markdown("", order=32)
             # Plain words first: residuals, codes and equations only for who unfolds them.
@@ -63,21 +69,46 @@ class CalibratePanel:
     def add_client(self, view: ClientView) -> None:
         gui = view.client.gui
         with self.tab:
-            steps = {step: view.control(gui.add_checkbox(f"Step {step}", True, order=2 + k))
-                     for k, step in enumerate(commission_text.STEP_WORDS)}
-            start = view.button(Button.START_COMMISSIONING, gui.add_button(
-                "Start commissioning", icon=viser.Icon.PLAYER_PLAY, order=6, disabled=True,
-                hint="The robot moves: it shows the camera the board"))
-            apply = view.button(Button.APPLY_COMMISSIONING, gui.add_button(
-                "Apply", icon=viser.Icon.DEVICE_FLOPPY, order=9, disabled=True,
-                hint="Write the commissioned cell file and run on it"))
+            steps = {
+                step: view.control(gui.add_checkbox(f"Step {step}", True, order=2 + k))
+                for k, step in enumerate(commission_text.STEP_WORDS)
+            }
+            start = view.button(
+                Button.START_COMMISSIONING,
+                gui.add_button(
+                    "Start commissioning",
+                    icon=viser.Icon.PLAYER_PLAY,
+                    order=6,
+                    disabled=True,
+                    hint="The robot moves: it shows the camera the board",
+                ),
+            )
+            apply = view.button(
+                Button.APPLY_COMMISSIONING,
+                gui.add_button(
+                    "Apply",
+                    icon=viser.Icon.DEVICE_FLOPPY,
+                    order=9,
+                    disabled=True,
+                    hint="Write the commissioned cell file and run on it",
+                ),
+            )
             preset = view.control(gui.add_dropdown("Preset", tuple(PRESETS), initial_value=QUICK, order=21))
-            run = view.button(Button.RUN_CALIBRATION, gui.add_button("Run calibration", icon=viser.Icon.PLAYER_PLAY,
-                                                                     order=22, disabled=True))
-            stop = view.button(Button.STOP_CALIBRATION, gui.add_button("Stop calibration", icon=viser.Icon.PLAYER_STOP,
-                                                                       order=23, disabled=True))
-        start.on_click(lambda _: self.app.send(view, "Start commissioning", "commission", "commissioning started",
-                                               steps=[step for step, box in steps.items() if box.value]))
+            run = view.button(
+                Button.RUN_CALIBRATION, gui.add_button("Run calibration", icon=viser.Icon.PLAYER_PLAY, order=22, disabled=True)
+            )
+            stop = view.button(
+                Button.STOP_CALIBRATION, gui.add_button("Stop calibration", icon=viser.Icon.PLAYER_STOP, order=23, disabled=True)
+            )
+        start.on_click(
+            lambda _: self.app.send(
+                view,
+                "Start commissioning",
+                "commission",
+                "commissioning started",
+                steps=[step for step, box in steps.items() if box.value],
+            )
+        )
         apply.on_click(lambda _: self._confirm_apply(view))
         run.on_click(lambda _: self._start(view, preset.value))
         stop.on_click(lambda _: self._stop(view))

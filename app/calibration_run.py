@@ -29,9 +29,11 @@ QUICK = "quick (coarse grid, about a minute)"
 THESIS = "thesis defaults (about 3 to 6 minutes)"
 # Extra arguments per step; steps not named run with their defaults.
 PRESETS: dict[str, dict[str, tuple[str, ...]]] = {
-    QUICK: {"collect": ("--step-mm", "60", "--test-views", "10", "--rotated-views", "8"),
-            "train": ("--samples", "3000", "--validation", "500", "--epochs", "40"),
-            "track": ("--test", "random", "--points", "10")},
+    QUICK: {
+        "collect": ("--step-mm", "60", "--test-views", "10", "--rotated-views", "8"),
+        "train": ("--samples", "3000", "--validation", "500", "--epochs", "40"),
+        "track": ("--test", "random", "--points", "10"),
+    },
     THESIS: {"track": ("--test", "random")},
 }
 _BAR = re.compile(r"\[[#.]+\] (\d+)/(\d+)")
@@ -51,8 +53,18 @@ def bar_fraction(line: str) -> float | None:
 
 
 def step_command(step: str, folder: Path, preset: str, cell: str | None) -> list[str]:
-    return [sys.executable, "-m", "vservo.app.cli", *(["--cell", cell] if cell else []), "calibrate", step,
-            "--dir", str(folder), "--json", *PRESETS[preset].get(step, ())]
+    return [
+        sys.executable,
+        "-m",
+        "vservo.app.cli",
+        *(["--cell", cell] if cell else []),
+        "calibrate",
+        step,
+        "--dir",
+        str(folder),
+        "--json",
+        *PRESETS[preset].get(step, ()),
+    ]
 
 
 @dataclass
@@ -71,8 +83,7 @@ class CalibrationProgress:
 class CalibrationRun:
     """One workflow in a background thread; ``on_change`` hears every progress change."""
 
-    def __init__(self, folder: Path, preset: str, cell: str | None,
-                 on_change: Callable[[CalibrationProgress], None]) -> None:
+    def __init__(self, folder: Path, preset: str, cell: str | None, on_change: Callable[[CalibrationProgress], None]) -> None:
         if preset not in PRESETS:
             raise ValueError(f"unknown calibration preset {preset!r}: {', '.join(PRESETS)}")
         self.folder, self.preset, self.cell = folder, preset, cell
@@ -146,9 +157,14 @@ class CalibrationRun:
 
 
 # The methods as an operator would call them (the table in the Engineering fold keeps the codes).
-METHOD_WORDS = {"nn": "the network", "nn_height": "the network with the part's height",
-                "nn_pose": "the network with the camera's pose", "free_hand_eye": "hand-eye from free views",
-                "axxb": "hand-eye from turned views", "planar_homography": "the table's plane seen as a homography"}
+METHOD_WORDS = {
+    "nn": "the network",
+    "nn_height": "the network with the part's height",
+    "nn_pose": "the network with the camera's pose",
+    "free_hand_eye": "hand-eye from free views",
+    "axxb": "hand-eye from turned views",
+    "planar_homography": "the table's plane seen as a homography",
+}
 
 
 def summary_markdown(results: dict[str, Any]) -> str:
@@ -168,19 +184,23 @@ def results_markdown(results: dict[str, Any]) -> str:
     tracking = (results.get("track") or {}).get("methods") or {}
     if not held_out and not tracking:
         return "No results yet."
-    lines = ["| method | held-out X | Y | XY | max XY | tracking XY | tracking XY, true |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| method | held-out X | Y | XY | max XY | tracking XY | tracking XY, true |", "|---|---|---|---|---|---|---|"]
     for name in dict.fromkeys([*held_out, *tracking]):
         row, track = held_out.get(name, {}), tracking.get(name, {})
 
         def cell(values: dict, key: str) -> str:
             return "-" if values.get(key) is None else f"{values[key]:.3f}"
-        lines.append(f"| {name} | {cell(row, 'x_mm')} | {cell(row, 'y_mm')} | {cell(row, 'xy_mm')} | "
-                     f"{cell(row, 'max_xy_mm')} | {cell(track, 'xy_mm')} | {cell(track.get('true', {}), 'xy_mm')} |")
+
+        lines.append(
+            f"| {name} | {cell(row, 'x_mm')} | {cell(row, 'y_mm')} | {cell(row, 'xy_mm')} | "
+            f"{cell(row, 'max_xy_mm')} | {cell(track, 'xy_mm')} | {cell(track.get('true', {}), 'xy_mm')} |"
+        )
     evaluate = results.get("evaluate") or {}
     lines.append("")
-    lines.append(f"mm; {evaluate.get('corners', '?')} held-out corners from {evaluate.get('views', '?')} views, "
-                 f"truth {evaluate.get('truth', '?')}, pixel noise {evaluate.get('pixel_noise_px', '?')} px; tracking: "
-                 f"{(results.get('track') or {}).get('points', '?')} {(results.get('track') or {}).get('test', '')} "
-                 "points (eq. 2-47).")
+    lines.append(
+        f"mm; {evaluate.get('corners', '?')} held-out corners from {evaluate.get('views', '?')} views, "
+        f"truth {evaluate.get('truth', '?')}, pixel noise {evaluate.get('pixel_noise_px', '?')} px; tracking: "
+        f"{(results.get('track') or {}).get('points', '?')} {(results.get('track') or {}).get('test', '')} "
+        "points (eq. 2-47)."
+    )
     return "\n".join(lines)

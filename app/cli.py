@@ -40,17 +40,30 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     try:
-        token = operator_token(args.token, args.token_file, os.environ, args.host,
-                               warn=lambda line: print(f"vservo serve: warning: {line}", file=sys.stderr))
+        token = operator_token(
+            args.token,
+            args.token_file,
+            os.environ,
+            args.host,
+            warn=lambda line: print(f"vservo serve: warning: {line}", file=sys.stderr),
+        )
         origins = tuple(normalise_origin(origin) for origin in args.allow_origin)
     except (TokenError, ValueError) as exc:
         print(f"vservo serve: error: {exc}", file=sys.stderr)
         return 2
     config = load_cell(args.cell)
-    options = ServeOptions(backend=args.backend or config.robot_backend, host=args.host, port=args.port,
-                           data=Path(args.data or default_data_dir()), seed=args.seed, token=token.value,
-                           cycle_period_s=args.cycle_period, cell=args.cell,
-                           show_token=token.source is TokenSource.GENERATED, allowed_origins=origins)
+    options = ServeOptions(
+        backend=args.backend or config.robot_backend,
+        host=args.host,
+        port=args.port,
+        data=Path(args.data or default_data_dir()),
+        seed=args.seed,
+        token=token.value,
+        cycle_period_s=args.cycle_period,
+        cell=args.cell,
+        show_token=token.source is TokenSource.GENERATED,
+        allowed_origins=origins,
+    )
     try:
         return serve(options, config, announce=lambda line: print(line, flush=True))
     except ControllerStartError as exc:
@@ -65,8 +78,15 @@ def _cmd_bench_ui(args: argparse.Namespace) -> int:
 
     config = load_cell(args.cell)
     try:
-        result = bench_ui(config, seed=args.seed, runs=args.runs, monitors=Monitors(args.monitors),
-                          light_counts=tuple(args.light_clients), cycle_period_s=args.cycle_period, cell=args.cell)
+        result = bench_ui(
+            config,
+            seed=args.seed,
+            runs=args.runs,
+            monitors=Monitors(args.monitors),
+            light_counts=tuple(args.light_clients),
+            cycle_period_s=args.cycle_period,
+            cell=args.cell,
+        )
     except ChromiumMissing as exc:
         print(f"vservo bench: error: {exc}", file=sys.stderr)
         return 2
@@ -76,46 +96,85 @@ def _cmd_bench_ui(args: argparse.Namespace) -> int:
 
 def _add_serve_command(commands: argparse._SubParsersAction) -> None:
     serve = commands.add_parser(
-        "serve", help="the operator application in the browser (viser), with the controller as its own process",
+        "serve",
+        help="the operator application in the browser (viser), with the controller as its own process",
         description="Serve the operator application: teach and assemble in the browser. Prints the URL and the "
         "operator token; one browser at a time takes control with the token, every other one is a read-only "
-        "monitor. Stop with Ctrl-C: the controller holds the robot and exits.")
+        "monitor. Stop with Ctrl-C: the controller holds the robot and exits.",
+    )
     serve.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
-    serve.add_argument("--host", default="127.0.0.1",
-                       help="interface to serve on (default 127.0.0.1: this PC only; 0.0.0.0 opens it to the network)")
-    serve.add_argument("--port", type=positive(int), default=8080, help="HTTP port (default 8080; the next free "
-                       "one if taken)")
+    serve.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="interface to serve on (default 127.0.0.1: this PC only; 0.0.0.0 opens it to the network)",
+    )
+    serve.add_argument("--port", type=positive(int), default=8080, help="HTTP port (default 8080; the next free one if taken)")
     serve.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
     serve.add_argument("--seed", type=seed, default=None, help="seed of the simulated cell and of the parts' arrival")
     token = serve.add_mutually_exclusive_group()
-    token.add_argument("--token-file", metavar="FILE", help="read the operator token from FILE (default "
-                       "$VSERVO_OPERATOR_TOKEN, else a new random one, printed); beyond 127.0.0.1 at least 16 characters")
-    token.add_argument("--token", help="operator token, on this PC's loopback only: other users see it in ps (a "
-                       "warning says so); --token-file or $VSERVO_OPERATOR_TOKEN do not show")
-    serve.add_argument("--allow-origin", action="append", default=[], metavar="URL",
-                       help="a web page's origin (http://host:port) besides the app's own that may open its "
-                       "WebSocket, e.g. a reverse proxy; repeat for more")
-    serve.add_argument("--cycle-period", type=float, default=0.05, metavar="S",
-                       help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
+    token.add_argument(
+        "--token-file",
+        metavar="FILE",
+        help="read the operator token from FILE (default "
+        "$VSERVO_OPERATOR_TOKEN, else a new random one, printed); beyond 127.0.0.1 at least 16 characters",
+    )
+    token.add_argument(
+        "--token",
+        help="operator token, on this PC's loopback only: other users see it in ps (a "
+        "warning says so); --token-file or $VSERVO_OPERATOR_TOKEN do not show",
+    )
+    serve.add_argument(
+        "--allow-origin",
+        action="append",
+        default=[],
+        metavar="URL",
+        help="a web page's origin (http://host:port) besides the app's own that may open its "
+        "WebSocket, e.g. a reverse proxy; repeat for more",
+    )
+    serve.add_argument(
+        "--cycle-period",
+        type=float,
+        default=0.05,
+        metavar="S",
+        help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)",
+    )
     serve.set_defaults(run=_cmd_serve)
 
 
 def _add_ui_bench(bench: BenchCommand) -> None:
     from vservo.app.light_monitor import LIGHT_COUNTS, Monitors
 
-    ui = bench.add("ui", "camera frames per second reaching the monitors, their CPU and the controller's loop rate: "
-                   "light WebSocket clients (1, 5, 20, each against none) and 1 and 5 headless Chromium pages",
-                   _cmd_bench_ui)
-    ui.add_argument("--monitors", choices=[kind.value for kind in Monitors], default=Monitors.BOTH.value,
-                    help="ui: light (WebSocket clients that decode every message, render nothing), chromium "
-                    "(headless pages) or both (default both)")
-    ui.add_argument("--light-clients", type=positive(int), nargs="+", default=list(LIGHT_COUNTS), metavar="N",
-                    help=f"ui: numbers of light clients, each paired run for run with runs without any "
-                    f"(default {' '.join(map(str, LIGHT_COUNTS))})")
-    ui.add_argument("--runs", type=positive(int), default=3,
-                    help="ui: assemblies per monitor count (default 3; with light clients, as many again without any)")
-    ui.add_argument("--cycle-period", type=float, default=0.0, metavar="S",
-                    help="ui: shortest servo cycle in s (default 0: free-running)")
+    ui = bench.add(
+        "ui",
+        "camera frames per second reaching the monitors, their CPU and the controller's loop rate: "
+        "light WebSocket clients (1, 5, 20, each against none) and 1 and 5 headless Chromium pages",
+        _cmd_bench_ui,
+    )
+    ui.add_argument(
+        "--monitors",
+        choices=[kind.value for kind in Monitors],
+        default=Monitors.BOTH.value,
+        help="ui: light (WebSocket clients that decode every message, render nothing), chromium "
+        "(headless pages) or both (default both)",
+    )
+    ui.add_argument(
+        "--light-clients",
+        type=positive(int),
+        nargs="+",
+        default=list(LIGHT_COUNTS),
+        metavar="N",
+        help=f"ui: numbers of light clients, each paired run for run with runs without any "
+        f"(default {' '.join(map(str, LIGHT_COUNTS))})",
+    )
+    ui.add_argument(
+        "--runs",
+        type=positive(int),
+        default=3,
+        help="ui: assemblies per monitor count (default 3; with light clients, as many again without any)",
+    )
+    ui.add_argument(
+        "--cycle-period", type=float, default=0.0, metavar="S", help="ui: shortest servo cycle in s (default 0: free-running)"
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:

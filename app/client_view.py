@@ -105,16 +105,17 @@ class ClientView:
         return True
 
     def notify(self, title: str, body: str, error: bool = False) -> None:
-        self.client.add_notification(title, body, color="red" if error else "green",
-                                     auto_close_seconds=12.0 if error else 4.0)
+        self.client.add_notification(title, body, color="red" if error else "green", auto_close_seconds=12.0 if error else 4.0)
 
     def report(self, what: str, success: str | None = None) -> Callable[[Reply], None]:
         """A reply handler: refusals shown in red in this browser, success (if worded) in green."""
+
         def done(reply: Reply) -> None:
             if not reply.ok:
                 self.notify(f"{what}: refused", reply.error or "no reason given", error=True)
             elif success:
                 self.notify(what, success)
+
         return done
 
     def refused(self, what: str, exc: RoleRefused) -> None:

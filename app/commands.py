@@ -61,8 +61,7 @@ class CommandQueue:
     def estop(self, client_id: int | None, done: Done = lambda reply: None) -> None:
         """Stop the cell now: from any browser, never behind another command."""
         log.warning("e-stop pressed in browser %s", client_id)
-        threading.Thread(target=self._send, args=(_Request(client_id, ESTOP, {}, done),), name="app-estop",
-                         daemon=True).start()
+        threading.Thread(target=self._send, args=(_Request(client_id, ESTOP, {}, done),), name="app-estop", daemon=True).start()
 
     def call_now(self, command: str, **args: Any) -> Reply:
         """A read-only query answered in the caller's thread (the app's own refreshes, not a browser's)."""

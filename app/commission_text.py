@@ -29,8 +29,10 @@ def progress_markdown(record: dict | None, cell_file: str) -> str:
     the procedure (views, or epochs, done of total and the last note)."""
     runs_on = f"The controller runs on `{cell_file}`.  "
     if not record:
-        return (f"{runs_on}  \nNot commissioned in this session. Choose the steps and press **Start commissioning**: "
-                "the robot shows the camera the calibration board (the simulated cell lays it on the table itself).")
+        return (
+            f"{runs_on}  \nNot commissioned in this session. Choose the steps and press **Start commissioning**: "
+            "the robot shows the camera the calibration board (the simulated cell lays it on the table itself)."
+        )
     steps = ", ".join(record["steps"])
     summary = record.get("summary")
     if record.get("applied"):
@@ -39,16 +41,21 @@ def progress_markdown(record: dict | None, cell_file: str) -> str:
         head = f"**Commissioning stopped**: {record['error']}"
     elif summary:
         retakes = [step for step, result in summary["steps"].items() if result["verdict"] != "good"]
-        head = (f"**Commissioned**: every step is good. **Apply** writes `{record['out']}`." if not retakes
-                else f"**Commissioned**, but {', '.join(retakes)} say{'s' if len(retakes) == 1 else ''} retake: "
-                     "commission again.")
+        head = (
+            f"**Commissioned**: every step is good. **Apply** writes `{record['out']}`."
+            if not retakes
+            else f"**Commissioned**, but {', '.join(retakes)} say{'s' if len(retakes) == 1 else ''} retake: commission again."
+        )
     else:
         head = f"**Commissioning** {steps}; the new cell file will be `{record['out']}`."
     lines = [head, ""] if record.get("applied") else [runs_on, head, ""]
     for name, line in record["progress"].items():
         what = PROCEDURE.get(name, name)
-        count = (f"epoch {line['done']} of at most {line['total']}, {line['note']}" if name == "nn"
-                 else f"{line['done']} of {line['total']} views (last: {line['note']})")
+        count = (
+            f"epoch {line['done']} of at most {line['total']}, {line['note']}"
+            if name == "nn"
+            else f"{line['done']} of {line['total']} views (last: {line['note']})"
+        )
         lines.append(f"- {what}: {count}")
     return "\n".join(lines).strip()
 
@@ -57,20 +64,24 @@ def _verdict(result: dict) -> str:
     if result["verdict"] == "good":
         return "good"
     why = result.get("why") or ""
-    return "**retake**" + (why[len("retake"):] if why.startswith("retake") else f": {why}")
+    return "**retake**" + (why[len("retake") :] if why.startswith("retake") else f": {why}")
 
 
 def _residuals(step: str, r: dict) -> str:
     if step == "camera":
-        return (f"RMS {r['rms_px']:.3f} px over {r['views']} views (worst view {r['worst_view_rms_px']:.3f} px); "
-                f"fx known to ±{r['std_fx_px']:.2f} px")
+        return (
+            f"RMS {r['rms_px']:.3f} px over {r['views']} views (worst view {r['worst_view_rms_px']:.3f} px); "
+            f"fx known to ±{r['std_fx_px']:.2f} px"
+        )
     if step == "hand-eye":
         return f"RMS {r['rms_px']:.3f} px; board seen still to {r['spread_mm']:.3f} mm, {r['spread_deg']:.3f} deg"
     if step == "laser":
         return f"line RMS {r['line_rms_mm']:.3f} mm over {r['depth_span_mm']:.0f} mm of depth, {r['spots']} spots"
     if step == "nn":
-        return (f"validation error {r['validation_mean_mm']:.3f} mm mean, {r['validation_max_mm']:.3f} mm max "
-                f"({r['corners']} corners from {r['views']} views)")
+        return (
+            f"validation error {r['validation_mean_mm']:.3f} mm mean, {r['validation_max_mm']:.3f} mm max "
+            f"({r['corners']} corners from {r['views']} views)"
+        )
     return ""
 
 
@@ -89,9 +100,11 @@ def results_markdown(record: dict | None) -> str:
     acceptance = summary.get("acceptance")
     lines.append("")
     if acceptance:
-        lines.append(f"**Acceptance check, the figure to sign off**: mean error **{acceptance['mean_mm']:.3f} mm**, "
-                     f"max **{acceptance['max_mm']:.3f} mm** over {acceptance['corners']} board corners (where the "
-                     "commissioned model puts a corner the camera sees, against where the board has it).")
+        lines.append(
+            f"**Acceptance check, the figure to sign off**: mean error **{acceptance['mean_mm']:.3f} mm**, "
+            f"max **{acceptance['max_mm']:.3f} mm** over {acceptance['corners']} board corners (where the "
+            "commissioned model puts a corner the camera sees, against where the board has it)."
+        )
     else:
         lines.append("No acceptance check: it needs the camera or the hand-eye step.")
     return "\n".join(lines)
@@ -110,19 +123,23 @@ def engineering_markdown(record: dict | None) -> str:
 
     def kept(step: str) -> str:
         return "" if step in measured else " (not measured: the cell file's)"
+
     camera, laser = summary["camera"], summary["laser"]
     u0, v0 = camera["principal_point_px"]
-    lines += ["", "Measured values:", "",
-              f"- camera: fx {camera['fx_px']:.2f} px, fy {camera['fy_px']:.2f} px, principal point "
-              f"({u0:.2f}, {v0:.2f}) px{kept('camera')}",
-              f"- hand-eye eMc: {_pose(summary['eMc_mm_deg'])}{kept('hand-eye')}",
-              f"- laser cMl: {_pose(summary['cMl_mm_deg'])}{kept('laser')}",
-              f"- laser baseline d {laser['baseline_mm']:.2f} mm, angle alpha {laser['alpha_deg']:.2f} deg"
-              f"{kept('laser')}",
-              "",
-              f"<small>{summary['views']['used']} of {summary['views']['taken']} views used · "
-              f"{summary['cell_time_s']:.0f} s of cell time · views and network in "
-              f"`{record['out'].removesuffix('.toml')}-commissioning`</small>"]
+    lines += [
+        "",
+        "Measured values:",
+        "",
+        f"- camera: fx {camera['fx_px']:.2f} px, fy {camera['fy_px']:.2f} px, principal point "
+        f"({u0:.2f}, {v0:.2f}) px{kept('camera')}",
+        f"- hand-eye eMc: {_pose(summary['eMc_mm_deg'])}{kept('hand-eye')}",
+        f"- laser cMl: {_pose(summary['cMl_mm_deg'])}{kept('laser')}",
+        f"- laser baseline d {laser['baseline_mm']:.2f} mm, angle alpha {laser['alpha_deg']:.2f} deg{kept('laser')}",
+        "",
+        f"<small>{summary['views']['used']} of {summary['views']['taken']} views used · "
+        f"{summary['cell_time_s']:.0f} s of cell time · views and network in "
+        f"`{record['out'].removesuffix('.toml')}-commissioning`</small>",
+    ]
     return "\n".join(lines)
 
 

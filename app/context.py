@@ -41,8 +41,15 @@ class AppContext(Protocol):
     scene: CellScene
     runs: list[dict]
 
-    def send(self, view: ClientView, what: str, command: str, success: str | None = None,
-             done: Callable[[Any], None] | None = None, **args: Any) -> None:
+    def send(
+        self,
+        view: ClientView,
+        what: str,
+        command: str,
+        success: str | None = None,
+        done: Callable[[Any], None] | None = None,
+        **args: Any,
+    ) -> None:
         """A browser's command, refused in that browser unless it holds control."""
         ...
 

@@ -34,12 +34,25 @@ class ControllerProcess:
         self.key = key
 
     @classmethod
-    def start(cls, *, backend: str, data: Path, seed: int | None, cycle_period_s: float,
-              cell: str | None = None) -> ControllerProcess:
+    def start(
+        cls, *, backend: str, data: Path, seed: int | None, cycle_period_s: float, cell: str | None = None
+    ) -> ControllerProcess:
         key = new_key()
-        command = [sys.executable, "-m", "vservo.app.cli", *(["--cell", cell] if cell else []), "controller",
-                   "--exit-with-parent", "--backend", backend, "--data", str(data), "--cycle-period", str(cycle_period_s),
-                   *(["--seed", str(seed)] if seed is not None else [])]
+        command = [
+            sys.executable,
+            "-m",
+            "vservo.app.cli",
+            *(["--cell", cell] if cell else []),
+            "controller",
+            "--exit-with-parent",
+            "--backend",
+            backend,
+            "--data",
+            str(data),
+            "--cycle-period",
+            str(cycle_period_s),
+            *(["--seed", str(seed)] if seed is not None else []),
+        ]
         # Its log goes to our standard error, as the operator's terminal shows the app's.
         process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env={**os.environ, KEY_ENVIRONMENT: key.hex()})
         line = _first_line(process, START_TIMEOUT_S)
@@ -49,8 +62,10 @@ class ControllerProcess:
         except (ValueError, KeyError, TypeError):
             process.terminate()
             process.wait(30)
-            raise ControllerStartError(f"the controller process did not start (exit code {process.returncode}; "
-                                       f"its error is above): {line.strip() or 'no address line'}") from None
+            raise ControllerStartError(
+                f"the controller process did not start (exit code {process.returncode}; "
+                f"its error is above): {line.strip() or 'no address line'}"
+            ) from None
 
     @property
     def alive(self) -> bool:

@@ -46,8 +46,18 @@ def replay_overlays(recording: Recording) -> list[tuple[dict, live_image.Overlay
             trail.append(corners)
         if cycle.get("frame") is None:
             continue
-        shown.append((cycle, live_image.Overlay(corners, live_image.pixel_array(cycle.get("laser_spot_px"), (2,)),
-                                                desired_corners, desired_spot, np.array(trail) if trail else None)))
+        shown.append(
+            (
+                cycle,
+                live_image.Overlay(
+                    corners,
+                    live_image.pixel_array(cycle.get("laser_spot_px"), (2,)),
+                    desired_corners,
+                    desired_spot,
+                    np.array(trail) if trail else None,
+                ),
+            )
+        )
     return shown
 
 
@@ -79,8 +89,11 @@ class HistoryPanel:
                 choice = gui.add_dropdown("Run", self._labels() or [NO_RUN])
                 timeline = gui.add_markdown("")
                 chart = gui.add_image(stage_chart({}), label="stage timeline", format="png")
-                replay = view.button(Button.REPLAY, gui.add_button("Replay its recording", icon=viser.Icon.PLAYER_PLAY,
-                                                                   disabled=True), operator_only=False)
+                replay = view.button(
+                    Button.REPLAY,
+                    gui.add_button("Replay its recording", icon=viser.Icon.PLAYER_PLAY, disabled=True),
+                    operator_only=False,
+                )
                 play = gui.add_button("Play", icon=viser.Icon.PLAYER_PLAY, disabled=True)
                 pause = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE, disabled=True)
                 seek = gui.add_slider("Replay frame", min=0, max=1, step=1, initial_value=0, disabled=True)
@@ -90,11 +103,22 @@ class HistoryPanel:
                 errors = gui.add_uplot(
                     (np.array([0.0, 1.0]), np.full(2, np.nan)),
                     ({"label": "s"}, {"label": "off the taught view, px", "stroke": "#d62728", "width": 2}),
-                    title="replay: how far the part is from the taught view (px)", aspect=2.2,
-                    scales={"x": {"time": False}, "y": {"distr": 3}}, visible=False)
-        view.handles.update(history_run=choice, history_timeline=timeline, history_chart=chart, replay_play=play,
-                            replay_pause=pause, replay_seek=seek, replay_status=status, replay_image=image,
-                            replay_errors=errors)
+                    title="replay: how far the part is from the taught view (px)",
+                    aspect=2.2,
+                    scales={"x": {"time": False}, "y": {"distr": 3}},
+                    visible=False,
+                )
+        view.handles.update(
+            history_run=choice,
+            history_timeline=timeline,
+            history_chart=chart,
+            replay_play=play,
+            replay_pause=pause,
+            replay_seek=seek,
+            replay_status=status,
+            replay_image=image,
+            replay_errors=errors,
+        )
         choice.on_update(lambda _: self._show_timeline(view))
         replay.on_click(lambda _: self._start_replay(view, SPEEDS[speed.value]))
         play.on_click(lambda _: self._steer(view, lambda clock: clock.play()))
@@ -155,8 +179,9 @@ class HistoryPanel:
         if not shown:
             view.notify("Replay", f"run {run['id']} recorded no frames", error=True)
             return
-        replay = _Replay(run, recording, shown,
-                         ReplayClock(ReplayTimeline.from_cycles([cycle for cycle, _ in shown], run.get("duration_s"))))
+        replay = _Replay(
+            run, recording, shown, ReplayClock(ReplayTimeline.from_cycles([cycle for cycle, _ in shown], run.get("duration_s")))
+        )
         with self._lock:
             previous = self._replays.get(view.client_id)
             self._replays[view.client_id] = replay
@@ -207,7 +232,8 @@ class HistoryPanel:
                 handles["replay_seek"].value = index
                 handles["replay_status"].content = (
                     f"run {replay.run['id']}: {timeline.times_s[index]:.1f} s of {timeline.duration_s:.1f} s, "
-                    f"frame {index + 1} of {len(replay.shown)}, {_stage_text(cycle)}")
+                    f"frame {index + 1} of {len(replay.shown)}, {_stage_text(cycle)}"
+                )
                 if time.monotonic() - charted_at >= CHART_PERIOD_S or index == len(replay.shown) - 1:
                     charted_at = time.monotonic()
                     self._chart(view, timeline, index)
@@ -229,11 +255,15 @@ class HistoryPanel:
         path = timeline.path_m[upto]
         path = path[np.all(np.isfinite(path), axis=1)]
         if len(path) > 1:
-            view.client.scene.add_line_segments("/replay/path", np.stack([path[:-1], path[1:]], axis=1), PATH_RGB,
-                                                thickness=0.003)
+            view.client.scene.add_line_segments(
+                "/replay/path", np.stack([path[:-1], path[1:]], axis=1), PATH_RGB, thickness=0.003
+            )
 
 
 def _stage_text(cycle: dict) -> str:
     error = cycle.get("error_px")
-    return (f"{stage_words(cycle.get('stage') or '')}, {error:.1f} px from the taught view" if error is not None
-            else stage_words(cycle.get("stage") or ""))
+    return (
+        f"{stage_words(cycle.get('stage') or '')}, {error:.1f} px from the taught view"
+        if error is not None
+        else stage_words(cycle.get("stage") or "")
+    )

@@ -73,7 +73,7 @@ def decode_batch(raw: bytes, decompressor: zstandard.ZstdDecompressor) -> list[d
     buffers, offset, view = [], end, memoryview(raw)
     for length in payload["binaryBufferLengths"]:
         offset += (8 - offset % 8) % 8
-        buffers.append(view[offset:offset + length])
+        buffers.append(view[offset : offset + length])
         offset += length
     if offset > len(raw):
         raise MonitorError(f"a viser batch of {len(raw)} bytes announces {offset} bytes of binary buffers")
@@ -125,8 +125,9 @@ class LightMonitor:
     async def run(self, stop: asyncio.Event) -> None:
         """Read the server until ``stop`` is set (or the server closes the connection)."""
         decompressor = zstandard.ZstdDecompressor()
-        async with websockets.asyncio.client.connect(self.url, subprotocols=[f"viser-v{version('viser')}"],
-                                                     origin=self.origin, max_size=None) as connection:
+        async with websockets.asyncio.client.connect(
+            self.url, subprotocols=[f"viser-v{version('viser')}"], origin=self.origin, max_size=None
+        ) as connection:
             self.connected.set()
             stopping = asyncio.ensure_future(stop.wait())
             try:
@@ -169,8 +170,14 @@ async def _serve_monitors(url: str, count: int, connection: Any) -> None:
         await asyncio.wait_for(all_ready(), READY_TIMEOUT_S)
     except TimeoutError:
         pass
-    connection.send(failure() or ("ready" if all(m.camera() for m in monitors) else
-                                  f"the page of {url} showed no image element within {READY_TIMEOUT_S:.0f} s"))
+    connection.send(
+        failure()
+        or (
+            "ready"
+            if all(m.camera() for m in monitors)
+            else f"the page of {url} showed no image element within {READY_TIMEOUT_S:.0f} s"
+        )
+    )
     while await asyncio.to_thread(connection.recv) == "frames":
         connection.send(failure() or [list(monitor.camera().times) for monitor in monitors])
     stop.set()
@@ -188,8 +195,7 @@ class LightMonitors:
         self.count = count
         context = multiprocessing.get_context("spawn")  # the server's threads must not be forked
         self._connection, child = context.Pipe()
-        self.process = context.Process(target=_monitors_main, args=(url, count, child), name="light-monitors",
-                                       daemon=True)
+        self.process = context.Process(target=_monitors_main, args=(url, count, child), name="light-monitors", daemon=True)
         self.process.start()
         child.close()
         try:

@@ -101,8 +101,9 @@ def draw(image: np.ndarray, overlay: Overlay) -> np.ndarray:
         for index, point in enumerate(overlay.corners_px):
             if _seen(point):
                 cv2.circle(canvas, _fixed(point), 7 << SHIFT, SEEN_BGR, 2, aa, SHIFT)
-                cv2.putText(canvas, str(index), (int(point[0]) + 9, int(point[1]) - 9), cv2.FONT_HERSHEY_SIMPLEX,
-                            0.5, SEEN_BGR, 1, aa)
+                cv2.putText(
+                    canvas, str(index), (int(point[0]) + 9, int(point[1]) - 9), cv2.FONT_HERSHEY_SIMPLEX, 0.5, SEEN_BGR, 1, aa
+                )
     spot, target = overlay.laser_spot_px, overlay.desired_laser_px
     if _seen(target):
         cv2.circle(canvas, _fixed(target), 10 << SHIFT, SPOT_BGR, 2, aa, SHIFT)

@@ -40,8 +40,9 @@ class ReplayTimeline:
         if run_duration_s and span > run_duration_s > 0.0:
             times = times * (run_duration_s / span)  # a simulated clock: the run's own duration
         errors = np.array([np.nan if c.get("error_px") is None else float(c["error_px"]) for c in cycles], float)
-        path = np.array([np.asarray(c["bMe"], float)[:3, 3] if c.get("bMe") is not None else np.full(3, np.nan)
-                         for c in cycles], float).reshape(-1, 3)
+        path = np.array(
+            [np.asarray(c["bMe"], float)[:3, 3] if c.get("bMe") is not None else np.full(3, np.nan) for c in cycles], float
+        ).reshape(-1, 3)
         return cls(times, errors, path)
 
     @property

@@ -74,8 +74,9 @@ def is_loopback(host: str) -> bool:
         return False  # a host name: whatever it resolves to, assume the network
 
 
-def operator_token(command_line: str | None, file: str | None, environment: Mapping[str, str], host: str,
-                   warn: Callable[[str], None]) -> OperatorToken:
+def operator_token(
+    command_line: str | None, file: str | None, environment: Mapping[str, str], host: str, warn: Callable[[str], None]
+) -> OperatorToken:
     """The token from --token-file, --token or the environment (else a new one), checked for ``host``.
 
     Beyond loopback a token must be at least MIN_NETWORK_TOKEN_LENGTH characters and not
@@ -98,25 +99,34 @@ def operator_token(command_line: str | None, file: str | None, environment: Mapp
         raise TokenError(f"{where}: the operator token is empty")
     if is_loopback(host):
         if token.source is TokenSource.COMMAND_LINE:
-            warn("--token is visible to every user of this PC in ps; use --token-file or "
-                 f"${TOKEN_ENVIRONMENT}")
+            warn(f"--token is visible to every user of this PC in ps; use --token-file or ${TOKEN_ENVIRONMENT}")
         return token
     if token.source is TokenSource.COMMAND_LINE:
-        raise TokenError(f"--host {host}: --token is visible in ps; give the token with --token-file or "
-                         f"${TOKEN_ENVIRONMENT} when serving beyond this PC")
+        raise TokenError(
+            f"--host {host}: --token is visible in ps; give the token with --token-file or "
+            f"${TOKEN_ENVIRONMENT} when serving beyond this PC"
+        )
     if len(token.value) < MIN_NETWORK_TOKEN_LENGTH:
-        raise TokenError(f"{where}: the operator token has {len(token.value)} characters; serving on --host {host} "
-                         f"needs at least {MIN_NETWORK_TOKEN_LENGTH}")
-    warn(f"serving on {host}: every computer that reaches this one sees the cell and may press the E-STOP; "
-         "only the operator token guards control")
+        raise TokenError(
+            f"{where}: the operator token has {len(token.value)} characters; serving on --host {host} "
+            f"needs at least {MIN_NETWORK_TOKEN_LENGTH}"
+        )
+    warn(
+        f"serving on {host}: every computer that reaches this one sees the cell and may press the E-STOP; "
+        "only the operator token guards control"
+    )
     return token
 
 
 class TokenAttempts:
     """Wrong operator tokens per client address within a sliding window (thread-safe)."""
 
-    def __init__(self, max_failures: int = MAX_TOKEN_FAILURES, window_s: float = FAILURE_WINDOW_S,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        max_failures: int = MAX_TOKEN_FAILURES,
+        window_s: float = FAILURE_WINDOW_S,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.max_failures, self.window_s, self._clock = max_failures, window_s, clock
         self._failures: dict[str, deque[float]] = {}
         self._lock = threading.Lock()
@@ -176,8 +186,14 @@ class Roles:
             raise RoleRefused(f"too many wrong operator tokens from this address: try again in {math.ceil(wait_s)} s")
         if not hmac.compare_digest(token.strip().encode(), self._token):
             failures = self.attempts.failed(source)
-            log.warning("wrong operator token from %s (browser %d): %d of %d within %g s", source, client_id,
-                        failures, self.attempts.max_failures, self.attempts.window_s)
+            log.warning(
+                "wrong operator token from %s (browser %d): %d of %d within %g s",
+                source,
+                client_id,
+                failures,
+                self.attempts.max_failures,
+                self.attempts.window_s,
+            )
             raise RoleRefused("wrong operator token: control not taken")
         self.attempts.succeeded(source)
         self._set(client_id, only_if=None, any_holder=True)
@@ -194,8 +210,9 @@ class Roles:
         """Raise RoleRefused unless ``client_id`` holds control."""
         if not self.is_operator(client_id):
             holder = "another browser holds control" if self._operator is not None else "no browser holds control"
-            raise RoleRefused(f"{action}: this browser is a read-only monitor ({holder}); enter the operator token "
-                              "and take control first")
+            raise RoleRefused(
+                f"{action}: this browser is a read-only monitor ({holder}); enter the operator token and take control first"
+            )
 
     def _set(self, new: int | None, only_if: int | None, any_holder: bool = False) -> bool:
         with self._lock:

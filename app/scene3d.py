@@ -63,8 +63,7 @@ def tool_bodies(bMe: Matrix, mount: ToolMount) -> dict[str, Matrix]:
     return {name: bMe @ frames[name] @ transform(t=(0.0, 0.0, -behind[name])) for name in frames}
 
 
-def part_pose_from_corners(corners_px: Matrix, bMe: Matrix, eMc: Matrix, camera: CameraModel,
-                           side_m: float) -> Matrix | None:
+def part_pose_from_corners(corners_px: Matrix, bMe: Matrix, eMc: Matrix, camera: CameraModel, side_m: float) -> Matrix | None:
     """bMo of the part from its four corners seen in one frame (None if not all are seen)."""
     if corners_px is None or not np.all(np.isfinite(corners_px)):
         return None
@@ -119,8 +118,11 @@ class PartTracker:
         if state.get("holding_part"):
             if self._vMo is None:
                 # Grasped: the part hangs from the cup as it was last seen, or centred under it.
-                self._vMo = inverse(bMv) @ self.bMo if self.bMo is not None else \
-                    inverse(transform(rot_x(np.pi), (side_m / 2, side_m / 2, 0.0)))
+                self._vMo = (
+                    inverse(bMv) @ self.bMo
+                    if self.bMo is not None
+                    else inverse(transform(rot_x(np.pi), (side_m / 2, side_m / 2, 0.0)))
+                )
             self.bMo = bMv @ self._vMo
             return self.bMo
         if self._vMo is not None and bMp is not None and state.get("phase") in (Phase.PLACING, Phase.DONE):
@@ -157,8 +159,9 @@ class CellScene:
         self.robot.loadViewerModel(rootNodeName="/cell/robot")
         self.robot.display(config.home_q)
         scene = server.scene
-        self.frustum = scene.add_camera_frustum("/cell/camera", fov=1.0, aspect=1.0, scale=0.05, thickness=0.002,
-                                                color=CAMERA_RGB, visible=False)  # shown once the robot's pose is known
+        self.frustum = scene.add_camera_frustum(
+            "/cell/camera", fov=1.0, aspect=1.0, scale=0.05, thickness=0.002, color=CAMERA_RGB, visible=False
+        )  # shown once the robot's pose is known
         self.part = scene.add_box("/cell/part", PART_RGB, (0.02, 0.02, 0.02), visible=False)
         self.tools = {
             "cup": scene.add_cylinder("/cell/tools/cup", CUP_RADIUS_M, CUP_HEIGHT_M, CUP_RGB, visible=False),
@@ -167,12 +170,24 @@ class CellScene:
         }  # shown, like the frustum, once the robot's pose is known
         self.metal: list = []
         # The cell file's metal part, drawn while a job is taught (a job's own follows its place pose).
-        self.modelled_metal = [] if config.metal_part is None else [
-            scene.add_box(f"/cell/modelled_metal_part/{index}", METAL_RGB, 2 * box.half_extents, wxyz=_wxyz(box.bMx),
-                          position=box.bMx[:3, 3], visible=False)
-            for index, box in enumerate(config.metal_part.boxes)]
-        self.place_outline = scene.add_line_segments("/cell/teach/place_outline", np.zeros((12, 2, 3)), OUTLINE_RGB,
-                                                     thickness=0.003, visible=False)
+        self.modelled_metal = (
+            []
+            if config.metal_part is None
+            else [
+                scene.add_box(
+                    f"/cell/modelled_metal_part/{index}",
+                    METAL_RGB,
+                    2 * box.half_extents,
+                    wxyz=_wxyz(box.bMx),
+                    position=box.bMx[:3, 3],
+                    visible=False,
+                )
+                for index, box in enumerate(config.metal_part.boxes)
+            ]
+        )
+        self.place_outline = scene.add_line_segments(
+            "/cell/teach/place_outline", np.zeros((12, 2, 3)), OUTLINE_RGB, thickness=0.003, visible=False
+        )
         self._teaching_shown: tuple[bool, list | None] | None = None  # None: not shown yet
         self._use_model(config)
         self.job: _Job | None = None
@@ -202,8 +217,12 @@ class CellScene:
         try:
             config = load_cell(cell_file)
         except (ConfigError, OSError) as exc:
-            log.error("the controller runs on %s, which the app cannot read (%s): the 3D view keeps the tools of %s",
-                      cell_file, exc, self.source)
+            log.error(
+                "the controller runs on %s, which the app cannot read (%s): the 3D view keeps the tools of %s",
+                cell_file,
+                exc,
+                self.source,
+            )
             self.source = cell_file  # said once, not at every update
             return
         self._use_model(config)
@@ -220,8 +239,11 @@ class CellScene:
         self.job = _Job(job["name"], float(job["part_side_m"]), np.asarray(job["bMe_place"], float))
         bMp = placed_part_frame(self.job.bMe_place, self.mount.eMv, self.job.side_m)
         for index, box in enumerate(MetalPart(bMp).boxes):
-            self.metal.append(self.server.scene.add_box(
-                f"/cell/metal_part/{index}", METAL_RGB, 2 * box.half_extents, wxyz=_wxyz(box.bMx), position=box.bMx[:3, 3]))
+            self.metal.append(
+                self.server.scene.add_box(
+                    f"/cell/metal_part/{index}", METAL_RGB, 2 * box.half_extents, wxyz=_wxyz(box.bMx), position=box.bMx[:3, 3]
+                )
+            )
 
     def _show_teaching(self, state: dict) -> None:
         """While teaching: the cell file's metal part instead of a job's, and the taught place's part outline."""

@@ -71,8 +71,15 @@ BANNER_STYLE = f"""<style>
 
 
 class OperatorApp:
-    def __init__(self, server: viser.ViserServer, client: ControllerClient, session: Session, roles: Roles,
-                 config: CellConfig, options: ServeOptions) -> None:
+    def __init__(
+        self,
+        server: viser.ViserServer,
+        client: ControllerClient,
+        session: Session,
+        roles: Roles,
+        config: CellConfig,
+        options: ServeOptions,
+    ) -> None:
         self.server, self.channel, self.session, self.roles = server, client, session, roles
         self.options = options
         self.commands = CommandQueue(client.call, roles)
@@ -84,8 +91,9 @@ class OperatorApp:
         self._job_details: dict[str, dict] = {}
         self._stop = threading.Event()
 
-        server.gui.configure_theme(control_width="large", show_share_button=False,
-                                   titlebar_content=None, brand_color=(30, 90, 160))
+        server.gui.configure_theme(
+            control_width="large", show_share_button=False, titlebar_content=None, brand_color=(30, 90, 160)
+        )
         server.gui.set_panel_label("vservo cell")
         server.gui.main_panel.dock_left()
         server.gui.main_panel.set_width(470)
@@ -98,13 +106,16 @@ class OperatorApp:
         # top under the banner: the same place in every tab, and no scrolling ever hides it.
         self.safety = server.gui.add_panel()
         with self.safety.add_tab("Cell", viser.Icon.ALERT_TRIANGLE):
-            estop = server.gui.add_button("E-STOP", color="red", icon=viser.Icon.HAND_STOP,
-                                          hint="Hold the robot now. Every browser may stop the cell.")
+            estop = server.gui.add_button(
+                "E-STOP", color="red", icon=viser.Icon.HAND_STOP, hint="Hold the robot now. Every browser may stop the cell."
+            )
             # Large: viser has no button size. Viser sets its icons half their width right of
             # their box, which at this size runs the hand into the label's "E".
             button = f"button[id='{estop._impl.uuid}']"
-            server.gui.add_html(f"<style>{button} {{height: 84px !important; font-size: 1.8em; font-weight: 800; "
-                                f"letter-spacing: 0.12em}} {button} svg {{left: 0 !important}}</style>")
+            server.gui.add_html(
+                f"<style>{button} {{height: 84px !important; font-size: 1.8em; font-weight: 800; "
+                f"letter-spacing: 0.12em}} {button} svg {{left: 0 !important}}</style>"
+            )
             self.status = server.gui.add_markdown("")
         self.safety.float(x=15, y=BANNER_HEIGHT_PX + 10, width=SAFETY_WIDTH_PX, height=SAFETY_HEIGHT_PX)
         estop.on_click(lambda event: self.commands.estop(event.client_id, self._estop_reply(event.client_id)))
@@ -128,8 +139,15 @@ class OperatorApp:
 
     # -- helpers the panels use ----------------------------------------------------------
 
-    def send(self, view: ClientView, what: str, command: str, success: str | None = None,
-             done: Callable[[Any], None] | None = None, **args: Any) -> None:
+    def send(
+        self,
+        view: ClientView,
+        what: str,
+        command: str,
+        success: str | None = None,
+        done: Callable[[Any], None] | None = None,
+        **args: Any,
+    ) -> None:
         """A browser's command: refused at once (in that browser) unless it holds control."""
         try:
             self.commands.submit(view.client_id, command, done or view.report(what, success), **args)
@@ -142,6 +160,7 @@ class OperatorApp:
                 work()
             except ChannelError as exc:
                 log.warning("%s", exc)
+
         threading.Thread(target=run, name="app-refresh", daemon=True).start()
 
     def refresh_lists(self) -> None:
@@ -188,9 +207,12 @@ class OperatorApp:
         with self._lock:
             has_runs = any(run.get("recording") and run.get("outcome") for run in self.runs)
             views = list(self.views.values())
-        situation = Situation(can_present_part=bool(state.get("can_present_part")),
-                              commissioning_to_apply=bool(summary and summary["good"] and not commissioning.get("applied")),
-                              calibrating=self.calibrate.calibrating, has_runs=has_runs)
+        situation = Situation(
+            can_present_part=bool(state.get("can_present_part")),
+            commissioning_to_apply=bool(summary and summary["good"] and not commissioning.get("applied")),
+            calibrating=self.calibrate.calibrating,
+            has_runs=has_runs,
+        )
         live = live_buttons(state.get("phase") or "idle", situation)
         for view in views:
             view.set_live(live)
@@ -205,6 +227,7 @@ class OperatorApp:
                 view.notify("E-STOP", "robot held", error=True)
             else:
                 view.report("E-STOP")(reply)
+
         return done
 
     # -- browsers --------------------------------------------------------------------
@@ -229,8 +252,10 @@ class OperatorApp:
 
     def _add_control_box(self, view: ClientView) -> None:
         gui = view.client.gui
-        reset = view.button(Button.RESET, gui.add_button("Reset (after e-stop, fault or a finished run)",
-                                                         icon=viser.Icon.REFRESH, order=2, disabled=True))
+        reset = view.button(
+            Button.RESET,
+            gui.add_button("Reset (after e-stop, fault or a finished run)", icon=viser.Icon.REFRESH, order=2, disabled=True),
+        )
         reset.on_click(lambda _: self.send(view, "Reset", "reset", "ready"))
         folder = gui.add_folder("Control", order=3)
         with folder:
@@ -248,9 +273,12 @@ class OperatorApp:
             token.value = ""
 
         def on_role(is_operator: bool) -> None:
-            role.content = ("**Operator**: this browser holds control." if is_operator else
-                            "**Monitor** (read-only): " + ("another browser holds control." if self.roles.operator
-                                                           is not None else "no browser holds control."))
+            role.content = (
+                "**Operator**: this browser holds control."
+                if is_operator
+                else "**Monitor** (read-only): "
+                + ("another browser holds control." if self.roles.operator is not None else "no browser holds control.")
+            )
             release.disabled, take.disabled = not is_operator, is_operator
 
         take.on_click(on_take)
@@ -274,8 +302,9 @@ class OperatorApp:
             except RuntimeError:  # viser: its elements were removed as it left, before we heard of it
                 log.info("browser %d left while control changed hands", client_id)
         if old is not None and old in views and new is not None:
-            views[old].notify("Control taken", "Another browser entered the operator token: this one is a monitor now.",
-                              error=True)
+            views[old].notify(
+                "Control taken", "Another browser entered the operator token: this one is a monitor now.", error=True
+            )
         self._refresh_text(self.session.view())
 
     # -- the display thread ------------------------------------------------------------------
@@ -298,9 +327,11 @@ class OperatorApp:
                     done_frames, last_image = view.frame.number, now
                     self.assemble.show_frame(view.frame)
                     self.teach.refresh_seen(view)
-                for name, period, update in (("text", TEXT_PERIOD_S, self._refresh_text),
-                                             ("scene", SCENE_PERIOD_S, self._refresh_scene),
-                                             ("plot", PLOT_PERIOD_S, self.assemble.refresh_plots)):
+                for name, period, update in (
+                    ("text", TEXT_PERIOD_S, self._refresh_text),
+                    ("scene", SCENE_PERIOD_S, self._refresh_scene),
+                    ("plot", PLOT_PERIOD_S, self.assemble.refresh_plots),
+                ):
                     if state_pending[name] and now >= due[name]:
                         update(view)
                         state_pending[name], due[name] = False, now + period
@@ -355,12 +386,12 @@ class RunningApp:
 def start_app(options: ServeOptions, config: CellConfig) -> RunningApp:
     """Start the controller process, connect to it and serve the page (returns once serving)."""
     roles = Roles(options.token)
-    controller = ControllerProcess.start(backend=options.backend, data=options.data, seed=options.seed,
-                                         cycle_period_s=options.cycle_period_s, cell=options.cell)
+    controller = ControllerProcess.start(
+        backend=options.backend, data=options.data, seed=options.seed, cycle_period_s=options.cycle_period_s, cell=options.cell
+    )
     try:
         session = Session()
-        channel = ControllerClient(controller.address, controller.key, on_state=session.on_state,
-                                   on_frame=session.on_frame)
+        channel = ControllerClient(controller.address, controller.key, on_state=session.on_state, on_frame=session.on_frame)
         session.on_state(channel.state)  # the welcome's state (ignored if a newer one came first)
         policy = OriginPolicy.allowing(options.allowed_origins)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner whatever verbose says; ours is below
@@ -384,8 +415,7 @@ def serve(options: ServeOptions, config: CellConfig, announce: Callable[[str], N
     running = start_app(options, config)
     try:
         token = options.token if options.show_token else "(the one given)"
-        announce(f"vservo serve: {running.url}  operator token: {token}  "
-                 f"(backend {options.backend}, data {options.data})")
+        announce(f"vservo serve: {running.url}  operator token: {token}  (backend {options.backend}, data {options.data})")
         while not stop.wait(0.5):
             if not running.controller.alive:
                 why = f"the controller process exited with code {running.controller.process.returncode}"
@@ -398,7 +428,12 @@ def serve(options: ServeOptions, config: CellConfig, announce: Callable[[str], N
 
 
 def _log_thread_exception(args: threading.ExceptHookArgs) -> None:
-    log.error("unhandled exception in thread %s", args.thread.name if args.thread else "?",
-              exc_info=(args.exc_type, args.exc_value, args.exc_traceback))
-    print(f"vservo serve: unhandled exception in thread {args.thread.name if args.thread else '?'}: "
-          f"{args.exc_value!r}", file=sys.stderr)
+    log.error(
+        "unhandled exception in thread %s",
+        args.thread.name if args.thread else "?",
+        exc_info=(args.exc_type, args.exc_value, args.exc_traceback),
+    )
+    print(
+        f"vservo serve: unhandled exception in thread {args.thread.name if args.thread else '?'}: {args.exc_value!r}",
+        file=sys.stderr,
+    )

@@ -108,8 +108,9 @@ class Session:
             return  # a phase change, not a new servo cycle
         error = state.get("error_px")
         twist = [np.nan if v is None else float(v) for v in state.get("cVc") or [np.nan] * 6]
-        self._rows = (self._rows + [(iteration, float(state.get("time_s") or 0.0),
-                                     np.nan if error is None else float(error), twist)])[-TRACE_LENGTH:]
+        self._rows = (
+            self._rows + [(iteration, float(state.get("time_s") or 0.0), np.nan if error is None else float(error), twist)]
+        )[-TRACE_LENGTH:]
 
     def _add_path_point(self, state: dict) -> None:
         point = np.asarray(state.get("bMe"), float)[:3, 3]
@@ -151,4 +152,5 @@ class Session:
         """Block until a state or frame newer than those counts arrives (or the controller goes); False on timeout."""
         with self._changed:
             return self._changed.wait_for(
-                lambda: self._states > seen_states or self._frames > seen_frames or self._gone is not None, timeout_s)
+                lambda: self._states > seen_states or self._frames > seen_frames or self._gone is not None, timeout_s
+            )

@@ -12,8 +12,14 @@ import numpy as np
 from vservo.app.banner import stage_words
 
 WIDTH, ROW, LEFT = 640, 34, 250
-STAGE_BGR = {"1A": (180, 119, 31), "1B": (14, 127, 255), "2": (44, 160, 44), "3": (40, 39, 214),
-             "ibvs": (189, 103, 148), "pbvs": (75, 86, 140)}
+STAGE_BGR = {
+    "1A": (180, 119, 31),
+    "1B": (14, 127, 255),
+    "2": (44, 160, 44),
+    "3": (40, 39, 214),
+    "ibvs": (189, 103, 148),
+    "pbvs": (75, 86, 140),
+}
 OTHER_BGR = (127, 127, 127)
 
 
@@ -24,8 +30,7 @@ def stage_chart(run: dict) -> np.ndarray:
     total = sum(int(s["iterations"]) for s in stages)
     image = np.full((ROW * max(1, len(stages)) + 30, WIDTH, 3), 255, np.uint8)
     if not total:
-        cv2.putText(image, "no servo cycles recorded", (10, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1,
-                    cv2.LINE_AA)
+        cv2.putText(image, "no servo cycles recorded", (10, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.55, (0, 0, 0), 1, cv2.LINE_AA)
         return image
     start = 0
     scale = (WIDTH - LEFT - 60) / total
@@ -34,13 +39,12 @@ def stage_chart(run: dict) -> np.ndarray:
         top = 8 + row * ROW
         x0, x1 = LEFT + int(round(start * scale)), LEFT + max(int(round((start + count) * scale)), 1 + int(round(start * scale)))
         cv2.rectangle(image, (x0, top), (x1, top + ROW - 10), STAGE_BGR.get(str(stage["stage"]), OTHER_BGR), -1)
-        cv2.putText(image, stage_words(stage["stage"]), (8, top + 17), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1,
-                    cv2.LINE_AA)
-        cv2.putText(image, str(count), (x1 + 5, top + 17), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (60, 60, 60), 1,
-                    cv2.LINE_AA)
+        cv2.putText(image, stage_words(stage["stage"]), (8, top + 17), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(image, str(count), (x1 + 5, top + 17), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (60, 60, 60), 1, cv2.LINE_AA)
         start += count
     axis_y = image.shape[0] - 14
     cv2.line(image, (LEFT, axis_y), (WIDTH - 60, axis_y), (0, 0, 0), 1)
-    cv2.putText(image, f"servo cycles (of {total})", (LEFT, axis_y + 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1,
-                cv2.LINE_AA)
+    cv2.putText(
+        image, f"servo cycles (of {total})", (LEFT, axis_y + 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA
+    )
     return image

@@ -18,12 +18,24 @@ from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
 from vservo.core.production.assembly import Outcome, Phase
 
 PHASE_WORDS = {
-    Phase.IDLE: "Idle", Phase.TEACHING: "Teaching", Phase.COMMISSIONING: "Commissioning", Phase.SERVOING: "Servoing",
-    Phase.PICKING: "Picking", Phase.PLACING: "Placing", Phase.DONE: "Done", Phase.FAULT: "FAULT",
+    Phase.IDLE: "Idle",
+    Phase.TEACHING: "Teaching",
+    Phase.COMMISSIONING: "Commissioning",
+    Phase.SERVOING: "Servoing",
+    Phase.PICKING: "Picking",
+    Phase.PLACING: "Placing",
+    Phase.DONE: "Done",
+    Phase.FAULT: "FAULT",
     Phase.ESTOPPED: "E-STOPPED",
 }
-OUTCOME_WORDS = {Outcome.PLACED: "placed", Outcome.MISSED: "MISSED", Outcome.FAULT: "FAULT", Outcome.ESTOPPED: "E-STOPPED",
-                 Outcome.INTERRUPTED: "INTERRUPTED", None: "running"}
+OUTCOME_WORDS = {
+    Outcome.PLACED: "placed",
+    Outcome.MISSED: "MISSED",
+    Outcome.FAULT: "FAULT",
+    Outcome.ESTOPPED: "E-STOPPED",
+    Outcome.INTERRUPTED: "INTERRUPTED",
+    None: "running",
+}
 
 
 def _number(value: object, digits: int = 2, unit: str = "") -> str:
@@ -55,8 +67,14 @@ def status_markdown(state: dict, operator_present: bool, controller_gone: str | 
 
 
 # The laws' equations per stage (section 4.4; docs/thesis-notes.md), for the engineering fold.
-STAGE_EQUATIONS = {"1A": "eqs. 4-26 .. 4-29", "1B": "eq. 4-36", "2": "eqs. 4-39 .. 4-49", "3": "eqs. 4-50, 4-51",
-                   "ibvs": "eq. 4-14", "pbvs": "eq. 2-47"}
+STAGE_EQUATIONS = {
+    "1A": "eqs. 4-26 .. 4-29",
+    "1B": "eq. 4-36",
+    "2": "eqs. 4-39 .. 4-49",
+    "3": "eqs. 4-50, 4-51",
+    "ibvs": "eq. 4-14",
+    "pbvs": "eq. 2-47",
+}
 
 
 def engineering_markdown(state: dict) -> str:
@@ -65,9 +83,11 @@ def engineering_markdown(state: dict) -> str:
     if not stage:
         return "No servo stage under way."
     twist = ", ".join(_number(v, 4) for v in state.get("cVc") or [])
-    return (f"stage `{stage}` ({STAGE_EQUATIONS.get(str(stage), 'no equation on record')}) · cycle "
-            f"{state.get('iteration', 0)} · ||f_id - f|| = {_number(state.get('error_px'), 2, ' px')}  \n"
-            f"cVc = [{twist}] (m/s, rad/s)")
+    return (
+        f"stage `{stage}` ({STAGE_EQUATIONS.get(str(stage), 'no equation on record')}) · cycle "
+        f"{state.get('iteration', 0)} · ||f_id - f|| = {_number(state.get('error_px'), 2, ' px')}  \n"
+        f"cVc = [{twist}] (m/s, rad/s)"
+    )
 
 
 def flange_text(bMe: object) -> str:
@@ -107,23 +127,26 @@ def outcome_markdown(outcome: dict | None, run_id: int | None) -> str:
     if not outcome:
         return "No run finished yet in this session."
     word = OUTCOME_WORDS.get(outcome.get("outcome"), str(outcome.get("outcome")))
-    return (f"**Run {run_id}: {word}**: {outcome.get('reason', '')}  \n"
-            f"final feature error {_number(outcome.get('final_error_px'), 2, ' px')} · "
-            f"placement error {_number(outcome.get('placement_error_mm'), 2, ' mm')} · "
-            f"{_number(outcome.get('duration_s'), 1, ' s')} · {outcome.get('iterations', 0)} servo cycles")
+    return (
+        f"**Run {run_id}: {word}**: {outcome.get('reason', '')}  \n"
+        f"final feature error {_number(outcome.get('final_error_px'), 2, ' px')} · "
+        f"placement error {_number(outcome.get('placement_error_mm'), 2, ' mm')} · "
+        f"{_number(outcome.get('duration_s'), 1, ' s')} · {outcome.get('iterations', 0)} servo cycles"
+    )
 
 
 def runs_table(runs: Sequence[dict], limit: int = 15) -> str:
     """Past runs, newest first, as a markdown table."""
     if not runs:
         return "No runs yet."
-    lines = ["| run | job | outcome | duration | final error | placement | started |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| run | job | outcome | duration | final error | placement | started |", "|---|---|---|---|---|---|---|"]
     for run in runs[:limit]:
         started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(run["started_at"]))
-        lines.append(f"| {run['id']} | {run['job']} | {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))} | "
-                     f"{_number(run.get('duration_s'), 1, ' s')} | {_number(run.get('final_error_px'), 2, ' px')} | "
-                     f"{_number(run.get('placement_error_mm'), 2, ' mm')} | {started} |")
+        lines.append(
+            f"| {run['id']} | {run['job']} | {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))} | "
+            f"{_number(run.get('duration_s'), 1, ' s')} | {_number(run.get('final_error_px'), 2, ' px')} | "
+            f"{_number(run.get('placement_error_mm'), 2, ' mm')} | {started} |"
+        )
     return "\n".join(lines)
 
 
@@ -134,5 +157,7 @@ def run_label(run: dict) -> str:
 
 def run_heading(run: dict) -> str:
     """One run in a line: its number, job, outcome and why (its stages are app/stage_chart.py's chart)."""
-    return (f"**Run {run['id']}** ({run['job']}): {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))}, "
-            f"{run.get('reason') or ''}")
+    return (
+        f"**Run {run['id']}** ({run['job']}): {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))}, "
+        f"{run.get('reason') or ''}"
+    )

@@ -49,14 +49,22 @@ from vservo.core.production.demo_job import DESIRED_cMo
 
 NEW_JOB = "(new job)"
 # Jog step: translation (m) and rotation (deg) per press.
-STEPS = {"0.5 mm / 0.5 deg": (0.0005, 0.5), "1 mm / 1 deg": (0.001, 1.0), "5 mm / 2 deg": (0.005, 2.0),
-         "10 mm / 5 deg": (0.010, 5.0), "20 mm / 10 deg": (0.020, 10.0)}
+STEPS = {
+    "0.5 mm / 0.5 deg": (0.0005, 0.5),
+    "1 mm / 1 deg": (0.001, 1.0),
+    "5 mm / 2 deg": (0.005, 2.0),
+    "10 mm / 5 deg": (0.010, 5.0),
+    "20 mm / 10 deg": (0.020, 10.0),
+}
 TRANSLATIONS = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 ROTATIONS = ("+Rx", "-Rx", "+Ry", "-Ry", "+Rz", "-Rz")
 GIZMO_FOLLOW = 1e-4  # m and rad: the gizmo is moved to the flange only when they differ by more
 # Hold-to-jog: speed (m/s, deg/s) while a button is held; the page repeats the hold this often.
-SPEEDS = {"slow: 2 mm/s, 2 deg/s": (0.002, 2.0), "medium: 10 mm/s, 5 deg/s": (0.010, 5.0),
-          "fast: 25 mm/s, 10 deg/s": (0.025, 10.0)}
+SPEEDS = {
+    "slow: 2 mm/s, 2 deg/s": (0.002, 2.0),
+    "medium: 10 mm/s, 5 deg/s": (0.010, 5.0),
+    "fast: 25 mm/s, 10 deg/s": (0.025, 10.0),
+}
 HOLD_HZ = 5.0
 # The cup pose offered for a pick: on the middle of the top face, pressed this far into its
 # level compensator, as an operator jogs until it presses.
@@ -158,9 +166,13 @@ def standing(state: dict) -> bool:
 
 # The steps that teach a job, in the operator's order: what the state's teach_missing (or
 # teach_optional) calls it and the button that does it.
-TEACH_STEPS = (("the desired image", "Capture desired image"), ("the pick pose", "Set pick pose here"),
-               ("the place pose", "Set place pose here"), ("the check view", "Capture check view"),
-               ("the start pose", "Set start pose here"))
+TEACH_STEPS = (
+    ("the desired image", "Capture desired image"),
+    ("the pick pose", "Set pick pose here"),
+    ("the place pose", "Set place pose here"),
+    ("the check view", "Capture check view"),
+    ("the start pose", "Set start pose here"),
+)
 
 
 def next_button(state: dict) -> str:
@@ -177,8 +189,10 @@ def next_button(state: dict) -> str:
 def teach_checklist(state: dict) -> str:
     """What teaching still needs and the next step, or how to start it; the vacuum sensor."""
     if not teaching(state):
-        return ("Not teaching. Keep **(new job)** (or choose a stored job as a template) and press **Begin teaching**.  \n"
-                "**Next: Begin teaching**")
+        return (
+            "Not teaching. Keep **(new job)** (or choose a stored job as a template) and press **Begin teaching**.  \n"
+            "**Next: Begin teaching**"
+        )
     missing = state.get("teach_missing") or []
     optional = state.get("teach_optional") or []
     also = (" Optional: " + ", ".join(optional) + ".") if optional else ""
@@ -212,10 +226,12 @@ def seen_markdown(state: dict, overlay: Overlay | None, mount: ToolMount, camera
     else:
         centre = bMo @ np.array([PART_SIDE_M / 2, PART_SIDE_M / 2, 0.0, 1.0])
         turn = np.rad2deg(np.arctan2(bMo[1, 0], bMo[0, 0]))
-        lines.append(f"Part seen: top-face centre X {1000 * centre[0]:.2f} Y {1000 * centre[1]:.2f} "
-                     f"Z {1000 * centre[2]:.2f} mm, turned {turn:.2f} deg.  \n"
-                     f"Flange to view it: `{pose_words(view_over_part(bMo, eMc))}`  \n"
-                     f"Cup on it: `{pose_words(cup_on_part(bMo))}`")
+        lines.append(
+            f"Part seen: top-face centre X {1000 * centre[0]:.2f} Y {1000 * centre[1]:.2f} "
+            f"Z {1000 * centre[2]:.2f} mm, turned {turn:.2f} deg.  \n"
+            f"Flange to view it: `{pose_words(view_over_part(bMo, eMc))}`  \n"
+            f"Cup on it: `{pose_words(cup_on_part(bMo))}`"
+        )
     pocket = teach_pose(state, "pocket_bMe")
     if pocket is not None:
         bMv = pocket @ mount.eMv
@@ -247,8 +263,7 @@ class TeachPanel:
 
         with self.tab:
             template = c(gui.add_dropdown("Template", [NEW_JOB, *app.job_names()], initial_value=NEW_JOB, order=1))
-            begin = button("Begin teaching", lambda s: s.get("phase") in STANDING - {TEACHING},
-                           icon=viser.Icon.SCHOOL, order=2)
+            begin = button("Begin teaching", lambda s: s.get("phase") in STANDING - {TEACHING}, icon=viser.Icon.SCHOOL, order=2)
             from_template: Live = lambda s: teaching(s) and template.value != NEW_JOB  # noqa: E731
             present = None
             if app.session.state.get("can_present_part"):  # only where the cell can put a part down
@@ -256,8 +271,12 @@ class TeachPanel:
                     part_x = c(gui.add_number("Part X (mm)", -390.0, step=0.5))
                     part_y = c(gui.add_number("Part Y (mm)", 0.0, step=0.5))
                     part_turn = c(gui.add_number("Part turn (deg)", 0.0, step=0.5))
-                    present = button("Present part here", standing, icon=viser.Icon.BOX,
-                                     hint="A new part on the table, its top face's centre at X, Y, turned")
+                    present = button(
+                        "Present part here",
+                        standing,
+                        icon=viser.Icon.BOX,
+                        hint="A new part on the table, its top face's centre at X, Y, turned",
+                    )
             with gui.add_folder("Move the arm", order=6):
                 frame = c(gui.add_dropdown("Frame", ("base", "tool"), initial_value="base"))
                 step = c(gui.add_dropdown("Step", tuple(STEPS), initial_value="1 mm / 1 deg"))
@@ -276,44 +295,62 @@ class TeachPanel:
             with gui.add_folder("3. Pick", order=8):
                 suction_on = button("Suction on", lambda s: teaching(s) and not s.get("holding_part"))
                 suction_off = button("Suction off", lambda s: teaching(s) and bool(s.get("holding_part")))
-                test_pick = button("Test pick", lambda s: teaching(s) and not s.get("holding_part"),
-                                   hint="Suction on, lift 5 mm, report the grip, put the part back down and release")
-                pick = button("Set pick pose here",
-                              lambda s: teaching(s) and "the desired image" not in (s.get("teach_missing") or []))
+                test_pick = button(
+                    "Test pick",
+                    lambda s: teaching(s) and not s.get("holding_part"),
+                    hint="Suction on, lift 5 mm, report the grip, put the part back down and release",
+                )
+                pick = button(
+                    "Set pick pose here", lambda s: teaching(s) and "the desired image" not in (s.get("teach_missing") or [])
+                )
             with gui.add_folder("4. Place", order=9):
-                go_pocket = button("Go above the pocket",
-                                   lambda s: teaching(s) and teach_pose(s, "pocket_bMe") is not None,
-                                   hint="The carried part 30 mm over where it sits in the metal part's pocket")
+                go_pocket = button(
+                    "Go above the pocket",
+                    lambda s: teaching(s) and teach_pose(s, "pocket_bMe") is not None,
+                    hint="The carried part 30 mm over where it sits in the metal part's pocket",
+                )
                 go_place = button("Go to the template's place pose", from_template)
-                place = button("Set place pose here", lambda s: teaching(s) and bool(s.get("holding_part")),
-                               hint="The part on the cup, in the metal part")
+                place = button(
+                    "Set place pose here",
+                    lambda s: teaching(s) and bool(s.get("holding_part")),
+                    hint="The part on the cup, in the metal part",
+                )
             with gui.add_folder("5. Check view", order=10):
-                go_over = button("Go over the placed part",
-                                 lambda s: teaching(s) and teach_pose(s, "place_bMo") is not None,
-                                 hint="The camera over the part where the taught place sets it down, "
-                                      "as over the part of the desired view")
+                go_over = button(
+                    "Go over the placed part",
+                    lambda s: teaching(s) and teach_pose(s, "place_bMo") is not None,
+                    hint="The camera over the part where the taught place sets it down, as over the part of the desired view",
+                )
                 go_check = button("Go to the template's check view", from_template)
-                check = button("Capture check view", teaching, icon=viser.Icon.CAMERA,
-                               hint="The part placed in the metal part, the camera over it seeing its four corners")
+                check = button(
+                    "Capture check view",
+                    teaching,
+                    icon=viser.Icon.CAMERA,
+                    hint="The part placed in the metal part, the camera over it seeing its four corners",
+                )
             with gui.add_folder("6. Start pose", order=11):
-                go_desired = button("Go to the desired view", lambda s: teaching(s) and teach_pose(s, "view_bMe") is not None,
-                                    hint="Where the desired image was captured")
+                go_desired = button(
+                    "Go to the desired view",
+                    lambda s: teaching(s) and teach_pose(s, "view_bMe") is not None,
+                    hint="Where the desired image was captured",
+                )
                 go_start = button("Go to the template's start pose", from_template)
                 start = button("Set start pose here", teaching)
             with gui.add_folder("Settings", order=12):
                 # A new job's settings, as the controller drafts it.
                 threshold = c(gui.add_number("Threshold (px)", TeachDraft.threshold_px, min=0.1, max=50.0, step=0.1))
                 gain = c(gui.add_number("Gain", TeachDraft.gain, min=0.05, max=5.0, step=0.05))
-                approach = c(gui.add_number("Approach height (mm)", 1000.0 * TeachDraft.approach_m, min=5.0, max=200.0,
-                                            step=1.0))
-                tolerance = c(gui.add_number("Placement tolerance (mm)", TeachDraft.placement_tolerance_mm, min=0.05,
-                                             max=20.0, step=0.05))
+                approach = c(gui.add_number("Approach height (mm)", 1000.0 * TeachDraft.approach_m, min=5.0, max=200.0, step=1.0))
+                tolerance = c(
+                    gui.add_number("Placement tolerance (mm)", TeachDraft.placement_tolerance_mm, min=0.05, max=20.0, step=0.05)
+                )
                 apply = button("Apply settings", teaching)
             with gui.add_folder("Save", order=13):
                 name = c(gui.add_text("Job name", ""))
                 description = c(gui.add_text("Description", ""))
-                save = button("Save job", lambda s: teaching(s) and not s.get("teach_missing"),
-                              icon=viser.Icon.DEVICE_FLOPPY, color="green")
+                save = button(
+                    "Save job", lambda s: teaching(s) and not s.get("teach_missing"), icon=viser.Icon.DEVICE_FLOPPY, color="green"
+                )
                 cancel = button("Cancel teaching", teaching)
         view.handles["teach_template"] = template
         send = app.send
@@ -330,6 +367,7 @@ class TeachPanel:
                     threshold.value, gain.value = float(detail["threshold_px"]), float(detail["gain"])
                     approach.value = 1000.0 * float(detail["approach_m"])
                     tolerance.value = float(detail.get("placement_tolerance_mm", 1.0))  # absent in version 1
+
             send(view, "Begin teaching", "begin_teach", done=began, template=template_name())
 
         def go_to(where: str, pose_of: Callable[[dict], Any]) -> Callable[[Any], None]:
@@ -343,12 +381,12 @@ class TeachPanel:
                     view.notify("Go to", f"job {template_name()!r} has no {where}", error=True)
                     return
                 send(view, f"Go to the template's {where}", "move_to", "arrived", bMe=pose)
+
             return lambda _: app.in_background(fetch_and_move)
 
         def on_jog(event: Any) -> None:
             translation, rotation = jog_step(event.target.value, step.value)
-            send(view, f"Jog {event.target.value}", "jog", translation_m=translation, rotation_rad=rotation,
-                 frame=frame.value)
+            send(view, f"Jog {event.target.value}", "jog", translation_m=translation, rotation_rad=rotation, frame=frame.value)
 
         def on_hold(name: str) -> Callable[[Any], None]:
             def hold(_: Any) -> None:
@@ -362,8 +400,9 @@ class TeachPanel:
                 def done(reply: Any) -> None:
                     jogging.clear()
                     view.report(f"Jog {name}")(reply)
-                send(view, f"Jog {name}", "jog", done=done, translation_m=translation, rotation_rad=rotation,
-                     frame=frame.value)
+
+                send(view, f"Jog {name}", "jog", done=done, translation_m=translation, rotation_rad=rotation, frame=frame.value)
+
             return hold
 
         def on_move_there(_: Any) -> None:
@@ -376,8 +415,14 @@ class TeachPanel:
             send(view, f"Move the {tool.value} there", "move_to", "arrived", bMe=bMe.tolist())
 
         def on_present(_: Any) -> None:
-            send(view, "Present part here", "present_part", "a new part is on the table",
-                 centre_mm=[part_x.value, part_y.value], turn_deg=part_turn.value)
+            send(
+                view,
+                "Present part here",
+                "present_part",
+                "a new part is on the table",
+                centre_mm=[part_x.value, part_y.value],
+                turn_deg=part_turn.value,
+            )
 
         def on_save(_: Any) -> None:
             def saved(reply: Any) -> None:
@@ -385,17 +430,35 @@ class TeachPanel:
                 if reply.ok:
                     app.forget_job(reply.result)
                     app.refresh_lists()
+
             send(view, "Save job", "save_job", done=saved, name=name.value.strip(), description=description.value)
 
         begin.on_click(on_begin)
         go_view.on_click(go_to("desired view", lambda d: d["taught_bMe"]))
         go_place.on_click(go_to("place pose", lambda d: d["bMe_place"]))
-        go_pocket.on_click(lambda _: send(view, "Go above the pocket", "move_to", "arrived", bMe=above_pocket(
-            teach_pose(app.session.state, "pocket_bMe")).tolist()))
-        go_desired.on_click(lambda _: send(view, "Go to the desired view", "move_to", "arrived",
-                                           bMe=teach_pose(app.session.state, "view_bMe").tolist()))
-        go_over.on_click(lambda _: send(view, "Go over the placed part", "move_to", "arrived", bMe=view_over_part(
-            teach_pose(app.session.state, "place_bMo"), app.scene.mount.eMc).tolist()))
+        go_pocket.on_click(
+            lambda _: send(
+                view,
+                "Go above the pocket",
+                "move_to",
+                "arrived",
+                bMe=above_pocket(teach_pose(app.session.state, "pocket_bMe")).tolist(),
+            )
+        )
+        go_desired.on_click(
+            lambda _: send(
+                view, "Go to the desired view", "move_to", "arrived", bMe=teach_pose(app.session.state, "view_bMe").tolist()
+            )
+        )
+        go_over.on_click(
+            lambda _: send(
+                view,
+                "Go over the placed part",
+                "move_to",
+                "arrived",
+                bMe=view_over_part(teach_pose(app.session.state, "place_bMo"), app.scene.mount.eMc).tolist(),
+            )
+        )
         go_check.on_click(go_to("check view", lambda d: (d.get("check") or {}).get("check_bMe")))
         go_start.on_click(go_to("start pose", lambda d: d["start_bMe"]))
         move.on_click(on_jog)
@@ -414,9 +477,18 @@ class TeachPanel:
         pick.on_click(lambda _: send(view, "Set pick pose", "set_pick_pose", "pick pose set"))
         place.on_click(lambda _: send(view, "Set place pose", "set_place_pose", "place pose set"))
         check.on_click(lambda _: send(view, "Capture check view", "capture_check_view", "check view captured"))
-        apply.on_click(lambda _: send(view, "Apply settings", "set_settings", "settings applied",
-                                      threshold_px=threshold.value, gain=gain.value, approach_m=approach.value / 1000.0,
-                                      placement_tolerance_mm=tolerance.value))
+        apply.on_click(
+            lambda _: send(
+                view,
+                "Apply settings",
+                "set_settings",
+                "settings applied",
+                threshold_px=threshold.value,
+                gain=gain.value,
+                approach_m=approach.value / 1000.0,
+                placement_tolerance_mm=tolerance.value,
+            )
+        )
         save.on_click(on_save)
         cancel.on_click(lambda _: send(view, "Cancel teaching", "cancel_teach", "teaching cancelled"))
         template.on_update(lambda _: self._enable(view.client_id))
@@ -430,6 +502,7 @@ class TeachPanel:
                 gizmo.value = False
                 self._show_gizmo(view, False)
             self._enable(view.client_id)
+
         view.on_role(on_role)
         self._enable(view.client_id)
 
@@ -493,16 +566,17 @@ class TeachPanel:
         if not show or not view.is_operator:
             return
         bMe = np.asarray(self.app.session.state["bMe"], float)
-        handle = view.client.scene.add_transform_controls("/teach/flange_gizmo", scale=0.12, depth_test=False,
-                                                          wxyz=vtf.SO3.from_matrix(bMe[:3, :3]).wxyz,
-                                                          position=bMe[:3, 3])
+        handle = view.client.scene.add_transform_controls(
+            "/teach/flange_gizmo", scale=0.12, depth_test=False, wxyz=vtf.SO3.from_matrix(bMe[:3, :3]).wxyz, position=bMe[:3, 3]
+        )
         entry = {"handle": handle, "dragging": False}
 
         def on_update(event: Any) -> None:
             entry["dragging"] = event.phase != "end"
             if event.phase == "end":
-                self.app.send(view, "Move to the gizmo", "move_to",
-                              bMe=gizmo_pose(event.target.position, event.target.wxyz).tolist())
+                self.app.send(
+                    view, "Move to the gizmo", "move_to", bMe=gizmo_pose(event.target.position, event.target.wxyz).tolist()
+                )
 
         handle.on_update(on_update)
         with self._lock:

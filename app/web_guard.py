@@ -128,6 +128,7 @@ def _serve_checked_by(policy: OriginPolicy) -> Iterator[None]:
             if refused is not None or process_request is None:
                 return refused
             return process_request(connection, request)
+
         return original(*args, process_request=checked, **kwargs)
 
     websockets.asyncio.server.serve = serve

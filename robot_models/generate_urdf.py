@@ -79,11 +79,9 @@ def _add_link_shapes(link: ET.Element, row: DhLink, radius: float, with_joint_dr
     if with_joint_drum:
         _add_shape(link, "body", (0.0, 0.0, 0.0), "cylinder", radius=_sizes(radius), length=_sizes(2.0 * radius))
     if abs(row.d) > 1e-9:
-        _add_shape(link, "body", (0.0, 0.0, row.d / 2.0), "cylinder",
-                   radius=_sizes(0.8 * radius), length=_sizes(abs(row.d)))
+        _add_shape(link, "body", (0.0, 0.0, row.d / 2.0), "cylinder", radius=_sizes(0.8 * radius), length=_sizes(abs(row.d)))
     if abs(row.a) > 1e-9:
-        _add_shape(link, "body", (row.a / 2.0, 0.0, row.d), "box",
-                   size=_sizes(abs(row.a), 1.6 * radius, 1.6 * radius))
+        _add_shape(link, "body", (row.a / 2.0, 0.0, row.d), "box", size=_sizes(abs(row.a), 1.6 * radius, 1.6 * radius))
 
 
 def urdf_from_dh(
@@ -108,8 +106,7 @@ def urdf_from_dh(
     # Joint 1 turns on the plinth, which stands on the mounting plane z = 0 of frame 0.
     base = ET.SubElement(robot, "link", name="base_link")
     plinth_side, plinth_height = 3.0 * radii[0], 1.2 * radii[0]
-    _add_shape(base, "base", (0.0, 0.0, plinth_height / 2.0), "box",
-               size=_sizes(plinth_side, plinth_side, plinth_height))
+    _add_shape(base, "base", (0.0, 0.0, plinth_height / 2.0), "box", size=_sizes(plinth_side, plinth_side, plinth_height))
 
     parent, parent_constant = "base_link", np.eye(4)
     for i, (row, radius) in enumerate(zip(links, radii), start=1):
@@ -118,8 +115,14 @@ def urdf_from_dh(
         ET.SubElement(joint, "parent", link=parent)
         ET.SubElement(joint, "child", link=f"link_{i}")
         ET.SubElement(joint, "axis", xyz="0 0 1")
-        ET.SubElement(joint, "limit", lower=_number(row.lower), upper=_number(row.upper),
-                      effort=_number(effort_nm), velocity=_number(velocity_rad_s))
+        ET.SubElement(
+            joint,
+            "limit",
+            lower=_number(row.lower),
+            upper=_number(row.upper),
+            effort=_number(effort_nm),
+            velocity=_number(velocity_rad_s),
+        )
         link = ET.SubElement(robot, "link", name=f"link_{i}")
         _add_link_shapes(link, row, radius, with_joint_drum=i > 1)
         parent, parent_constant = f"link_{i}", dh_constant_part(row)

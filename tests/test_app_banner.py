@@ -19,22 +19,32 @@ def _done(outcome: Outcome, reason: str) -> dict:
     return {"phase": Phase.DONE.value, "job": "bracket", "last_outcome": {"outcome": outcome.value, "reason": reason}}
 
 
-@pytest.mark.parametrize(("state", "kind", "title", "next_words"), [
-    ({"phase": "idle"}, Kind.READY, "READY", "press Start"),
-    ({"phase": "teaching", "job": None}, Kind.BUSY, "TEACHING", "Teach tab"),
-    ({"phase": "commissioning"}, Kind.BUSY, "COMMISSIONING", "keep clear"),
-    ({"phase": "servoing", "job": "bracket", "stage": "1A"}, Kind.BUSY, "RUNNING job bracket: turning to face the part",
-     "keep clear"),
-    ({"phase": "servoing", "job": "bracket", "stage": "2"}, Kind.BUSY, "RUNNING job bracket: approaching with the laser",
-     "keep clear"),
-    ({"phase": "servoing", "job": "bracket", "stage": "3"}, Kind.BUSY, "RUNNING job bracket: final alignment",
-     "keep clear"),
-    ({"phase": "picking", "job": "bracket"}, Kind.BUSY, "RUNNING job bracket: picking the part", "keep clear"),
-    (_done(Outcome.PLACED, "0.2 mm off"), Kind.PLACED, "PLACED: job bracket", "present the next part"),
-    (_done(Outcome.MISSED, "2.2 mm off"), Kind.MISSED, "MISSED: job bracket", "Take the part out"),
-    ({"phase": "fault", "detail": "the vacuum sensor reports no part"}, Kind.FAULT, "FAULT", "press Reset"),
-    ({"phase": "e-stopped", "detail": "e-stop pressed"}, Kind.ESTOPPED, "E-STOPPED", "press Reset"),
-])
+@pytest.mark.parametrize(
+    ("state", "kind", "title", "next_words"),
+    [
+        ({"phase": "idle"}, Kind.READY, "READY", "press Start"),
+        ({"phase": "teaching", "job": None}, Kind.BUSY, "TEACHING", "Teach tab"),
+        ({"phase": "commissioning"}, Kind.BUSY, "COMMISSIONING", "keep clear"),
+        (
+            {"phase": "servoing", "job": "bracket", "stage": "1A"},
+            Kind.BUSY,
+            "RUNNING job bracket: turning to face the part",
+            "keep clear",
+        ),
+        (
+            {"phase": "servoing", "job": "bracket", "stage": "2"},
+            Kind.BUSY,
+            "RUNNING job bracket: approaching with the laser",
+            "keep clear",
+        ),
+        ({"phase": "servoing", "job": "bracket", "stage": "3"}, Kind.BUSY, "RUNNING job bracket: final alignment", "keep clear"),
+        ({"phase": "picking", "job": "bracket"}, Kind.BUSY, "RUNNING job bracket: picking the part", "keep clear"),
+        (_done(Outcome.PLACED, "0.2 mm off"), Kind.PLACED, "PLACED: job bracket", "present the next part"),
+        (_done(Outcome.MISSED, "2.2 mm off"), Kind.MISSED, "MISSED: job bracket", "Take the part out"),
+        ({"phase": "fault", "detail": "the vacuum sensor reports no part"}, Kind.FAULT, "FAULT", "press Reset"),
+        ({"phase": "e-stopped", "detail": "e-stop pressed"}, Kind.ESTOPPED, "E-STOPPED", "press Reset"),
+    ],
+)
 def test_every_phase_has_its_banner_with_what_to_do_next(state, kind, title, next_words):
     banner = banner_for(state)
     assert (banner.kind, banner.title) == (kind, title)
@@ -61,12 +71,20 @@ def test_stage_words_are_plain():
     assert stage_words("1B") == "turning the laser onto the part" and stage_words("9Z") == "9Z"
 
 
-
-@pytest.mark.parametrize(("phase", "start", "reset"), [
-    (Phase.IDLE, True, False), (Phase.TEACHING, False, False), (Phase.COMMISSIONING, False, False),
-    (Phase.SERVOING, False, False), (Phase.PICKING, False, False), (Phase.PLACING, False, False),
-    (Phase.DONE, True, True), (Phase.FAULT, True, True), (Phase.ESTOPPED, False, True),
-])
+@pytest.mark.parametrize(
+    ("phase", "start", "reset"),
+    [
+        (Phase.IDLE, True, False),
+        (Phase.TEACHING, False, False),
+        (Phase.COMMISSIONING, False, False),
+        (Phase.SERVOING, False, False),
+        (Phase.PICKING, False, False),
+        (Phase.PLACING, False, False),
+        (Phase.DONE, True, True),
+        (Phase.FAULT, True, True),
+        (Phase.ESTOPPED, False, True),
+    ],
+)
 def test_start_and_reset_are_live_only_where_the_controller_takes_them(phase, start, reset):
     live = live_buttons(phase, Situation(can_present_part=True))
     assert (Button.START in live) == start
@@ -87,16 +105,20 @@ def test_the_apps_own_facts_decide_the_rest():
 
 
 def test_no_flange_pose_is_shown_before_the_robot_was_read():
-    text = status_markdown({"phase": "idle", "bMe": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "q": []},
-                           operator_present=False)
+    text = status_markdown(
+        {"phase": "idle", "bMe": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "q": []}, operator_present=False
+    )
     assert "flange pose not known yet" in text and "X 0.00" not in text
 
 
 def test_angles_near_a_half_turn_do_not_flip():
-    either_side = [flange_text(matrix_from_pose(pose_from_mm_deg([-400.0, 0.0, 300.0, psi, 0.0, 0.0])))
-                   for psi in (179.99, -179.99)]
-    assert either_side == ["flange X -400.00 Y 0.00 Z 300.00 mm, phi 179.99 theta 0.00 psi 0.00 deg",
-                           "flange X -400.00 Y 0.00 Z 300.00 mm, phi 180.01 theta 0.00 psi 0.00 deg"]
+    either_side = [
+        flange_text(matrix_from_pose(pose_from_mm_deg([-400.0, 0.0, 300.0, psi, 0.0, 0.0]))) for psi in (179.99, -179.99)
+    ]
+    assert either_side == [
+        "flange X -400.00 Y 0.00 Z 300.00 mm, phi 179.99 theta 0.00 psi 0.00 deg",
+        "flange X -400.00 Y 0.00 Z 300.00 mm, phi 180.01 theta 0.00 psi 0.00 deg",
+    ]
 
 
 def test_a_released_part_is_shown_in_the_pocket_not_beside_it():
@@ -116,8 +138,17 @@ def test_a_released_part_is_shown_in_the_pocket_not_beside_it():
 def test_a_new_teach_clears_the_last_runs_charts_and_path():
     session = Session()
     for k in range(1, 4):
-        session.on_state({"phase": "servoing", "run_id": 1, "iteration": k, "error_px": 10.0 / k, "time_s": float(k),
-                          "cVc": [0.0] * 6, "bMe": transform(t=(0.01 * k, 0.0, 0.0)).tolist()})
+        session.on_state(
+            {
+                "phase": "servoing",
+                "run_id": 1,
+                "iteration": k,
+                "error_px": 10.0 / k,
+                "time_s": float(k),
+                "cVc": [0.0] * 6,
+                "bMe": transform(t=(0.01 * k, 0.0, 0.0)).tolist(),
+            }
+        )
     assert len(session.view().trace.errors_px) == 3 and len(session.view().trace.path_m) == 3
     session.on_state({"phase": "teaching", "run_id": 1, "time_s": 5.0, "bMe": np.eye(4).tolist()})
     assert len(session.view().trace.errors_px) == 0 and len(session.view().trace.path_m) == 0

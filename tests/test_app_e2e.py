@@ -50,8 +50,12 @@ FORCE_REACT_CLICK = """(button) => {
 def app(tmp_path_factory):
     chromium_or_fail()
     # The thesis's step policy: servos long enough to watch and to press E-STOP in.
-    with ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.02,
-                           cell=thesis_policy_cell_file(tmp_path_factory.mktemp("cell"))) as serve:
+    with ServeProcess.start(
+        tmp_path_factory.mktemp("serve-data"),
+        TOKEN,
+        cycle_period_s=0.02,
+        cell=thesis_policy_cell_file(tmp_path_factory.mktemp("cell")),
+    ) as serve:
         yield serve
 
 

@@ -65,8 +65,9 @@ def test_commission_the_simulated_cell_from_the_calibrate_tab_and_apply(tmp_path
                 page.get_by_text("and reload the controller's model from it?").wait_for(timeout=10_000)
                 assert page.get_by_text(str(out)).count() >= 1  # the modal names the file
                 page.get_by_role("button", name="Write and reload").click()
-                page.get_by_text(re.compile(r"Applied: the controller's model is now .*cell-commissioned\.toml")
-                                 ).wait_for(timeout=60_000)
+                page.get_by_text(re.compile(r"Applied: the controller's model is now .*cell-commissioned\.toml")).wait_for(
+                    timeout=60_000
+                )
                 wait_for_status(page, re.escape(f"the controller's model is now {out}"))
                 assert page.get_by_role("button", name="Apply", exact=True).is_disabled()  # applied once
                 assert load_cell(out).commissioning.nn_path.is_file()

@@ -55,7 +55,7 @@ REPLAY_TEXT = re.compile(r"run (\d+): ([\d.]+) s of ([\d.]+) s, frame (\d+) of (
 
 def _rgb(kind: Kind) -> str:
     value = kind.value.lstrip("#")
-    return "rgb({}, {}, {})".format(*(int(value[k:k + 2], 16) for k in (0, 2, 4)))
+    return "rgb({}, {}, {})".format(*(int(value[k : k + 2], 16) for k in (0, 2, 4)))
 
 
 @pytest.fixture(scope="module")

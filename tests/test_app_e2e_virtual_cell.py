@@ -44,8 +44,9 @@ def virtual_cell(tmp_path_factory):
 @pytest.fixture(scope="module")
 def app(virtual_cell, tmp_path_factory):
     chromium_or_fail()
-    with ServeProcess.start(tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.0,
-                           cell=virtual_cell.addresses["cell_file"]) as serve:
+    with ServeProcess.start(
+        tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.0, cell=virtual_cell.addresses["cell_file"]
+    ) as serve:
         yield serve
 
 

@@ -22,11 +22,14 @@ from vservo.app.roles import MAX_TOKEN_FAILURES
 
 TOKEN = "e2e-guard-operator-token"
 # What a page's script gets when it opens the app's WebSocket.
-OPEN_WEBSOCKET = """(url) => new Promise((resolve) => {
+OPEN_WEBSOCKET = (
+    """(url) => new Promise((resolve) => {
     const socket = new WebSocket(url, ["viser-v%s"]);
     socket.onopen = () => { socket.close(); resolve("open"); };
     socket.onerror = () => resolve("refused");
-})""" % viser.__version__
+})"""
+    % viser.__version__
+)
 
 
 @pytest.fixture(scope="module")

@@ -172,10 +172,13 @@ def test_wait_for_news_wakes_on_a_frame():
 
 
 def _frame_meta() -> dict:
-    return {"corners_px": [[100.25, 100.5], [200.0, 100.0], [200.0, 200.0], [-1.0, -1.0]],
-            "laser_spot_px": [320.0, 240.0], "desired_corners_px": [[400, 300], [500, 300], [500, 400], [400, 400]],
-            "desired_laser_px": [450.0, 350.0],
-            "trail_px": [[[50, 50], [60, 50], [60, 60], [50, 60]], [[90, 95], [190, 95], [190, 195], [95, 190]]]}
+    return {
+        "corners_px": [[100.25, 100.5], [200.0, 100.0], [200.0, 200.0], [-1.0, -1.0]],
+        "laser_spot_px": [320.0, 240.0],
+        "desired_corners_px": [[400, 300], [500, 300], [500, 400], [400, 400]],
+        "desired_laser_px": [450.0, 350.0],
+        "trail_px": [[[50, 50], [60, 50], [60, 60], [50, 60]], [[90, 95], [190, 95], [190, 195], [95, 190]]],
+    }
 
 
 def test_overlays_are_drawn_where_the_features_are():
@@ -203,8 +206,9 @@ def test_overlays_are_drawn_where_the_features_are():
 
 
 def test_overlay_reads_missing_features_as_nan():
-    overlay = live_image.Overlay.from_meta({"corners_px": [[1, 2], [None, None], [-1, -1], [3, 4]],
-                                            "laser_spot_px": None, "trail_px": []})
+    overlay = live_image.Overlay.from_meta(
+        {"corners_px": [[1, 2], [None, None], [-1, -1], [3, 4]], "laser_spot_px": None, "trail_px": []}
+    )
     assert np.isnan(overlay.corners_px[1:3]).all() and overlay.corners_px[3].tolist() == [3, 4]
     assert overlay.laser_spot_px is None and overlay.trail_px is None
 
@@ -237,9 +241,17 @@ def test_status_progress_and_outcome_texts(recorded_run):
 
 
 def test_history_texts():
-    run = {"id": 3, "job": "demo", "outcome": Outcome.ESTOPPED, "reason": "e-stop pressed", "duration_s": 2.5,
-           "final_error_px": None, "placement_error_mm": None, "started_at": 0.0,
-           "stages": [{"stage": "1A", "iterations": 30}, {"stage": "3", "iterations": 10}]}
+    run = {
+        "id": 3,
+        "job": "demo",
+        "outcome": Outcome.ESTOPPED,
+        "reason": "e-stop pressed",
+        "duration_s": 2.5,
+        "final_error_px": None,
+        "placement_error_mm": None,
+        "started_at": 0.0,
+        "stages": [{"stage": "1A", "iterations": 30}, {"stage": "3", "iterations": 10}],
+    }
     table = runs_table([run])
     assert "| 3 | demo | E-STOPPED | 2.5 s | - | - |" in table
     assert run_heading(run) == "**Run 3** (demo): E-STOPPED, e-stop pressed"
@@ -259,9 +271,16 @@ def test_jog_steps():
 def test_calibration_progress_and_table():
     assert bar_fraction("collect planar [#####.........] 7/28 3s 400 corners") == pytest.approx(0.25)
     assert bar_fraction("loading the cell") is None
-    table = results_markdown({"evaluate": {"methods": {"nn": {"x_mm": 0.1, "y_mm": 0.2, "xy_mm": 0.25, "max_xy_mm": 0.5}},
-                                           "corners": 10, "views": 2},
-                              "track": {"methods": {"nn": {"xy_mm": 0.04, "true": {"xy_mm": 0.37}}}, "points": 10}})
+    table = results_markdown(
+        {
+            "evaluate": {
+                "methods": {"nn": {"x_mm": 0.1, "y_mm": 0.2, "xy_mm": 0.25, "max_xy_mm": 0.5}},
+                "corners": 10,
+                "views": 2,
+            },
+            "track": {"methods": {"nn": {"xy_mm": 0.04, "true": {"xy_mm": 0.37}}}, "points": 10},
+        }
+    )
     assert "| nn | 0.100 | 0.200 | 0.250 | 0.500 | 0.040 | 0.370 |" in table
     plain = summary_markdown({"evaluate": {"methods": {"axxb": {"xy_mm": 1.73}, "nn": {"xy_mm": 0.25}}}})
     assert plain.endswith("- the network: 0.25 mm off on average\n- hand-eye from turned views: 1.73 mm off on average")
@@ -270,24 +289,51 @@ def test_calibration_progress_and_table():
 
 def commissioning_record(nn_verdict: str = "good") -> dict:
     """A finished commissioning as the controller publishes it (figures of the shipped cell's)."""
-    nn_why = ("validation error 0.298 mm mean over 166 corners" if nn_verdict == "good"
-              else "retake: 6 grid views, validation error 14.948 mm mean")
+    nn_why = (
+        "validation error 0.298 mm mean over 166 corners"
+        if nn_verdict == "good"
+        else "retake: 6 grid views, validation error 14.948 mm mean"
+    )
     summary = {
         "camera": {"fx_px": 811.178, "fy_px": 811.1212, "principal_point_px": [320.2411, 239.9594]},
         "eMc_mm_deg": [0.0104, -0.0157, -0.0799, 0.0004, 0.0151, -0.0013],
         "cMl_mm_deg": [29.9933, -0.0003, 0.0, 0.0, -10.0105, -0.0029],
         "laser": {"baseline_mm": 29.9933, "alpha_deg": 79.9895},
-        "steps": {"camera": {"views": 24, "rms_px": 0.0577, "worst_view_rms_px": 0.1412, "std_fx_px": 0.4856,
-                             "verdict": "good", "why": "good: RMS 0.058 px over 24 views"},
-                  "nn": {"views": 25, "corners": 1000, "validation_mean_mm": 0.2984, "validation_max_mm": 0.8561,
-                         "verdict": nn_verdict, "why": nn_why}},
+        "steps": {
+            "camera": {
+                "views": 24,
+                "rms_px": 0.0577,
+                "worst_view_rms_px": 0.1412,
+                "std_fx_px": 0.4856,
+                "verdict": "good",
+                "why": "good: RMS 0.058 px over 24 views",
+            },
+            "nn": {
+                "views": 25,
+                "corners": 1000,
+                "validation_mean_mm": 0.2984,
+                "validation_max_mm": 0.8561,
+                "verdict": nn_verdict,
+                "why": nn_why,
+            },
+        },
         "acceptance": {"corners": 4, "mean_mm": 0.0101, "max_mm": 0.0152},
-        "good": nn_verdict == "good", "views": {"taken": 90, "used": 62}, "cell_time_s": 98.3,
+        "good": nn_verdict == "good",
+        "views": {"taken": 90, "used": 62},
+        "cell_time_s": 98.3,
     }
-    return {"steps": ["camera", "nn"], "out": "/cells/line3-commissioned.toml", "step": "acceptance",
-            "progress": {"tilted": {"done": 24, "total": 24, "note": "40 corners"},
-                         "nn": {"done": 40, "total": 60, "note": "mse 1.3e-07"}},
-            "summary": summary, "error": None, "applied": None}
+    return {
+        "steps": ["camera", "nn"],
+        "out": "/cells/line3-commissioned.toml",
+        "step": "acceptance",
+        "progress": {
+            "tilted": {"done": 24, "total": 24, "note": "40 corners"},
+            "nn": {"done": 40, "total": 60, "note": "mse 1.3e-07"},
+        },
+        "summary": summary,
+        "error": None,
+        "applied": None,
+    }
 
 
 def test_commissioning_texts():
@@ -303,7 +349,8 @@ def test_commissioning_texts():
     assert commission_text.results_markdown(running) == ""
 
     assert "**Commissioned**: every step is good. **Apply** writes `/cells/line3-commissioned.toml`." in (
-        commission_text.progress_markdown(record, "/cells/line3.toml"))
+        commission_text.progress_markdown(record, "/cells/line3.toml")
+    )
     plain = commission_text.results_markdown(record)
     assert plain.startswith("- camera: good\n- network (nn): good\n") and "RMS" not in plain and "eMc" not in plain
     assert "the figure to sign off**: mean error **0.010 mm**, max **0.015 mm** over 4 board corners" in plain
@@ -313,8 +360,9 @@ def test_commissioning_texts():
     assert "- camera: fx 811.18 px, fy 811.12 px, principal point (320.24, 239.96) px\n" in table
     assert "- laser cMl: X 29.993 Y -0.000 Z 0.000 mm, phi 0.000 theta -10.011 psi -0.003 deg (not measured" in table
     assert "- laser baseline d 29.99 mm, angle alpha 79.99 deg (not measured: the cell file's)" in table
-    assert commission_text.apply_question(record) == ("Write `/cells/line3-commissioned.toml` and reload the "
-                                                      "controller's model from it?")
+    assert commission_text.apply_question(record) == (
+        "Write `/cells/line3-commissioned.toml` and reload the controller's model from it?"
+    )
 
     retake = commissioning_record("retake")
     assert "**Commissioned**, but nn says retake: commission again." in commission_text.progress_markdown(retake, "x")
@@ -358,14 +406,15 @@ def test_the_part_is_placed_from_its_corners_and_carried_by_the_cup():
     assert end[2] == pytest.approx(bMo[2, 3]) and np.linalg.norm(end - start) > 0.05
 
 
-
 def test_after_an_apply_the_3d_view_draws_the_tools_where_the_commissioned_file_puts_them(tmp_path):
     """The controller's state names the cell file it runs on: the scene follows it (a real
     viser server, no browser), and an unreadable one leaves the tools as they were."""
     shipped = load_cell()
     text = read_cell_bytes()[0].decode()
-    for nominal, measured in (("eMc = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]", "eMc = [12.0, -5.0, 30.0, 1.0, 0.0, 3.0]"),
-                              ("focal_length_mm = 6.0", "focal_length_mm = 6.3")):
+    for nominal, measured in (
+        ("eMc = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]", "eMc = [12.0, -5.0, 30.0, 1.0, 0.0, 3.0]"),
+        ("focal_length_mm = 6.0", "focal_length_mm = 6.3"),
+    ):
         assert nominal in text
         text = text.replace(nominal, measured)
     commissioned = tmp_path / "cell-commissioned.toml"
@@ -391,6 +440,7 @@ def test_after_an_apply_the_3d_view_draws_the_tools_where_the_commissioned_file_
         assert np.allclose(scene.frustum.position, (bMe @ eMc)[:3, 3])
     finally:
         server.stop()
+
 
 def test_the_metal_part_sits_under_the_demo_jobs_place_pose():
     config = load_cell()

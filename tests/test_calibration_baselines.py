@@ -39,8 +39,9 @@ def projected(camera, bMe_list, eMc=eMc_TRUE):
 
 
 def planar_poses(rng, n):
-    return [transform(rot_x(np.pi), (-0.45 + rng.uniform(-0.04, 0.04), rng.uniform(-0.04, 0.04), TABLE_Z + 0.3))
-            for _ in range(n)]
+    return [
+        transform(rot_x(np.pi), (-0.45 + rng.uniform(-0.04, 0.04), rng.uniform(-0.04, 0.04), TABLE_Z + 0.3)) for _ in range(n)
+    ]
 
 
 def rotated_poses(rng, n):
@@ -98,8 +99,11 @@ def test_classical_calibrations_survive_a_save_load_round_trip(tmp_path, cell_da
     rotated, planar, test = cell_data
     camera, _, _ = calibrate_camera(rotated, sony_xc55())
     bMe = test.bMe[test.view]
-    for calibration in (FreeHandEye.fit(planar, sony_xc55()), HandEyeAXXB.fit(rotated, sony_xc55()),
-                        PlanarHomography.fit(planar, camera)):
+    for calibration in (
+        FreeHandEye.fit(planar, sony_xc55()),
+        HandEyeAXXB.fit(rotated, sony_xc55()),
+        PlanarHomography.fit(planar, camera),
+    ):
         loaded = load_classical(save_classical(calibration, tmp_path / f"{calibration.name}.npz"))
         assert type(loaded) is type(calibration)
         assert np.array_equal(loaded.world_of(test.pixels_px, bMe), calibration.world_of(test.pixels_px, bMe))

@@ -29,8 +29,9 @@ def rosenbrock_jacobian(x):
 
 
 def test_lm_finds_the_minimum_of_rosenbrocks_valley():
-    result = levenberg_marquardt(rosenbrock, rosenbrock_jacobian, torch.tensor([-1.2, 1.0], dtype=torch.float64),
-                                 LMSettings(goal=1e-24, epochs=200))
+    result = levenberg_marquardt(
+        rosenbrock, rosenbrock_jacobian, torch.tensor([-1.2, 1.0], dtype=torch.float64), LMSettings(goal=1e-24, epochs=200)
+    )
     assert result.stop == "goal"
     assert np.allclose(result.x.numpy(), [1.0, 1.0], atol=1e-10)
     # Step (iv): only steps that lower the sum of squares are taken.
@@ -41,8 +42,12 @@ def test_lm_solves_linear_least_squares_as_numpy_does():
     rng = np.random.default_rng(3)
     A, b = rng.normal(size=(40, 5)), rng.normal(size=40)
     At, bt = torch.from_numpy(A), torch.from_numpy(b)
-    result = levenberg_marquardt(lambda x: At @ x - bt, lambda x: At, torch.zeros(5, dtype=torch.float64),
-                                 LMSettings(goal=0.0, epochs=50, min_gradient=1e-13))
+    result = levenberg_marquardt(
+        lambda x: At @ x - bt,
+        lambda x: At,
+        torch.zeros(5, dtype=torch.float64),
+        LMSettings(goal=0.0, epochs=50, min_gradient=1e-13),
+    )
     assert result.stop in ("gradient", "mu")
     assert np.allclose(result.x.numpy(), np.linalg.lstsq(A, b, rcond=None)[0], atol=1e-9)
 
@@ -51,8 +56,13 @@ def test_lm_stops_on_the_epoch_limit_and_on_a_rising_validation_error():
     x0 = torch.tensor([-1.2, 1.0], dtype=torch.float64)
     assert levenberg_marquardt(rosenbrock, rosenbrock_jacobian, x0, LMSettings(goal=0.0, epochs=3)).epochs == 3
     # A validation problem whose minimum lies elsewhere: its error rises once the fit closes in on (1, 1).
-    away = levenberg_marquardt(rosenbrock, rosenbrock_jacobian, x0, LMSettings(goal=0.0, epochs=200, max_fail=2),
-                               validation=lambda x: x - torch.tensor([-1.2, 1.0], dtype=torch.float64))
+    away = levenberg_marquardt(
+        rosenbrock,
+        rosenbrock_jacobian,
+        x0,
+        LMSettings(goal=0.0, epochs=200, max_fail=2),
+        validation=lambda x: x - torch.tensor([-1.2, 1.0], dtype=torch.float64),
+    )
     assert away.stop == "validation"
 
 
@@ -65,8 +75,12 @@ def test_the_residual_jacobian_by_autograd_matches_finite_differences():
     params = torch.from_numpy(nguyen_widrow(4, 5, rng))
     J = jacobian(params).numpy()
     h = 1e-6
-    numeric = np.column_stack([(residuals(params + h * e) - residuals(params - h * e)).numpy() / (2 * h)
-                               for e in torch.eye(params.numel(), dtype=torch.float64)])
+    numeric = np.column_stack(
+        [
+            (residuals(params + h * e) - residuals(params - h * e)).numpy() / (2 * h)
+            for e in torch.eye(params.numel(), dtype=torch.float64)
+        ]
+    )
     assert J.shape == (14, parameter_count(4, 5))
     assert np.allclose(J, numeric, atol=1e-8)
 
@@ -84,21 +98,27 @@ def planar_dataset(n_views=12, seed=0):
         world.append(np.column_stack((T[0] + (uv[:, 0] - 320) * height / f, T[1] - (uv[:, 1] - 240) * height / f)))
         pixels.append(uv)
         view.append(np.full(40, k))
-    return CalibrationDataset(np.concatenate(pixels), np.concatenate(world), np.concatenate(view), np.array(poses),
-                              {"truth": "synthetic"})
+    return CalibrationDataset(
+        np.concatenate(pixels), np.concatenate(world), np.concatenate(view), np.array(poses), {"truth": "synthetic"}
+    )
 
 
 def test_a_trained_network_maps_pixels_to_world_and_survives_a_save_load_round_trip(tmp_path):
     data = planar_dataset()
-    model = train_nn(data.subset(np.arange(400)), validation=data.subset(np.arange(400, 480)),
-                     settings=LMSettings(goal=1e-12, epochs=60), seed=4)
+    model = train_nn(
+        data.subset(np.arange(400)),
+        validation=data.subset(np.arange(400, 480)),
+        settings=LMSettings(goal=1e-12, epochs=60),
+        seed=4,
+    )
     assert model.trained and model.training["mse"] < 1e-6
     test = planar_dataset(seed=1)
     error = model.world_of(test.pixels_px, test.bMe[test.view]) - test.world_m
     assert np.max(np.abs(error)) < 1e-3  # 1 mm at worst over a 180 x 240 mm view: the map is learned
     loaded = NNCalibration.load(model.save(tmp_path / "nn.npz"), "planar")
-    assert np.array_equal(loaded.world_of(test.pixels_px, test.bMe[test.view]),
-                          model.world_of(test.pixels_px, test.bMe[test.view]))
+    assert np.array_equal(
+        loaded.world_of(test.pixels_px, test.bMe[test.view]), model.world_of(test.pixels_px, test.bMe[test.view])
+    )
     assert loaded.training["epochs"] == model.training["epochs"]
 
 
@@ -154,6 +174,7 @@ def test_forward_is_the_two_layer_network_of_eqs_2_24_and_2_25():
 
 
 # -- datasets ---------------------------------------------------------------------------
+
 
 def write_dataset(path, **changes):
     data = planar_dataset()

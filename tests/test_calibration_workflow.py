@@ -48,8 +48,7 @@ def test_every_method_predicts_held_out_corners_of_the_ideal_cell(ideal_folder):
 
 def test_pbvs_brings_the_end_effector_over_random_targets(ideal_folder):
     folder, _ = ideal_folder
-    result = track(load_cell(), folder, "random", points=2, settings=TrackingSettings(),
-                   methods=("nn", "planar_homography"))
+    result = track(load_cell(), folder, "random", points=2, settings=TrackingSettings(), methods=("nn", "planar_homography"))
     for name, errors in result["methods"].items():
         assert errors["lost"] == 0 and errors["xy_mm"] < 0.05, name
         assert errors["true"]["xy_mm"] == pytest.approx(errors["xy_mm"], abs=1e-6)  # a perfect arm
@@ -79,8 +78,12 @@ def test_training_on_a_dataset_with_nan_is_a_one_line_error(tmp_path, ideal_fold
     pixels[5, 0] = np.nan
     from vservo.core.calibration.storage import write_archive
 
-    write_archive(tmp_path / "planar.npz", "vservo calibration dataset",
-                  {"pixels_px": pixels, "world_m": data.world_m, "view": data.view, "bMe": data.bMe}, data.metadata)
+    write_archive(
+        tmp_path / "planar.npz",
+        "vservo calibration dataset",
+        {"pixels_px": pixels, "world_m": data.world_m, "view": data.view, "bMe": data.bMe},
+        data.metadata,
+    )
     result = run("calibrate", "train", "--dir", str(tmp_path))
     assert result.returncode == 2 and result.stderr.strip().count("\n") == 0
     assert "pixels_px holds 1 NaN" in result.stderr

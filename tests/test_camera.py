@@ -106,9 +106,7 @@ def test_projection_matches_opencv_with_distortion():
     rng = np.random.default_rng(7)
     Z = rng.uniform(0.1, 2.0, 500)
     cP = np.column_stack((rng.uniform(-0.6, 0.6, (500, 2)) * Z[:, None], Z))
-    expected, _ = cv2.projectPoints(
-        cP, np.zeros(3), np.zeros(3), WIDE.intrinsics.K, WIDE.distortion.as_opencv()
-    )
+    expected, _ = cv2.projectPoints(cP, np.zeros(3), np.zeros(3), WIDE.intrinsics.K, WIDE.distortion.as_opencv())
     np.testing.assert_allclose(WIDE.project(cP), expected.reshape(-1, 2), rtol=0, atol=1e-9)
 
 
@@ -132,13 +130,9 @@ def test_undistort_inverts_distort_up_to_the_image_corners(camera):
 @pytest.mark.parametrize("camera", [WIDE, sony_xc55()], ids=["wide", "xc55"])
 def test_pixel_and_normalized_coordinates_round_trip(camera):
     xn = normalized_grid(camera)
-    np.testing.assert_allclose(
-        camera.pixel_to_normalized(camera.normalized_to_pixel(xn)), xn, rtol=0, atol=1e-10
-    )
+    np.testing.assert_allclose(camera.pixel_to_normalized(camera.normalized_to_pixel(xn)), xn, rtol=0, atol=1e-10)
     corners = image_corners(camera)
-    np.testing.assert_allclose(
-        camera.normalized_to_pixel(camera.pixel_to_normalized(corners)), corners, rtol=0, atol=1e-8
-    )
+    np.testing.assert_allclose(camera.normalized_to_pixel(camera.pixel_to_normalized(corners)), corners, rtol=0, atol=1e-8)
 
 
 def test_distortion_is_actually_applied():

@@ -328,8 +328,7 @@ def test_read_after_ahead_of_the_clock_names_the_source() -> None:
 
 def test_a_video_file_reads_after_any_time_its_next_frame(video: Path) -> None:
     """A file's frames are not live: no wait, no discards, whatever the latency and buffer."""
-    with VideoCaptureSource(str(video), exposure_latency_s=0.1, buffer_frames=2, clock=fake_clock(),
-                            sleep=pytest.fail) as source:
+    with VideoCaptureSource(str(video), exposure_latency_s=0.1, buffer_frames=2, clock=fake_clock(), sleep=pytest.fail) as source:
         assert [bar_index(source.read_after(t).image) for t in (0.0, 50.0, 99.0)] == [0, 1, 2]
 
 

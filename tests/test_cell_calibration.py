@@ -38,18 +38,22 @@ from vservo.core.geometry.spatial import (
 )
 
 NOMINAL = sony_xc55()
-TRUE_CAMERA = CameraModel(Intrinsics(1.05 * NOMINAL.intrinsics.fx, 1.05 * NOMINAL.intrinsics.fy, 336.0, 224.0, 640, 480),
-                          Distortion(-0.16, 0.11, 6e-4, -4e-4, -0.02))
+TRUE_CAMERA = CameraModel(
+    Intrinsics(1.05 * NOMINAL.intrinsics.fx, 1.05 * NOMINAL.intrinsics.fy, 336.0, 224.0, 640, 480),
+    Distortion(-0.16, 0.11, 6e-4, -4e-4, -0.02),
+)
 BOARD = BoardConfig(0.010, (8, 5), matrix_from_pose(pose_from_mm_deg([-435.0, -30.0, -175.0, 0.0, 0.0, 0.0])))
 # Where the board really lies: a few mm and a degree from the cell file's rough pose.
 bMboard_TRUE = BOARD.bMboard @ matrix_from_pose(pose_from_mm_deg([3.0, -2.0, 1.0, 1.0, 0.4, -0.3]))
 # The camera 20 mm and 5 deg off the flange (the nominal eMc is the identity).
-eMc_TRUE = transform(exp_twist([0, 0, 0, *np.radians(5.0) * np.array([1.0, -1.0, 2.0]) / np.sqrt(6.0)])[:3, :3],
-                     [0.012, -0.016, 0.0])
+eMc_TRUE = transform(
+    exp_twist([0, 0, 0, *np.radians(5.0) * np.array([1.0, -1.0, 2.0]) / np.sqrt(6.0)])[:3, :3], [0.012, -0.016, 0.0]
+)
 # The thesis laser (d = 30 mm, alpha = 80 deg) moved 10 mm across and turned 2 deg.
 cMl_NOMINAL = LaserPointer.in_plane(0.030, np.radians(80.0)).cMl
-cMl_TRUE = transform(np.eye(3), [0.006, 0.008, 0.0]) @ cMl_NOMINAL @ exp_twist(
-    [0, 0, 0, *np.radians(2.0) * np.array([0.6, 0.8, 0.0])])
+cMl_TRUE = (
+    transform(np.eye(3), [0.006, 0.008, 0.0]) @ cMl_NOMINAL @ exp_twist([0, 0, 0, *np.radians(2.0) * np.array([0.6, 0.8, 0.0])])
+)
 NOISE_PX = 0.05
 CENTRE_board = np.array([0.035, 0.020, 0.0])
 
@@ -142,7 +146,7 @@ def test_find_board_refuses_what_it_cannot_find_or_name() -> None:
     blotted = image.copy()
     for centre in (0.005, 0.005), (0.025, 0.005), (0.045, 0.005), (0.065, 0.005):
         u, v = np.round(project(TRUE_CAMERA, boardMc, np.array([[*centre, 0.0]]))[0]).astype(int)
-        blotted[v - 4:v + 5, u - 4:u + 5] = image.max()
+        blotted[v - 4 : v + 5, u - 4 : u + 5] = image.max()
     with pytest.raises(BoardNotFound, match="no ordering of the grid shows the board's colouring"):
         find_board(BOARD, blotted)
     with pytest.raises(BoardNotFound, match="looks the same turned half round"):
@@ -152,6 +156,7 @@ def test_find_board_refuses_what_it_cannot_find_or_name() -> None:
 
 
 # -- the camera --------------------------------------------------------------------------
+
 
 def test_camera_calibration_recovers_the_true_camera(commissioning: dict) -> None:
     calibration = commissioning["camera"]
@@ -197,6 +202,7 @@ def test_a_blurred_view_is_named_in_the_verdict(commissioning: dict) -> None:
 
 # -- hand-eye and the board -------------------------------------------------------------
 
+
 def test_hand_eye_recovers_eMc_and_the_board(commissioning: dict) -> None:
     hand_eye = commissioning["hand_eye"]
     mm, deg = pose_error_mm_deg(hand_eye.eMc, eMc_TRUE)
@@ -213,10 +219,11 @@ def test_hand_eye_holds_when_the_arm_is_off(commissioning: dict) -> None:
     """A 0.2 mm / 0.02 deg error in each reading: eMc still within 1 mm and 0.2 deg, and
     the reprojection through the arm's poses shows the readings' error."""
     rng = np.random.default_rng(11)
-    bMe = [M @ exp_twist(np.concatenate((rng.normal(0, 0.2e-3, 3), np.radians(rng.normal(0, 0.02, 3)))))
-           for M in commissioning["bMe"]]
-    hand_eye = calibrate_hand_eye(bMe, commissioning["views"], commissioning["camera"].camera,
-                                  commissioning["camera"].cMboard)
+    bMe = [
+        M @ exp_twist(np.concatenate((rng.normal(0, 0.2e-3, 3), np.radians(rng.normal(0, 0.02, 3)))))
+        for M in commissioning["bMe"]
+    ]
+    hand_eye = calibrate_hand_eye(bMe, commissioning["views"], commissioning["camera"].camera, commissioning["camera"].cMboard)
     mm, deg = pose_error_mm_deg(hand_eye.eMc, eMc_TRUE)
     assert mm < 1.0 and deg < 0.2
     assert hand_eye.rms_px > 5 * commissioning["hand_eye"].rms_px
@@ -226,8 +233,14 @@ def test_hand_eye_holds_when_the_arm_is_off(commissioning: dict) -> None:
 def test_hand_eye_says_retake_for_turns_about_one_axis_and_a_moved_board(commissioning: dict) -> None:
     rng = np.random.default_rng(4)
     # Turns about the board's x axis, plus a sliver about y: solvable, badly posed.
-    boardMc = [look_at(CENTRE_board + 0.22 * np.array([0.0, np.sin(a), np.cos(a)]) + np.array([1e-3 * a, 0, 0]),
-                       CENTRE_board, np.radians(0.5) * k) for k, a in enumerate(np.radians(np.linspace(-20, 20, 10)))]
+    boardMc = [
+        look_at(
+            CENTRE_board + 0.22 * np.array([0.0, np.sin(a), np.cos(a)]) + np.array([1e-3 * a, 0, 0]),
+            CENTRE_board,
+            np.radians(0.5) * k,
+        )
+        for k, a in enumerate(np.radians(np.linspace(-20, 20, 10)))
+    ]
     views = [noisy_view(M, rng) for M in boardMc]
     camera = commissioning["camera"].camera
     cMboard = [board_pose(camera, v) for v in views]
@@ -251,6 +264,7 @@ def test_hand_eye_refuses_views_that_cannot_fix_eMc(commissioning: dict) -> None
 
 
 # -- the laser -------------------------------------------------------------------------------
+
 
 def laser_views(camera: CameraModel, rng: np.random.Generator) -> tuple[Matrix, list[Matrix]]:
     """The spot (N, 2) px and the board's pose measured through ``camera``, in views from
@@ -326,6 +340,7 @@ def test_beam_line_error_measures_angle_and_offset_at_a_depth() -> None:
 
 # -- the network's data and the acceptance check ---------------------------------------
 
+
 def test_grid_dataset_and_acceptance(commissioning: dict) -> None:
     hand_eye = commissioning["hand_eye"]
     rng = np.random.default_rng(2)
@@ -344,8 +359,7 @@ def test_grid_dataset_and_acceptance(commissioning: dict) -> None:
     for _ in range(3):
         # Over the board within the views' range; the corner aimed at is the one below.
         boardMc = transform(rot_x(np.pi), CENTRE_board + np.append(rng.uniform(-0.008, 0.008, 2), 0.25))
-        corner = BOARD.corners_board()[np.argmin(np.linalg.norm(BOARD.corners_board() - boardMc[:3, 3] * [1, 1, 0],
-                                                                axis=1))]
+        corner = BOARD.corners_board()[np.argmin(np.linalg.norm(BOARD.corners_board() - boardMc[:3, 3] * [1, 1, 0], axis=1))]
         pixel = project(TRUE_CAMERA, boardMc, corner[None, :])[0] + rng.normal(0.0, NOISE_PX, 2)
         checks.append(AcceptanceCheck(bMboard_TRUE @ boardMc @ inverse(eMc_TRUE), corner, pixel))
     geometric = acceptance_errors(hand_eye, hand_eye.bMboard, checks)

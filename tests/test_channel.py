@@ -103,8 +103,12 @@ def test_the_controller_runs_as_its_own_process(tmp_path):
 
     key = new_key()
     env = {**os.environ, KEY_ENVIRONMENT: key.hex()}
-    process = subprocess.Popen([sys.executable, "-m", "vservo.app.cli", "controller", "--data", str(tmp_path)],
-                               stdout=subprocess.PIPE, text=True, env=env)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "vservo.app.cli", "controller", "--data", str(tmp_path)],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     try:
         address = json.loads(process.stdout.readline())["controller"]
         client = ControllerClient((address["host"], address["port"]), key)
@@ -113,8 +117,12 @@ def test_the_controller_runs_as_its_own_process(tmp_path):
     finally:
         process.terminate()
         assert process.wait(30) == 0  # a clean stop on SIGTERM
-    refused = subprocess.run([sys.executable, "-m", "vservo.app.cli", "controller"], capture_output=True, text=True,
-                             env={k: v for k, v in os.environ.items() if k != KEY_ENVIRONMENT})
+    refused = subprocess.run(
+        [sys.executable, "-m", "vservo.app.cli", "controller"],
+        capture_output=True,
+        text=True,
+        env={k: v for k, v in os.environ.items() if k != KEY_ENVIRONMENT},
+    )
     assert refused.returncode == 2 and KEY_ENVIRONMENT in refused.stderr
 
 
@@ -150,8 +158,9 @@ def test_a_controller_whose_app_is_killed_outright_stops_by_itself(tmp_path):
 
     log = tmp_path / "controller.stderr"
     with open(log, "w") as stderr:
-        starter = subprocess.Popen([sys.executable, "-c", _STARTER, str(tmp_path)], stdout=subprocess.PIPE,
-                                   stderr=stderr, text=True)
+        starter = subprocess.Popen(
+            [sys.executable, "-c", _STARTER, str(tmp_path)], stdout=subprocess.PIPE, stderr=stderr, text=True
+        )
     controller_pid = int(starter.stdout.readline())
     assert _running(controller_pid)
     starter.send_signal(signal.SIGKILL)
@@ -249,8 +258,7 @@ def test_the_last_app_leaving_during_a_jog_holds_the_robot(slow_served):
 def test_the_last_app_leaving_during_a_run_holds_the_robot_and_the_run_says_why(tmp_path):
     store = Store(tmp_path)
     # The thesis's step policy: a run long enough to leave in the middle of.
-    controller = CellController(simulated_rig(with_the_thesis_policy(load_cell()), seed=2), store, seed=2,
-                                cycle_period_s=0.05)
+    controller = CellController(simulated_rig(with_the_thesis_policy(load_cell()), seed=2), store, seed=2, cycle_period_s=0.05)
     key = new_key()
     server = ControllerServer(controller, key)
     try:
@@ -294,9 +302,17 @@ def test_commands_with_bad_arguments_get_an_error_and_the_connection_keeps_worki
     _, server, key = served
     client = ControllerClient(server.address, key)
     try:
-        bad = [("list_runs", [1]), ("list_runs", {"limit": 10**30}), ("list_runs", {"limit": "many"}),
-               ("list_runs", {"limit": 0}), ("jog", {"translation_m": "up"}), ("set_settings", {"gain": [1]}),
-               ("get_job", None), (["list_jobs"], {}), ("fly", {})]
+        bad = [
+            ("list_runs", [1]),
+            ("list_runs", {"limit": 10**30}),
+            ("list_runs", {"limit": "many"}),
+            ("list_runs", {"limit": 0}),
+            ("jog", {"translation_m": "up"}),
+            ("set_settings", {"gain": [1]}),
+            ("get_job", None),
+            (["list_jobs"], {}),
+            ("fly", {}),
+        ]
         for request, (name, args) in enumerate(bad, start=1000):
             _raw_command(client, request, name, args)
             reply = _reply(client, request)
@@ -338,8 +354,10 @@ def test_idle_connections_without_the_key_do_not_block_an_app(served):
 def test_300_apps_connecting_at_once_all_get_through(served):
     _, server, key = served
     results = [False] * 300
-    apps = [threading.Thread(target=_connect_and_list, args=(server.address, key, results, i), daemon=True)
-            for i in range(len(results))]
+    apps = [
+        threading.Thread(target=_connect_and_list, args=(server.address, key, results, i), daemon=True)
+        for i in range(len(results))
+    ]
     for app in apps:
         app.start()
     for app in apps:

@@ -103,8 +103,9 @@ def test_the_demo_steps_through_the_cells_motion_mode(tmp_path, capsys):
 
 
 def test_the_jrc_emulator_serves_a_pty_until_it_is_stopped():
-    process = subprocess.Popen([sys.executable, "-m", "vservo.app.cli", "jrc-emulator"], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "vservo.app.cli", "jrc-emulator"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
     try:
         device = process.stdout.readline().strip()
         assert device.startswith("/dev/")
@@ -148,17 +149,22 @@ def test_the_jrc_commands_refuse_bad_arguments_in_one_line():
     assert port.stderr.startswith("vservo jrc-emulator: error: cannot open the serial port /dev/nonexistent-jrc")
 
 
-
-@pytest.mark.parametrize("command", [("run", "--job", "demo"), ("montecarlo", "--n", "2"), ("calibrate", "collect"),
-                                     ("bench", "jrc"), ("virtual-cell",)])
+@pytest.mark.parametrize(
+    "command",
+    [("run", "--job", "demo"), ("montecarlo", "--n", "2"), ("calibrate", "collect"), ("bench", "jrc"), ("virtual-cell",)],
+)
 def test_a_negative_seed_is_refused_naming_the_option(command):
     refused = run(*command, "--seed", "-5")
     assert refused.returncode == 2
-    assert refused.stderr.strip().endswith("error: argument --seed: expected a non-negative integer, got '-5'"), \
-        refused.stderr
+    assert refused.stderr.strip().endswith("error: argument --seed: expected a non-negative integer, got '-5'"), refused.stderr
+
 
 def test_the_cell_option_goes_before_or_after_the_command():
-    for args in (("--cell", "/nowhere/cell.toml", "info"), ("info", "--cell", "/nowhere/cell.toml"),
-                 ("calibrate", "--cell", "/nowhere/cell.toml", "track"), ("calibrate", "track", "--cell", "/nowhere/cell.toml")):
+    for args in (
+        ("--cell", "/nowhere/cell.toml", "info"),
+        ("info", "--cell", "/nowhere/cell.toml"),
+        ("calibrate", "--cell", "/nowhere/cell.toml", "track"),
+        ("calibrate", "track", "--cell", "/nowhere/cell.toml"),
+    ):
         result = run(*args)
         assert result.returncode == 2 and "cell file not found: /nowhere/cell.toml" in result.stderr

@@ -28,8 +28,7 @@ def _vservo(*args: str) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def commissioned(tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("commission") / "cell-commissioned.toml"
-    done = _vservo("commission", "--cell", str(SHIPPED), "--out", str(out), "--reference", str(SHIPPED), "--seed", "1",
-                   "--json")
+    done = _vservo("commission", "--cell", str(SHIPPED), "--out", str(out), "--reference", str(SHIPPED), "--seed", "1", "--json")
     assert done.returncode == 0, done.stderr[-2000:]
     return out, json.loads(done.stdout)
 

@@ -77,14 +77,19 @@ def test_commission_over_the_channel_apply_and_assemble_on_the_new_model(cell_fi
         assert not refused.ok and "commissioning is under way" in refused.error
         assert not client.call("commission").ok  # one at a time
 
-        finished = states.wait_for(lambda s: s.commissioning and (s.commissioning["summary"] or s.commissioning["error"]),
-                                   "finished commissioning")
+        finished = states.wait_for(
+            lambda s: s.commissioning and (s.commissioning["summary"] or s.commissioning["error"]), "finished commissioning"
+        )
         record = finished.commissioning
         assert record["error"] is None and finished.phase == Phase.IDLE.value
         summary = record["summary"]
         assert summary["good"], summary["steps"]
         assert {step: result["verdict"] for step, result in summary["steps"].items()} == {
-            "camera": "good", "hand-eye": "good", "laser": "good", "nn": "good"}
+            "camera": "good",
+            "hand-eye": "good",
+            "laser": "good",
+            "nn": "good",
+        }
         assert summary["acceptance"]["max_mm"] < 0.5
         progress = record["progress"]
         assert {"find", "tilted", "laser", "grid", "nn", "acceptance"} <= set(progress)
@@ -92,8 +97,7 @@ def test_commission_over_the_channel_apply_and_assemble_on_the_new_model(cell_fi
         assert all(line["done"] == line["total"] > 0 for line in views.values()), progress
         assert progress["nn"]["done"] > 0 and progress["nn"]["total"] == 60  # training may end before its last epoch
         # Progress was published as it went, not only at the end.
-        assert len({s.commissioning["progress"].get("tilted", {}).get("done") for s in states.seen
-                    if s.commissioning}) > 5
+        assert len({s.commissioning["progress"].get("tilted", {}).get("done") for s in states.seen if s.commissioning}) > 5
         assert len(frames) > 20  # what the camera saw was shown
         assert not out.exists()  # nothing is written before Apply
 
@@ -132,8 +136,7 @@ def test_a_retake_verdict_refuses_apply(tmp_path):
         out = controller.commission(["nn"], settings=SMALL_GRID)
         assert out == tmp_path / "cell-commissioned.toml"  # the shipped file: into the data folder
         controller.wait()
-        summary = states.wait_for(lambda s: s.commissioning and s.commissioning["summary"], "summarised").commissioning[
-            "summary"]
+        summary = states.wait_for(lambda s: s.commissioning and s.commissioning["summary"], "summarised").commissioning["summary"]
         assert summary["steps"]["nn"]["verdict"] == "retake" and not summary["good"]
         with pytest.raises(CommandRefused, match=r"a step says retake; commission it again: nn: retake: \d grid views"):
             controller.apply_commissioning()
@@ -149,8 +152,10 @@ def test_estop_stops_commissioning_with_the_robot_held(tmp_path):
     states = States(controller)
     try:
         controller.commission()
-        states.wait_for(lambda s: s.commissioning and s.commissioning["progress"].get("tilted", {}).get("done", 0) >= 3,
-                        "took three tilted views")
+        states.wait_for(
+            lambda s: s.commissioning and s.commissioning["progress"].get("tilted", {}).get("done", 0) >= 3,
+            "took three tilted views",
+        )
         controller.estop()
         controller.wait(60.0)
         assert not controller.running
@@ -176,15 +181,17 @@ def test_apply_refuses_to_reload_a_file_whose_devices_differ(cell_file, tmp_path
     try:
         out = controller.commission(["nn"])
         controller.wait()
-        summary = states.wait_for(lambda s: s.commissioning and s.commissioning["summary"], "summarised").commissioning[
-            "summary"]
+        summary = states.wait_for(lambda s: s.commissioning and s.commissioning["summary"], "summarised").commissioning["summary"]
         assert summary["good"], summary["steps"]
         # Someone rewired the cell file the controller runs on meanwhile.
         text = cell_file.read_text()
         assert 'port = "/dev/ttyS0"' in text
         cell_file.write_text(text.replace('port = "/dev/ttyS0"', 'port = "/dev/ttyUSB1"'))
-        with pytest.raises(CommandRefused, match=rf"{out} is written, but its \[jrc\] differ from the running cell's: "
-                                                 rf"restart the controller with --cell {out}"):
+        with pytest.raises(
+            CommandRefused,
+            match=rf"{out} is written, but its \[jrc\] differ from the running cell's: "
+            rf"restart the controller with --cell {out}",
+        ):
             controller.apply_commissioning()
         assert load_cell(out).jrc.port == "/dev/ttyUSB1"
         assert controller.rig.config.source == str(cell_file)  # still the running model

@@ -103,18 +103,24 @@ def test_truth_overrides_change_the_truth_only():
         (lambda d: d["motion"].update(mode="teleport"), ["motion.mode", "position_steps, velocity"]),
         (lambda d: d["motion"].update(divide_factor=0.5), ["motion.divide_factor", "at least 1"]),
         (lambda d: d["motion"].update(policy="quick"), ["motion.policy", "'quick'", "thesis, fast"]),
-        (lambda d: d["motion"]["fast"].update(max_step_mm=60.0),
-         ["motion.fast.max_step_mm = 60.0", "exceeds [safety] max_step_mm = 50"]),
+        (
+            lambda d: d["motion"]["fast"].update(max_step_mm=60.0),
+            ["motion.fast.max_step_mm = 60.0", "exceeds [safety] max_step_mm = 50"],
+        ),
         (lambda d: d["motion"]["fast"].update(max_step_deg=0.0), ["motion.fast.max_step_deg", "positive"]),
-        (lambda d: (d["safety"].update(max_speed_mm_s=80.0)),
-         ["motion.fast.speed_mm_s = 100.0", "exceeds [safety] max_speed_mm_s = 80"]),
+        (
+            lambda d: d["safety"].update(max_speed_mm_s=80.0),
+            ["motion.fast.speed_mm_s = 100.0", "exceeds [safety] max_speed_mm_s = 80"],
+        ),
         (lambda d: d["motion"]["fast"].update(gain=0.5), ["unknown key motion.fast.gain"]),
         (lambda d: d["motion"].update(move_speed_mm_s=0.0), ["motion.move_speed_mm_s = 0.0", "positive"]),
         (lambda d: d["simulation"].update(pixel_noise_px=-1), ["simulation.pixel_noise_px", ">= 0"]),
         (lambda d: d["simulation"].update(seed=1.5), ["simulation.seed", "integer"]),
         (lambda d: d["simulation"]["scene"].pop("object_pose"), ["simulation.scene.object_pose"]),
-        (lambda d: d["simulation"].update(truth={"camera": {"focal_length_mm": 0}}),
-         ["[simulation.truth]", "camera.focal_length_mm", "positive"]),
+        (
+            lambda d: d["simulation"].update(truth={"camera": {"focal_length_mm": 0}}),
+            ["[simulation.truth]", "camera.focal_length_mm", "positive"],
+        ),
         (lambda d: d["simulation"].update(truth={"lens": {}}), ["unknown key simulation.truth.lens"]),
         (lambda d: d.update(camera=3), ["camera must be a table"]),
         (lambda d: d["robot"].update(backend="kuka-rsi"), ["robot.backend", "'kuka-rsi'", "sim, jrc"]),
@@ -127,45 +133,70 @@ def test_truth_overrides_change_the_truth_only():
         (lambda d: d["jrc"].update(timer_a_s=0), ["jrc.timer_a_s", "positive"]),
         (lambda d: d["jrc"].update(retry_2=-1), ["jrc.retry_2", "-1", ">= 0"]),
         (lambda d: d["jrc"].update(retries=3), ["unknown key jrc.retries"]),
-        (lambda d: d["safety"].update(workspace_max_mm=[-700.0, 400.0, 450.0]),
-         ["safety.workspace_max_mm", "[-700.0, 400.0, 450.0]", "must exceed workspace_min_mm"]),
+        (
+            lambda d: d["safety"].update(workspace_max_mm=[-700.0, 400.0, 450.0]),
+            ["safety.workspace_max_mm", "[-700.0, 400.0, 450.0]", "must exceed workspace_min_mm"],
+        ),
         (lambda d: d["safety"].update(max_step_mm=float("inf")), ["safety.max_step_mm", "finite"]),
         (lambda d: d["safety"].update(watchdog_s=-2.0), ["safety.watchdog_s", "-2.0", "more than 0"]),
         (lambda d: d["safety"].update(watchdog_s=1e300), ["safety.watchdog_s", "1e+300", "at most 600 s"]),
         (lambda d: d["safety"].update(watchdog_s=float("nan")), ["safety.watchdog_s", "nan", "finite"]),
-        (lambda d: d["robot"].update(home_joints_deg=[0.0, 500.0, 150.0, 0.0, -75.0, 0.0]),
-         ["robot.home_joints_deg", "500.0", "beyond the upj's joint limits", "[-85.0, 90.0]"]),
-        (lambda d: d["robot"].update(home_joints_deg=[0.0, 45.0, 150.0]),
-         ["robot.home_joints_deg", "3 values, the upj arm has 6 joints"]),
-        (lambda d: d["camera"].update(image_size_px=[1e6, 1e6]),
-         ["camera.image_size_px", "[1000000.0, 1000000.0]", "from 1 to 20000"]),
-        (lambda d: d["camera"].update(source={"kind": "webcam"}), ["camera.source.kind", "'webcam'",
-                                                                    "simulated, capture, folder"]),
+        (
+            lambda d: d["robot"].update(home_joints_deg=[0.0, 500.0, 150.0, 0.0, -75.0, 0.0]),
+            ["robot.home_joints_deg", "500.0", "beyond the upj's joint limits", "[-85.0, 90.0]"],
+        ),
+        (
+            lambda d: d["robot"].update(home_joints_deg=[0.0, 45.0, 150.0]),
+            ["robot.home_joints_deg", "3 values, the upj arm has 6 joints"],
+        ),
+        (
+            lambda d: d["camera"].update(image_size_px=[1e6, 1e6]),
+            ["camera.image_size_px", "[1000000.0, 1000000.0]", "from 1 to 20000"],
+        ),
+        (
+            lambda d: d["camera"].update(source={"kind": "webcam"}),
+            ["camera.source.kind", "'webcam'", "simulated, capture, folder"],
+        ),
         (lambda d: d["camera"].update(source={"kind": "capture"}), ["missing key camera.source.device"]),
         (lambda d: d["camera"].update(source={"kind": "capture", "device": -1}), ["camera.source.device", "-1"]),
-        (lambda d: d["camera"].update(source={"kind": "capture", "device": 0, "reconnect_attempts": -2}),
-         ["camera.source.reconnect_attempts", "-2", ">= 0"]),
-        (lambda d: d["camera"].update(source={"kind": "capture", "device": 0, "buffer_frames": -1}),
-         ["camera.source.buffer_frames", "-1", ">= 0"]),
-        (lambda d: d["camera"].update(source={"kind": "capture", "device": 0, "exposure_latency_s": -0.1}),
-         ["camera.source.exposure_latency_s", "-0.1", ">= 0"]),
-        (lambda d: d["camera"].update(source={"kind": "folder", "path": "frames", "device": 0}),
-         ["unknown key camera.source.device"]),
-        (lambda d: d["simulation"].update(truth={"camera": {"source": {"kind": "capture"}}}),
-         ["unknown key camera.source"]),
-        (lambda d: d["vacuum"].update(device="suction-cup"), ["vacuum.device", "'suction-cup'",
-                                                               "simulated, jrc_io, none"]),
-        (lambda d: (d["robot"].update(backend="jrc"), d["vacuum"].update(device="jrc_io", suction_output=27010)),
-         ["missing key vacuum.grip_input"]),
-        (lambda d: (d["robot"].update(backend="jrc"),
-                    d["vacuum"].update(device="jrc_io", suction_output=27018, grip_input=20)),
-         ["vacuum.suction_output", "27018", "bit, is 0..7"]),
-        (lambda d: d["vacuum"].update(device="jrc_io", suction_output=27010, grip_input=20),
-         ["vacuum.device = 'jrc_io'", "robot.backend", "'sim'"]),
-        (lambda d: d["camera"].update(source={"kind": "capture", "device": 0}),
-         ["robot.backend = 'sim'", "'capture'", "jrc"]),
-        (lambda d: (d["robot"].update(backend="jrc"), d["camera"].update(source={"kind": "folder", "path": "f"})),
-         ["vacuum.device = 'simulated'", "'folder'", "jrc_io"]),
+        (
+            lambda d: d["camera"].update(source={"kind": "capture", "device": 0, "reconnect_attempts": -2}),
+            ["camera.source.reconnect_attempts", "-2", ">= 0"],
+        ),
+        (
+            lambda d: d["camera"].update(source={"kind": "capture", "device": 0, "buffer_frames": -1}),
+            ["camera.source.buffer_frames", "-1", ">= 0"],
+        ),
+        (
+            lambda d: d["camera"].update(source={"kind": "capture", "device": 0, "exposure_latency_s": -0.1}),
+            ["camera.source.exposure_latency_s", "-0.1", ">= 0"],
+        ),
+        (
+            lambda d: d["camera"].update(source={"kind": "folder", "path": "frames", "device": 0}),
+            ["unknown key camera.source.device"],
+        ),
+        (lambda d: d["simulation"].update(truth={"camera": {"source": {"kind": "capture"}}}), ["unknown key camera.source"]),
+        (lambda d: d["vacuum"].update(device="suction-cup"), ["vacuum.device", "'suction-cup'", "simulated, jrc_io, none"]),
+        (
+            lambda d: (d["robot"].update(backend="jrc"), d["vacuum"].update(device="jrc_io", suction_output=27010)),
+            ["missing key vacuum.grip_input"],
+        ),
+        (
+            lambda d: (
+                d["robot"].update(backend="jrc"),
+                d["vacuum"].update(device="jrc_io", suction_output=27018, grip_input=20),
+            ),
+            ["vacuum.suction_output", "27018", "bit, is 0..7"],
+        ),
+        (
+            lambda d: d["vacuum"].update(device="jrc_io", suction_output=27010, grip_input=20),
+            ["vacuum.device = 'jrc_io'", "robot.backend", "'sim'"],
+        ),
+        (lambda d: d["camera"].update(source={"kind": "capture", "device": 0}), ["robot.backend = 'sim'", "'capture'", "jrc"]),
+        (
+            lambda d: (d["robot"].update(backend="jrc"), d["camera"].update(source={"kind": "folder", "path": "f"})),
+            ["vacuum.device = 'simulated'", "'folder'", "jrc_io"],
+        ),
     ],
 )
 def test_a_bad_value_is_reported_with_its_key_and_value(edit, names):
@@ -204,23 +235,38 @@ def test_a_cell_file_on_disk_round_trips(tmp_path):
 def test_a_real_cell_names_its_camera_and_its_vacuum_on_the_jrcs_io(tmp_path):
     """[camera.source] and the [vacuum] device: a relative folder is read from the cell file's folder."""
     text = resources.files("vservo.static").joinpath("cell.toml").read_text()
-    for key, value in (("backend", '"jrc"'), ("device", '"jrc_io"\nsuction_output = 27013\ngrip_input = 20'),
-                       ("kind", '"folder"\npath = "frames"')):
+    for key, value in (
+        ("backend", '"jrc"'),
+        ("device", '"jrc_io"\nsuction_output = 27013\ngrip_input = 20'),
+        ("kind", '"folder"\npath = "frames"'),
+    ):
         text, count = re.subn(rf"^{key} = .*$", f"{key} = {value}", text, flags=re.MULTILINE)
         assert count == 1, key
     path = tmp_path / "real.toml"
     path.write_text(text)
     cell = load_cell(path)
     assert cell.real and cell.camera_source.kind == "folder" and cell.camera_source.path == tmp_path / "frames"
-    assert (cell.vacuum_device.device, cell.vacuum_device.suction_output, cell.vacuum_device.grip_input) == (
-        "jrc_io", 27013, 20)
+    assert (cell.vacuum_device.device, cell.vacuum_device.suction_output, cell.vacuum_device.grip_input) == ("jrc_io", 27013, 20)
     # The wiring keys are no part of the model: the nominal and true cells are as before.
     assert np.allclose(cell.nominal.eMv, load_cell().nominal.eMv)
-    capture = parse_cell({**default_data(), "robot": {**default_data()["robot"], "backend": "jrc"},
-                          "vacuum": {"device": "none"},
-                          "camera": {"source": {"kind": "capture", "device": "rtsp://cell-camera/stream",
-                                                "reconnect_attempts": 5, "reconnect_delay_s": 1.0,
-                                                "exposure_latency_s": 0.12, "buffer_frames": 4}}}, "capture.toml")
+    capture = parse_cell(
+        {
+            **default_data(),
+            "robot": {**default_data()["robot"], "backend": "jrc"},
+            "vacuum": {"device": "none"},
+            "camera": {
+                "source": {
+                    "kind": "capture",
+                    "device": "rtsp://cell-camera/stream",
+                    "reconnect_attempts": 5,
+                    "reconnect_delay_s": 1.0,
+                    "exposure_latency_s": 0.12,
+                    "buffer_frames": 4,
+                }
+            },
+        },
+        "capture.toml",
+    )
     assert capture.camera_source.device == "rtsp://cell-camera/stream" and capture.camera_source.reconnect_attempts == 5
     assert capture.camera_source.exposure_latency_s == 0.12 and capture.camera_source.buffer_frames == 4
     assert capture.vacuum_device.device == "none"

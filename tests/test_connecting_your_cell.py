@@ -28,7 +28,7 @@ def replace_tables(base: str, tables: str) -> str:
     for name in HEADER.findall(tables):
         start = base.index(f"\n{name}\n") + 1
         following = HEADER.search(base, start + len(name))
-        base = base[:start] + (base[following.start():] if following else "")
+        base = base[:start] + (base[following.start() :] if following else "")
     return base + "\n" + tables
 
 

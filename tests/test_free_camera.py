@@ -59,8 +59,9 @@ def test_the_free_camera_sees_what_a_camera_there_would(cell_config):
     on_arm = SimulatedCell(cell_config, seed=4)
     free, _ = free_cell(cell_config)
     for cell in (on_arm, free):
-        cell.place_cube(TASKS[2].placement.bMo(cell_config.simulation.scene.table_height_m,
-                                               cell_config.simulation.scene.cube.side_m))
+        cell.place_cube(
+            TASKS[2].placement.bMo(cell_config.simulation.scene.table_height_m, cell_config.simulation.scene.cube.side_m)
+        )
         cell.place_camera(TASKS[2].desired_cMo)
     np.testing.assert_allclose(free.ground_truth_cMo(), on_arm.ground_truth_cMo(), atol=1e-9)
     assert np.isfinite(free.measure().corners_px).all() and free.measure().laser_visible

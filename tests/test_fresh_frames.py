@@ -122,8 +122,15 @@ def test_every_cycle_uses_a_frame_exposed_after_the_previous_motion_ended(cell_c
     def check(cycle: Cycle) -> None:
         used.append((cameras[0].last_read.timestamp_s, robots[0].still_since[-1]))
 
-    result = run_task(cell_config, TASKS[1], RunSettings(method="laser", features="rendered"), seed=0,
-                      on_cycle=check, robot=robot, camera=camera)
+    result = run_task(
+        cell_config,
+        TASKS[1],
+        RunSettings(method="laser", features="rendered"),
+        seed=0,
+        on_cycle=check,
+        robot=robot,
+        camera=camera,
+    )
     assert result.outcome.converged, result.outcome.reason
     assert len(used) == result.outcome.iterations > 10
     stale = [(i, exposed, still) for i, (exposed, still) in enumerate(used) if exposed < still]

@@ -56,8 +56,7 @@ def test_the_grasp_that_turns_the_flange_least_is_chosen(demo, pick):
 def test_an_unreachable_grasp_is_skipped_for_the_next_least_turning(demo, pick):
     bMe_end, bMe_pick, pMo = pick
     best = grasp_choice(bMe_pick, pMo, demo.part_side_m, 4, bMe_end, reachable=lambda bMe: True)
-    choice = grasp_choice(bMe_pick, pMo, demo.part_side_m, 4, bMe_end,
-                          reachable=lambda bMe: not np.allclose(bMe, best.bMe))
+    choice = grasp_choice(bMe_pick, pMo, demo.part_side_m, 4, bMe_end, reachable=lambda bMe: not np.allclose(bMe, best.bMe))
     assert choice.turns in (1, 3) and choice.unreachable_nearer == 1
     assert choice.turn_rad > best.turn_rad
 
@@ -75,8 +74,9 @@ def test_the_next_pose_counts_in_the_turn(demo, pick):
     side = demo.part_side_m
     bMe_from = turned_grasp(bMe_pick, pMo, side, 9, 1)  # 40 deg on the way to the first quarter turn
     alone = grasp_choice(bMe_pick, pMo, side, 4, bMe_from, reachable=lambda bMe: True)
-    onward = grasp_choice(bMe_pick, pMo, side, 4, bMe_from, reachable=lambda bMe: True,
-                          bMe_next=turned_grasp(bMe_pick, pMo, side, 4, 1))
+    onward = grasp_choice(
+        bMe_pick, pMo, side, 4, bMe_from, reachable=lambda bMe: True, bMe_next=turned_grasp(bMe_pick, pMo, side, 4, 1)
+    )
     assert alone.turns == 0 and np.degrees(alone.turn_rad) == pytest.approx(40.0)
     assert onward.turns == 1 and np.degrees(onward.turn_rad) == pytest.approx(50.0)
 

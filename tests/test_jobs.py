@@ -47,10 +47,11 @@ def test_a_job_survives_the_file_round_trip(tmp_path, demo):
         (lambda d: d["check"].pop("check_bMe"), "check: check_bMe: missing"),
         (lambda d: d.pop("taught_model"), "taught_model: missing"),
         (lambda d: d["taught_model"]["camera"].update(fx_px=0), "taught_model: camera: fx_px: 0 must be positive"),
-        (lambda d: d["taught_model"]["camera"].update(image_size_px=[640.5, 480]),
-         "is not two positive whole numbers"),
-        (lambda d: d["taught_model"]["camera"].update(distortion=[0, 0]),
-         "taught_model: camera: distortion: shape (2,), expected (5,)"),
+        (lambda d: d["taught_model"]["camera"].update(image_size_px=[640.5, 480]), "is not two positive whole numbers"),
+        (
+            lambda d: d["taught_model"]["camera"].update(distortion=[0, 0]),
+            "taught_model: camera: distortion: shape (2,), expected (5,)",
+        ),
         (lambda d: d["taught_model"].update(eMc=(2 * np.eye(4)).tolist()), "taught_model: eMc: not a rigid transform"),
         (lambda d: d["taught_model"].pop("cMl"), "taught_model: cMl: missing"),
         (lambda d: d.pop("survey_bMe"), "survey_bMe: missing"),
@@ -165,7 +166,7 @@ def test_a_corrupt_record_is_reported_and_the_others_still_load(tmp_path, demo):
     store.save_job(replace(demo, name="bad"))
     store.close()
     with sqlite3.connect(tmp_path / "vservo.sqlite") as db:
-        db.execute("UPDATE jobs SET body = '{\"format\": \"vservo-job\", \"version\": 1}' WHERE name = 'bad'")
+        db.execute('UPDATE jobs SET body = \'{"format": "vservo-job", "version": 1}\' WHERE name = \'bad\'')
     store = Store(tmp_path)
     entries = {e.name: e for e in store.list_jobs()}
     assert entries["good"].problem is None

@@ -164,8 +164,16 @@ def test_a_goal_beyond_the_limits_still_ends_unreachable_naming_the_joint(arm, c
     cell.set_joints(near_elbow_limit(arm, cell_config, np.radians(5.0)))
     q_goal = near_elbow_limit(arm, cell_config, np.radians(-10.0))
     law = Homing(cell, cell.truth.arm.fk(q_goal, "camera"))
-    outcome = run_servo(cell, law, desired, cell_config.nominal, IntegratedVelocity(DT_S), LoopLimits(progress_window=20),
-                        robot=SimulatedBackend.enabled(cell), joint_limits=JointLimitedSteps(arm))
+    outcome = run_servo(
+        cell,
+        law,
+        desired,
+        cell_config.nominal,
+        IntegratedVelocity(DT_S),
+        LoopLimits(progress_window=20),
+        robot=SimulatedBackend.enabled(cell),
+        joint_limits=JointLimitedSteps(arm),
+    )
     # Bent around the limit as near to the goal as the arm goes, then stopped there, named.
     assert outcome.failure is Failure.UNREACHABLE, outcome.reason
     assert re.fullmatch(r"stage homing error [0-9.]+ after 20 cycles, joint_3 at its upper limit", outcome.reason)

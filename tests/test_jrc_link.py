@@ -85,6 +85,7 @@ def bcc_by_hand(body: bytes) -> bytes:
 
 # -- framing ---------------------------------------------------------------------------
 
+
 def test_the_bcc_of_the_protocol_test_vector():
     """docs/robot-link.md: header 02,030, text SYSTEM CR, ETB: the sum from '0' through ETB is
     0x032C, sent as 0x2C 0x03."""
@@ -95,7 +96,7 @@ def test_a_long_text_is_cut_into_blocks_ended_by_etb_then_etx():
     text = "A" * 300 + "\r"
     first, second = encode_blocks(Message("02,030", text))
     assert first[0] == SOH and first[1:7] == b"02,030" and first[7] == STX
-    assert first[8:8 + 256] == b"A" * 256 and first[8 + 256] == ETB
+    assert first[8 : 8 + 256] == b"A" * 256 and first[8 + 256] == ETB
     assert first[-2:] == bcc_by_hand(first[1:-2])
     assert second[0] == STX and second[1:-3] == b"A" * 44 + b"\r" and second[-3] == ETX
     assert second[-2:] == bcc_by_hand(second[1:-2])
@@ -121,6 +122,7 @@ def test_the_wire_pose_is_x_y_z_then_rx_ry_rz_about_the_fixed_base_axes():
 
 
 # -- the data link against a scripted JRC ----------------------------------------------
+
 
 class ScriptedJrc:
     """The JRC's end of a pty driven byte by byte by the test (no emulator code)."""
@@ -300,6 +302,7 @@ def test_a_reply_that_never_ends_fails_after_timer_b(config):
 
 # -- the JRC emulator, byte by byte ----------------------------------------------------
 
+
 def test_the_emulator_answers_one_transaction_as_the_protocol_draws_it(emulator, cell, config):
     port = serial.Serial(emulator.device, timeout=2.0)
     try:
@@ -340,6 +343,7 @@ def test_the_emulator_serves_a_serial_port_it_is_given(cell, config):
 
 # -- host commands against the emulator ------------------------------------------------
 
+
 def test_status_servo_pose_and_moves(robot, cell):
     assert not robot.status().servo_on
     robot.servo(True)
@@ -361,6 +365,7 @@ def test_status_servo_pose_and_moves(robot, cell):
     assert np.allclose(after[:3, 3] - before[:3, 3], [0.0, 0.0, -0.01], atol=1e-6)
     assert np.allclose(after[:3, :3], before[:3, :3], atol=1e-6)
 
+
 def test_a_turn_finer_than_the_readback_is_not_lost(robot, cell):
     """RPOSC reads degrees to 0.01; a servo step of a fiftieth turns by less. Aimed from
     a reading rounded back to where it started, the arm would stand still step after step."""
@@ -379,7 +384,6 @@ def test_a_turn_finer_than_the_readback_is_not_lost(robot, cell):
     assert robot.wait_motion()
     translation, rotation = pose_error(robot.read_pose(), cell.jrc_arm.fk(cell.state.q))
     assert translation < 1e-6 and rotation < np.radians(0.006)
-
 
 
 def test_refusals_carry_the_jrcs_reason(robot):
@@ -452,9 +456,16 @@ def test_a_pendant_hold_lasts_until_the_pendant_releases_it(robot, cell, emulato
     assert robot.wait_motion()
 
 
-@pytest.mark.parametrize("kind, counter", [
-    ("bcc", "naks_sent"), ("nak", "text_resends"), ("missing_ack", "enq_retries"), ("drop", None), ("delay", None),
-])
+@pytest.mark.parametrize(
+    "kind, counter",
+    [
+        ("bcc", "naks_sent"),
+        ("nak", "text_resends"),
+        ("missing_ack", "enq_retries"),
+        ("drop", None),
+        ("delay", None),
+    ],
+)
 def test_every_link_fault_is_recovered(cell, config, kind, counter):
     with jrc_link(cell, config, FaultPlan(1.0, seed=3, kinds=(kind,))) as (robot, emulator):
         poses = [robot.read_pose() for _ in range(12)]
@@ -530,9 +541,17 @@ def test_io_commands_take_whole_bytes_and_write_only_the_wired_network_input(cel
 
 # -- the soak --------------------------------------------------------------------------
 
+
 def test_a_short_soak_loses_no_move_and_accounts_for_every_fault(config):
-    result = run_soak(config, moves=120, fault_rate=0.15, seed=5, time_scale=TIME_SCALE,
-                      timer_a_s=TEST_LINE["timer_a_s"], timer_b_s=TEST_LINE["timer_b_s"])
+    result = run_soak(
+        config,
+        moves=120,
+        fault_rate=0.15,
+        seed=5,
+        time_scale=TIME_SCALE,
+        timer_a_s=TEST_LINE["timer_a_s"],
+        timer_b_s=TEST_LINE["timer_b_s"],
+    )
     injected = result["faults_injected"]
     assert all(injected[kind] > 0 for kind in FAULT_KINDS), injected
     for kind in FAULT_KINDS:

@@ -25,6 +25,7 @@ def test_the_laser_servo_of_task_2_converges_through_the_jrc_link():
     emulators = []
 
     with ExitStack() as links:
+
         def through_the_jrc(cell):
             robot, emulator = links.enter_context(jrc_link(cell, config, time_scale=TIME_SCALE))
             emulators.append(emulator)
@@ -46,8 +47,12 @@ def test_the_laser_servo_of_task_2_converges_through_the_jrc_link():
 
     # The same steps on the direct simulator backend: the wire's resolution (0.001 mm,
     # 0.01 deg) changes the path by little.
-    direct = run_task(config, TASKS[2], RunSettings(method="laser"),
-                      policy=DividedPositionStep(motion.divide_factor, motion.sampling_period_s, motion.speed_m_s))
+    direct = run_task(
+        config,
+        TASKS[2],
+        RunSettings(method="laser"),
+        policy=DividedPositionStep(motion.divide_factor, motion.sampling_period_s, motion.speed_m_s),
+    )
     assert direct.outcome.converged
     assert abs(result.path_length_m - direct.path_length_m) < 0.02 * direct.path_length_m
     assert abs(outcome.iterations - direct.outcome.iterations) < 0.1 * direct.outcome.iterations

@@ -35,12 +35,14 @@ def dh_flange_pose(q: np.ndarray) -> np.ndarray:
     M = np.eye(4)
     for link, qi in zip(UPJ_DH, q):
         th, al = qi + link.offset, link.alpha
-        M = M @ np.array([
-            [np.cos(th), -np.sin(th) * np.cos(al), np.sin(th) * np.sin(al), link.a * np.cos(th)],
-            [np.sin(th), np.cos(th) * np.cos(al), -np.cos(th) * np.sin(al), link.a * np.sin(th)],
-            [0.0, np.sin(al), np.cos(al), link.d],
-            [0.0, 0.0, 0.0, 1.0],
-        ])
+        M = M @ np.array(
+            [
+                [np.cos(th), -np.sin(th) * np.cos(al), np.sin(th) * np.sin(al), link.a * np.cos(th)],
+                [np.sin(th), np.cos(th) * np.cos(al), -np.cos(th) * np.sin(al), link.a * np.sin(th)],
+                [0.0, np.sin(al), np.cos(al), link.d],
+                [0.0, 0.0, 0.0, 1.0],
+            ]
+        )
     return M
 
 

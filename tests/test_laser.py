@@ -36,9 +36,7 @@ def tilted_normal(rng, max_tilt_rad):
 
 def test_in_plane_is_the_thesis_hand_laser_pose():
     laser = LaserPointer.in_plane(BASELINE, ALPHA)
-    np.testing.assert_allclose(
-        laser.cMl, matrix_from_pose(pose_from_mm_deg([30, 0, 0, 0, -10, 0])), rtol=0, atol=1e-15
-    )
+    np.testing.assert_allclose(laser.cMl, matrix_from_pose(pose_from_mm_deg([30, 0, 0, 0, -10, 0])), rtol=0, atol=1e-15)
     np.testing.assert_allclose(laser.origin_c, [0.030, 0.0, 0.0])
     # Tilted towards the optical axis, at alpha from the baseline (laser -> lens is -x).
     np.testing.assert_allclose(laser.direction_c, [-np.cos(ALPHA), 0.0, np.sin(ALPHA)], atol=1e-15)

@@ -210,8 +210,9 @@ def test_a_small_step_reduces_the_feature_error(law):
     desired = desired_image()
     cMo = matrix_from_pose([0.015, -0.005, 0.175, np.pi - 0.1, 0.05, -np.pi + 0.05])
     stage = Stage.FINISH_3 if isinstance(law, LaserIbvs) else None
-    out = law.step(features(project(cMo), depth=0.175, corner_depths=(CORNERS_O @ cMo[:3, :3].T + cMo[:3, 3])[:, 2]),
-                          desired, stage)
+    out = law.step(
+        features(project(cMo), depth=0.175, corner_depths=(CORNERS_O @ cMo[:3, :3].T + cMo[:3, 3])[:, 2]), desired, stage
+    )
     after = project(moved(cMo, out.cVc, 0.1))
     assert np.linalg.norm(after - desired.corners_px) < 0.95 * np.linalg.norm(project(cMo) - desired.corners_px)
 
@@ -252,8 +253,14 @@ def test_checked_pinv_is_the_pseudo_inverse_or_says_singular():
 
 def _frame(corners_px, spot_px):
     corners_px = np.asarray(corners_px, dtype=float)
-    return ImageFeatures(corners_px, np.asarray(spot_px, dtype=float), 0.16 if spot_px[0] == spot_px[0] else float("nan"),
-                         ObjectRegion(0.0, np.full(2, np.nan)), np.full(4, np.nan), np.full(2, np.nan))
+    return ImageFeatures(
+        corners_px,
+        np.asarray(spot_px, dtype=float),
+        0.16 if spot_px[0] == spot_px[0] else float("nan"),
+        ObjectRegion(0.0, np.full(2, np.nan)),
+        np.full(4, np.nan),
+        np.full(2, np.nan),
+    )
 
 
 def test_a_spot_hidden_behind_the_part_is_held_while_the_part_moves_less_than_its_size():

@@ -73,8 +73,7 @@ def layer_violations(graph: Graph) -> list[str]:
         for target in sorted(targets):
             if target.startswith("vservo.app"):
                 found.append(f"{module} imports {target}: nothing under core imports the app")
-            elif (rank := layer_of(module)) is not None and (target_rank := layer_of(target)) is not None \
-                    and target_rank > rank:
+            elif (rank := layer_of(module)) is not None and (target_rank := layer_of(target)) is not None and target_rank > rank:
                 importer = LAYERS[rank] if rank >= 0 else "terminal"
                 found.append(f"{module} imports {target}: {importer} may not import {LAYERS[target_rank]}")
     return found

@@ -35,8 +35,14 @@ DEADLINE_S = 180.0  # an assembly's servo sends a frame every few hundredths of 
 def running(tmp_path_factory):
     # The thesis's step policy: an assembly long enough to send a monitor many frames.
     cell = thesis_policy_cell_file(tmp_path_factory.mktemp("cell"))
-    options = ServeOptions(port=free_port(), data=tmp_path_factory.mktemp("serve-data"), seed=3,
-                           token="light-monitor-token", cycle_period_s=0.02, cell=cell)
+    options = ServeOptions(
+        port=free_port(),
+        data=tmp_path_factory.mktemp("serve-data"),
+        seed=3,
+        token="light-monitor-token",
+        cycle_period_s=0.02,
+        cell=cell,
+    )
     running = start_app(options, load_cell(cell))
     yield running
     running.close()
@@ -91,8 +97,20 @@ def test_light_monitors_of_no_server_say_so():
 
 
 def test_bench_ui_light_json_has_the_figures_per_client_count():
-    command = [sys.executable, "-m", "vservo.app.cli", "bench", "ui", "--monitors", "light", "--light-clients", "2",
-               "--runs", "1", "--json"]
+    command = [
+        sys.executable,
+        "-m",
+        "vservo.app.cli",
+        "bench",
+        "ui",
+        "--monitors",
+        "light",
+        "--light-clients",
+        "2",
+        "--runs",
+        "1",
+        "--json",
+    ]
     done = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     result = json.loads(done.stdout)
@@ -100,9 +118,18 @@ def test_bench_ui_light_json_has_the_figures_per_client_count():
     assert "browsers" not in result  # light only: no Chromium
     assert set(result["light_clients"]) == {"2"}
     two = result["light_clients"]["2"]
-    for key in ("fps_median", "fps_min", "loop_hz_median", "loop_hz_no_clients_median", "loop_change_pct",
-                "serve_cpu_pct_median", "controller_cpu_pct_median", "clients_cpu_pct_median",
-                "no_clients_serve_cpu_pct_median", "no_clients_controller_cpu_pct_median"):
+    for key in (
+        "fps_median",
+        "fps_min",
+        "loop_hz_median",
+        "loop_hz_no_clients_median",
+        "loop_change_pct",
+        "serve_cpu_pct_median",
+        "controller_cpu_pct_median",
+        "clients_cpu_pct_median",
+        "no_clients_serve_cpu_pct_median",
+        "no_clients_controller_cpu_pct_median",
+    ):
         assert two[key] is not None, key
     (watched,), (alone,) = two["runs"], two["runs_no_clients"]
     assert len(watched["fps_per_client"]) == 2 and all(fps > 0 for fps in watched["fps_per_client"])

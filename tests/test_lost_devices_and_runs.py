@@ -54,7 +54,6 @@ def test_a_lost_jrc_port_raises_link_error_and_connect_opens_it_again_when_it_is
         robot.close()
 
 
-
 def test_a_hold_that_finds_the_port_lost_says_once_that_the_robot_may_still_be_moving(tmp_path):
     config = short_timer_cell()
     with JrcEmulator(SimulatedCell(config), config.jrc, time_scale=TIME_SCALE) as emulator:
@@ -65,6 +64,7 @@ def test_a_hold_that_finds_the_port_lost_says_once_that_the_robot_may_still_be_m
     message = str(lost.value)
     assert message.startswith(f"HOLD failed: the serial port {emulator.device} is lost"), message
     assert message.count("may still be moving") == 1 and "no hold could be sent" not in message, message
+
 
 def test_a_leftover_run_folder_leaves_the_run_going_unrecorded_and_says_so(tmp_path):
     store = Store(tmp_path / "data")
@@ -87,8 +87,7 @@ def test_a_leftover_run_folder_leaves_the_run_going_unrecorded_and_says_so(tmp_p
 
 def test_a_recording_whose_folder_goes_away_mid_run_stops_and_the_run_ends_on_record(tmp_path):
     store = Store(tmp_path / "data")
-    controller = CellController(simulated_rig(with_the_thesis_policy(load_cell()), seed=3), store, seed=3,
-                                cycle_period_s=0.01)
+    controller = CellController(simulated_rig(with_the_thesis_policy(load_cell()), seed=3), store, seed=3, cycle_period_s=0.01)
     controller.present_part()
     run_id = controller.start("demo")
     wait_until(lambda: controller.state.iteration >= 5, "5 cycles", 60, poll_s=0.01)
@@ -114,9 +113,25 @@ def _vservo(*args: str, data: Path) -> subprocess.Popen:
     if ignored:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        return subprocess.Popen([sys.executable, "-m", "vservo.app.cli", "run", "--job", "demo", "--data", str(data),
-                                 "--cell", thesis_policy_cell_file(data.parent), *args],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+        return subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "vservo.app.cli",
+                "run",
+                "--job",
+                "demo",
+                "--data",
+                str(data),
+                "--cell",
+                thesis_policy_cell_file(data.parent),
+                *args,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+        )
     finally:
         if ignored:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -192,8 +207,9 @@ def test_the_estop_behind_a_silent_link_answers_within_a_second_and_says_the_hol
         assert controller.state.phase == Phase.ESTOPPED.value
         assert "hold NOT confirmed" in controller.state.detail, controller.state.detail
         os.kill(cell.process.pid, signal.SIGCONT)
-        wait_until(lambda: "robot held" in controller.state.detail or not controller.running, "the hold answered", 120,
-                   poll_s=0.01)
+        wait_until(
+            lambda: "robot held" in controller.state.detail or not controller.running, "the hold answered", 120, poll_s=0.01
+        )
         controller.wait(120)
         assert store.run(1).outcome is Outcome.ESTOPPED
         controller.close()

@@ -20,6 +20,7 @@ def test_the_folders_are_not_import_names_of_their_own(tmp_path):
             result = subprocess.run([sys.executable, "-c", f"import {name}"], cwd=where, capture_output=True, text=True)
             assert result.returncode != 0, f"import {name} worked in {where}"
             assert "ModuleNotFoundError" in result.stderr or f"imported as vservo.{name}" in result.stderr
-    result = subprocess.run([sys.executable, "-c", "import vservo.core.servo.loop, vservo.app.server"], cwd=tmp_path,
-                            capture_output=True, text=True)
+    result = subprocess.run(
+        [sys.executable, "-c", "import vservo.core.servo.loop, vservo.app.server"], cwd=tmp_path, capture_output=True, text=True
+    )
     assert result.returncode == 0, result.stderr

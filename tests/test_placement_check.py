@@ -23,8 +23,7 @@ AGREEMENT_MM = 0.1
 
 
 def controller_for(tmp_path, seed: int) -> CellController:
-    return CellController(simulated_rig(load_cell(), seed=seed, backend="sim"), Store(tmp_path / f"data{seed}"),
-                          seed=seed)
+    return CellController(simulated_rig(load_cell(), seed=seed, backend="sim"), Store(tmp_path / f"data{seed}"), seed=seed)
 
 
 def close(controller: CellController) -> None:
@@ -125,6 +124,7 @@ def test_a_part_moved_after_the_release_is_measured_where_it_lies_and_missed_bey
 def test_a_part_gone_from_the_pocket_is_missed_as_not_found(tmp_path):
     controller = controller_for(tmp_path, 2)
     try:
+
         def knock_away(state):
             if state.detail.startswith("looking at the placed part"):
                 controller.rig.cell.place_cube(controller.rig.config.simulation.scene.cube.bMo)  # back on the table

@@ -36,7 +36,9 @@ SIM_FOLDER = Path(resources.files("vservo.core.sim"))
 # jrc-emulator` on the command line's parser (it imports nothing of the simulator), so
 # it and the package's empty __init__ are loaded by every `vservo` command.
 SIMULATOR_MODULES = {f"vservo.core.sim.{path.stem}" for path in SIM_FOLDER.glob("*.py")} - {
-    "vservo.core.sim.__init__", "vservo.core.sim.cli"}
+    "vservo.core.sim.__init__",
+    "vservo.core.sim.cli",
+}
 VACUUM_IO = '"jrc_io"\nsuction_output = 27013\ngrip_input = 20'
 
 
@@ -45,8 +47,14 @@ def real_cell_text(port: str, camera_source: str, vacuum: str = VACUUM_IO) -> st
     [camera.source] kind and its keys) and the vacuum device (likewise) given."""
     text = resources.files("vservo.static").joinpath("cell.toml").read_text()
     # The vacuum's device before the camera's kind, which may bring a capture's own device key.
-    keys = {"backend": '"jrc"', "port": f'"{port}"', "sampling_period_s": "0.05", "device": vacuum,
-            "kind": camera_source, **{key: str(value) for key, value in TEST_LINE.items()}}
+    keys = {
+        "backend": '"jrc"',
+        "port": f'"{port}"',
+        "sampling_period_s": "0.05",
+        "device": vacuum,
+        "kind": camera_source,
+        **{key: str(value) for key, value in TEST_LINE.items()},
+    }
     for key, value in keys.items():
         text, count = re.subn(rf"^{key} = .*$", f"{key} = {value}", text, flags=re.MULTILINE)
         assert count == 1, key
@@ -55,8 +63,9 @@ def real_cell_text(port: str, camera_source: str, vacuum: str = VACUUM_IO) -> st
 
 def loaded_modules(importtime_log: str) -> set[str]:
     """The modules a process imported, from its ``python -X importtime`` log."""
-    return {line.rsplit("|", 1)[1].strip() for line in importtime_log.splitlines() if line.startswith("import time:")
-            and "|" in line} - {"package"}
+    return {
+        line.rsplit("|", 1)[1].strip() for line in importtime_log.splitlines() if line.startswith("import time:") and "|" in line
+    } - {"package"}
 
 
 @pytest.mark.usefixtures("no_leaked_threads")
@@ -90,9 +99,25 @@ def test_a_real_cell_assembles_through_the_jrc_and_an_image_folder_without_loadi
         config = load_cell(cell_file)
         assert config.vacuum_device == wiring
         run = subprocess.run(
-            [sys.executable, "-X", "importtime", "-m", "vservo.app.cli", "--cell", str(cell_file), "run", "--job",
-             "demo", "--data", str(tmp_path / "data"), "--json"],
-            capture_output=True, text=True, timeout=300)
+            [
+                sys.executable,
+                "-X",
+                "importtime",
+                "-m",
+                "vservo.app.cli",
+                "--cell",
+                str(cell_file),
+                "run",
+                "--job",
+                "demo",
+                "--data",
+                str(tmp_path / "data"),
+                "--json",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
     errors = "\n".join(line for line in run.stderr.splitlines() if not line.startswith("import time:"))
     assert run.returncode == 0, (run.stdout, errors)
     summary = json.loads(run.stdout)
@@ -142,7 +167,6 @@ def test_a_real_cells_camera_is_checked_when_the_rig_is_built(tmp_path):
         build_rig(load_cell(cell_file))
     with pytest.raises(ConfigError, match="not by the 'sim' backend"):
         build_rig(load_cell(cell_file), backend="sim")
-    cell_file.write_text(real_cell_text("/dev/null", f'"capture"\ndevice = "{tmp_path / "none.avi"}"',
-                                        vacuum='"none"'))
+    cell_file.write_text(real_cell_text("/dev/null", f'"capture"\ndevice = "{tmp_path / "none.avi"}"', vacuum='"none"'))
     with pytest.raises(CameraSourceError, match="none.avi.*no such file"):
         build_rig(load_cell(cell_file))

@@ -41,10 +41,15 @@ def shipped() -> CellConfig:
 def recalibrated(shipped) -> CellModel:
     nominal = shipped.nominal
     k = nominal.camera.intrinsics
-    camera = CameraModel(Intrinsics(1.04 * k.fx, 1.04 * k.fy, k.u0 + 12.0, k.v0 + 12.0, k.width, k.height),
-                         nominal.camera.distortion)
-    return replace(nominal, camera=camera, eMc=moved(nominal.eMc, 10.0, 3.0, (1, 1, 0), (1, -1, 1)),
-                   laser=LaserPointer(moved(nominal.laser.cMl, 5.0, 1.5, (1, 1, 0), (0, 1, 0))))
+    camera = CameraModel(
+        Intrinsics(1.04 * k.fx, 1.04 * k.fy, k.u0 + 12.0, k.v0 + 12.0, k.width, k.height), nominal.camera.distortion
+    )
+    return replace(
+        nominal,
+        camera=camera,
+        eMc=moved(nominal.eMc, 10.0, 3.0, (1, 1, 0), (1, -1, 1)),
+        laser=LaserPointer(moved(nominal.laser.cMl, 5.0, 1.5, (1, 1, 0), (0, 1, 0))),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -175,15 +180,19 @@ def test_the_start_pose_for_a_part_moves_with_the_part(demo):
         turned = bMo_taught @ centre @ transform(rot_z(np.deg2rad(yaw_deg))) @ inverse(centre)
         shift = transform(t=(0.04, -0.03, 0.0))
         assert np.allclose(bMe, shift @ turned @ inverse(bMo_taught) @ demo.start_bMe, atol=1e-12)
-        assert np.degrees(rotation_angle(demo.start_bMe[:3, :3].T @ bMe[:3, :3])) == pytest.approx(
-            abs(yaw_deg), abs=1e-9)
+        assert np.degrees(rotation_angle(demo.start_bMe[:3, :3].T @ bMe[:3, :3])) == pytest.approx(abs(yaw_deg), abs=1e-9)
 
 
 def test_a_part_found_far_from_its_taught_place_is_assembled_from_the_start_pose_moved_with_it(demo, shipped, tmp_path):
     """34 mm away and turned 100 deg (the part feeder's arrivals stay within 15 mm and 10 deg)."""
     centre = transform(t=(demo.part_side_m / 2, demo.part_side_m / 2, 0.0))
-    bMo = (transform(t=(0.015, 0.03, 0.0)) @ shipped.simulation.scene.cube.bMo @ centre
-           @ transform(rot_z(np.deg2rad(100.0))) @ inverse(centre))
+    bMo = (
+        transform(t=(0.015, 0.03, 0.0))
+        @ shipped.simulation.scene.cube.bMo
+        @ centre
+        @ transform(rot_z(np.deg2rad(100.0)))
+        @ inverse(centre)
+    )
     found = replace(demo, name="found", start_bMe=start_pose_for_part(demo, demo.taught_model, bMo))
     # This part is at the edge of the UPJ's reach: the servo ends where the taught grasp's
     # lifted pick is beyond it (joint 2 at its limit); one of its quarter-turned grasps is not.
@@ -191,14 +200,12 @@ def test_a_part_found_far_from_its_taught_place_is_assembled_from_the_start_pose
     assert outcome.outcome is Outcome.PLACED, outcome.reason
     assert outcome.gauge_inside and outcome.gauge_placement_error_mm < 0.5
     # The same part said to have no symmetry: the taught grasp alone, out of reach.
-    taught_grasp_only = run_once(shipped, replace(found, name="asymmetric", grasp_symmetry=1), tmp_path, seed=4,
-                                 bMo=bMo)
+    taught_grasp_only = run_once(shipped, replace(found, name="asymmetric", grasp_symmetry=1), tmp_path, seed=4, bMo=bMo)
     assert taught_grasp_only.outcome is Outcome.FAULT
     assert "limit" in taught_grasp_only.reason
 
 
-def test_from_the_start_pose_for_a_part_turned_a_quarter_the_camera_sees_what_it_saw_from_the_taught_start(
-        demo, shipped):
+def test_from_the_start_pose_for_a_part_turned_a_quarter_the_camera_sees_what_it_saw_from_the_taught_start(demo, shipped):
     centre = transform(t=(demo.part_side_m / 2, demo.part_side_m / 2, 0.0))
     bMo_table = shipped.simulation.scene.cube.bMo
     bMo = transform(t=(-0.03, 0.02, 0.0)) @ bMo_table @ centre @ transform(rot_z(np.pi / 2)) @ inverse(centre)

@@ -175,9 +175,7 @@ def test_box_intersect_axis_parallel_rays():
                 shifted[other] += box.half_extents[other] + 1e-3
                 assert box.intersect(Ray(shifted, direction)) is None
             # From the centre: exits at the half extent.
-            assert box.intersect(Ray(np.array([1.0, 2.0, 3.0]), direction)) == pytest.approx(
-                box.half_extents[axis], abs=1e-12
-            )
+            assert box.intersect(Ray(np.array([1.0, 2.0, 3.0]), direction)) == pytest.approx(box.half_extents[axis], abs=1e-12)
             # Pointing away from the box along the axis: miss.
             assert box.intersect(Ray(origin, -direction)) is None
 

@@ -41,10 +41,12 @@ def project_with_opencv(camera, cMb, points_b):
 
 
 def test_corners_are_seen_through_the_true_camera_not_the_nominal_one():
-    data = cell_data(truth={
-        "camera": {"principal_point_px": [326.0, 228.0], "distortion": [-0.2, 0.05, 0.001, -0.001, 0.0]},
-        "hand_eye": {"eMc": [2.0, -1.0, 3.0, 0.5, -0.4, 1.0]},
-    })
+    data = cell_data(
+        truth={
+            "camera": {"principal_point_px": [326.0, 228.0], "distortion": [-0.2, 0.05, 0.001, -0.001, 0.0]},
+            "hand_eye": {"eMc": [2.0, -1.0, 3.0, 0.5, -0.4, 1.0]},
+        }
+    )
     cell = at_teach_pose(data)
     seen = cell.measure()
     truth = cell.truth
@@ -130,8 +132,10 @@ def test_fast_steps_move_the_whole_correction_within_the_step_limits_with_no_sam
     assert np.allclose(command.bMe_target, before.bMe @ exp_twist(small))
     assert command.period_s == 0.0 and command.speed_m_s == 0.1
     # Far from it, scaled as a whole (its direction kept) to the limit it reaches first.
-    for far, limited_by in ((np.array([0.0, 0.08, 0.06, 0.0, 0.0, 0.05]), "translation"),
-                            (np.array([0.0, 0.0, 0.01, 0.0, 0.0, np.radians(40.0)]), "rotation")):
+    for far, limited_by in (
+        (np.array([0.0, 0.08, 0.06, 0.0, 0.0, 0.05]), "translation"),
+        (np.array([0.0, 0.0, 0.01, 0.0, 0.0, np.radians(40.0)]), "rotation"),
+    ):
         command = policy.command(before.bMe, far)
         scale = 0.04 / 0.1 if limited_by == "translation" else 0.25
         assert np.allclose(command.bMe_target, before.bMe @ exp_twist(scale * far)), limited_by

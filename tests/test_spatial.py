@@ -308,9 +308,7 @@ def test_twist_transform_matches_conjugated_twist_matrix(rng):
     for _ in range(20):
         aMb = random_rigid(rng)
         V = rng.normal(size=6)
-        np.testing.assert_allclose(
-            twist_matrix(twist_transform(aMb) @ V), aMb @ twist_matrix(V) @ np.linalg.inv(aMb), atol=1e-13
-        )
+        np.testing.assert_allclose(twist_matrix(twist_transform(aMb) @ V), aMb @ twist_matrix(V) @ np.linalg.inv(aMb), atol=1e-13)
 
 
 # ---------------------------------------------------------------------------------------

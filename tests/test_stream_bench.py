@@ -28,6 +28,10 @@ def test_a_coarse_jpeg_costs_more_than_a_fine_one():
 
 
 def test_a_bad_quality_is_refused_in_one_line():
-    process = subprocess.run([sys.executable, "-m", "vservo.app.cli", "bench", "stream", "--quality", "101"],
-                             capture_output=True, text=True, timeout=120)
+    process = subprocess.run(
+        [sys.executable, "-m", "vservo.app.cli", "bench", "stream", "--quality", "101"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert process.returncode == 2 and "a JPEG quality is an integer in 0..100, got '101'" in process.stderr

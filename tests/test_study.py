@@ -110,8 +110,15 @@ def test_the_loop_names_no_progress_and_the_iteration_limit(cell_config):
     cell.place_cube(TASKS[2].placement.bMo(scene.table_height_m, scene.cube.side_m))
     desired = teach(cell, TASKS[2].desired_cMo, cell_config.nominal)
     policy = IntegratedVelocity(0.1)
-    stuck = run_servo(cell, Stalled(), desired, cell_config.nominal, policy, LoopLimits(progress_window=20),
-                      robot=SimulatedBackend.enabled(cell))
+    stuck = run_servo(
+        cell,
+        Stalled(),
+        desired,
+        cell_config.nominal,
+        policy,
+        LoopLimits(progress_window=20),
+        robot=SimulatedBackend.enabled(cell),
+    )
     assert stuck.failure is Failure.NO_PROGRESS and stuck.iterations == 21
     short = run_task(cell_config, TASKS[2], RunSettings(method="laser", max_iterations=5))
     assert short.outcome.failure is Failure.ITERATION_LIMIT and short.outcome.iterations == 5
@@ -133,8 +140,9 @@ def test_a_non_finite_twist_never_reaches_the_robot(cell_config):
     cell.place_cube(TASKS[2].placement.bMo(scene.table_height_m, scene.cube.side_m))
     desired = teach(cell, TASKS[2].desired_cMo, cell_config.nominal)
     q_before = cell.state.q.copy()
-    outcome = run_servo(cell, Broken(), desired, cell_config.nominal, IntegratedVelocity(0.1),
-                        robot=SimulatedBackend.enabled(cell))
+    outcome = run_servo(
+        cell, Broken(), desired, cell_config.nominal, IntegratedVelocity(0.1), robot=SimulatedBackend.enabled(cell)
+    )
     assert outcome.failure is Failure.SINGULAR_JACOBIAN and "non-finite" in outcome.reason
     assert np.array_equal(cell.state.q, q_before)
 
@@ -170,24 +178,34 @@ def test_the_robustness_test_converges_with_the_spot_off_its_row(runs):
 
 
 def simulate_cli(*args):
-    return subprocess.run([sys.executable, "-m", "vservo.app.cli", "simulate", *args], capture_output=True, text=True,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "vservo.app.cli", "simulate", *args], capture_output=True, text=True, timeout=300
+    )
 
 
 def test_simulate_prints_one_json_object_with_every_field():
     result = simulate_cli("--task", "1", "--method", "laser", "--json")
     assert result.returncode == 0, result.stderr
     summary = json.loads(result.stdout)
-    assert set(summary) >= {"task", "method", "converged", "failure", "iterations", "final_error_px", "path_length_m",
-                            "straight_line_m", "final_pose_error", "stages"}
+    assert set(summary) >= {
+        "task",
+        "method",
+        "converged",
+        "failure",
+        "iterations",
+        "final_error_px",
+        "path_length_m",
+        "straight_line_m",
+        "final_pose_error",
+        "stages",
+    }
     assert set(summary["final_pose_error"]) == {"translation_m", "rotation_rad"}
     assert summary["converged"] and summary["failure"] is None
     assert all(set(stage) == {"stage", "iterations"} for stage in summary["stages"])
 
 
 def test_simulate_runs_a_scene_given_by_its_poses():
-    result = simulate_cli("--initial=0.011,-0.01,0.18,3.0,0.0,-3.1416", "--desired=0.011,-0.01,0.162,3.1416,0,-3.1416",
-                          "--json")
+    result = simulate_cli("--initial=0.011,-0.01,0.18,3.0,0.0,-3.1416", "--desired=0.011,-0.01,0.162,3.1416,0,-3.1416", "--json")
     assert result.returncode == 0, result.stderr
     summary = json.loads(result.stdout)
     assert summary["task"] == "scene" and summary["converged"]
@@ -267,8 +285,10 @@ def test_the_report_says_what_its_own_results_say(reproduced):
     out, results = reproduced
     runs, report = results["runs"], (out / "report.md").read_text()
     table = report.split("## Table 5-4 analogue")[1].split("## Every run")[0]
-    rows = {cells[0]: cells[1:] for cells in
-            (line.strip("| ").split(" | ") for line in table.splitlines() if re.match(r"\| \d \|", line))}
+    rows = {
+        cells[0]: cells[1:]
+        for cells in (line.strip("| ").split(" | ") for line in table.splitlines() if re.match(r"\| \d \|", line))
+    }
     methods = list(dict.fromkeys(key.split("/")[1] for key in runs))
     for task in TASKS:
         for column, method in enumerate(methods):
@@ -276,11 +296,18 @@ def test_the_report_says_what_its_own_results_say(reproduced):
             shown = f"{s['path_length_m']:.3f}" if s["converged"] else f"failure ({s['failure']})"
             assert rows[str(task)][2 * column] == shown, (task, method)
 
-    off = {(task, method) for task in TASKS for method, thesis in THESIS_PATH_LENGTH_M[task].items()
-           if thesis and runs[f"{task}/{method}"]["converged"]
-           and abs(runs[f"{task}/{method}"]["path_length_m"] - thesis) > 0.10 * thesis}
-    flagged = {(int(task), method)
-               for task, method in re.findall(r"^- Task (\d), (\S+): path [\d.]+ m against the thesis's", report, re.M)}
+    off = {
+        (task, method)
+        for task in TASKS
+        for method, thesis in THESIS_PATH_LENGTH_M[task].items()
+        if thesis
+        and runs[f"{task}/{method}"]["converged"]
+        and abs(runs[f"{task}/{method}"]["path_length_m"] - thesis) > 0.10 * thesis
+    }
+    flagged = {
+        (int(task), method)
+        for task, method in re.findall(r"^- Task (\d), (\S+): path [\d.]+ m against the thesis's", report, re.M)
+    }
     assert flagged == off
     assert (2, "ibvs") in off  # 0.310 m against 0.404 m
     assert "- Task 2, ibvs: path 0.310 m against the thesis's 0.404 m, 23.2% shorter." in report

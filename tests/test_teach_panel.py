@@ -45,9 +45,11 @@ def test_image_directions_follow_the_camera_looking_down():
 
 
 def test_the_next_step_follows_the_operators_order():
-    state = {"phase": "teaching", "teach_missing": ["the desired image", "the start pose", "the pick pose",
-                                                    "the place pose"],
-             "teach_optional": ["the check view (without it, runs report placement unknown)"]}
+    state = {
+        "phase": "teaching",
+        "teach_missing": ["the desired image", "the start pose", "the pick pose", "the place pose"],
+        "teach_optional": ["the check view (without it, runs report placement unknown)"],
+    }
     assert next_button({"phase": "idle"}) == "Begin teaching"
     assert next_button(state) == "Capture desired image"
     state["teach_missing"] = ["the start pose"]

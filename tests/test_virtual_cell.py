@@ -82,9 +82,28 @@ def test_a_run_on_the_virtual_cell_places_the_part_by_vision_and_loads_no_simula
     0.3 mm, the run's own (vision) figure agrees with the gauge within 0.1 mm, and the run
     process imported no module of the simulator."""
     run = subprocess.run(
-        [sys.executable, "-X", "importtime", "-m", "vservo.app.cli", "run", "--job", "demo", "--cell",
-         virtual_cell.addresses["cell_file"], "--json", "--data", str(tmp_path / "data"), "--seed", "5"],
-        capture_output=True, text=True, timeout=600, cwd=ROOT)
+        [
+            sys.executable,
+            "-X",
+            "importtime",
+            "-m",
+            "vservo.app.cli",
+            "run",
+            "--job",
+            "demo",
+            "--cell",
+            virtual_cell.addresses["cell_file"],
+            "--json",
+            "--data",
+            str(tmp_path / "data"),
+            "--seed",
+            "5",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=ROOT,
+    )
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
     summary = json.loads(run.stdout)
     released = virtual_cell.next_event()

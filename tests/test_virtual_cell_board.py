@@ -84,17 +84,20 @@ def test_the_part_is_put_where_asked_and_get_part_reports_it(table_clear):
     assert status == 200 and body["part"]["yaw_deg"] == 0.0
 
 
-@pytest.mark.parametrize("path, body, message", [
-    ("/board", {"laid": "yes"}, '{"laid": true} or {"laid": false}'),
-    ("/board", {}, '{"laid": true} or {"laid": false}'),
-    ("/board", b"[1, 2]", "must be a JSON object"),
-    ("/part", {"x_mm": "a", "y_mm": 0.0}, "x_mm = 'a' is not a finite number"),
-    ("/part", {"x_mm": -450.0}, "keys ['x_mm']"),
-    ("/part", {"seed": 1, "x_mm": -450.0, "y_mm": 0.0}, "keys ['seed', 'x_mm', 'y_mm']"),
-    ("/part", {"x_mm": -400.0, "y_mm": 120.0}, "overlap the metal part"),
-    ("/part", {"x_mm": 1200.0, "y_mm": 0.0}, "off the table"),
-    ("/part", b"not json", "Expecting value"),
-])
+@pytest.mark.parametrize(
+    "path, body, message",
+    [
+        ("/board", {"laid": "yes"}, '{"laid": true} or {"laid": false}'),
+        ("/board", {}, '{"laid": true} or {"laid": false}'),
+        ("/board", b"[1, 2]", "must be a JSON object"),
+        ("/part", {"x_mm": "a", "y_mm": 0.0}, "x_mm = 'a' is not a finite number"),
+        ("/part", {"x_mm": -450.0}, "keys ['x_mm']"),
+        ("/part", {"seed": 1, "x_mm": -450.0, "y_mm": 0.0}, "keys ['seed', 'x_mm', 'y_mm']"),
+        ("/part", {"x_mm": -400.0, "y_mm": 120.0}, "overlap the metal part"),
+        ("/part", {"x_mm": 1200.0, "y_mm": 0.0}, "off the table"),
+        ("/part", b"not json", "Expecting value"),
+    ],
+)
 def test_bad_bodies_are_refused_with_a_message(table_clear, path, body, message):
     status, reply = post(table_clear + path, body)
     assert status == 400 and message in reply["error"], reply
@@ -112,8 +115,7 @@ def test_the_rig_lays_the_board_and_places_the_part_through_the_fixture(virtual_
     try:
         url = table_clear
         rig.place_part(-0.460, 0.040, np.radians(-10.0))
-        assert fixture_request(url + "/part")[1]["part"] == {"x_mm": -460.0, "y_mm": 40.0, "z_mm": -155.0,
-                                                             "yaw_deg": -10.0}
+        assert fixture_request(url + "/part")[1]["part"] == {"x_mm": -460.0, "y_mm": 40.0, "z_mm": -155.0, "yaw_deg": -10.0}
         rig.lay_board(True)
         assert fixture_request(url + "/board")[1] == {"board": {"laid": True}}
         with pytest.raises(FixtureError, match=r"POST /part refused \(409\).*board is laid"):
@@ -150,8 +152,12 @@ def test_a_cell_without_a_board_says_so():
 
 def test_the_truth_file_says_where_the_board_truly_lies():
     tables, _ = read_cell_data(None)
-    truth = {"simulation": {"truth": {"hand_eye": {"eMc": [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]}},
-                            "scene": {"board_pose": [-440.0, -20.0, -175.0, 4.0, 0.0, 0.0]}}}
+    truth = {
+        "simulation": {
+            "truth": {"hand_eye": {"eMc": [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]}},
+            "scene": {"board_pose": [-440.0, -20.0, -175.0, 4.0, 0.0, 0.0]},
+        }
+    }
     merged = with_truth(tables, truth)
     assert merged["simulation"]["scene"]["board_pose"] == [-440.0, -20.0, -175.0, 4.0, 0.0, 0.0]
     assert merged["simulation"]["scene"]["object_pose"] == tables["simulation"]["scene"]["object_pose"]

@@ -142,8 +142,10 @@ def test_the_loop_stops_with_features_lost_after_the_held_frames(cell_config):
 @pytest.fixture(scope="module")
 def rendered_runs(cell_config):
     return {
-        task: (run_task(cell_config, TASKS[task], RunSettings(method="laser")),
-               run_task(cell_config, TASKS[task], RunSettings(method="laser", features="rendered")))
+        task: (
+            run_task(cell_config, TASKS[task], RunSettings(method="laser")),
+            run_task(cell_config, TASKS[task], RunSettings(method="laser", features="rendered")),
+        )
         for task in TASKS
     }
 
@@ -173,8 +175,9 @@ def test_detect_reads_an_image_file(cell_config, tmp_path):
     cell.place_camera(TASKS[2].desired_cMo)
     path = tmp_path / "view.png"
     cv2.imwrite(str(path), cv2.cvtColor(SimulatedCamera(cell).read().image, cv2.COLOR_GRAY2BGR))
-    result = subprocess.run([sys.executable, "-m", "vservo.app.cli", "detect", str(path), "--json"],
-                            capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-m", "vservo.app.cli", "detect", str(path), "--json"], capture_output=True, text=True, timeout=120
+    )
     assert result.returncode == 0, result.stderr
     found = json.loads(result.stdout)
     bMc, _ = cell.ground_truth_view()
@@ -182,8 +185,12 @@ def test_detect_reads_an_image_file(cell_config, tmp_path):
     truth = cell.truth.model.camera.project(cell.state.scene.cube.corners_b @ cMb[:3, :3].T + cMb[:3, 3])
     assert np.abs(np.array(found["corners"]["px"]) - truth).max() < 0.3
     assert found["laser_depth_mm"] == pytest.approx(162.0, abs=0.5)
-    missing = subprocess.run([sys.executable, "-m", "vservo.app.cli", "detect", str(tmp_path / "none.png")],
-                             capture_output=True, text=True, timeout=120)
+    missing = subprocess.run(
+        [sys.executable, "-m", "vservo.app.cli", "detect", str(tmp_path / "none.png")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert missing.returncode == 2 and "cannot read image" in missing.stderr and "none.png" in missing.stderr
 
 
@@ -201,7 +208,8 @@ def test_a_simulated_camera_is_a_frame_source(cell_config):
 def test_detect_on_an_empty_file_says_so_in_one_line(tmp_path):
     empty = tmp_path / "empty.png"
     empty.write_bytes(b"")
-    result = subprocess.run([sys.executable, "-m", "vservo.app.cli", "detect", str(empty)],
-                            capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-m", "vservo.app.cli", "detect", str(empty)], capture_output=True, text=True, timeout=120
+    )
     assert result.returncode == 2
     assert result.stderr.splitlines() == [f"vservo detect: error: cannot decode image {str(empty)!r}: the file is empty"]

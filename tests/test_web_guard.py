@@ -63,9 +63,15 @@ def _handshake_status(port: int, host: str, origin: str) -> int:
     connection = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
     try:
         connection.putrequest("GET", "/", skip_host=True)
-        for name, value in (("Host", host), ("Origin", origin), ("Upgrade", "websocket"), ("Connection", "Upgrade"),
-                            ("Sec-WebSocket-Key", "dGhlIHNhbXBsZSBub25jZQ=="), ("Sec-WebSocket-Version", "13"),
-                            ("Sec-WebSocket-Protocol", VISER_SUBPROTOCOL)):
+        for name, value in (
+            ("Host", host),
+            ("Origin", origin),
+            ("Upgrade", "websocket"),
+            ("Connection", "Upgrade"),
+            ("Sec-WebSocket-Key", "dGhlIHNhbXBsZSBub25jZQ=="),
+            ("Sec-WebSocket-Version", "13"),
+            ("Sec-WebSocket-Protocol", VISER_SUBPROTOCOL),
+        ):
             connection.putheader(name, value)
         connection.endheaders()
         return connection.getresponse().status
@@ -135,12 +141,15 @@ def test_the_token_comes_from_a_file_the_environment_or_loopbacks_command_line(t
     assert operator_token(None, None, {}, "localhost", warn).source is TokenSource.GENERATED
 
 
-@pytest.mark.parametrize("token, file_text, environment, message", [
-    ("hunter2", None, {}, "--host 0.0.0.0: --token is visible in ps"),
-    (None, "hunter2\n", {}, "the operator token has 7 characters; serving on --host 0.0.0.0 needs at least 16"),
-    (None, None, {TOKEN_ENVIRONMENT: "short"}, "$VSERVO_OPERATOR_TOKEN: the operator token has 5 characters"),
-    (None, "\n", {}, "the operator token is empty"),
-])
+@pytest.mark.parametrize(
+    "token, file_text, environment, message",
+    [
+        ("hunter2", None, {}, "--host 0.0.0.0: --token is visible in ps"),
+        (None, "hunter2\n", {}, "the operator token has 7 characters; serving on --host 0.0.0.0 needs at least 16"),
+        (None, None, {TOKEN_ENVIRONMENT: "short"}, "$VSERVO_OPERATOR_TOKEN: the operator token has 5 characters"),
+        (None, "\n", {}, "the operator token is empty"),
+    ],
+)
 def test_a_token_unfit_for_the_network_is_refused(tmp_path, token, file_text, environment, message):
     path = None
     if file_text is not None:
@@ -154,11 +163,21 @@ def test_a_token_unfit_for_the_network_is_refused(tmp_path, token, file_text, en
 
 
 def test_serve_beyond_loopback_with_a_short_token_refuses_in_one_line(tmp_path):
-    result = subprocess.run([sys.executable, "-m", "vservo.app.cli", "serve", "--host", "0.0.0.0", "--token", "hunter2",
-                             "--data", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-m", "vservo.app.cli", "serve", "--host", "0.0.0.0", "--token", "hunter2", "--data", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert result.returncode == 2
-    assert result.stderr.splitlines() == ["vservo serve: error: --host 0.0.0.0: --token is visible in ps; give the "
-                                          "token with --token-file or $VSERVO_OPERATOR_TOKEN when serving beyond this PC"]
-    missing = subprocess.run([sys.executable, "-m", "vservo.app.cli", "serve", "--token-file", str(tmp_path / "none"),
-                              "--data", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert result.stderr.splitlines() == [
+        "vservo serve: error: --host 0.0.0.0: --token is visible in ps; give the "
+        "token with --token-file or $VSERVO_OPERATOR_TOKEN when serving beyond this PC"
+    ]
+    missing = subprocess.run(
+        [sys.executable, "-m", "vservo.app.cli", "serve", "--token-file", str(tmp_path / "none"), "--data", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert missing.returncode == 2 and f"--token-file {tmp_path / 'none'}: cannot read" in missing.stderr

@@ -16,8 +16,13 @@ class VirtualCellProcess:
 
     def __init__(self, *args: str) -> None:
         self.stderr = tempfile.TemporaryFile("w+")  # a file, not a pipe: nothing can block the cell on it
-        self.process = subprocess.Popen([sys.executable, "-m", "vservo.app.cli", "virtual-cell", *args],
-                                        stdout=subprocess.PIPE, stderr=self.stderr, text=True, cwd=ROOT)
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "vservo.app.cli", "virtual-cell", *args],
+            stdout=subprocess.PIPE,
+            stderr=self.stderr,
+            text=True,
+            cwd=ROOT,
+        )
         line = self.process.stdout.readline()
         if not line:
             raise AssertionError(f"the virtual cell did not start: {self.log()}")

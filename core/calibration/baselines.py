@@ -78,8 +78,9 @@ def calibrate_camera(views: CalibrationDataset, nominal: CameraModel) -> tuple[C
         images.append(views.pixels_px[rows].astype(np.float32))
     if len(objects) < 3:
         raise ValueError(f"camera calibration needs at least 3 views, the dataset has {len(objects)}")
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objects, images, nominal.image_size, nominal.intrinsics.K.copy(),
-                                                     np.zeros(5), flags=cv2.CALIB_USE_INTRINSIC_GUESS)
+    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+        objects, images, nominal.image_size, nominal.intrinsics.K.copy(), np.zeros(5), flags=cv2.CALIB_USE_INTRINSIC_GUESS
+    )
     return _camera(K, dist, nominal.image_size), [_pose(r, t) for r, t in zip(rvecs, tvecs)], float(rms)
 
 
@@ -131,11 +132,23 @@ class FreeHandEye:
         distance = np.linalg.norm(positions[:, :2] - positions[:, :2].mean(axis=0), axis=1)
         view_A = int(np.argmin(np.where(counts > 0, distance, np.inf)))
         rows = planar.view == view_A
-        flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_FOCAL_LENGTH | cv2.CALIB_FIX_PRINCIPAL_POINT
-                 | cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
-        _, K, dist, rvecs, tvecs = cv2.calibrateCamera([_object_points(planar.world_m[rows])],
-                                                       [planar.pixels_px[rows].astype(np.float32)], nominal.image_size,
-                                                       nominal.intrinsics.K.copy(), np.zeros(5), flags=flags)
+        flags = (
+            cv2.CALIB_USE_INTRINSIC_GUESS
+            | cv2.CALIB_FIX_FOCAL_LENGTH
+            | cv2.CALIB_FIX_PRINCIPAL_POINT
+            | cv2.CALIB_FIX_ASPECT_RATIO
+            | cv2.CALIB_ZERO_TANGENT_DIST
+            | cv2.CALIB_FIX_K2
+            | cv2.CALIB_FIX_K3
+        )
+        _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+            [_object_points(planar.world_m[rows])],
+            [planar.pixels_px[rows].astype(np.float32)],
+            nominal.image_size,
+            nominal.intrinsics.K.copy(),
+            np.zeros(5),
+            flags=flags,
+        )
         return cls(_camera(K, dist, nominal.image_size), inverse(_pose(rvecs[0], tvecs[0])), planar.bMe[view_A, :3, 3].copy())
 
     def world_of(self, pixels_px: Matrix, bMe: Matrix) -> Matrix:
@@ -193,13 +206,15 @@ class PlanarHomography:
 
 # -- files -----------------------------------------------------------------------------
 
+
 def _camera_arrays(camera: CameraModel) -> dict[str, Matrix]:
     k = camera.intrinsics
     return {"K": k.K, "distortion": camera.distortion.as_opencv(), "image_size": np.array([k.width, k.height])}
 
 
-def save_classical(calibration: FreeHandEye | HandEyeAXXB | PlanarHomography, path: str | Path,
-                   metadata: dict[str, Any] | None = None) -> Path:
+def save_classical(
+    calibration: FreeHandEye | HandEyeAXXB | PlanarHomography, path: str | Path, metadata: dict[str, Any] | None = None
+) -> Path:
     arrays = _camera_arrays(calibration.camera)
     if isinstance(calibration, FreeHandEye):
         arrays |= {"wMc_A": calibration.wMc_A, "T_A": calibration.T_A}
@@ -210,8 +225,11 @@ def save_classical(calibration: FreeHandEye | HandEyeAXXB | PlanarHomography, pa
     return write_archive(path, KIND, arrays, {"method": calibration.name, **(metadata or {})})
 
 
-_FIELDS = {FreeHandEye.name: (FreeHandEye, ("wMc_A", "T_A")), HandEyeAXXB.name: (HandEyeAXXB, ("eMc", "bMw")),
-           PlanarHomography.name: (PlanarHomography, ("H",))}
+_FIELDS = {
+    FreeHandEye.name: (FreeHandEye, ("wMc_A", "T_A")),
+    HandEyeAXXB.name: (HandEyeAXXB, ("eMc", "bMw")),
+    PlanarHomography.name: (PlanarHomography, ("H",)),
+}
 
 
 def load_classical(path: str | Path) -> FreeHandEye | HandEyeAXXB | PlanarHomography:

@@ -35,15 +35,31 @@ def bench_calibration(config: CellConfig, seed: int = 0, samples: int = 16000, v
     stamps: list[float] = []
     settings = LMSettings()
     start = time.perf_counter()
-    model = train_nn(dataset.subset(order[:samples]), "planar", validation=dataset.subset(order[samples: samples + validation]),
-                     settings=settings, seed=seed, on_epoch=lambda epoch, mse: stamps.append(time.perf_counter()))
+    model = train_nn(
+        dataset.subset(order[:samples]),
+        "planar",
+        validation=dataset.subset(order[samples : samples + validation]),
+        settings=settings,
+        seed=seed,
+        on_epoch=lambda epoch, mse: stamps.append(time.perf_counter()),
+    )
     train_s = time.perf_counter() - start
     epochs = np.diff([start, *stamps])
     return {
-        "samples": samples, "validation_samples": validation, "network": "4-20-2 tanh/linear, float64",
-        "epochs": model.training["epochs"], "stop": model.training["stop"], "mse": model.training["mse"],
-        "goal": settings.goal, "reached_goal": model.training["stop"] == "goal",
-        "train_s": round(train_s, 3), "epoch_median_s": round(float(np.median(epochs)), 4) if len(epochs) else None,
-        "target_s": TARGET_S, "collect_s": round(collected - started, 1), "views": counts.views,
-        "load_average_1min": round(os.getloadavg()[0], 2), "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+        "samples": samples,
+        "validation_samples": validation,
+        "network": "4-20-2 tanh/linear, float64",
+        "epochs": model.training["epochs"],
+        "stop": model.training["stop"],
+        "mse": model.training["mse"],
+        "goal": settings.goal,
+        "reached_goal": model.training["stop"] == "goal",
+        "train_s": round(train_s, 3),
+        "epoch_median_s": round(float(np.median(epochs)), 4) if len(epochs) else None,
+        "target_s": TARGET_S,
+        "collect_s": round(collected - started, 1),
+        "views": counts.views,
+        "load_average_1min": round(os.getloadavg()[0], 2),
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
     }

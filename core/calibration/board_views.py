@@ -49,8 +49,9 @@ class BoardView:
         pixels = np.array(self.corners_px, dtype=float)
         board = np.array(self.corners_board, dtype=float)
         if pixels.ndim != 2 or pixels.shape[1] != 2 or board.shape != (len(pixels), 3):
-            raise ValueError(f"a board view needs corners_px (N, 2) and corners_board (N, 3), got {pixels.shape} "
-                             f"and {board.shape}")
+            raise ValueError(
+                f"a board view needs corners_px (N, 2) and corners_board (N, 3), got {pixels.shape} and {board.shape}"
+            )
         if not (np.all(np.isfinite(pixels)) and np.all(np.isfinite(board))):
             raise ValueError("a board view's corners must be finite")
         pixels.flags.writeable = False
@@ -100,8 +101,7 @@ def _colour_agreement(grey: np.ndarray, grid: np.ndarray) -> float:
     return float(np.mean(dark == ((i + j) % 2 == 0)))
 
 
-def find_board(board: BoardConfig, image: np.ndarray, spot_px: Matrix | None = None,
-               spot_radius_px: float = 0.0) -> BoardView:
+def find_board(board: BoardConfig, image: np.ndarray, spot_px: Matrix | None = None, spot_radius_px: float = 0.0) -> BoardView:
     """The board's corners in ``image``, named by the board (module docstring).
 
     ``spot_px`` (2,), with ``spot_radius_px``: corners nearer than that to the pixel (the
@@ -109,8 +109,10 @@ def find_board(board: BoardConfig, image: np.ndarray, spot_px: Matrix | None = N
     """
     cols, rows = board.inner_corners
     if (cols + rows) % 2 == 0:
-        raise BoardNotFound(f"a board of {cols} x {rows} inner corners looks the same turned half round: "
-                            "its corners cannot be named (use one with an odd and an even count)")
+        raise BoardNotFound(
+            f"a board of {cols} x {rows} inner corners looks the same turned half round: "
+            "its corners cannot be named (use one with an odd and an even count)"
+        )
     grey = _grey(np.asarray(image))
     if grey.dtype != np.uint8:
         raise BoardNotFound(f"an image must hold 8-bit pixels, got {grey.dtype}")
@@ -121,8 +123,10 @@ def find_board(board: BoardConfig, image: np.ndarray, spot_px: Matrix | None = N
     grid = corners.reshape(rows, cols, 2).astype(np.float64)
     named = [g for g in _orderings(grid) if _seen_from_front(g) and _colour_agreement(grey, g) >= _COLOUR_AGREEMENT]
     if not named:
-        raise BoardNotFound("no ordering of the grid shows the board's colouring (its square beyond corner (0, 0) "
-                            "black): the squares are not seen clearly enough to name the corners")
+        raise BoardNotFound(
+            "no ordering of the grid shows the board's colouring (its square beyond corner (0, 0) "
+            "black): the squares are not seen clearly enough to name the corners"
+        )
     if len(named) > 1:
         raise BoardNotFound(f"{len(named)} orderings of the grid show the board's colouring: the corners cannot be named")
     pixels = named[0].reshape(-1, 2)

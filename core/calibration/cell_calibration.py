@@ -94,6 +94,7 @@ def _check_views(views: Sequence[BoardView]) -> None:
 
 # -- 1. the camera ---------------------------------------------------------------------
 
+
 @dataclass(frozen=True, eq=False)
 class CameraCalibration:
     """The calibrated camera, each view's cMboard, RMS reprojection errors (px) overall and
@@ -126,19 +127,23 @@ def calibrate_camera_views(views: Sequence[BoardView], nominal: CameraModel) -> 
     objects = [v.corners_board.astype(np.float32) for v in views]
     images = [v.corners_px.astype(np.float32) for v in views]
     rms, K, dist, rvecs, tvecs, std_intrinsics, _, view_errors = cv2.calibrateCameraExtended(
-        objects, images, nominal.image_size, nominal.intrinsics.K.copy(), np.zeros(5),
-        flags=cv2.CALIB_USE_INTRINSIC_GUESS)
+        objects, images, nominal.image_size, nominal.intrinsics.K.copy(), np.zeros(5), flags=cv2.CALIB_USE_INTRINSIC_GUESS
+    )
     width, height = nominal.image_size
-    camera = CameraModel(Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), width, height),
-                         Distortion(*(float(d) for d in np.ravel(dist)[:5])))
+    camera = CameraModel(
+        Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), width, height),
+        Distortion(*(float(d) for d in np.ravel(dist)[:5])),
+    )
     std_fx, std_fy, std_u0, std_v0 = (float(s) for s in np.ravel(std_intrinsics)[:4])
     view_rms = np.ravel(view_errors)
     faults = []
     if len(views) < MIN_CAMERA_VIEWS:
         faults.append(f"only {len(views)} views, take at least {MIN_CAMERA_VIEWS}")
     if rms > MAX_CAMERA_RMS_PX:
-        faults.append(f"corners reproject at {rms:.2f} px RMS (at most {MAX_CAMERA_RMS_PX}): "
-                      "check the focus, the light and that the board lies still")
+        faults.append(
+            f"corners reproject at {rms:.2f} px RMS (at most {MAX_CAMERA_RMS_PX}): "
+            "check the focus, the light and that the board lies still"
+        )
     worst = int(np.argmax(view_rms))
     if view_rms[worst] > MAX_VIEW_RMS_PX:
         faults.append(f"view {worst} reprojects at {view_rms[worst]:.2f} px RMS, retake it")
@@ -146,8 +151,7 @@ def calibrate_camera_views(views: Sequence[BoardView], nominal: CameraModel) -> 
     if focal_std > MAX_FOCAL_STD:
         faults.append(f"fx, fy uncertain to {100 * focal_std:.2f} %, tilt the camera more")
     if max(std_u0, std_v0) > MAX_PRINCIPAL_STD_PX:
-        faults.append(f"the principal point uncertain to {max(std_u0, std_v0):.1f} px, "
-                      "tilt the camera more, about both axes")
+        faults.append(f"the principal point uncertain to {max(std_u0, std_v0):.1f} px, tilt the camera more, about both axes")
     verdict = Verdict.of(faults, f"RMS {rms:.3f} px over {len(views)} views, fx uncertain to {100 * focal_std:.3f} %")
     cMboard = tuple(read_only(transform(cv2.Rodrigues(r)[0], np.ravel(t))) for r, t in zip(rvecs, tvecs))
     return CameraCalibration(camera, cMboard, float(rms), read_only(view_rms), std_fx, std_fy, std_u0, std_v0, verdict)
@@ -157,14 +161,16 @@ def board_pose(camera: CameraModel, view: BoardView) -> Matrix:
     """cMboard of one view through a calibrated camera (OpenCV's iterative PnP): the
     board's pose in a view taken after the calibration, as the laser's views are."""
     _check_views([view])
-    ok, rvec, tvec = cv2.solvePnP(view.corners_board, view.corners_px, camera.intrinsics.K,
-                                  camera.distortion.as_opencv(), flags=cv2.SOLVEPNP_ITERATIVE)
+    ok, rvec, tvec = cv2.solvePnP(
+        view.corners_board, view.corners_px, camera.intrinsics.K, camera.distortion.as_opencv(), flags=cv2.SOLVEPNP_ITERATIVE
+    )
     if not ok:
         raise ValueError("the board's pose cannot be found from the view's corners")
     return transform(cv2.Rodrigues(rvec)[0], np.ravel(tvec))
 
 
 # -- 2. hand-eye and the board's pose ----------------------------------------------------
+
 
 @dataclass(frozen=True, eq=False)
 class HandEyeCalibration:
@@ -225,8 +231,7 @@ class BoardPlaneModel:
 def _exp_so3(w: torch.Tensor) -> torch.Tensor:
     """Rotation matrix of a rotation vector (exact, and differentiable at zero)."""
     zero = torch.zeros((), dtype=w.dtype)
-    W = torch.stack([torch.stack([zero, -w[2], w[1]]), torch.stack([w[2], zero, -w[0]]),
-                     torch.stack([-w[1], w[0], zero])])
+    W = torch.stack([torch.stack([zero, -w[2], w[1]]), torch.stack([w[2], zero, -w[0]]), torch.stack([-w[1], w[0], zero])])
     return torch.linalg.matrix_exp(W)
 
 
@@ -258,8 +263,9 @@ def _wrist_turns_deg(bMe: Sequence[Matrix]) -> tuple[float, float, float]:
     return a, b, c
 
 
-def calibrate_hand_eye(bMe_list: Sequence[Matrix], views: Sequence[BoardView], camera: CameraModel,
-                       cMboard_list: Sequence[Matrix]) -> HandEyeCalibration:
+def calibrate_hand_eye(
+    bMe_list: Sequence[Matrix], views: Sequence[BoardView], camera: CameraModel, cMboard_list: Sequence[Matrix]
+) -> HandEyeCalibration:
     """eMc and bMboard from the arm's reported poses and the board's views (module
     docstring, step 2).
 
@@ -278,8 +284,10 @@ def calibrate_hand_eye(bMe_list: Sequence[Matrix], views: Sequence[BoardView], c
     or a corner RMS above ``MAX_HAND_EYE_RMS_PX``.
     """
     if not len(bMe_list) == len(views) == len(cMboard_list):
-        raise ValueError(f"hand-eye calibration needs one pose and one board pose per view: {len(bMe_list)} poses, "
-                         f"{len(views)} views, {len(cMboard_list)} board poses")
+        raise ValueError(
+            f"hand-eye calibration needs one pose and one board pose per view: {len(bMe_list)} poses, "
+            f"{len(views)} views, {len(cMboard_list)} board poses"
+        )
     if len(views) < 3:
         raise ValueError(f"hand-eye calibration needs at least 3 views, got {len(views)}")
     _check_views(views)
@@ -313,26 +321,32 @@ def calibrate_hand_eye(bMe_list: Sequence[Matrix], views: Sequence[BoardView], c
     eMc_t, bMboard_t = poses(result.x)
     eMc, bMboard = eMc_t.detach().numpy(), bMboard_t.detach().numpy()
     rms = float(np.sqrt(2.0 * result.mse))  # per corner, as OpenCV's calibration reports it
-    errors = np.array([pose_error_mm_deg(M @ eMc @ np.asarray(C, dtype=float), bMboard)
-                       for M, C in zip(bMe, cMboard_list)])
+    errors = np.array([pose_error_mm_deg(M @ eMc @ np.asarray(C, dtype=float), bMboard) for M, C in zip(bMe, cMboard_list)])
     spread_mm, spread_deg = (float(s) for s in np.sqrt(np.mean(errors**2, axis=0)))
     turns = _wrist_turns_deg(bMe)
     faults = []
     if len(views) < MIN_HAND_EYE_VIEWS:
         faults.append(f"only {len(views)} views, take at least {MIN_HAND_EYE_VIEWS}")
     if turns[1] < MIN_SECOND_AXIS_DEG:
-        faults.append(f"the wrist turned by {turns[1]:.1f} deg RMS about its second axis (at least "
-                      f"{MIN_SECOND_AXIS_DEG:.0f}): tilt it about two axes")
+        faults.append(
+            f"the wrist turned by {turns[1]:.1f} deg RMS about its second axis (at least "
+            f"{MIN_SECOND_AXIS_DEG:.0f}): tilt it about two axes"
+        )
     if rms > MAX_HAND_EYE_RMS_PX:
-        faults.append(f"corners reproject at {rms:.2f} px RMS through the arm's poses (at most {MAX_HAND_EYE_RMS_PX}): "
-                      "the board moved, or the arm's readings are off")
-    verdict = Verdict.of(faults, f"RMS {rms:.3f} px over {len(views)} views, board spread {spread_mm:.2f} mm "
-                                 f"{spread_deg:.3f} deg")
-    return HandEyeCalibration(camera, read_only(eMc), read_only(bMboard), read_only(eMc_axxb), rms, spread_mm, spread_deg,
-                              turns, verdict)
+        faults.append(
+            f"corners reproject at {rms:.2f} px RMS through the arm's poses (at most {MAX_HAND_EYE_RMS_PX}): "
+            "the board moved, or the arm's readings are off"
+        )
+    verdict = Verdict.of(
+        faults, f"RMS {rms:.3f} px over {len(views)} views, board spread {spread_mm:.2f} mm {spread_deg:.3f} deg"
+    )
+    return HandEyeCalibration(
+        camera, read_only(eMc), read_only(bMboard), read_only(eMc_axxb), rms, spread_mm, spread_deg, turns, verdict
+    )
 
 
 # -- 3. the network's data set ---------------------------------------------------------
+
 
 def grid_dataset(views: Sequence[BoardView], bMe_list: Sequence[Matrix], bMboard: Matrix) -> CalibrationDataset:
     """The chapter 2 network's data set (section 2.3.2, step 1) from board views: each
@@ -349,12 +363,12 @@ def grid_dataset(views: Sequence[BoardView], bMe_list: Sequence[Matrix], bMboard
     pixels = np.concatenate([v.corners_px for v in views])
     world = np.concatenate([v.corners_board @ bMboard[:3, :3].T + bMboard[:3, 3] for v in views])[:, :2]
     view = np.concatenate([np.full(len(v), k, dtype=np.int64) for k, v in enumerate(views)])
-    metadata = {"world": "base (x, y) of the board's corners through the hand-eye step's bMboard",
-                "bMboard": bMboard.tolist()}
+    metadata = {"world": "base (x, y) of the board's corners through the hand-eye step's bMboard", "bMboard": bMboard.tolist()}
     return CalibrationDataset(pixels, world, view, np.array([np.asarray(M, dtype=float) for M in bMe_list]), metadata)
 
 
 # -- 4. acceptance -----------------------------------------------------------------------
+
 
 @dataclass(frozen=True, eq=False)
 class AcceptanceCheck:

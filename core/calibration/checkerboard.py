@@ -76,8 +76,14 @@ class Checkerboard:
             raise ValueError(f"corner range {self.corner_range} is empty")
 
     @classmethod
-    def covering(cls, x_range_m: tuple[float, float], y_range_m: tuple[float, float], table_height_m: float,
-                 square_m: float = 0.010, margin_m: float = 0.2) -> Checkerboard:
+    def covering(
+        cls,
+        x_range_m: tuple[float, float],
+        y_range_m: tuple[float, float],
+        table_height_m: float,
+        square_m: float = 0.010,
+        margin_m: float = 0.2,
+    ) -> Checkerboard:
         """A board that covers the given world rectangle plus a margin (for the view's edge)."""
         low = np.floor((np.array([x_range_m[0], y_range_m[0]]) - margin_m) / square_m).astype(int)
         high = np.ceil((np.array([x_range_m[1], y_range_m[1]]) + margin_m) / square_m).astype(int)
@@ -97,8 +103,18 @@ class Checkerboard:
     def _visible_squares(self, camera: CameraModel, wMc: Matrix) -> tuple[range, range]:
         """Index ranges of the squares that may show in the image from wMc (a square of margin)."""
         width, height = camera.image_size
-        border = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5], [-0.5, height - 0.5],
-                           [width / 2, -0.5], [width / 2, height - 0.5], [-0.5, height / 2], [width - 0.5, height / 2]])
+        border = np.array(
+            [
+                [-0.5, -0.5],
+                [width - 0.5, -0.5],
+                [width - 0.5, height - 0.5],
+                [-0.5, height - 0.5],
+                [width / 2, -0.5],
+                [width / 2, height - 0.5],
+                [-0.5, height / 2],
+                [width - 0.5, height / 2],
+            ]
+        )
         rays_c = np.column_stack((camera.pixel_to_normalized(border), np.ones(len(border))))
         rays_w = rays_c @ wMc[:3, :3].T
         if np.any(~np.isfinite(rays_w)) or np.any(rays_w[:, 2] >= 0.0):
@@ -121,8 +137,14 @@ class Checkerboard:
         if len(squares):
             # Each square's outline, _EDGE_CHORDS points per edge, in W (z = 0).
             t = np.arange(_EDGE_CHORDS) / _EDGE_CHORDS
-            unit = np.concatenate([np.column_stack((t, np.zeros_like(t))), np.column_stack((np.ones_like(t), t)),
-                                   np.column_stack((1.0 - t, np.ones_like(t))), np.column_stack((np.zeros_like(t), 1.0 - t))])
+            unit = np.concatenate(
+                [
+                    np.column_stack((t, np.zeros_like(t))),
+                    np.column_stack((np.ones_like(t), t)),
+                    np.column_stack((1.0 - t, np.ones_like(t))),
+                    np.column_stack((np.zeros_like(t), 1.0 - t)),
+                ]
+            )
             outline_w = (squares[:, None, :] + unit[None, :, :]) * self.square_m
             points_w = np.concatenate((outline_w.reshape(-1, 2), np.zeros((outline_w.shape[0] * len(unit), 1))), axis=1)
             points_c = points_w @ cMw[:3, :3].T + cMw[:3, 3]
@@ -158,8 +180,9 @@ class BoardView:
     corners_w: Matrix
 
 
-def detect_board(board: Checkerboard, image: np.ndarray, lattice_of: Callable[[Matrix], Matrix],
-                 attempts: int = DETECTION_ATTEMPTS) -> BoardView:
+def detect_board(
+    board: Checkerboard, image: np.ndarray, lattice_of: Callable[[Matrix], Matrix], attempts: int = DETECTION_ATTEMPTS
+) -> BoardView:
     """Find and name the board's corners in an image (``find_corners``, ``name_corners``),
     trying the detector's search up to ``attempts`` times before refusing the view."""
     for attempt in range(attempts):
@@ -219,8 +242,9 @@ def name_corners(board: Checkerboard, image: np.ndarray, grid_px: Matrix, lattic
     # The nominal model's error varies smoothly across the image (lens distortion, a
     # tilt): between neighbours it hardly changes, unless the grid steps unevenly.
     offsets = (modelled - rc @ M.T).reshape(rows, cols, 2)
-    steps = np.concatenate((np.linalg.norm(np.diff(offsets, axis=0), axis=2).ravel(),
-                            np.linalg.norm(np.diff(offsets, axis=1), axis=2).ravel()))
+    steps = np.concatenate(
+        (np.linalg.norm(np.diff(offsets, axis=0), axis=2).ravel(), np.linalg.norm(np.diff(offsets, axis=1), axis=2).ravel())
+    )
     if steps.size and steps.max() > _NAMING_STEP:
         raise BoardNotFound("the detector's grid is not a lattice (it skips squares unevenly)")
     px_per_step = np.linalg.lstsq(affine, pixels, rcond=None)[0][:2].T
@@ -243,12 +267,18 @@ def name_corners(board: Checkerboard, image: np.ndarray, grid_px: Matrix, lattic
     candidates.sort(key=lambda c: c[0])
     best_residual, best_ij = candidates[0]
     if best_residual > _NAMING_TOLERANCE:
-        raise BoardNotFound(f"the corners found lie {best_residual:.2f} squares from where the nominal model puts "
-                            "the nearest naming: the model is too far off to name them")
+        raise BoardNotFound(
+            f"the corners found lie {best_residual:.2f} squares from where the nominal model puts "
+            "the nearest naming: the model is too far off to name them"
+        )
     if len(candidates) > 1 and candidates[1][0] - best_residual < _NAMING_AMBIGUITY:
         raise BoardNotFound("two namings of the corners fit the nominal model about equally well")
     i_min, i_max, j_min, j_max = board.corner_range
-    if not (np.all(best_ij[:, 0] >= i_min) and np.all(best_ij[:, 0] <= i_max)
-            and np.all(best_ij[:, 1] >= j_min) and np.all(best_ij[:, 1] <= j_max)):
+    if not (
+        np.all(best_ij[:, 0] >= i_min)
+        and np.all(best_ij[:, 0] <= i_max)
+        and np.all(best_ij[:, 1] >= j_min)
+        and np.all(best_ij[:, 1] <= j_max)
+    ):
         raise BoardNotFound("the corners found run past the board's edge")
     return BoardView(pixels.copy(), best_ij.astype(float), board.corner_w(best_ij))

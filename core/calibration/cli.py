@@ -58,8 +58,10 @@ def _emit(result: dict[str, Any], as_json: bool) -> None:
         print(f"{'method':<20}{'X mm':>10}{'Y mm':>10}{'XY mm':>10}{'max XY':>10}  true XY mm")
         for name, row in methods.items():
             true = row.get("true", {}).get("xy_mm", "")
-            print(f"{name:<20}{row.get('x_mm', ''):>10}{row.get('y_mm', ''):>10}{row.get('xy_mm', ''):>10}"
-                  f"{row.get('max_xy_mm', ''):>10}  {true}")
+            print(
+                f"{name:<20}{row.get('x_mm', ''):>10}{row.get('y_mm', ''):>10}{row.get('xy_mm', ''):>10}"
+                f"{row.get('max_xy_mm', ''):>10}  {true}"
+            )
 
 
 def _config(args: argparse.Namespace):
@@ -83,10 +85,15 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     from vservo.core.calibration.workflow import CollectPlan, collect
 
     defaults = Workspace()
-    workspace = Workspace(args.x_range_mm or defaults.x_range_m, args.y_range_mm or defaults.y_range_m,
-                          args.step_mm / 1000.0, args.height_mm / 1000.0)
-    plan = CollectPlan(workspace, not args.no_planar, args.test_views, args.rotated_views, args.varying_views,
-                       args.varying_test_views)
+    workspace = Workspace(
+        args.x_range_mm or defaults.x_range_m,
+        args.y_range_mm or defaults.y_range_m,
+        args.step_mm / 1000.0,
+        args.height_mm / 1000.0,
+    )
+    plan = CollectPlan(
+        workspace, not args.no_planar, args.test_views, args.rotated_views, args.varying_views, args.varying_test_views
+    )
     _emit(collect(_config(args), Path(args.dir), args.truth, args.noise_px, args.seed, plan), args.json)
     return 0
 
@@ -100,8 +107,10 @@ def _settings(args: argparse.Namespace) -> Any:
 def _cmd_train(args: argparse.Namespace) -> int:
     from vservo.core.calibration.workflow import train
 
-    _emit(train(_config(args), Path(args.dir), args.inputs, args.samples, args.validation, _settings(args), args.seed,
-                args.hidden), args.json)
+    _emit(
+        train(_config(args), Path(args.dir), args.inputs, args.samples, args.validation, _settings(args), args.seed, args.hidden),
+        args.json,
+    )
     return 0
 
 
@@ -117,16 +126,24 @@ def _cmd_track(args: argparse.Namespace) -> int:
     from vservo.core.calibration.workflow import track
 
     settings = TrackingSettings(gain=args.gain, seconds_per_point=args.seconds_per_point)
-    _emit(track(_config(args), Path(args.dir), args.test, args.points, args.amplitude_mm / 1000.0, settings, args.seed),
-          args.json)
+    _emit(
+        track(_config(args), Path(args.dir), args.test, args.points, args.amplitude_mm / 1000.0, settings, args.seed), args.json
+    )
     return 0
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
     from vservo.core.calibration.workflow import compare
 
-    result = compare(_config(args), Path(args.dir), args.noise_px, args.seed, samples=args.samples,
-                     settings=_settings(args), points=args.points)
+    result = compare(
+        _config(args),
+        Path(args.dir),
+        args.noise_px,
+        args.seed,
+        samples=args.samples,
+        settings=_settings(args),
+        points=args.points,
+    )
     if args.json:
         print(json.dumps(result))
         return 0
@@ -155,7 +172,8 @@ def add_calibration_bench(bench: BenchCommand) -> None:
 def add_calibrate_command(commands: argparse._SubParsersAction) -> None:
     """Register ``vservo calibrate`` and its steps on the top-level subcommands."""
     calibrate = commands.add_parser(
-        "calibrate", help="NN hand-eye calibration and the classical methods: collect, train, evaluate, track, compare",
+        "calibrate",
+        help="NN hand-eye calibration and the classical methods: collect, train, evaluate, track, compare",
         description="The calibration workflow of thesis chapters 2 and 3 on the simulated cell. Files go to "
         "--dir (default ./calibration).",
     )
@@ -168,22 +186,39 @@ def add_calibrate_command(commands: argparse._SubParsersAction) -> None:
         return parser
 
     collect = step("collect", "move the camera over the checkerboard and record the corners and robot readings")
-    collect.add_argument("--truth", type=_truth, default="realistic",
-                         help="ideal (the nominal cell exactly), realistic (lens, camera mount and arm errors) or cell "
-                         "(the cell file's [simulation]); default realistic")
-    collect.add_argument("--noise-px", type=_number(float, 0.0, False), default=None,
-                         help="Gaussian pixel noise on every corner (default 0 for ideal, 0.25 for realistic)")
+    collect.add_argument(
+        "--truth",
+        type=_truth,
+        default="realistic",
+        help="ideal (the nominal cell exactly), realistic (lens, camera mount and arm errors) or cell "
+        "(the cell file's [simulation]); default realistic",
+    )
+    collect.add_argument(
+        "--noise-px",
+        type=_number(float, 0.0, False),
+        default=None,
+        help="Gaussian pixel noise on every corner (default 0 for ideal, 0.25 for realistic)",
+    )
     collect.add_argument("--seed", type=seed, default=1, help="seed of the simulated cell and the noise (default 1)")
     collect.add_argument("--step-mm", type=_number(float, 0.0, True), default=20.0, help="grid step (default 20)")
-    collect.add_argument("--height-mm", type=_number(float, 0.0, True), default=300.0,
-                         help="camera height over the table (default 300)")
+    collect.add_argument(
+        "--height-mm", type=_number(float, 0.0, True), default=300.0, help="camera height over the table (default 300)"
+    )
     collect.add_argument("--x-range-mm", type=_range_mm, help="workspace X range LOW,HIGH (default -800,-100)")
     collect.add_argument("--y-range-mm", type=_range_mm, help="workspace Y range LOW,HIGH (default -350,350)")
     collect.add_argument("--test-views", type=_number(int, 0, True), default=40, help="held-out random viewpoints")
-    collect.add_argument("--rotated-views", type=_number(int, 0, False), default=30,
-                         help="viewpoints with wrist rotations, for AX=XB and the camera calibration (0: none)")
-    collect.add_argument("--varying-views", type=_number(int, 0, False), default=0,
-                         help="viewpoints at varying height, tilt and yaw for the 6-DOF variant (0: none)")
+    collect.add_argument(
+        "--rotated-views",
+        type=_number(int, 0, False),
+        default=30,
+        help="viewpoints with wrist rotations, for AX=XB and the camera calibration (0: none)",
+    )
+    collect.add_argument(
+        "--varying-views",
+        type=_number(int, 0, False),
+        default=0,
+        help="viewpoints at varying height, tilt and yaw for the 6-DOF variant (0: none)",
+    )
     collect.add_argument("--varying-test-views", type=_number(int, 0, True), default=60)
     collect.add_argument("--no-planar", action="store_true", help="skip the grid and the held-out views (planar.npz, test.npz)")
     collect.set_defaults(run=_cmd_collect)
@@ -191,13 +226,21 @@ def add_calibrate_command(commands: argparse._SubParsersAction) -> None:
     def lm_options(parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--samples", type=_number(int, 0, True), default=16000, help="training corners (default 16000)")
         parser.add_argument("--epochs", type=_number(int, 0, True), default=500, help="epoch limit (default 500)")
-        parser.add_argument("--goal", type=_number(float, 0.0, False), default=1e-10,
-                            help="mean squared error goal on the normalised outputs (default 1e-10; the thesis's 1e-8 "
-                            "leaves about 0.03 mm on noise-free data, Table 3-2 needs 0.005)")
+        parser.add_argument(
+            "--goal",
+            type=_number(float, 0.0, False),
+            default=1e-10,
+            help="mean squared error goal on the normalised outputs (default 1e-10; the thesis's 1e-8 "
+            "leaves about 0.03 mm on noise-free data, Table 3-2 needs 0.005)",
+        )
 
     train = step("train", "train the NN by Levenberg-Marquardt and fit the classical calibrations")
-    train.add_argument("--inputs", choices=tuple(INPUT_SETS), default="planar",
-                       help="planar (u, v, Tx, Ty), height (+Tz) or pose (+Tz and tilt: the 6-DOF variant)")
+    train.add_argument(
+        "--inputs",
+        choices=tuple(INPUT_SETS),
+        default="planar",
+        help="planar (u, v, Tx, Ty), height (+Tz) or pose (+Tz and tilt: the 6-DOF variant)",
+    )
     lm_options(train)
     train.add_argument("--validation", type=_number(int, 0, True), default=2000, help="validation corners (default 2000)")
     train.add_argument("--seed", type=seed, default=0, help="seed of the sample draw and initial weights (default 0)")
@@ -205,23 +248,36 @@ def add_calibrate_command(commands: argparse._SubParsersAction) -> None:
     train.set_defaults(run=_cmd_train)
 
     evaluate = step("evaluate", "world-coordinate errors of every calibration on held-out viewpoints")
-    evaluate.add_argument("--test", choices=("held-out", "varying"), default="held-out",
-                          help="held-out: test.npz; varying: varying_test.npz (height and tilt varying)")
+    evaluate.add_argument(
+        "--test",
+        choices=("held-out", "varying"),
+        default="held-out",
+        help="held-out: test.npz; varying: varying_test.npz (height and tilt varying)",
+    )
     evaluate.set_defaults(run=_cmd_evaluate)
 
     track = step("track", "PBVS tracking (eq. 2-47) with every calibration")
-    track.add_argument("--test", choices=("sinusoid", "random"), default="sinusoid",
-                       help="the 41 points of eq. 3-1, or random points from held-out viewpoints")
+    track.add_argument(
+        "--test",
+        choices=("sinusoid", "random"),
+        default="sinusoid",
+        help="the 41 points of eq. 3-1, or random points from held-out viewpoints",
+    )
     track.add_argument("--points", type=_number(int, 0, True), default=40, help="random points (default 40)")
-    track.add_argument("--amplitude-mm", type=_number(float, 0.0, True), default=40.0,
-                       help="sinusoid amplitude (default 40: the UPJ's shell cannot reach the thesis's 100)")
+    track.add_argument(
+        "--amplitude-mm",
+        type=_number(float, 0.0, True),
+        default=40.0,
+        help="sinusoid amplitude (default 40: the UPJ's shell cannot reach the thesis's 100)",
+    )
     track.add_argument("--gain", type=_number(float, 0.0, True), default=1.0, help="K of eq. 2-47 in 1/s (default 1)")
     track.add_argument("--seconds-per-point", type=_number(float, 0.0, True), default=10.0)
     track.add_argument("--seed", type=seed, default=0, help="seed of the random points (default 0)")
     track.set_defaults(run=_cmd_track)
 
-    compare = step("compare", "realistic truth at several pixel noises: every method beside Table 3-4",
-                   default_dir="calibration/compare")
+    compare = step(
+        "compare", "realistic truth at several pixel noises: every method beside Table 3-4", default_dir="calibration/compare"
+    )
     compare.add_argument("--noise-px", type=_levels, default=[0.1, 0.25, 0.5], help="pixel noises (default 0.1,0.25,0.5)")
     compare.add_argument("--seed", type=seed, default=1)
     compare.add_argument("--points", type=_number(int, 0, True), default=40, help="random points per noise (default 40)")

@@ -65,16 +65,31 @@ def cell_with_truth(config: CellConfig, truth: str) -> CellConfig:
     if truth == "cell":
         return config
     if truth == "ideal":
-        simulation = replace(sim, truth=config.nominal, pixel_noise_px=0.0, repeatability_m=0.0, repeatability_rad=0.0,
-                             joint_placement_error_m=0.0, joint_placement_error_rad=0.0)
+        simulation = replace(
+            sim,
+            truth=config.nominal,
+            pixel_noise_px=0.0,
+            repeatability_m=0.0,
+            repeatability_rad=0.0,
+            joint_placement_error_m=0.0,
+            joint_placement_error_rad=0.0,
+        )
     elif truth == "realistic":
-        model = CellModel(camera=REALISTIC_CAMERA,
-                          eMc=config.nominal.eMc @ matrix_from_pose(pose_from_mm_deg(REALISTIC_eMc_MM_DEG)),
-                          laser=config.nominal.laser, eMv=config.nominal.eMv)
-        simulation = replace(sim, truth=model, pixel_noise_px=0.0,
-                             repeatability_m=REALISTIC_REPEATABILITY[0], repeatability_rad=REALISTIC_REPEATABILITY[1],
-                             joint_placement_error_m=REALISTIC_JOINT_PLACEMENT[0],
-                             joint_placement_error_rad=REALISTIC_JOINT_PLACEMENT[1])
+        model = CellModel(
+            camera=REALISTIC_CAMERA,
+            eMc=config.nominal.eMc @ matrix_from_pose(pose_from_mm_deg(REALISTIC_eMc_MM_DEG)),
+            laser=config.nominal.laser,
+            eMv=config.nominal.eMv,
+        )
+        simulation = replace(
+            sim,
+            truth=model,
+            pixel_noise_px=0.0,
+            repeatability_m=REALISTIC_REPEATABILITY[0],
+            repeatability_rad=REALISTIC_REPEATABILITY[1],
+            joint_placement_error_m=REALISTIC_JOINT_PLACEMENT[0],
+            joint_placement_error_rad=REALISTIC_JOINT_PLACEMENT[1],
+        )
     else:
         raise ValueError(f"unknown truth {truth!r}: choose one of {', '.join(TRUTHS)}")
     return replace(config, simulation=simulation)
@@ -105,8 +120,12 @@ class Workspace:
         return np.array([(x, y) for k, x in enumerate(xs) for y in (ys if k % 2 == 0 else ys[::-1])])
 
     def as_dict(self) -> dict[str, Any]:
-        return {"x_range_mm": [1000 * v for v in self.x_range_m], "y_range_mm": [1000 * v for v in self.y_range_m],
-                "step_mm": 1000 * self.step_m, "camera_height_mm": 1000 * self.camera_height_m}
+        return {
+            "x_range_mm": [1000 * v for v in self.x_range_m],
+            "y_range_mm": [1000 * v for v in self.y_range_m],
+            "step_mm": 1000 * self.step_m,
+            "camera_height_mm": 1000 * self.camera_height_m,
+        }
 
 
 @dataclass(frozen=True)
@@ -120,8 +139,13 @@ class CollectionCounts:
     corners: int
 
     def as_dict(self) -> dict[str, Any]:
-        return {"requested": self.requested, "unreachable": self.unreachable, "refused": dict(self.refused),
-                "views": self.views, "corners": self.corners}
+        return {
+            "requested": self.requested,
+            "unreachable": self.unreachable,
+            "refused": dict(self.refused),
+            "views": self.views,
+            "corners": self.corners,
+        }
 
 
 class Collector:
@@ -133,8 +157,7 @@ class Collector:
         self.seed = seed
         self.workspace = workspace
         self.cell = SimulatedCell(self.config, seed)
-        self.board = Checkerboard.covering(workspace.x_range_m, workspace.y_range_m,
-                                           self.config.simulation.scene.table_height_m)
+        self.board = Checkerboard.covering(workspace.x_range_m, workspace.y_range_m, self.config.simulation.scene.table_height_m)
         self.arm = self.cell.jrc_arm
 
     # -- where to look --------------------------------------------------------------
@@ -166,8 +189,14 @@ class Collector:
         """Random reachable viewpoints in the workspace: a fit has seen none of them."""
         return self._random_reachable(count, rng, lambda: self.camera_target(*self._random_xy(rng)))
 
-    def varying_targets(self, count: int, rng: np.random.Generator, heights_m: tuple[float, float] = (0.26, 0.34),
-                        tilt_rad: float = np.deg2rad(3.0), yaw_rad: float = np.deg2rad(10.0)) -> list[Matrix]:
+    def varying_targets(
+        self,
+        count: int,
+        rng: np.random.Generator,
+        heights_m: tuple[float, float] = (0.26, 0.34),
+        tilt_rad: float = np.deg2rad(3.0),
+        yaw_rad: float = np.deg2rad(10.0),
+    ) -> list[Matrix]:
         """Random reachable viewpoints at varying height, tilt and yaw (the 6-DOF variant)."""
 
         def draw() -> Matrix:
@@ -176,8 +205,9 @@ class Collector:
 
         return self._random_reachable(count, rng, draw)
 
-    def rotated_targets(self, count: int, rng: np.random.Generator, centre_xy: tuple[float, float],
-                        tilt_deg: tuple[float, float] = (8.0, 20.0)) -> list[Matrix]:
+    def rotated_targets(
+        self, count: int, rng: np.random.Generator, centre_xy: tuple[float, float], tilt_deg: tuple[float, float] = (8.0, 20.0)
+    ) -> list[Matrix]:
         """Viewpoints looking at the board around ``centre_xy`` from tilted directions with
         turns about the optical axis: the wrist rotations AX = XB needs (planar moves are
         degenerate for it)."""
@@ -208,8 +238,9 @@ class Collector:
             if self.reachable(bMe):
                 targets.append(bMe)
         if len(targets) < count:
-            raise ValueError(f"only {len(targets)} of {count} random viewpoints are reachable in the workspace "
-                             f"{self.workspace.as_dict()}")
+            raise ValueError(
+                f"only {len(targets)} of {count} random viewpoints are reachable in the workspace {self.workspace.as_dict()}"
+            )
         return targets
 
     # -- looking ----------------------------------------------------------------------
@@ -234,8 +265,9 @@ class Collector:
         view = detect_board(self.board, image, lattice_of)
         return view.corners_px, view.corners_w, bMe
 
-    def collect(self, targets: Iterable[Matrix],
-                on_view: Callable[[str], None] | None = None) -> tuple[CalibrationDataset, CollectionCounts]:
+    def collect(
+        self, targets: Iterable[Matrix], on_view: Callable[[str], None] | None = None
+    ) -> tuple[CalibrationDataset, CollectionCounts]:
         """Look from every target; viewpoints the arm cannot reach or whose board cannot be
         named are skipped and counted. Pixels are noise-free detections (see add_pixel_noise)."""
         targets = list(targets)
@@ -259,18 +291,32 @@ class Collector:
             if on_view is not None:
                 on_view(note)
         if not poses:
-            raise ValueError(f"no viewpoint of {len(targets)} gave a named board ({unreachable} unreachable, "
-                             f"refused: {refused or 'none'})")
-        dataset = CalibrationDataset(np.concatenate(pixels), np.concatenate(world), np.concatenate(views).astype(np.int64),
-                                     np.array(poses), self.metadata())
+            raise ValueError(
+                f"no viewpoint of {len(targets)} gave a named board ({unreachable} unreachable, refused: {refused or 'none'})"
+            )
+        dataset = CalibrationDataset(
+            np.concatenate(pixels),
+            np.concatenate(world),
+            np.concatenate(views).astype(np.int64),
+            np.array(poses),
+            self.metadata(),
+        )
         counts = CollectionCounts(len(targets), unreachable, refused, len(poses), dataset.size)
         return dataset, counts
 
     def metadata(self) -> dict[str, Any]:
-        return {"truth": self.truth, "cell": self.config.source, "seed": self.seed, "workspace": self.workspace.as_dict(),
-                "board": {"square_mm": 1000 * self.board.square_m, "corner_range": list(self.board.corner_range),
-                          "table_height_mm": 1000 * self.board.table_height_m},
-                "pixel_noise_px": 0.0}
+        return {
+            "truth": self.truth,
+            "cell": self.config.source,
+            "seed": self.seed,
+            "workspace": self.workspace.as_dict(),
+            "board": {
+                "square_mm": 1000 * self.board.square_m,
+                "corner_range": list(self.board.corner_range),
+                "table_height_mm": 1000 * self.board.table_height_m,
+            },
+            "pixel_noise_px": 0.0,
+        }
 
 
 def add_pixel_noise(dataset: CalibrationDataset, noise_px: float, seed: int, stream: int = 0) -> CalibrationDataset:
@@ -281,5 +327,6 @@ def add_pixel_noise(dataset: CalibrationDataset, noise_px: float, seed: int, str
     if noise_px == 0.0:
         return dataset.with_pixels(dataset.pixels_px.copy(), pixel_noise_px=0.0)
     rng = np.random.default_rng([seed, 7, stream])
-    return dataset.with_pixels(dataset.pixels_px + rng.normal(0.0, noise_px, dataset.pixels_px.shape),
-                               pixel_noise_px=float(noise_px))
+    return dataset.with_pixels(
+        dataset.pixels_px + rng.normal(0.0, noise_px, dataset.pixels_px.shape), pixel_noise_px=float(noise_px)
+    )

@@ -70,8 +70,11 @@ class CalibrationDataset:
     def validate(self, name: str = "dataset", min_corners: int = MIN_CORNERS) -> CalibrationDataset:
         """Itself, if every array has the right shape and only finite values; DatasetError otherwise."""
         n = len(self.pixels_px) if np.ndim(self.pixels_px) else 0
-        for label, array, shape in (("pixels_px", self.pixels_px, (n, 2)), ("world_m", self.world_m, (n, 2)),
-                                    ("view", self.view, (n,))):
+        for label, array, shape in (
+            ("pixels_px", self.pixels_px, (n, 2)),
+            ("world_m", self.world_m, (n, 2)),
+            ("view", self.view, (n,)),
+        ):
             if np.shape(array) != shape:
                 raise DatasetError(f"{name}: {label} has shape {np.shape(array)}, expected {shape}")
         if np.ndim(self.bMe) != 3 or np.shape(self.bMe)[1:] != (4, 4):
@@ -80,12 +83,15 @@ class CalibrationDataset:
             bad = ~np.isfinite(np.asarray(array, dtype=float))
             if bad.any():
                 where = np.argwhere(bad)[0]
-                raise DatasetError(f"{name}: {label} holds {int(bad.sum())} NaN or infinite values "
-                                   f"(first at index {where.tolist()})")
+                raise DatasetError(
+                    f"{name}: {label} holds {int(bad.sum())} NaN or infinite values (first at index {where.tolist()})"
+                )
         bad_pose = _first_non_rigid(np.asarray(self.bMe, dtype=float))
         if bad_pose is not None:
-            raise DatasetError(f"{name}: bMe[{bad_pose}] = {np.asarray(self.bMe[bad_pose]).tolist()} is not a rigid "
-                               "transform (a rotation and a translation over [0, 0, 0, 1])")
+            raise DatasetError(
+                f"{name}: bMe[{bad_pose}] = {np.asarray(self.bMe[bad_pose]).tolist()} is not a rigid "
+                "transform (a rotation and a translation over [0, 0, 0, 1])"
+            )
         if not np.issubdtype(np.asarray(self.view).dtype, np.integer):
             raise DatasetError(f"{name}: view indices must be integers, got {np.asarray(self.view).dtype}")
         if n and (self.view.min() < 0 or self.view.max() >= len(self.bMe)):
@@ -123,7 +129,8 @@ class CalibrationDataset:
         if missing:
             raise DatasetError(f"{path}: missing array {missing[0]}")
         return cls(arrays["pixels_px"], arrays["world_m"], arrays["view"], arrays["bMe"], metadata).validate(
-            str(path), min_corners)
+            str(path), min_corners
+        )
 
 
 RIGID_TOLERANCE = 1e-3  # a robot's reported rotation is orthonormal far better than this

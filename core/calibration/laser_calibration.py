@@ -99,13 +99,19 @@ def fit_laser_beam(camera: CameraModel, spots_px: Matrix, cMboard_list: Sequence
     alpha = float(np.arccos(np.clip(-direction @ origin / baseline, -1.0, 1.0)))
     faults = []
     if span_mm < MIN_DEPTH_SPAN_MM:
-        faults.append(f"the spots span {span_mm:.0f} mm of depth (at least {MIN_DEPTH_SPAN_MM:.0f}): "
-                      "take views nearer to and farther from the board")
+        faults.append(
+            f"the spots span {span_mm:.0f} mm of depth (at least {MIN_DEPTH_SPAN_MM:.0f}): "
+            "take views nearer to and farther from the board"
+        )
     if rms_mm > MAX_LINE_RMS_MM:
-        faults.append(f"the points lie {rms_mm:.2f} mm RMS from one line (at most {MAX_LINE_RMS_MM}): "
-                      "a spot was misfound or the board's pose is off")
-    verdict = Verdict.of(faults, f"line RMS {rms_mm:.3f} mm over {span_mm:.0f} mm of depth, "
-                                 f"d {1000 * baseline:.1f} mm, alpha {np.degrees(alpha):.2f} deg")
+        faults.append(
+            f"the points lie {rms_mm:.2f} mm RMS from one line (at most {MAX_LINE_RMS_MM}): "
+            "a spot was misfound or the board's pose is off"
+        )
+    verdict = Verdict.of(
+        faults,
+        f"line RMS {rms_mm:.3f} mm over {span_mm:.0f} mm of depth, d {1000 * baseline:.1f} mm, alpha {np.degrees(alpha):.2f} deg",
+    )
     return LaserCalibration(read_only(cMl), baseline, alpha, read_only(points), rms_mm, span_mm, verdict)
 
 

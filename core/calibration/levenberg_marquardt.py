@@ -43,8 +43,7 @@ class LMSettings:
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.max_fail < 1:
             raise ValueError("epochs and max_fail must be at least 1")
-        if not (self.goal >= 0.0 and self.min_gradient >= 0.0 and self.mu > 0.0 and self.theta > 1.0
-                and self.mu_max > self.mu):
+        if not (self.goal >= 0.0 and self.min_gradient >= 0.0 and self.mu > 0.0 and self.theta > 1.0 and self.mu_max > self.mu):
             raise ValueError(f"invalid Levenberg-Marquardt settings {self}")
 
 

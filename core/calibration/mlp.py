@@ -58,9 +58,9 @@ def forward(params: torch.Tensor, x: torch.Tensor, inputs: int, hidden: int) -> 
     lead = params.shape[:-1]
     split = np.cumsum([hidden * inputs, hidden, 2 * hidden])
     W1 = params[..., : split[0]].reshape(*lead, hidden, inputs)
-    b1 = params[..., split[0]: split[1]]
-    W2 = params[..., split[1]: split[2]].reshape(*lead, 2, hidden)
-    b2 = params[..., split[2]:]
+    b1 = params[..., split[0] : split[1]]
+    W2 = params[..., split[1] : split[2]].reshape(*lead, 2, hidden)
+    b2 = params[..., split[2] :]
     h = torch.tanh((W1 @ x[:, :, None])[..., 0] + b1)
     return (W2 @ h[:, :, None])[..., 0] + b2
 
@@ -130,10 +130,20 @@ class NNCalibration:
         return self.normalisation.world(out)
 
     def save(self, path: str | Path) -> Path:
-        arrays = {"params": self.params, "input_min": self.normalisation.input_min,
-                  "input_max": self.normalisation.input_max, "output_scale": self.normalisation.output_scale}
-        metadata = {"method": self.name, "input_set": self.input_set, "input_names": list(INPUT_SETS[self.input_set]),
-                    "hidden": self.hidden, "trained": self.trained, "training": self.training}
+        arrays = {
+            "params": self.params,
+            "input_min": self.normalisation.input_min,
+            "input_max": self.normalisation.input_max,
+            "output_scale": self.normalisation.output_scale,
+        }
+        metadata = {
+            "method": self.name,
+            "input_set": self.input_set,
+            "input_names": list(INPUT_SETS[self.input_set]),
+            "hidden": self.hidden,
+            "trained": self.trained,
+            "training": self.training,
+        }
         return write_archive(path, KIND, arrays, metadata)
 
     @classmethod
@@ -147,8 +157,10 @@ class NNCalibration:
         if stored_set not in INPUT_SETS or meta.get("input_names") != list(INPUT_SETS[stored_set]):
             raise ModelFileError(f"{path}: unknown inputs {meta.get('input_names')!r}")
         if input_set is not None and stored_set != input_set:
-            raise ModelFileError(f"{path}: the network takes the {stored_set!r} inputs {INPUT_SETS[stored_set]}, "
-                                 f"not the {input_set!r} inputs {INPUT_SETS[input_set]}")
+            raise ModelFileError(
+                f"{path}: the network takes the {stored_set!r} inputs {INPUT_SETS[stored_set]}, "
+                f"not the {input_set!r} inputs {INPUT_SETS[input_set]}"
+            )
         if not isinstance(hidden, int) or hidden < 1:
             raise ModelFileError(f"{path}: hidden layer size {hidden!r} is not a positive whole number")
         k = len(INPUT_SETS[stored_set])
@@ -161,8 +173,10 @@ class NNCalibration:
             if not np.all(np.isfinite(arrays[name])):
                 raise ModelFileError(f"{path}: {name} holds NaN or infinite values")
         if np.any(arrays["output_scale"] <= 0.0):  # eq. 2-43 scales by max|X_0|, max|Y_0|: never zero
-            raise ModelFileError(f"{path}: output_scale = {arrays['output_scale'].tolist()}: both scales must be "
-                                 "positive (the largest |X_0| and |Y_0| of the training data)")
+            raise ModelFileError(
+                f"{path}: output_scale = {arrays['output_scale'].tolist()}: both scales must be "
+                "positive (the largest |X_0| and |Y_0| of the training data)"
+            )
         normalisation = Normalisation(arrays["input_min"], arrays["input_max"], arrays["output_scale"])
         return cls(stored_set, hidden, arrays["params"], normalisation, True, meta.get("training", {}))
 
@@ -233,7 +247,15 @@ def train_nn(
         result: LMResult = levenberg_marquardt(residuals, jacobian, x0, settings, check, on_epoch)
     finally:
         torch.set_num_threads(threads)
-    training = {"samples": train.size, "validation_samples": validation.size if validation is not None else 0,
-                "epochs": result.epochs, "stop": result.stop, "mse": result.mse, "validation_mse": result.validation_mse,
-                "goal": settings.goal, "seed": seed, "dataset": dict(train.metadata)}
+    training = {
+        "samples": train.size,
+        "validation_samples": validation.size if validation is not None else 0,
+        "epochs": result.epochs,
+        "stop": result.stop,
+        "mse": result.mse,
+        "validation_mse": result.validation_mse,
+        "goal": settings.goal,
+        "seed": seed,
+        "dataset": dict(train.metadata),
+    }
     return NNCalibration(input_set, hidden, result.x.numpy().copy(), normalisation, trained=True, training=training)

@@ -125,8 +125,9 @@ class Tracker:
         true = self.cell.ground_truth_bMe()[:2, 3]
         return PointResult(np.asarray(target_m, dtype=float), reported.copy(), true.copy(), lost)
 
-    def track_path(self, calibration: PlanarCalibration, points: Matrix,
-                   on_point: Callable[[PointResult], None] | None = None) -> list[PointResult]:
+    def track_path(
+        self, calibration: PlanarCalibration, points: Matrix, on_point: Callable[[PointResult], None] | None = None
+    ) -> list[PointResult]:
         """Start over the first point (a set-up move), then servo onto each point in turn,
         the first included (section 3.2)."""
         self.move_over(points[0])
@@ -137,8 +138,13 @@ class Tracker:
                 on_point(results[-1])
         return results
 
-    def track_from(self, calibration: PlanarCalibration, targets: Matrix, starts: Matrix,
-                   on_point: Callable[[PointResult], None] | None = None) -> list[PointResult]:
+    def track_from(
+        self,
+        calibration: PlanarCalibration,
+        targets: Matrix,
+        starts: Matrix,
+        on_point: Callable[[PointResult], None] | None = None,
+    ) -> list[PointResult]:
         """Each target from its own start viewpoint (the random test)."""
         results = []
         for target, start in zip(targets, starts):
@@ -149,8 +155,14 @@ class Tracker:
         return results
 
 
-def random_targets(tracker: Tracker, count: int, seed: int, x_range_m: tuple[float, float],
-                   y_range_m: tuple[float, float], reach_m: tuple[float, float] = (0.035, 0.025)) -> tuple[Matrix, Matrix]:
+def random_targets(
+    tracker: Tracker,
+    count: int,
+    seed: int,
+    x_range_m: tuple[float, float],
+    y_range_m: tuple[float, float],
+    reach_m: tuple[float, float] = (0.035, 0.025),
+) -> tuple[Matrix, Matrix]:
     """Random targets in the workspace and, for each, a random start viewpoint in the
     workspace within ``reach_m`` of it (so the target is in view); the arm reaches both."""
     rng = np.random.default_rng([seed, 13])
@@ -179,8 +191,13 @@ def error_summary(errors_m: Matrix) -> dict[str, Any]:
     """Mean |X|, |Y| and XY error and the largest XY error, in mm (Tables 3-2, 3-4)."""
     errors = 1000.0 * np.asarray(errors_m, dtype=float)
     xy = np.linalg.norm(errors, axis=1)
-    return {"x_mm": round(float(np.mean(np.abs(errors[:, 0]))), 5), "y_mm": round(float(np.mean(np.abs(errors[:, 1]))), 5),
-            "xy_mm": round(float(np.mean(xy)), 5), "max_xy_mm": round(float(np.max(xy)), 5), "points": len(errors)}
+    return {
+        "x_mm": round(float(np.mean(np.abs(errors[:, 0]))), 5),
+        "y_mm": round(float(np.mean(np.abs(errors[:, 1]))), 5),
+        "xy_mm": round(float(np.mean(xy)), 5),
+        "max_xy_mm": round(float(np.max(xy)), 5),
+        "points": len(errors),
+    }
 
 
 def tracking_summary(results: list[PointResult]) -> dict[str, Any]:

@@ -76,8 +76,9 @@ def _path(folder: Path, name: str) -> Path:
     return folder / f"{name}.npz"
 
 
-def collect(config: CellConfig, folder: Path, truth: str, noise_px: float | None, seed: int,
-            plan: CollectPlan = CollectPlan()) -> dict[str, Any]:
+def collect(
+    config: CellConfig, folder: Path, truth: str, noise_px: float | None, seed: int, plan: CollectPlan = CollectPlan()
+) -> dict[str, Any]:
     """Collect every dataset of the plan into ``folder`` (module docstring)."""
     noise = DEFAULT_NOISE_PX.get(truth, config.simulation.pixel_noise_px) if noise_px is None else noise_px
     collector = Collector(config, truth, seed, plan.workspace)
@@ -92,16 +93,29 @@ def collect(config: CellConfig, folder: Path, truth: str, noise_px: float | None
     if plan.varying_views:
         sets.append(("varying_train", collector.varying_targets(plan.varying_views, rng)))
         sets.append(("varying_test", collector.varying_targets(plan.varying_test_views, rng)))
-    summary: dict[str, Any] = {"truth": truth, "pixel_noise_px": noise, "seed": seed, "folder": str(folder),
-                               "workspace": plan.workspace.as_dict(),
-                               "grid": {"viewpoints": len(grid) + unreachable, "reachable": len(grid)}, "sets": {}}
+    summary: dict[str, Any] = {
+        "truth": truth,
+        "pixel_noise_px": noise,
+        "seed": seed,
+        "folder": str(folder),
+        "workspace": plan.workspace.as_dict(),
+        "grid": {"viewpoints": len(grid) + unreachable, "reachable": len(grid)},
+        "sets": {},
+    }
     for stream, (name, targets) in enumerate(sets):
         progress = Progress(len(targets), f"collect {name}")
         dataset, counts = collector.collect(targets, on_view=progress.advance)
         progress.close()
         dataset = add_pixel_noise(dataset, noise, seed, stream)
-        dataset = replace(dataset, metadata={**dataset.metadata, "set": name, "counts": counts.as_dict(),
-                                             "grid_unreachable": unreachable if name == "planar" else 0})
+        dataset = replace(
+            dataset,
+            metadata={
+                **dataset.metadata,
+                "set": name,
+                "counts": counts.as_dict(),
+                "grid_unreachable": unreachable if name == "planar" else 0,
+            },
+        )
         dataset.save(_path(folder, name))
         summary["sets"][name] = {"file": str(_path(folder, name)), **counts.as_dict()}
     return summary
@@ -110,8 +124,10 @@ def collect(config: CellConfig, folder: Path, truth: str, noise_px: float | None
 def load_dataset(folder: Path, name: str) -> CalibrationDataset:
     path = _path(folder, name)
     if not path.is_file():
-        raise DatasetError(f"{path}: no such file; run vservo calibrate collect first"
-                           + (" with --varying-views N" if name.startswith("varying") else ""))
+        raise DatasetError(
+            f"{path}: no such file; run vservo calibrate collect first"
+            + (" with --varying-views N" if name.startswith("varying") else "")
+        )
     return CalibrationDataset.load(path)
 
 
@@ -119,23 +135,43 @@ def _split(dataset: CalibrationDataset, samples: int, validation: int, seed: int
     order = np.random.default_rng([seed, 5]).permutation(dataset.size)
     if dataset.size < samples + validation:
         samples = max(dataset.size - validation, dataset.size // 2)
-    return dataset.subset(order[:samples]), dataset.subset(order[samples: samples + validation])
+    return dataset.subset(order[:samples]), dataset.subset(order[samples : samples + validation])
 
 
-def train(config: CellConfig, folder: Path, inputs: str = "planar", samples: int = 16000, validation: int = 2000,
-          settings: LMSettings = LMSettings(), seed: int = 0, hidden: int = HIDDEN_UNITS) -> dict[str, Any]:
+def train(
+    config: CellConfig,
+    folder: Path,
+    inputs: str = "planar",
+    samples: int = 16000,
+    validation: int = 2000,
+    settings: LMSettings = LMSettings(),
+    seed: int = 0,
+    hidden: int = HIDDEN_UNITS,
+) -> dict[str, Any]:
     """Train the NN on ``samples`` corners (validation on others) and, for planar inputs,
     fit the classical calibrations; every result is saved in ``folder``."""
     data = load_dataset(folder, "planar" if inputs == "planar" else "varying_train")
     fit, check = _split(data, samples, validation, seed)
     progress = Progress(settings.epochs, f"train nn ({inputs})")
-    model = train_nn(fit, inputs, validation=check, hidden=hidden, settings=settings, seed=seed,
-                     on_epoch=lambda epoch, mse: progress.advance(f"mse {mse:.3g}"))
+    model = train_nn(
+        fit,
+        inputs,
+        validation=check,
+        hidden=hidden,
+        settings=settings,
+        seed=seed,
+        on_epoch=lambda epoch, mse: progress.advance(f"mse {mse:.3g}"),
+    )
     progress.close()
     model.save(_path(folder, NN_FILES[inputs]))
-    summary: dict[str, Any] = {"nn": {"file": str(_path(folder, NN_FILES[inputs])), "inputs": list(INPUT_SETS[inputs]),
-                                      "hidden": hidden,
-                                      **{k: v for k, v in model.training.items() if k != "dataset"}}}
+    summary: dict[str, Any] = {
+        "nn": {
+            "file": str(_path(folder, NN_FILES[inputs])),
+            "inputs": list(INPUT_SETS[inputs]),
+            "hidden": hidden,
+            **{k: v for k, v in model.training.items() if k != "dataset"},
+        }
+    }
     if inputs != "planar":
         return summary
     nominal = config.nominal.camera
@@ -178,8 +214,14 @@ def evaluate(folder: Path, test_set: str = "test") -> dict[str, Any]:
     for name, calibration in load_calibrations(folder).items():
         errors = calibration.world_of(test.pixels_px, bMe) - test.world_m
         methods[name] = error_summary(errors[np.all(np.isfinite(errors), axis=1)])
-    return {"test": test_set, "corners": test.size, "views": test.views,
-            "truth": test.metadata.get("truth"), "pixel_noise_px": test.metadata.get("pixel_noise_px"), "methods": methods}
+    return {
+        "test": test_set,
+        "corners": test.size,
+        "views": test.views,
+        "truth": test.metadata.get("truth"),
+        "pixel_noise_px": test.metadata.get("pixel_noise_px"),
+        "methods": methods,
+    }
 
 
 def tracker_for(config: CellConfig, folder: Path, settings: TrackingSettings) -> tuple[Tracker, CalibrationDataset]:
@@ -187,19 +229,29 @@ def tracker_for(config: CellConfig, folder: Path, settings: TrackingSettings) ->
     planar = load_dataset(folder, "planar")
     meta = planar.metadata
     if meta.get("cell") != config.source:
-        raise DatasetError(f"{_path(folder, 'planar')}: collected on the cell {meta.get('cell')!r}, not {config.source!r}: "
-                           "pass the same --cell")
-    settings = replace(settings, pixel_noise_px=float(meta.get("pixel_noise_px", 0.0)),
-                       camera_height_m=float(meta["workspace"]["camera_height_mm"]) / 1000.0)
+        raise DatasetError(
+            f"{_path(folder, 'planar')}: collected on the cell {meta.get('cell')!r}, not {config.source!r}: pass the same --cell"
+        )
+    settings = replace(
+        settings,
+        pixel_noise_px=float(meta.get("pixel_noise_px", 0.0)),
+        camera_height_m=float(meta["workspace"]["camera_height_mm"]) / 1000.0,
+    )
     return Tracker(config, str(meta["truth"]), int(meta["seed"]), settings), planar
 
 
-def track(config: CellConfig, folder: Path, test: str, points: int = 40, amplitude_m: float = 0.040,
-          settings: TrackingSettings = TrackingSettings(), seed: int = 0,
-          methods: Sequence[str] | None = None) -> dict[str, Any]:
+def track(
+    config: CellConfig,
+    folder: Path,
+    test: str,
+    points: int = 40,
+    amplitude_m: float = 0.040,
+    settings: TrackingSettings = TrackingSettings(),
+    seed: int = 0,
+    methods: Sequence[str] | None = None,
+) -> dict[str, Any]:
     """PBVS tracking with every planar calibration in ``folder`` (tracking module docstring)."""
-    calibrations = {name: c for name, c in load_calibrations(folder).items()
-                    if name in (methods or ("nn", *CLASSICAL))}
+    calibrations = {name: c for name, c in load_calibrations(folder).items() if name in (methods or ("nn", *CLASSICAL))}
     results: dict[str, Any] = {}
     summary: dict[str, Any] = {"test": test}
     for name, calibration in calibrations.items():
@@ -211,8 +263,9 @@ def track(config: CellConfig, folder: Path, test: str, points: int = 40, amplitu
             summary["amplitude_mm"] = 1000 * amplitude_m
         elif test == "random":
             ws = planar.metadata["workspace"]
-            targets, starts = random_targets(tracker, points, seed, tuple(np.array(ws["x_range_mm"]) / 1000),
-                                             tuple(np.array(ws["y_range_mm"]) / 1000))
+            targets, starts = random_targets(
+                tracker, points, seed, tuple(np.array(ws["x_range_mm"]) / 1000), tuple(np.array(ws["y_range_mm"]) / 1000)
+            )
             progress = Progress(len(targets), f"track {name}")
             outcome = tracker.track_from(calibration, targets, starts, on_point=lambda r: progress.advance())
         else:
@@ -225,9 +278,16 @@ def track(config: CellConfig, folder: Path, test: str, points: int = 40, amplitu
     return summary
 
 
-def compare(config: CellConfig, folder: Path, noise_levels: Sequence[float] = (0.1, 0.25, 0.5), seed: int = 1,
-            plan: CollectPlan = CollectPlan(), samples: int = 16000, settings: LMSettings = LMSettings(),
-            points: int = 40) -> dict[str, Any]:
+def compare(
+    config: CellConfig,
+    folder: Path,
+    noise_levels: Sequence[float] = (0.1, 0.25, 0.5),
+    seed: int = 1,
+    plan: CollectPlan = CollectPlan(),
+    samples: int = 16000,
+    settings: LMSettings = LMSettings(),
+    points: int = 40,
+) -> dict[str, Any]:
     """The realistic truth at each pixel noise: collect once (noise-free detections), then
     per noise level add the noise, train every method, evaluate and track random points."""
     base = folder / "noise_free"
@@ -240,18 +300,29 @@ def compare(config: CellConfig, folder: Path, noise_levels: Sequence[float] = (0
                 noisy = add_pixel_noise(load_dataset(base, name), level, seed, stream)
                 noisy.save(_path(level_folder, name))
         train(config, level_folder, "planar", samples, settings=settings, seed=seed)
-        rows[f"{level:g}"] = {"evaluate": evaluate(level_folder)["methods"],
-                              "track_random": track(config, level_folder, "random", points, seed=seed)["methods"]}
-    return {"truth": "realistic", "noise_px": list(noise_levels), "results": rows, "thesis_table_3_4": THESIS_TABLE_3_4,
-            "truth_parameters": _realistic_description(config)}
+        rows[f"{level:g}"] = {
+            "evaluate": evaluate(level_folder)["methods"],
+            "track_random": track(config, level_folder, "random", points, seed=seed)["methods"],
+        }
+    return {
+        "truth": "realistic",
+        "noise_px": list(noise_levels),
+        "results": rows,
+        "thesis_table_3_4": THESIS_TABLE_3_4,
+        "truth_parameters": _realistic_description(config),
+    }
 
 
 def _realistic_description(config: CellConfig) -> dict[str, Any]:
     from vservo.core.calibration import collection
 
     truth = cell_with_truth(config, "realistic").simulation
-    return {"distortion_k1_k2_p1_p2_k3": truth.truth.camera.distortion.as_opencv().tolist(),
-            "eMc_error_mm_deg": list(collection.REALISTIC_eMc_MM_DEG),
-            "joint_placement_error_mm_deg": [truth.joint_placement_error_m * 1000,
-                                             float(np.rad2deg(truth.joint_placement_error_rad))],
-            "repeatability_mm_deg": [truth.repeatability_m * 1000, float(np.rad2deg(truth.repeatability_rad))]}
+    return {
+        "distortion_k1_k2_p1_p2_k3": truth.truth.camera.distortion.as_opencv().tolist(),
+        "eMc_error_mm_deg": list(collection.REALISTIC_eMc_MM_DEG),
+        "joint_placement_error_mm_deg": [
+            truth.joint_placement_error_m * 1000,
+            float(np.rad2deg(truth.joint_placement_error_rad)),
+        ],
+        "repeatability_mm_deg": [truth.repeatability_m * 1000, float(np.rad2deg(truth.repeatability_rad))],
+    }

@@ -51,6 +51,7 @@ ROBOT_BACKENDS = ("sim", "jrc")  # the kinematic simulator, the JRC link
 CAMERA_SOURCES = ("simulated", "capture", "folder")  # the simulator's renderer, OpenCV VideoCapture, still images
 VACUUM_DEVICES = ("simulated", "jrc_io", "none")  # the simulator's cup, the JRC's I/O, no cup
 
+
 @dataclass(frozen=True)
 class CellModel:
     """The parameters calibration estimates and the truth may contradict."""
@@ -303,8 +304,9 @@ class _Table:
             raise ConfigError(f"{self._source}: missing key {self._key(key)}")
         return default
 
-    def number(self, key: str, default: float | None = None, *, check: Callable[[float], bool] | None = None,
-               why: str = "") -> float:
+    def number(
+        self, key: str, default: float | None = None, *, check: Callable[[float], bool] | None = None, why: str = ""
+    ) -> float:
         value = self._raw(key, default)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise self.fail(key, value, "must be a finite number")
@@ -391,8 +393,9 @@ def _camera(t: _Table) -> CameraModel:
         raise t.fail("focal_length_px", focal_px.tolist(), "both focal lengths must be positive")
     t.finish()
     if measured:
-        intrinsics = Intrinsics(float(focal_px[0]), float(focal_px[1]), float(principal[0]), float(principal[1]),
-                                int(size[0]), int(size[1]))
+        intrinsics = Intrinsics(
+            float(focal_px[0]), float(focal_px[1]), float(principal[0]), float(principal[1]), int(size[0]), int(size[1])
+        )
     else:
         intrinsics = Intrinsics.from_sensor(
             focal_length_m=focal / 1000.0,
@@ -423,8 +426,12 @@ def _camera_source(t: _Table, base_dir: Path | None) -> CameraSourceConfig:
     kind = t.choice("kind", CAMERA_SOURCES, "simulated")
     if kind == "capture":
         device = t._raw("device", None)
-        if isinstance(device, bool) or not isinstance(device, (int, str)) or device == "" or (
-                isinstance(device, int) and device < 0):
+        if (
+            isinstance(device, bool)
+            or not isinstance(device, (int, str))
+            or device == ""
+            or (isinstance(device, int) and device < 0)
+        ):
             raise t.fail("device", device, "must be a device index >= 0, or a video file, stream URL or pipeline")
         attempts = t.integer("reconnect_attempts", 3)
         if attempts < 0:
@@ -433,7 +440,9 @@ def _camera_source(t: _Table, base_dir: Path | None) -> CameraSourceConfig:
         if buffered < 0:
             raise t.fail("buffer_frames", buffered, "must be >= 0")
         source = CameraSourceConfig(
-            kind, device=device, reconnect_attempts=attempts,
+            kind,
+            device=device,
+            reconnect_attempts=attempts,
             reconnect_delay_s=t.number("reconnect_delay_s", 0.5, check=_non_negative, why="must be >= 0"),
             loop=t.flag("loop", False),
             exposure_latency_s=t.number("exposure_latency_s", 0.0, check=_non_negative, why="must be >= 0"),
@@ -470,8 +479,11 @@ def _board(t: _Table) -> BoardConfig | None:
     square = t.number("square_mm", None, check=_positive, why="must be positive") / 1000.0
     corners = t.vector("inner_corners", 2, None)
     if np.any(corners < 3) or np.any(corners != np.round(corners)) or corners[0] == corners[1]:
-        raise t.fail("inner_corners", corners.tolist(), "must be two different whole numbers >= 3 (columns, rows): "
-                     "a square board's quarter turns cannot be told apart")
+        raise t.fail(
+            "inner_corners",
+            corners.tolist(),
+            "must be two different whole numbers >= 3 (columns, rows): a square board's quarter turns cannot be told apart",
+        )
     board = BoardConfig(square, (int(corners[0]), int(corners[1])), t.pose("pose", None))
     t.finish()
     return board
@@ -483,8 +495,9 @@ def _metal_part(t: _Table) -> MetalPart | None:
         return None
     part = MetalPart(t.pose("pose", None))
     if abs(part.bMp[2, 2]) < 1.0 - 1e-9:
-        raise t.fail("pose", t._data["pose"], "the pocket opens straight up: theta and psi must be 0 "
-                     "(phi turns it about the vertical)")
+        raise t.fail(
+            "pose", t._data["pose"], "the pocket opens straight up: theta and psi must be 0 (phi turns it about the vertical)"
+        )
     t.finish()
     return part
 
@@ -542,14 +555,19 @@ def _check_devices(config: CellConfig) -> None:
     """The devices of one cell must belong together: a real camera films a real robot."""
     source, backend, vacuum = config.source, config.robot_backend, config.vacuum_device.device
     if config.real and backend != "jrc":
-        raise ConfigError(f"{source}: robot.backend = {backend!r}: a cell with camera.source.kind = "
-                          f"{config.camera_source.kind!r} drives a real robot: set backend = \"jrc\"")
+        raise ConfigError(
+            f"{source}: robot.backend = {backend!r}: a cell with camera.source.kind = "
+            f'{config.camera_source.kind!r} drives a real robot: set backend = "jrc"'
+        )
     if config.real and vacuum == "simulated":
-        raise ConfigError(f"{source}: vacuum.device = 'simulated': a cell with camera.source.kind = "
-                          f"{config.camera_source.kind!r} has no simulator: choose \"jrc_io\" or \"none\"")
+        raise ConfigError(
+            f"{source}: vacuum.device = 'simulated': a cell with camera.source.kind = "
+            f'{config.camera_source.kind!r} has no simulator: choose "jrc_io" or "none"'
+        )
     if vacuum == "jrc_io" and backend != "jrc":
-        raise ConfigError(f"{source}: vacuum.device = 'jrc_io': the vacuum on the JRC's I/O needs robot.backend = "
-                          f"\"jrc\", not {backend!r}")
+        raise ConfigError(
+            f"{source}: vacuum.device = 'jrc_io': the vacuum on the JRC's I/O needs robot.backend = \"jrc\", not {backend!r}"
+        )
 
 
 # How far the true board may lie from the table's plane: it is a printed sheet on it.
@@ -561,8 +579,7 @@ def _scene(t: _Table, board: BoardConfig | None) -> tuple[Scene, LaidBoard | Non
     """The scene as the plant starts (no board laid), and the board where it lies when laid:
     ``board_pose``, or the [board] pose by default; it must lie flat on the table."""
     table_height = t.number("table_height_mm", 0.0) / 1000.0
-    cube = Cube(t.pose("object_pose", None), t.number("cube_side_mm", 20.0, check=_positive,
-                                                        why="must be positive") / 1000.0)
+    cube = Cube(t.pose("object_pose", None), t.number("cube_side_mm", 20.0, check=_positive, why="must be positive") / 1000.0)
     part = MetalPart(t.pose("metal_part_pose", None))
     laid = None
     if "board_pose" in t._data and board is None:
@@ -573,10 +590,13 @@ def _scene(t: _Table, board: BoardConfig | None) -> tuple[Scene, LaidBoard | Non
         tilt = math.acos(min(1.0, float(bMboard[2, 2])))
         if abs(bMboard[2, 3] - table_height) > _SHEET_ON_TABLE_M or tilt > _SHEET_LEVEL_RAD:
             key = "board_pose" if given else "board_pose (not given: the [board] pose)"
-            raise t.fail(key, t._data.get("board_pose", "[board] pose"),
-                         f"the board is a sheet lying on the table: its z ({1000.0 * bMboard[2, 3]:g} mm) must be "
-                         f"table_height_mm = {1000.0 * table_height:g} and it must lie level (theta = psi = 0; "
-                         f"it is tilted {math.degrees(tilt):.3g} deg)")
+            raise t.fail(
+                key,
+                t._data.get("board_pose", "[board] pose"),
+                f"the board is a sheet lying on the table: its z ({1000.0 * bMboard[2, 3]:g} mm) must be "
+                f"table_height_mm = {1000.0 * table_height:g} and it must lie level (theta = psi = 0; "
+                f"it is tilted {math.degrees(tilt):.3g} deg)",
+            )
         laid = LaidBoard(bMboard, board.square_m, board.inner_corners)
     t.finish()
     return Scene(table_height, cube, part), laid
@@ -602,8 +622,11 @@ def _motion(t: _Table, safety: SafetyConfig) -> MotionConfig:
 def _fast_steps(t: _Table, safety: SafetyConfig | None) -> FastStepConfig:
     """[motion.fast]. For the fast policy (``safety`` given) a step or speed beyond the
     [safety] limits is refused here: the safety layer would refuse every such step mid-servo."""
-    step_mm, step_deg, speed_mm_s = ((1000.0 * safety.max_step_m, math.degrees(safety.max_step_rad),
-                                      1000.0 * safety.max_speed_m_s) if safety else (math.inf,) * 3)
+    step_mm, step_deg, speed_mm_s = (
+        (1000.0 * safety.max_step_m, math.degrees(safety.max_step_rad), 1000.0 * safety.max_speed_m_s)
+        if safety
+        else (math.inf,) * 3
+    )
     fast = FastStepConfig(
         max_step_m=_within(t, "max_step_mm", 40.0, step_mm, "max_step_mm") / 1000.0,
         max_step_rad=math.radians(_within(t, "max_step_deg", 10.0, step_deg, "max_step_deg")),
@@ -617,7 +640,7 @@ def _within(t: _Table, key: str, default: float, limit: float, safety_key: str) 
     """A positive number at most the [safety] limit ``safety_key`` (``limit``), which would refuse more."""
     value = t.number(key, default, check=_positive, why="must be positive")
     if value > limit:
-        raise t.fail(key, value, f"exceeds [safety] {safety_key} = {limit:g} (policy = \"fast\"), which refuses such a move")
+        raise t.fail(key, value, f'exceeds [safety] {safety_key} = {limit:g} (policy = "fast"), which refuses such a move')
     return value
 
 
@@ -667,8 +690,12 @@ def _safety(t: _Table) -> SafetyConfig:
         max_step_rad=math.radians(t.number("max_step_deg", 15.0, check=_positive, why="must be positive")),
         max_speed_m_s=t.number("max_speed_mm_s", 250.0, check=_positive, why="must be positive") / 1000.0,
         joint_margin_rad=math.radians(t.number("joint_margin_deg", 0.0, check=_non_negative, why="must be >= 0")),
-        watchdog_s=t.number("watchdog_s", 5.0, check=lambda s: 0.0 < s <= MAX_WATCHDOG_S,
-                            why=f"must be more than 0 and at most {MAX_WATCHDOG_S:g} s"),
+        watchdog_s=t.number(
+            "watchdog_s",
+            5.0,
+            check=lambda s: 0.0 < s <= MAX_WATCHDOG_S,
+            why=f"must be more than 0 and at most {MAX_WATCHDOG_S:g} s",
+        ),
     )
     t.finish()
     return safety
@@ -698,12 +725,11 @@ def _simulation(t: _Table, truth: CellModel, board: BoardConfig | None) -> Simul
         board=laid_board,
         pixel_noise_px=t.number("pixel_noise_px", 0.0, check=_non_negative, why="must be >= 0"),
         repeatability_m=t.number("repeatability_mm", 0.0, check=_non_negative, why="must be >= 0") / 1000.0,
-        repeatability_rad=math.radians(
-            t.number("repeatability_deg", 0.0, check=_non_negative, why="must be >= 0")),
-        joint_placement_error_m=t.number("joint_placement_error_mm", 0.0, check=_non_negative,
-                                         why="must be >= 0") / 1000.0,
+        repeatability_rad=math.radians(t.number("repeatability_deg", 0.0, check=_non_negative, why="must be >= 0")),
+        joint_placement_error_m=t.number("joint_placement_error_mm", 0.0, check=_non_negative, why="must be >= 0") / 1000.0,
         joint_placement_error_rad=math.radians(
-            t.number("joint_placement_error_deg", 0.0, check=_non_negative, why="must be >= 0")),
+            t.number("joint_placement_error_deg", 0.0, check=_non_negative, why="must be >= 0")
+        ),
     )
     t.finish()
     return simulation
@@ -750,8 +776,23 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     root.finish()
     camera_source = _camera_source(_Table(wiring.get("camera", {}), "camera", source).table("source"), base_dir)
     vacuum_device = _vacuum_device(_Table(wiring.get("vacuum", {}), "vacuum", source))
-    config = CellConfig(source, arm, home_q, nominal, motion, simulation, backend, jrc, safety, camera_source,
-                        vacuum_device, fixture_url, board, commissioning, metal_part)
+    config = CellConfig(
+        source,
+        arm,
+        home_q,
+        nominal,
+        motion,
+        simulation,
+        backend,
+        jrc,
+        safety,
+        camera_source,
+        vacuum_device,
+        fixture_url,
+        board,
+        commissioning,
+        metal_part,
+    )
     _check_devices(config)
     return config
 

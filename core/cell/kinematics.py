@@ -133,9 +133,7 @@ class ArmKinematics:
 
         For the flange this is eJe, the Jacobian of eq. 4-15 in the end-effector frame.
         """
-        return pin.computeFrameJacobian(
-            self.model, self.data, self._joint_vector(q), self._frame_id(frame), pin.LOCAL
-        )
+        return pin.computeFrameJacobian(self.model, self.data, self._joint_vector(q), self._frame_id(frame), pin.LOCAL)
 
     def ik(
         self,

@@ -174,8 +174,7 @@ class LaidBoard:
         # The renderer draws these every frame: place them in B once.
         s = self.square_m
         cols, rows = self.inner_corners
-        sheet = np.array([[-2 * s, -2 * s], [(cols + 1) * s, -2 * s], [(cols + 1) * s, (rows + 1) * s],
-                          [-2 * s, (rows + 1) * s]])
+        sheet = np.array([[-2 * s, -2 * s], [(cols + 1) * s, -2 * s], [(cols + 1) * s, (rows + 1) * s], [-2 * s, (rows + 1) * s]])
         unit = np.array([[0.0, 0.0], [s, 0.0], [s, s], [0.0, s]])
         squares = [unit + (i * s, j * s) for j in range(-1, rows) for i in range(-1, cols) if (i + j) % 2 == 0]
         object.__setattr__(self, "sheet_b", self._to_b(sheet))

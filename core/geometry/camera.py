@@ -218,10 +218,7 @@ class CameraModel:
         low = margin_px - 0.5
         # NaN compares False, so points without an image are never in view.
         return (
-            (uv[:, 0] >= low)
-            & (uv[:, 0] <= width - 0.5 - margin_px)
-            & (uv[:, 1] >= low)
-            & (uv[:, 1] <= height - 0.5 - margin_px)
+            (uv[:, 0] >= low) & (uv[:, 0] <= width - 0.5 - margin_px) & (uv[:, 1] >= low) & (uv[:, 1] <= height - 0.5 - margin_px)
         )
 
 

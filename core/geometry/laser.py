@@ -182,9 +182,7 @@ class LaserPointer:
         )
 
 
-def in_plane_range(
-    spot_px: ArrayLike, camera: CameraModel, baseline_m: float, alpha_rad: float
-) -> tuple[float, float]:
+def in_plane_range(spot_px: ArrayLike, camera: CameraModel, baseline_m: float, alpha_rad: float) -> tuple[float, float]:
     """(range_m, depth_m) of the spot for the in-plane laser of Fig. 4-2, eqs. 4-18 .. 4-21.
 
     The spot's image radius r along the baseline (signed, positive on the laser's side,

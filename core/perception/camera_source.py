@@ -542,8 +542,9 @@ class VideoCaptureSource(BaseSource):
         # on a vanished stream returns at the capture's own timeout, and releases then.
         self._reader.join(timeout=CLOSE_WAIT_S)
         if self._reader.is_alive():
-            log.warning("%s: still waiting for a frame after %.1f s; it is released when the read returns",
-                        self._describe(), CLOSE_WAIT_S)
+            log.warning(
+                "%s: still waiting for a frame after %.1f s; it is released when the read returns", self._describe(), CLOSE_WAIT_S
+            )
 
 
 def _reported_size(cap: CaptureLike) -> Size | None:

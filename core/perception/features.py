@@ -121,5 +121,3 @@ class DesiredImage:
     @property
     def centroid_px(self) -> Matrix:
         return self.corners_px.mean(axis=0)
-
-

@@ -128,8 +128,9 @@ class AssemblyOutcome:
             "gauge_inside": self.gauge_inside,
             "duration_s": round(self.duration_s, 3),
             "cell_time_s": _rounded(self.cell_time_s),
-            "cell_time_by_phase_s": None if self.cell_time_by_phase_s is None else {
-                phase: _rounded(seconds) for phase, seconds in self.cell_time_by_phase_s.items()},
+            "cell_time_by_phase_s": None
+            if self.cell_time_by_phase_s is None
+            else {phase: _rounded(seconds) for phase, seconds in self.cell_time_by_phase_s.items()},
             "iterations": self.iterations,
             "stages": self.stages,
             "notes": list(self.notes),
@@ -197,16 +198,25 @@ class FlangeReadout:
     def measure(self, look: bool = False) -> Measurement:
         unseen = np.full(2, np.nan)
         bMe = self.robot.read_pose()
-        return Measurement(self.robot.clock_s(), self.robot.model_joints(bMe), bMe,
-                           np.full((4, 2), np.nan), unseen, ObjectRegion(0.0, unseen), np.full(4, np.nan), unseen)
+        return Measurement(
+            self.robot.clock_s(),
+            self.robot.model_joints(bMe),
+            bMe,
+            np.full((4, 2), np.nan),
+            unseen,
+            ObjectRegion(0.0, unseen),
+            np.full(4, np.nan),
+            unseen,
+        )
 
 
 def joint_limited_steps(robot: SafetyLayer) -> JointLimitedSteps:
     """The servo's steps bent around the joint limits of the safety layer's arm model,
     stopping the joints outside its [safety] joint margin (whose check they must pass)."""
     defaults, margin_rad = JointLimitSettings(), robot.limits.joint_margin_rad
-    return JointLimitedSteps(robot.arm, JointLimitSettings(band_rad=defaults.band_rad + margin_rad,
-                                                           margin_rad=defaults.margin_rad + margin_rad))
+    return JointLimitedSteps(
+        robot.arm, JointLimitSettings(band_rad=defaults.band_rad + margin_rad, margin_rad=defaults.margin_rad + margin_rad)
+    )
 
 
 def lifted(bMe: Matrix, height_m: float) -> Matrix:
@@ -228,8 +238,7 @@ def _passes(robot: SafetyLayer, poses: list[Matrix], speeds: list[float]) -> boo
 
 
 def _grasp_detail(doing: str, choice: GraspChoice, symmetry: int) -> str:
-    turned = (f"the taught grasp turned {choice.turns * 360 // symmetry} deg" if choice.turns
-              else "the taught grasp")
+    turned = f"the taught grasp turned {choice.turns * 360 // symmetry} deg" if choice.turns else "the taught grasp"
     skipped = f"; {choice.unreachable_nearer} nearer out of reach" if choice.unreachable_nearer else ""
     return f"{doing} at {turned}, the flange turning {np.degrees(choice.turn_rad):.0f} deg{skipped}"
 
@@ -271,8 +280,9 @@ def run_assembly(
     timer = CellTimer(robot)
     servo = None
 
-    def end(outcome: Outcome, reason: str, seen: PlacementCheck | None = None,
-            gauge: PlacementReport | None = None) -> AssemblyOutcome:
+    def end(
+        outcome: Outcome, reason: str, seen: PlacementCheck | None = None, gauge: PlacementReport | None = None
+    ) -> AssemblyOutcome:
         if outcome in (Outcome.FAULT, Outcome.ESTOPPED):
             reason += hold_after_fault(robot)
             on_event(PhaseChange(Phase.ESTOPPED if outcome is Outcome.ESTOPPED else Phase.FAULT, reason))
@@ -300,8 +310,11 @@ def run_assembly(
         start_bMe = job.start_bMe
         if job.survey_bMe is not None:
             if locator is None:
-                return end(Outcome.FAULT, "the job locates its part and this cell has no network to locate it with: "
-                                          "commission the nn step (docs/commissioning.md)")
+                return end(
+                    Outcome.FAULT,
+                    "the job locates its part and this cell has no network to locate it with: "
+                    "commission the nn step (docs/commissioning.md)",
+                )
             timer.enter(CellTimePhase.LOCATE)
             on_event(PhaseChange(Phase.SERVOING, "surveying the table for the part"))
             # Transfers over the table on the joint-space line: the straight one between two far
@@ -331,9 +344,18 @@ def run_assembly(
         timer.enter(CellTimePhase.SERVO)
         on_event(PhaseChange(Phase.SERVOING, f"servoing with the {job.method} method"))
         law = build_law(model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
-        servo = run_servo(FlangeReadout(robot), law, job.desired, model, policy, limits,
-                          on_cycle=lambda cycle: on_event(ServoCycle(cycle)), perception=perception, robot=robot,
-                          joint_limits=joint_limited_steps(robot))
+        servo = run_servo(
+            FlangeReadout(robot),
+            law,
+            job.desired,
+            model,
+            policy,
+            limits,
+            on_cycle=lambda cycle: on_event(ServoCycle(cycle)),
+            perception=perception,
+            robot=robot,
+            joint_limits=joint_limited_steps(robot),
+        )
         if not servo.converged:
             if estopped():
                 return end(Outcome.ESTOPPED, "e-stop pressed")
@@ -344,9 +366,14 @@ def run_assembly(
         # The part in the flange at the pick: where the servo's end puts it (eMc cdMo), seen from the pick.
         bMe_end = robot.read_pose()
         pMo = inverse(job.eMe_pick) @ model.eMc @ job.desired.cdMo
-        pick = grasp_choice(bMe_end @ job.eMe_pick, pMo, job.part_side_m, job.grasp_symmetry, bMe_end,
-                            lambda bMe: _passes(robot, [bMe_end, lifted(bMe, job.approach_m), bMe],
-                                                [speed_m_s, speed_m_s / 2]))
+        pick = grasp_choice(
+            bMe_end @ job.eMe_pick,
+            pMo,
+            job.part_side_m,
+            job.grasp_symmetry,
+            bMe_end,
+            lambda bMe: _passes(robot, [bMe_end, lifted(bMe, job.approach_m), bMe], [speed_m_s, speed_m_s / 2]),
+        )
         bMe_pick = pick.bMe
         on_event(PhaseChange(Phase.PICKING, _grasp_detail("picking", pick, job.grasp_symmetry)))
         move(lifted(bMe_pick, job.approach_m))
@@ -363,12 +390,18 @@ def run_assembly(
         # from the lifted pick and on to the check pose.
         bMe_check = None if job.check is None else job.check.check_bMe
         bMe_lifted = lifted(bMe_pick, job.approach_m)
-        place = grasp_choice(job.bMe_place, pMo, job.part_side_m, job.grasp_symmetry, bMe_lifted,
-                             lambda bMe: _passes(robot, [bMe_lifted, lifted(bMe, job.approach_m), bMe],
-                                                 [speed_m_s, speed_m_s / 2])
-                             and (bMe_check is None
-                                  or _passes(robot, [lifted(bMe, job.approach_m), bMe_check], [speed_m_s])),
-                             bMe_next=bMe_check)
+        place = grasp_choice(
+            job.bMe_place,
+            pMo,
+            job.part_side_m,
+            job.grasp_symmetry,
+            bMe_lifted,
+            lambda bMe: (
+                _passes(robot, [bMe_lifted, lifted(bMe, job.approach_m), bMe], [speed_m_s, speed_m_s / 2])
+                and (bMe_check is None or _passes(robot, [lifted(bMe, job.approach_m), bMe_check], [speed_m_s]))
+            ),
+            bMe_next=bMe_check,
+        )
         bMe_place = place.bMe
         on_event(PhaseChange(Phase.PLACING, _grasp_detail("placing", place, job.grasp_symmetry)))
         move(lifted(bMe_place, job.approach_m))
@@ -391,18 +424,23 @@ def run_assembly(
     gauge = measure_placement()
     if seen is None:  # no check view: the gauge decides where a cell has one
         if gauge is None:
-            return end(Outcome.PLACED, "part released in the metal part (no check view in this job, "
-                                       "no placement gauge on this cell: placement unknown)")
+            return end(
+                Outcome.PLACED,
+                "part released in the metal part (no check view in this job, no placement gauge on this cell: placement unknown)",
+            )
         if gauge.inside:
-            return end(Outcome.PLACED, f"part in the metal part, {gauge.error_mm:.2f} mm off centre (gauge)",
-                       gauge=gauge)
-        return end(Outcome.MISSED, f"part outside the pocket, {gauge.error_mm:.2f} mm off centre (gauge)",
-                   gauge=gauge)
+            return end(Outcome.PLACED, f"part in the metal part, {gauge.error_mm:.2f} mm off centre (gauge)", gauge=gauge)
+        return end(Outcome.MISSED, f"part outside the pocket, {gauge.error_mm:.2f} mm off centre (gauge)", gauge=gauge)
     if not seen.found:
         return end(Outcome.MISSED, "part not found at the check pose", seen, gauge)
     tolerance = job.placement_tolerance_mm
     if seen.error_mm <= tolerance:
-        return end(Outcome.PLACED, f"part seen {seen.error_mm:.2f} mm from its taught place "
-                                   f"(tolerance {tolerance:g} mm)", seen, gauge)
-    return end(Outcome.MISSED, f"part seen {seen.error_mm:.2f} mm from its taught place, beyond the "
-                               f"{tolerance:g} mm tolerance", seen, gauge)
+        return end(
+            Outcome.PLACED, f"part seen {seen.error_mm:.2f} mm from its taught place (tolerance {tolerance:g} mm)", seen, gauge
+        )
+    return end(
+        Outcome.MISSED,
+        f"part seen {seen.error_mm:.2f} mm from its taught place, beyond the {tolerance:g} mm tolerance",
+        seen,
+        gauge,
+    )

@@ -89,9 +89,12 @@ TRAIL_LENGTH = 400  # feature positions kept for the trajectories drawn on the i
 # What a commissioned file must share with the running cell for the controller to run on it
 # without a restart: the devices it opened (the model is what commissioning changes).
 DEVICES: dict[str, Callable[[CellConfig], object]] = {
-    "[camera.source]": lambda c: c.camera_source, "[jrc]": lambda c: c.jrc,
-    "[vacuum] device": lambda c: c.vacuum_device, "[robot] backend": lambda c: c.robot_backend,
-    "[fixture] url": lambda c: c.fixture_url, "arm": lambda c: c.arm,
+    "[camera.source]": lambda c: c.camera_source,
+    "[jrc]": lambda c: c.jrc,
+    "[vacuum] device": lambda c: c.vacuum_device,
+    "[robot] backend": lambda c: c.robot_backend,
+    "[fixture] url": lambda c: c.fixture_url,
+    "arm": lambda c: c.arm,
 }
 
 
@@ -119,8 +122,12 @@ class TeachDraft:
 
     def missing(self) -> list[str]:
         """What the job cannot be saved without."""
-        names = {"desired": "the desired image", "start_bMe": "the start pose", "eMe_pick": "the pick pose",
-                 "bMe_place": "the place pose"}
+        names = {
+            "desired": "the desired image",
+            "start_bMe": "the start pose",
+            "eMe_pick": "the pick pose",
+            "bMe_place": "the place pose",
+        }
         return [text for key, text in names.items() if getattr(self, key) is None]
 
     def optional_missing(self) -> list[str]:
@@ -276,8 +283,12 @@ class CellController:
         self.seed = seed
         self.cycle_period_s = cycle_period_s  # a floor on the servo cycle, so a fast simulator can be watched
         self._lock = threading.RLock()  # one command at a time; the camera and robot are shared
-        self._state = ControllerState(backend=rig.robot.name, robot=rig.config.arm,
-                                      can_present_part=rig.present_part is not None, cell_file=rig.config.source)
+        self._state = ControllerState(
+            backend=rig.robot.name,
+            robot=rig.config.arm,
+            can_present_part=rig.present_part is not None,
+            cell_file=rig.config.source,
+        )
         # The joints drawn in 3D: a real JRC reports the flange pose; the safety layer's arm
         # model's inverse kinematics, from the last joints shown, turns it into an arm to draw.
         self._shown_q = rig.config.home_q.copy()
@@ -302,9 +313,11 @@ class CellController:
         self._state = replace(self._state, **self._robot_readout())  # the first state shows the real pose
         status = self.rig.robot.status()
         if status.held:  # an earlier session's e-stop or fault: motion only after an explicit reset
-            self._state = replace(self._state, phase=Phase.FAULT.value,
-                                  detail=f"the robot is {status.describe()} since before this controller started: "
-                                  "Reset releases it")
+            self._state = replace(
+                self._state,
+                phase=Phase.FAULT.value,
+                detail=f"the robot is {status.describe()} since before this controller started: Reset releases it",
+            )
         self._publish_state()
 
     # -- publishing ------------------------------------------------------------------
@@ -430,20 +443,39 @@ class CellController:
             if template:
                 job = self.store.load_job(template)
                 # The images are captured again (the check view's goes with the desired one).
-                draft = TeachDraft(template, None, None, job.start_bMe, job.eMe_pick, job.bMe_place,
-                                   job.threshold_px, job.gain, job.approach_m,
-                                   placement_tolerance_mm=job.placement_tolerance_mm)
+                draft = TeachDraft(
+                    template,
+                    None,
+                    None,
+                    job.start_bMe,
+                    job.eMe_pick,
+                    job.bMe_place,
+                    job.threshold_px,
+                    job.gain,
+                    job.approach_m,
+                    placement_tolerance_mm=job.placement_tolerance_mm,
+                )
             self._draft = draft
             self._check_image = None
             # The job shown is the template taught from; a new job has none until it is saved.
             self._desired = None  # the last job's desired corners are no part of the new one
-            self._update(phase=Phase.TEACHING.value, detail="jog to the desired view and capture it", job=template or None,
-                         teach_missing=draft.missing(), teach_optional=draft.optional_missing(), teach_poses=self._teach_poses())
+            self._update(
+                phase=Phase.TEACHING.value,
+                detail="jog to the desired view and capture it",
+                job=template or None,
+                teach_missing=draft.missing(),
+                teach_optional=draft.optional_missing(),
+                teach_poses=self._teach_poses(),
+            )
 
     def _set_draft(self, detail: str, **changes) -> None:
         self._draft = replace(self._draft, **changes)
-        self._update(detail=detail, teach_missing=self._draft.missing(), teach_optional=self._draft.optional_missing(),
-                     teach_poses=self._teach_poses())
+        self._update(
+            detail=detail,
+            teach_missing=self._draft.missing(),
+            teach_optional=self._draft.optional_missing(),
+            teach_poses=self._teach_poses(),
+        )
 
     def _pocket_fit(self) -> PocketFit | None:
         """Where the taught pick and place set the desired image's part down, against the
@@ -451,8 +483,7 @@ class CellController:
         draft, pocket = self._draft, self.rig.config.metal_part
         if pocket is None or draft.seen_bMo is None or draft.eMe_pick is None or draft.bMe_place is None:
             return None
-        return pocket_fit(draft.bMe_place @ part_on_flange(draft.taught_bMe, draft.eMe_pick, draft.seen_bMo),
-                          pocket, PART_SIDE_M)
+        return pocket_fit(draft.bMe_place @ part_on_flange(draft.taught_bMe, draft.eMe_pick, draft.seen_bMo), pocket, PART_SIDE_M)
 
     def _teach_poses(self) -> dict:
         """The state's teach_poses for the draft."""
@@ -477,9 +508,11 @@ class CellController:
         if fit is None:
             return ""
         if abs(fit.turn_deg) > PLACE_TURN_WARNING_DEG:
-            return (f"; WARNING: {fit.words()}: the part in the desired image is turned {fit.turn_deg:+.1f} deg from "
-                    "how it must sit in the pocket; turn the cup by the opposite at the place, or teach the desired "
-                    "image with the part turned as the pocket is")
+            return (
+                f"; WARNING: {fit.words()}: the part in the desired image is turned {fit.turn_deg:+.1f} deg from "
+                "how it must sit in the pocket; turn the cup by the opposite at the place, or teach the desired "
+                "image with the part turned as the pocket is"
+            )
         if fit.offset_mm > self._draft.placement_tolerance_mm:
             return f"; WARNING: {fit.words()}: beyond the placement tolerance; move the cup over the pocket's centre"
         return f": {fit.words()}"
@@ -496,9 +529,13 @@ class CellController:
             self._desired = desired
             self._desired_image = frame.image
             taught_bMe = self.rig.robot.read_pose()
-            self._set_draft(f"desired image captured, laser depth {1000 * desired.depth_m:.1f} mm",
-                            desired=desired, taught_bMe=taught_bMe, taught_model=TaughtModel.of(self.rig.config.nominal),
-                            seen_bMo=self._part_seen(taught_bMe, features.corners_px, part_side_m))
+            self._set_draft(
+                f"desired image captured, laser depth {1000 * desired.depth_m:.1f} mm",
+                desired=desired,
+                taught_bMe=taught_bMe,
+                taught_model=TaughtModel.of(self.rig.config.nominal),
+                seen_bMo=self._part_seen(taught_bMe, features.corners_px, part_side_m),
+            )
             return desired
 
     def capture_check_view(self) -> CheckView:
@@ -509,8 +546,10 @@ class CellController:
             self._require(Phase.TEACHING)
             frame, features = self.look(fresh=True)
             if not features.all_corners_visible:
-                raise CommandRefused("the check view must show the part's four top-face corners: put the part in "
-                                     "the metal part and the camera over it")
+                raise CommandRefused(
+                    "the check view must show the part's four top-face corners: put the part in "
+                    "the metal part and the camera over it"
+                )
             check = CheckView(check_bMe=self.rig.robot.read_pose(), corners_px=features.corners_px)
             self._check_image = frame.image
             self._set_draft(f"check view captured{self._place_check(check)}", check=check)
@@ -540,8 +579,10 @@ class CellController:
         turn_deg = float(np.rad2deg(np.angle(np.exp(1j * turn))))
         where = f"the part lies {offset_mm:.1f} mm and {turn_deg:+.1f} deg from where the taught pick and place put it"
         if offset_mm > draft.placement_tolerance_mm or abs(turn_deg) > PLACE_TURN_WARNING_DEG:
-            return (f"; WARNING: {where}: the part moved between the desired image and the pick, or slipped on "
-                    "the cup; teach the desired image, the pick and the place again on one part left where it lies")
+            return (
+                f"; WARNING: {where}: the part moved between the desired image and the pick, or slipped on "
+                "the cup; teach the desired image, the pick and the place again on one part left where it lies"
+            )
         return f": {where}"
 
     def set_start_pose(self) -> None:
@@ -564,8 +605,10 @@ class CellController:
         with self._lock:
             self._require(Phase.TEACHING)
             if not self._holding():
-                raise CommandRefused("the place pose is taught with the part on the cup, and the vacuum sensor "
-                                     "reports none: at the pick, Suction on, then carry the part into the metal part")
+                raise CommandRefused(
+                    "the place pose is taught with the part on the cup, and the vacuum sensor "
+                    "reports none: at the pick, Suction on, then carry the part into the metal part"
+                )
             self._draft = replace(self._draft, bMe_place=self.rig.robot.read_pose())
             self._set_draft(f"place pose set here{self._place_words()}")
 
@@ -585,8 +628,7 @@ class CellController:
                 raise CommandRefused(f"suction {'on' if on else 'off'}: {exc}") from exc
             holding = self._holding()
             sensor = "a part on the cup" if holding else "no part on the cup"
-            self._update(detail=f"suction {'on' if on else 'off'}: the vacuum sensor reports {sensor}",
-                         **self._robot_readout())
+            self._update(detail=f"suction {'on' if on else 'off'}: the vacuum sensor reports {sensor}", **self._robot_readout())
             return holding
 
     def test_pick(self) -> bool:
@@ -609,25 +651,35 @@ class CellController:
             finally:
                 self.rig.gripper.set_vacuum(False)
             lift = f"{1000 * TEST_PICK_LIFT_M:.0f} mm"
-            detail = (f"test pick: the part held through a {lift} lift and is back down: grip good" if held else
-                      f"test pick: the part fell during the {lift} lift: grip weak" if gripped else
-                      "test pick: no grip: the vacuum sensor reports no part after suction on "
-                      "(put the cup on the middle of the part's top face, pressed a few mm)")
+            detail = (
+                f"test pick: the part held through a {lift} lift and is back down: grip good"
+                if held
+                else f"test pick: the part fell during the {lift} lift: grip weak"
+                if gripped
+                else "test pick: no grip: the vacuum sensor reports no part after suction on "
+                "(put the cup on the middle of the part's top face, pressed a few mm)"
+            )
             self._update(detail=detail, **self._robot_readout())
             return held
 
-    def set_settings(self, threshold_px: float, gain: float, approach_m: float,
-                     placement_tolerance_mm: float | None = None) -> None:
+    def set_settings(
+        self, threshold_px: float, gain: float, approach_m: float, placement_tolerance_mm: float | None = None
+    ) -> None:
         """The run's settings; the placement tolerance is kept unless given."""
         with self._lock:
             self._require(Phase.TEACHING)
             tolerance = self._draft.placement_tolerance_mm if placement_tolerance_mm is None else placement_tolerance_mm
-            for name, value in (("threshold_px", threshold_px), ("gain", gain), ("approach_m", approach_m),
-                                ("placement_tolerance_mm", tolerance)):
+            for name, value in (
+                ("threshold_px", threshold_px),
+                ("gain", gain),
+                ("approach_m", approach_m),
+                ("placement_tolerance_mm", tolerance),
+            ):
                 if not (np.isfinite(value) and value > 0):
                     raise CommandRefused(f"{name} must be a positive number, got {value!r}")
-            self._set_draft("settings changed", threshold_px=threshold_px, gain=gain, approach_m=approach_m,
-                            placement_tolerance_mm=tolerance)
+            self._set_draft(
+                "settings changed", threshold_px=threshold_px, gain=gain, approach_m=approach_m, placement_tolerance_mm=tolerance
+            )
 
     def save_job(self, name: str, description: str = "", part_side_m: float = PART_SIDE_M) -> Job:
         with self._lock:
@@ -636,17 +688,27 @@ class CellController:
             if draft.missing():
                 raise CommandRefused(f"cannot save yet: teach {', '.join(draft.missing())}")
             try:
-                job = Job(name=name, description=description, part_side_m=part_side_m, desired=draft.desired,
-                          taught_bMe=draft.taught_bMe, start_bMe=draft.start_bMe, eMe_pick=draft.eMe_pick,
-                          bMe_place=draft.bMe_place, approach_m=draft.approach_m, threshold_px=draft.threshold_px,
-                          gain=draft.gain, check=draft.check, placement_tolerance_mm=draft.placement_tolerance_mm,
-                          taught_model=draft.taught_model)
+                job = Job(
+                    name=name,
+                    description=description,
+                    part_side_m=part_side_m,
+                    desired=draft.desired,
+                    taught_bMe=draft.taught_bMe,
+                    start_bMe=draft.start_bMe,
+                    eMe_pick=draft.eMe_pick,
+                    bMe_place=draft.bMe_place,
+                    approach_m=draft.approach_m,
+                    threshold_px=draft.threshold_px,
+                    gain=draft.gain,
+                    check=draft.check,
+                    placement_tolerance_mm=draft.placement_tolerance_mm,
+                    taught_model=draft.taught_model,
+                )
             except JobError as exc:
                 raise CommandRefused(str(exc)) from exc
             self.store.save_job(job, self._desired_image, self._check_image if draft.check is not None else None)
             self._draft = None
-            self._update(phase=Phase.IDLE.value, detail=f"job {name!r} saved", job=name, teach_missing=[],
-                         teach_optional=[])
+            self._update(phase=Phase.IDLE.value, detail=f"job {name!r} saved", job=name, teach_missing=[], teach_optional=[])
             return job
 
     def cancel_teach(self) -> None:
@@ -699,8 +761,16 @@ class CellController:
             self._work = "an assembly run"
             run_id = self.store.start_run(job.name, self.rig.robot.name)
             self._desired, self._trail = job.desired, []
-            self._update(phase=Phase.SERVOING.value, detail="starting", job=job.name, run_id=run_id, stage=None,
-                         iteration=0, error_px=None, last_outcome=None)
+            self._update(
+                phase=Phase.SERVOING.value,
+                detail="starting",
+                job=job.name,
+                run_id=run_id,
+                stage=None,
+                iteration=0,
+                error_px=None,
+                last_outcome=None,
+            )
             self._run_thread = _WorkThread(self._run, (job, run_id, record, note), "assembly")
             self._run_thread.start()
             return run_id
@@ -741,31 +811,45 @@ class CellController:
                     log.error("run %d: %s", run_id, recording_note)
                     recorder = _closed_quietly(recorder)
             self._trail = (self._trail + [cycle.features.corners_px])[-TRAIL_LENGTH:]
-            self._update(stage=cycle.output.stage, iteration=cycle.iteration + 1,
-                         error_px=float(cycle.output.error_px) if np.isfinite(cycle.output.error_px) else None,
-                         cVc=_finite_list(cycle.output.cVc), detail=cycle.output.note or self._state.detail,
-                         **self._robot_readout(cycle.measurement.bMe))
+            self._update(
+                stage=cycle.output.stage,
+                iteration=cycle.iteration + 1,
+                error_px=float(cycle.output.error_px) if np.isfinite(cycle.output.error_px) else None,
+                cVc=_finite_list(cycle.output.cVc),
+                detail=cycle.output.note or self._state.detail,
+                **self._robot_readout(cycle.measurement.bMe),
+            )
             if frame is not None:
-                self._publish_frame(FrameView(frame, cycle.features.corners_px, cycle.features.laser_spot_px,
-                                              job.desired, np.array(self._trail)))
+                self._publish_frame(
+                    FrameView(frame, cycle.features.corners_px, cycle.features.laser_spot_px, job.desired, np.array(self._trail))
+                )
             if self.cycle_period_s:
                 time.sleep(max(0.0, self.cycle_period_s - (time.monotonic() - last_cycle_at)))
             last_cycle_at = time.monotonic()
 
         try:
             outcome = run_assembly(
-                job, self.rig.robot, self.rig.gripper, perception, self.rig.config.nominal, self.rig.policy,
-                speed_m_s=self.rig.config.motion.move_speed_m_s, on_event=on_event,
+                job,
+                self.rig.robot,
+                self.rig.gripper,
+                perception,
+                self.rig.config.nominal,
+                self.rig.policy,
+                speed_m_s=self.rig.config.motion.move_speed_m_s,
+                on_event=on_event,
                 measure_placement=self.rig.measure_placement,
-                estopped=self._estop.is_set, locator=self.rig.locator,
+                estopped=self._estop.is_set,
+                locator=self.rig.locator,
             )
         except CameraSourceError as exc:
-            outcome = AssemblyOutcome(Outcome.FAULT, f"camera: {exc}{hold_after_fault(self.rig.robot)}", float("nan"), None,
-                                      0.0, [], 0)
+            outcome = AssemblyOutcome(
+                Outcome.FAULT, f"camera: {exc}{hold_after_fault(self.rig.robot)}", float("nan"), None, 0.0, [], 0
+            )
         except Exception as exc:  # a bug must still leave the robot held and the run on record
             log.exception("assembly run %d crashed", run_id)
-            outcome = AssemblyOutcome(Outcome.FAULT, f"internal error: {exc!r}{hold_after_fault(self.rig.robot)}",
-                                      float("nan"), None, 0.0, [], 0)
+            outcome = AssemblyOutcome(
+                Outcome.FAULT, f"internal error: {exc!r}{hold_after_fault(self.rig.robot)}", float("nan"), None, 0.0, [], 0
+            )
         if outcome.outcome is Outcome.ESTOPPED:
             outcome = replace(outcome, reason=self._estop_reason)
         if note:
@@ -778,8 +862,16 @@ class CellController:
         if recording_note:
             outcome = replace(outcome, notes=(*outcome.notes, recording_note))
         try:
-            self.store.finish_run(run_id, outcome.outcome, outcome.reason, outcome.final_error_px,
-                                  outcome.placement_error_mm, outcome.duration_s, outcome.stages, recorded_to)
+            self.store.finish_run(
+                run_id,
+                outcome.outcome,
+                outcome.reason,
+                outcome.final_error_px,
+                outcome.placement_error_mm,
+                outcome.duration_s,
+                outcome.stages,
+                recorded_to,
+            )
         except (sqlite3.Error, OSError) as exc:  # the next start marks it interrupted; the operator learns now
             log.error("run %d: its end could not be stored: %s", run_id, exc)
             outcome = replace(outcome, notes=(*outcome.notes, f"its end could not be stored: {exc}"))
@@ -789,8 +881,12 @@ class CellController:
 
     # -- commissioning -----------------------------------------------------------------------
 
-    def commission(self, steps: Sequence[Step | str] | None = None, out_path: str | Path | None = None,
-                   settings: CommissionSettings | None = None) -> Path:
+    def commission(
+        self,
+        steps: Sequence[Step | str] | None = None,
+        out_path: str | Path | None = None,
+        settings: CommissionSettings | None = None,
+    ) -> Path:
         """Commission the cell in the background: the robot shows the camera the board and the
         chosen steps (default: all) measure the model (docs/commissioning.md). Progress, then
         the summary, are published in the state's ``commissioning``; the e-stop stops it
@@ -813,15 +909,26 @@ class CellController:
             folder = out.with_name(out.stem + "-commissioning")
             rig = replace(self.rig, camera=_ShownCamera(self.rig.camera, self._publish_frame))
             try:
-                commissioning = Commissioning(rig, folder, settings or CommissionSettings(seed=self.seed),
-                                              self._on_commission_progress, self._estop.is_set)
+                commissioning = Commissioning(
+                    rig, folder, settings or CommissionSettings(seed=self.seed), self._on_commission_progress, self._estop.is_set
+                )
             except ConfigError as exc:
                 raise CommandRefused(str(exc)) from exc
             self._enable_motion()
             self._commissioned, self._work = None, "commissioning"
-            self._update(phase=Phase.COMMISSIONING.value, detail=f"commissioning {', '.join(chosen)}",
-                         commissioning={"steps": [str(step) for step in chosen], "out": str(out), "step": None,
-                                        "progress": {}, "summary": None, "error": None, "applied": None})
+            self._update(
+                phase=Phase.COMMISSIONING.value,
+                detail=f"commissioning {', '.join(chosen)}",
+                commissioning={
+                    "steps": [str(step) for step in chosen],
+                    "out": str(out),
+                    "step": None,
+                    "progress": {},
+                    "summary": None,
+                    "error": None,
+                    "applied": None,
+                },
+            )
             self._run_thread = _WorkThread(self._commission, (commissioning, chosen, out, folder), "commissioning")
             self._run_thread.start()
             return out
@@ -829,10 +936,11 @@ class CellController:
     def _on_commission_progress(self, progress: Progress) -> None:
         record = self._state.commissioning
         line = {"done": progress.done, "total": progress.total, "note": progress.note}
-        self._update(detail=f"commissioning: {progress.step} {progress.done}/{progress.total}",
-                     commissioning={**record, "step": progress.step,
-                                    "progress": {**record["progress"], progress.step: line}},
-                     **self._robot_readout())
+        self._update(
+            detail=f"commissioning: {progress.step} {progress.done}/{progress.total}",
+            commissioning={**record, "step": progress.step, "progress": {**record["progress"], progress.step: line}},
+            **self._robot_readout(),
+        )
 
     def _commission(self, commissioning: Commissioning, steps: list[Step], out: Path, folder: Path) -> None:
         """The commissioning thread: on success the result waits for Apply; any failure
@@ -848,16 +956,26 @@ class CellController:
                 if not isinstance(exc, CommissioningError):
                     log.exception("commissioning crashed")
                 error, phase = f"{exc}{hold_after_fault(self.rig.robot)}", Phase.FAULT
-            self._update(phase=phase.value, detail=f"commissioning stopped: {error}",
-                         commissioning={**self._state.commissioning, "error": error}, **self._robot_readout())
+            self._update(
+                phase=phase.value,
+                detail=f"commissioning stopped: {error}",
+                commissioning={**self._state.commissioning, "error": error},
+                **self._robot_readout(),
+            )
             return
         self._commissioned = Commissioned(result, out, folder, steps)
         retakes = [str(step) for step, step_result in result.steps.items() if not step_result.verdict.good]
-        detail = (f"commissioned: every step good; Apply writes {out}" if not retakes else
-                  f"commissioned: {', '.join(retakes)} say{'s' if len(retakes) == 1 else ''} retake")
-        self._update(phase=Phase.IDLE.value, detail=detail,
-                     commissioning={**self._state.commissioning, "summary": commission_summary(result)},
-                     **self._robot_readout())
+        detail = (
+            f"commissioned: every step good; Apply writes {out}"
+            if not retakes
+            else f"commissioned: {', '.join(retakes)} say{'s' if len(retakes) == 1 else ''} retake"
+        )
+        self._update(
+            phase=Phase.IDLE.value,
+            detail=detail,
+            commissioning={**self._state.commissioning, "summary": commission_summary(result)},
+            **self._robot_readout(),
+        )
 
     def apply_commissioning(self) -> Path:
         """Write the commissioned cell file and run on its model from now on: the cell's
@@ -877,20 +995,28 @@ class CellController:
             running = self.rig.config
             try:
                 tables, _ = read_cell_data(None if is_shipped_cell(running.source) else running.source)
-                write_commissioned_cell(running.source, commissioned_tables(tables, done.result, done.out_path,
-                                                                            done.folder, done.steps), done.out_path)
+                write_commissioned_cell(
+                    running.source,
+                    commissioned_tables(tables, done.result, done.out_path, done.folder, done.steps),
+                    done.out_path,
+                )
                 self._commissioned = None
                 config = load_cell(done.out_path)
                 changed = [name for name, device in DEVICES.items() if device(config) != device(running)]
                 if changed:
-                    raise CommandRefused(f"{done.out_path} is written, but its {', '.join(changed)} differ from the "
-                                         f"running cell's: restart the controller with --cell {done.out_path}")
+                    raise CommandRefused(
+                        f"{done.out_path} is written, but its {', '.join(changed)} differ from the "
+                        f"running cell's: restart the controller with --cell {done.out_path}"
+                    )
                 locator = PartLocator.from_config(config)
             except (ConfigError, OSError) as exc:
                 raise CommandRefused(f"apply: {exc}") from exc
             self.rig.config, self.rig.extractor, self.rig.locator = config, extractor_for(config), locator
-            self._update(cell_file=config.source, detail=f"the controller's model is now {config.source}",
-                         commissioning={**self._state.commissioning, "applied": config.source})
+            self._update(
+                cell_file=config.source,
+                detail=f"the controller's model is now {config.source}",
+                commissioning={**self._state.commissioning, "applied": config.source},
+            )
             return done.out_path
 
     # -- safety ----------------------------------------------------------------------------
@@ -907,8 +1033,9 @@ class CellController:
         """
         self._estop_reason = why
         self._estop.set()
-        pending = (f"{why}: hold NOT confirmed after {HOLD_CONFIRM_S:g} s (the robot link is silent or busy): "
-                   "use the pendant's e-stop")
+        pending = (
+            f"{why}: hold NOT confirmed after {HOLD_CONFIRM_S:g} s (the robot link is silent or busy): use the pendant's e-stop"
+        )
         settled = threading.Lock()  # the answer and the timeout: whichever comes first writes the state
         answer: dict[str, str | bool] = {}
         answered = threading.Event()

@@ -34,8 +34,10 @@ def build_rig(config: CellConfig, seed: int | None = None, backend: str | None =
 
         return simulated_rig(config, seed, backend)
     if backend not in (None, "jrc"):
-        raise ConfigError(f"{config.source}: a real cell (camera.source.kind = {config.camera_source.kind!r}) "
-                          f"is driven by its JRC, not by the {backend!r} backend")
+        raise ConfigError(
+            f"{config.source}: a real cell (camera.source.kind = {config.camera_source.kind!r}) "
+            f"is driven by its JRC, not by the {backend!r} backend"
+        )
     return real_rig(config)
 
 
@@ -43,14 +45,13 @@ def real_rig(config: CellConfig) -> Rig:
     """The real cell's devices: the JRC, the camera of [camera.source], the cup on the JRC's I/O."""
     policy = step_policy_from_config(config.motion)
     if not isinstance(policy, PositionStepPolicy):
-        raise ConfigError(f"{config.source}: the JRC takes position steps; set [motion] mode = \"position_steps\"")
+        raise ConfigError(f'{config.source}: the JRC takes position steps; set [motion] mode = "position_steps"')
     model = config.nominal
     intrinsics = model.camera.intrinsics
     camera = open_camera(config.camera_source, (intrinsics.width, intrinsics.height))
     jrc = JrcBackend(config.jrc)
     vacuum = config.vacuum_device
-    gripper: VacuumGripper = (JrcVacuum(jrc, vacuum.suction_output, vacuum.grip_input)
-                              if vacuum.device == "jrc_io" else NoVacuum())
+    gripper: VacuumGripper = JrcVacuum(jrc, vacuum.suction_output, vacuum.grip_input) if vacuum.device == "jrc_io" else NoVacuum()
     return Rig(
         config=config,
         robot=SafetyLayer.from_config(jrc, config),
@@ -78,16 +79,24 @@ def open_camera(source: CameraSourceConfig, size: tuple[int, int]) -> FrameSourc
     """The camera of [camera.source] (kind "capture" or "folder"), delivering frames of ``size``
     (width, height), the size the intrinsics were calibrated at."""
     if source.kind == "capture":
-        return VideoCaptureSource(source.device, expected_size=size, reconnect_attempts=source.reconnect_attempts,
-                                  reconnect_delay_s=source.reconnect_delay_s, loop=source.loop,
-                                  exposure_latency_s=source.exposure_latency_s, buffer_frames=source.buffer_frames)
+        return VideoCaptureSource(
+            source.device,
+            expected_size=size,
+            reconnect_attempts=source.reconnect_attempts,
+            reconnect_delay_s=source.reconnect_delay_s,
+            loop=source.loop,
+            exposure_latency_s=source.exposure_latency_s,
+            buffer_frames=source.buffer_frames,
+        )
     if source.kind == "folder":
         folder = ImageFolderSource(source.path, source.pattern)
         # The folder checks its images against its first one; the first is checked here.
         height, width = read_mono8(folder.paths[0]).shape
         if (width, height) != size:
             folder.close()
-            raise ConfigError(f"camera.source.path: image {str(folder.paths[0])!r} is {width}x{height}, the camera's "
-                              f"image_size_px is {size[0]}x{size[1]} (width x height)")
+            raise ConfigError(
+                f"camera.source.path: image {str(folder.paths[0])!r} is {width}x{height}, the camera's "
+                f"image_size_px is {size[0]}x{size[1]} (width x height)"
+            )
         return folder
     raise ValueError(f"camera source {source.kind!r} is not a device: the simulated camera comes with the simulated rig")

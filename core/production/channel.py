@@ -91,8 +91,9 @@ def _steps(value: Any) -> list[str]:
 
 
 def _jobs(controller: CellController) -> list[dict]:
-    return [{"name": e.name, "saved_at": e.saved_at, "problem": e.problem, "shipped": e.shipped}
-            for e in controller.store.list_jobs()]
+    return [
+        {"name": e.name, "saved_at": e.saved_at, "problem": e.problem, "shipped": e.shipped} for e in controller.store.list_jobs()
+    ]
 
 
 def _limit(value: Any) -> int:
@@ -107,8 +108,11 @@ def _runs(controller: CellController, limit: int = 50) -> list[dict]:
 
 # Every command the app may send: name -> how to carry it out with its JSON arguments.
 COMMANDS: dict[str, Callable[[CellController, dict], Any]] = {
-    "jog": lambda c, a: c.jog(_vector(a.get("translation_m", [0, 0, 0]), 3, "translation_m"),
-                              _vector(a.get("rotation_rad", [0, 0, 0]), 3, "rotation_rad"), str(a.get("frame", "base"))),
+    "jog": lambda c, a: c.jog(
+        _vector(a.get("translation_m", [0, 0, 0]), 3, "translation_m"),
+        _vector(a.get("rotation_rad", [0, 0, 0]), 3, "rotation_rad"),
+        str(a.get("frame", "base")),
+    ),
     "move_to": lambda c, a: c.move_to(_pose(a.get("bMe"))),
     "begin_teach": lambda c, a: c.begin_teach(a.get("template")),
     "capture_desired": lambda c, a: c.capture_desired().corners_px.tolist(),
@@ -117,12 +121,16 @@ COMMANDS: dict[str, Callable[[CellController, dict], Any]] = {
     "set_pick_pose": lambda c, a: c.set_pick_pose(),
     "set_place_pose": lambda c, a: c.set_place_pose(),
     "set_settings": lambda c, a: c.set_settings(
-        float(a["threshold_px"]), float(a["gain"]), float(a["approach_m"]),
-        None if a.get("placement_tolerance_mm") is None else float(a["placement_tolerance_mm"])),
+        float(a["threshold_px"]),
+        float(a["gain"]),
+        float(a["approach_m"]),
+        None if a.get("placement_tolerance_mm") is None else float(a["placement_tolerance_mm"]),
+    ),
     "save_job": lambda c, a: c.save_job(str(a.get("name", "")), str(a.get("description", ""))).name,
     "cancel_teach": lambda c, a: c.cancel_teach(),
     "present_part": lambda c, a: c.present_part(
-        None if a.get("centre_mm") is None else _vector(a["centre_mm"], 2, "centre_mm"), float(a.get("turn_deg", 0.0))),
+        None if a.get("centre_mm") is None else _vector(a["centre_mm"], 2, "centre_mm"), float(a.get("turn_deg", 0.0))
+    ),
     "suction": lambda c, a: c.suction(bool(a["on"])),
     "test_pick": lambda c, a: c.test_pick(),
     "start": lambda c, a: c.start(str(a.get("job", ""))),
@@ -211,8 +219,10 @@ class ControllerServer:
         self._stopping = threading.Event()
         controller.state_subscribers.append(self._on_state)
         controller.frame_subscribers.append(self._on_frame)
-        self._threads = [threading.Thread(target=self._accept, name="channel-accept", daemon=True),
-                         threading.Thread(target=self._live_view, name="live-view", daemon=True)]
+        self._threads = [
+            threading.Thread(target=self._accept, name="channel-accept", daemon=True),
+            threading.Thread(target=self._live_view, name="live-view", daemon=True),
+        ]
         for thread in self._threads:
             thread.start()
 
@@ -248,8 +258,14 @@ class ControllerServer:
             hello = json.loads(connection.recv_bytes(MAX_HELLO_BYTES))
             version = hello.get("version") if isinstance(hello, dict) else None
             if not isinstance(hello, dict) or hello.get("type") != "hello" or version != PROTOCOL_VERSION:
-                connection.send_bytes(json.dumps({"type": "refused", "error": "this controller speaks channel "
-                                                  f"version {PROTOCOL_VERSION}, the app sent {version!r}"}).encode())
+                connection.send_bytes(
+                    json.dumps(
+                        {
+                            "type": "refused",
+                            "error": f"this controller speaks channel version {PROTOCOL_VERSION}, the app sent {version!r}",
+                        }
+                    ).encode()
+                )
                 return False
             return True
         except (AuthenticationError, EOFError, OSError, ValueError) as exc:
@@ -270,8 +286,7 @@ class ControllerServer:
             with self._lock:
                 self.subscribers.append(subscriber)
             threading.Thread(target=self._push, args=(subscriber,), name="channel-push", daemon=True).start()
-            threading.Thread(target=self._carry_out, args=(subscriber, commands), name="channel-commands",
-                             daemon=True).start()
+            threading.Thread(target=self._carry_out, args=(subscriber, commands), name="channel-commands", daemon=True).start()
             while True:
                 message = json.loads(connection.recv_bytes())
                 if not isinstance(message, dict) or message.get("type") != "command":
@@ -376,9 +391,13 @@ class Reply:
 class ControllerClient:
     """The app's end: commands with replies, and callbacks for state and frames."""
 
-    def __init__(self, address: tuple[str, int], authkey: bytes,
-                 on_state: Callable[[dict], None] = lambda state: None,
-                 on_frame: Callable[[dict, bytes], None] = lambda meta, jpeg: None) -> None:
+    def __init__(
+        self,
+        address: tuple[str, int],
+        authkey: bytes,
+        on_state: Callable[[dict], None] = lambda state: None,
+        on_frame: Callable[[dict, bytes], None] = lambda meta, jpeg: None,
+    ) -> None:
         try:
             self.connection = Client(address, authkey=authkey)
         except Exception as exc:  # ConnectionRefusedError, AuthenticationError
@@ -429,8 +448,7 @@ class ControllerClient:
             self._next_id += 1
             request = self._next_id
             try:
-                self.connection.send_bytes(json.dumps({"type": "command", "id": request, "name": command,
-                                                       "args": args}).encode())
+                self.connection.send_bytes(json.dumps({"type": "command", "id": request, "name": command, "args": args}).encode())
             except OSError as exc:
                 raise ChannelError(f"the controller is gone: {exc}") from exc
         with self._reply_ready:

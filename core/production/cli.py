@@ -13,8 +13,10 @@ from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
 from vservo.core.production.storage import default_data_dir
 from vservo.core.terminal.command_line import print_result, seed
 
-BACKEND_HELP = ("the simulated cell's robot: sim drives the simulator directly, jrc through the JRC link to an "
-                "emulated JRC on a pseudo-terminal (default: the cell file's [robot] backend; a real cell's is its JRC)")
+BACKEND_HELP = (
+    "the simulated cell's robot: sim drives the simulator directly, jrc through the JRC link to an "
+    "emulated JRC on a pseudo-terminal (default: the cell file's [robot] backend; a real cell's is its JRC)"
+)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -61,20 +63,26 @@ def _cmd_controller(args: argparse.Namespace) -> int:
     except ValueError:
         authkey = b""
     if len(authkey) < 16:
-        print(f"vservo controller: error: set {KEY_ENVIRONMENT} to the channel key (32+ hex digits); "
-              "`vservo serve` does this for you", file=sys.stderr)
+        print(
+            f"vservo controller: error: set {KEY_ENVIRONMENT} to the channel key (32+ hex digits); "
+            "`vservo serve` does this for you",
+            file=sys.stderr,
+        )
         return 2
     store = Store(args.data or default_data_dir())
-    controller = CellController(build_rig(load_cell(args.cell), args.seed, args.backend), store,
-                                seed=args.seed or 0, cycle_period_s=args.cycle_period)
+    controller = CellController(
+        build_rig(load_cell(args.cell), args.seed, args.backend), store, seed=args.seed or 0, cycle_period_s=args.cycle_period
+    )
     server = ControllerServer(controller, authkey, port=args.port)
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
     if args.exit_with_parent:
         threading.Thread(target=_stop_when_orphaned, args=(os.getppid(), stop), name="parent-watch", daemon=True).start()
-    print(json.dumps({"controller": {"host": server.address[0], "port": server.address[1],
-                                     "backend": controller.rig.robot.name}}), flush=True)
+    print(
+        json.dumps({"controller": {"host": server.address[0], "port": server.address[1], "backend": controller.rig.robot.name}}),
+        flush=True,
+    )
     stop.wait()
     server.close()
     controller.close()  # holds the robot if a run is under way
@@ -102,17 +110,21 @@ def _cmd_commission(args: argparse.Namespace) -> int:
         print(f"vservo commission: error: --steps {args.steps!r}: choose from {','.join(Step)}", file=sys.stderr)
         return 2
     if not args.cell:
-        print("vservo commission: error: --cell FILE is required: the cell file of the cell to commission "
-              "(it is never overwritten)", file=sys.stderr)
+        print(
+            "vservo commission: error: --cell FILE is required: the cell file of the cell to commission "
+            "(it is never overwritten)",
+            file=sys.stderr,
+        )
         return 2
     out = Path(args.out)
     if out.resolve() == Path(args.cell).resolve():
-        print(f"vservo commission: error: --out {out} is the input cell file: commissioning writes a new one",
-              file=sys.stderr)
+        print(f"vservo commission: error: --out {out} is the input cell file: commissioning writes a new one", file=sys.stderr)
         return 2
     if out.exists() and not args.force:
-        print(f"vservo commission: error: --out {out} exists: commissioning writes a new file (--force replaces it)",
-              file=sys.stderr)
+        print(
+            f"vservo commission: error: --out {out} exists: commissioning writes a new file (--force replaces it)",
+            file=sys.stderr,
+        )
         return 2
     config = load_cell(args.cell)
     reference = _reference_model(args.reference, args.cell) if args.reference else None
@@ -173,19 +185,21 @@ def _stop_when_orphaned(parent_pid: int, stop: threading.Event, period_s: float 
     """
     while not stop.wait(period_s):
         if os.getppid() != parent_pid:
-            print(f"vservo controller: the process that started it ({parent_pid}) is gone: holding the robot "
-                  "and stopping", file=sys.stderr, flush=True)
+            print(
+                f"vservo controller: the process that started it ({parent_pid}) is gone: holding the robot and stopping",
+                file=sys.stderr,
+                flush=True,
+            )
             stop.set()
 
 
 def add_production_commands(commands: argparse._SubParsersAction) -> None:
     """Register ``vservo run`` and ``vservo controller`` on the top-level subcommands."""
-    run = commands.add_parser(
-        "run", help="one headless assembly of a taught job on the cell of --cell (exit 0 when placed)"
-    )
+    run = commands.add_parser("run", help="one headless assembly of a taught job on the cell of --cell (exit 0 when placed)")
     run.add_argument("--job", required=True, help="job name (the shipped 'demo' is always there)")
-    run.add_argument("--data", metavar="DIR", help="data folder with the jobs and runs (default $VSERVO_DATA or "
-                     "~/.local/share/vservo)")
+    run.add_argument(
+        "--data", metavar="DIR", help="data folder with the jobs and runs (default $VSERVO_DATA or ~/.local/share/vservo)"
+    )
     run.add_argument("--seed", type=seed, default=None, help="seed of the simulated cell and of the part's arrival")
     run.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
     run.add_argument("--json", action="store_true", help="one JSON object")
@@ -198,26 +212,41 @@ def add_production_commands(commands: argparse._SubParsersAction) -> None:
     controller.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
     controller.add_argument("--seed", type=seed, default=None, help="seed of the simulated cell")
     controller.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
-    controller.add_argument("--cycle-period", type=float, default=0.05, metavar="S",
-                            help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)")
-    controller.add_argument("--exit-with-parent", action="store_true",
-                            help="hold the robot and exit when the process that started this one is gone "
-                                 "(`vservo serve` sets it: a killed app leaves no controller holding the cell)")
+    controller.add_argument(
+        "--cycle-period",
+        type=float,
+        default=0.05,
+        metavar="S",
+        help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)",
+    )
+    controller.add_argument(
+        "--exit-with-parent",
+        action="store_true",
+        help="hold the robot and exit when the process that started this one is gone "
+        "(`vservo serve` sets it: a killed app leaves no controller holding the cell)",
+    )
     controller.set_defaults(run=_cmd_controller)
 
     commission = commands.add_parser(
-        "commission", help="measure the connected cell's camera, hand-eye, laser and NN on its board and write a new "
-                           "cell file (docs/commissioning.md)")
+        "commission",
+        help="measure the connected cell's camera, hand-eye, laser and NN on its board and write a new "
+        "cell file (docs/commissioning.md)",
+    )
     commission.add_argument("--out", required=True, metavar="NEW_FILE", help="the commissioned cell file to write")
-    commission.add_argument("--steps", default="camera,hand-eye,laser,nn",
-                            help="comma-separated steps: camera, hand-eye, laser, nn (default: all)")
-    commission.add_argument("--data-folder", metavar="DIR",
-                            help="where the views, datasets and the NN go (default: NEW_FILE's name + -commissioning)")
-    commission.add_argument("--reference", metavar="FILE",
-                            help="a cell file to compare the measured model with: a virtual cell's --truth file, or "
-                                 "the last commissioned file")
-    commission.add_argument("--seed", type=seed, default=None, help="seed of the views' random tilts and turns "
-                                                                   "(and of a simulated cell)")
+    commission.add_argument(
+        "--steps", default="camera,hand-eye,laser,nn", help="comma-separated steps: camera, hand-eye, laser, nn (default: all)"
+    )
+    commission.add_argument(
+        "--data-folder", metavar="DIR", help="where the views, datasets and the NN go (default: NEW_FILE's name + -commissioning)"
+    )
+    commission.add_argument(
+        "--reference",
+        metavar="FILE",
+        help="a cell file to compare the measured model with: a virtual cell's --truth file, or the last commissioned file",
+    )
+    commission.add_argument(
+        "--seed", type=seed, default=None, help="seed of the views' random tilts and turns (and of a simulated cell)"
+    )
     commission.add_argument("--force", action="store_true", help="replace NEW_FILE if it exists (never the input)")
     commission.add_argument("--json", action="store_true", help="one JSON object")
     commission.set_defaults(run=_cmd_commission)

@@ -42,8 +42,9 @@ def _json_ready(value: Any) -> Any:
     return value
 
 
-def commissioned_tables(tables: dict[str, Any], result: CommissionResult, out_path: Path, data_folder: Path,
-                        steps: list[Step]) -> dict[str, Any]:
+def commissioned_tables(
+    tables: dict[str, Any], result: CommissionResult, out_path: Path, data_folder: Path, steps: list[Step]
+) -> dict[str, Any]:
     """The input cell file's tables with what ``result`` measured (module docstring)."""
     new = copy.deepcopy(tables)
     model = result.model
@@ -61,15 +62,17 @@ def commissioned_tables(tables: dict[str, Any], result: CommissionResult, out_pa
     record: dict[str, Any] = {}
     if result.nn_path is not None:
         record["nn_file"] = os.path.relpath(result.nn_path.resolve(), out_path.resolve().parent)
-    record["provenance"] = _json_ready({
-        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
-        "data_folder": str(data_folder),
-        "steps": [str(s) for s in steps],
-        "wall_time_s": round(result.wall_time_s, 1),
-        "cell_time_s": round(result.cell_time_s, 1),
-        **{str(step): r.as_dict() for step, r in result.steps.items()},
-        **({"acceptance": result.acceptance} if result.acceptance else {}),
-    })
+    record["provenance"] = _json_ready(
+        {
+            "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "data_folder": str(data_folder),
+            "steps": [str(s) for s in steps],
+            "wall_time_s": round(result.wall_time_s, 1),
+            "cell_time_s": round(result.cell_time_s, 1),
+            **{str(step): r.as_dict() for step, r in result.steps.items()},
+            **({"acceptance": result.acceptance} if result.acceptance else {}),
+        }
+    )
     new["commissioning"] = record
     return new
 
@@ -80,8 +83,10 @@ def write_commissioned_cell(input_path: str | Path, tables: dict[str, Any], out_
     out = Path(out_path)
     if Path(input_path).resolve() == out.resolve():
         raise ConfigError(f"--out {out}: that is the input cell file; commissioning writes a new one")
-    header = (f"Commissioned from {input_path} by vservo commission, {time.strftime('%Y-%m-%d %H:%M:%S')}.\n"
-              "[camera], [hand_eye], [laser] and [board] pose hold measured values; [commissioning] says how.")
+    header = (
+        f"Commissioned from {input_path} by vservo commission, {time.strftime('%Y-%m-%d %H:%M:%S')}.\n"
+        "[camera], [hand_eye], [laser] and [board] pose hold measured values; [commissioning] says how."
+    )
     text = dumps_cell(tables, header)
     parse_cell(tomllib.loads(text), str(out), out.parent)
     write_atomic(out, text.encode("utf-8"))

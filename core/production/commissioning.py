@@ -120,8 +120,13 @@ class ViewRecord:
     found: str
 
     def as_dict(self) -> dict[str, Any]:
-        return {"step": self.step, "index": self.index, "image": self.image, "found": self.found,
-                "bMe": None if self.bMe is None else np.round(self.bMe, 9).tolist()}
+        return {
+            "step": self.step,
+            "index": self.index,
+            "image": self.image,
+            "found": self.found,
+            "bMe": None if self.bMe is None else np.round(self.bMe, 9).tolist(),
+        }
 
 
 @dataclass(frozen=True)
@@ -164,8 +169,9 @@ class CommissionResult:
         return all(result.verdict.good for result in self.steps.values())
 
 
-def look_at(target_b: Matrix, distance_m: float, tilt_rad: float = 0.0, azimuth_rad: float = 0.0,
-            turn_rad: float = 0.0) -> Matrix:
+def look_at(
+    target_b: Matrix, distance_m: float, tilt_rad: float = 0.0, azimuth_rad: float = 0.0, turn_rad: float = 0.0
+) -> Matrix:
     """bMc of a camera ``distance_m`` from ``target_b`` along its optical axis, looking down
     at it tilted by ``tilt_rad`` about the horizontal axis at ``azimuth_rad``, turned by
     ``turn_rad`` about its own optical axis."""
@@ -185,12 +191,19 @@ class Commissioning:
     """Runs the steps on a rig; ``on_progress`` hears of every view, ``stopped`` is polled
     between views (an e-stop or a cancel ends it with the robot where it stands)."""
 
-    def __init__(self, rig: Rig, folder: Path, settings: CommissionSettings = CommissionSettings(),
-                 on_progress: Callable[[Progress], None] = lambda progress: None,
-                 stopped: Callable[[], bool] = lambda: False) -> None:
+    def __init__(
+        self,
+        rig: Rig,
+        folder: Path,
+        settings: CommissionSettings = CommissionSettings(),
+        on_progress: Callable[[Progress], None] = lambda progress: None,
+        stopped: Callable[[], bool] = lambda: False,
+    ) -> None:
         if rig.config.board is None:
-            raise ConfigError(f"{rig.config.source}: no [board]: commissioning needs the board's square, inner "
-                              "corners and rough place (docs/cell-file.md)")
+            raise ConfigError(
+                f"{rig.config.source}: no [board]: commissioning needs the board's square, inner "
+                "corners and rough place (docs/cell-file.md)"
+            )
         self.rig, self.folder, self.settings = rig, Path(folder), settings
         self.board: BoardConfig = rig.config.board
         self.on_progress, self.stopped = on_progress, stopped
@@ -243,8 +256,9 @@ class Commissioning:
         cv2.imwrite(str(self.folder / "views" / name), frame.image)
         return frame.image, name
 
-    def _look(self, step: str, index: int, bMe_target: Matrix, spot: bool = False
-              ) -> tuple[Matrix, BoardView, Matrix | None] | None:
+    def _look(
+        self, step: str, index: int, bMe_target: Matrix, spot: bool = False
+    ) -> tuple[Matrix, BoardView, Matrix | None] | None:
         """Go to bMe_target, take a frame, find the board (and the laser spot when asked). None when
         the view cannot be used; the reason is recorded."""
         if self.stopped():
@@ -266,8 +280,15 @@ class Commissioning:
         except BoardNotFound as exc:
             self.views.append(ViewRecord(step, index, bMe, name, f"board refused: {exc}"))
             return None
-        self.views.append(ViewRecord(step, index, bMe, name, f"{len(view.corners_px)} corners"
-                                     + ("" if spot_px is None else f", spot at {np.round(spot_px, 2).tolist()}")))
+        self.views.append(
+            ViewRecord(
+                step,
+                index,
+                bMe,
+                name,
+                f"{len(view.corners_px)} corners" + ("" if spot_px is None else f", spot at {np.round(spot_px, 2).tolist()}"),
+            )
+        )
         return bMe, view, spot_px
 
     def _report(self, step: str, done: int, total: int, note: str) -> None:
@@ -295,8 +316,12 @@ class Commissioning:
             self._write_views()
             if self.rig.lay_board is not None:
                 self.rig.lay_board(False)
-        return replace(result, views=list(self.views), wall_time_s=time.monotonic() - started_wall,
-                       cell_time_s=self.rig.robot.cell_clock_s() - started_clock)
+        return replace(
+            result,
+            views=list(self.views),
+            wall_time_s=time.monotonic() - started_wall,
+            cell_time_s=self.rig.robot.cell_clock_s() - started_clock,
+        )
 
     def _run(self, steps: set[Step]) -> CommissionResult:
         results: dict[Step, StepResult] = {}
@@ -320,8 +345,9 @@ class Commissioning:
             views = self._collect("laser", self._laser_poses(), spot=True)
             if not views:
                 raise CommissioningError("no laser view showed both the board and the spot (views.json says why)")
-            laser = fit_laser_beam(self.model.camera, np.array([s for _, _, s in views]),
-                                   [board_pose(self.model.camera, v) for _, v, _ in views])
+            laser = fit_laser_beam(
+                self.model.camera, np.array([s for _, _, s in views]), [board_pose(self.model.camera, v) for _, v, _ in views]
+            )
             self.model = replace(self.model, laser=LaserPointer(laser.cMl))
             results[Step.LASER] = StepResult(Step.LASER, laser_figures(laser), laser.verdict)
         nn_path = None
@@ -336,9 +362,11 @@ class Commissioning:
         there, through the current model, where it really lies (enough to aim by)."""
         seen = self._look("find", 0, self._down_view(self._centre_b(), self.settings.find_height_m))
         if seen is None:
-            raise CommissioningError(f"no board seen from {self.settings.find_height_m * 1000:.0f} mm over where "
-                                     f"[board] pose puts it ({self.views[-1].found}): lay the board there "
-                                     "(to a few centimetres), or correct [board] pose")
+            raise CommissioningError(
+                f"no board seen from {self.settings.find_height_m * 1000:.0f} mm over where "
+                f"[board] pose puts it ({self.views[-1].found}): lay the board there "
+                "(to a few centimetres), or correct [board] pose"
+            )
         bMe, view, _ = seen
         self.bMboard = bMe @ self.model.eMc @ board_pose(self.model.camera, view)
         self._report("find", 1, 1, "board found")
@@ -378,10 +406,19 @@ class Commissioning:
     def _tilted_poses(self) -> list[Matrix]:
         s, rng = self.settings, self.rng
         centre, radial = self._centre_b(), self._radial_azimuth()
-        return self._draw(s.camera_views, lambda k: look_at(
-            centre + np.append(rng.uniform(-0.01, 0.01, 2), 0.0), rng.uniform(*s.camera_distance_m),
-            np.deg2rad(rng.uniform(*s.tilt_deg)), radial + np.pi * (k % 2), rng.uniform(-np.pi, np.pi))
-            @ inverse(self.model.eMc))
+        return self._draw(
+            s.camera_views,
+            lambda k: (
+                look_at(
+                    centre + np.append(rng.uniform(-0.01, 0.01, 2), 0.0),
+                    rng.uniform(*s.camera_distance_m),
+                    np.deg2rad(rng.uniform(*s.tilt_deg)),
+                    radial + np.pi * (k % 2),
+                    rng.uniform(-np.pi, np.pi),
+                )
+                @ inverse(self.model.eMc)
+            ),
+        )
 
     def _laser_poses(self) -> list[Matrix]:
         """At each height, level and leaning both ways: the flange is put so that the beam
@@ -413,26 +450,45 @@ class Commissioning:
         views = self._collect("grid", self._grid_poses())
         dataset = grid_dataset([v for _, v, _ in views], [bMe for bMe, _, _ in views], self.bMboard)
         # What locating needs to know of the grid: where the flange was, and the plane's height.
-        dataset = replace(dataset, metadata={**dataset.metadata, "survey_height_m": self.settings.survey_height_m,
-                                             "cell": self.rig.config.source, "board_z_m": float(self.bMboard[2, 3]),
-                                             "grid_bMe": [np.round(bMe, 9).tolist() for bMe, _, _ in views]})
+        dataset = replace(
+            dataset,
+            metadata={
+                **dataset.metadata,
+                "survey_height_m": self.settings.survey_height_m,
+                "cell": self.rig.config.source,
+                "board_z_m": float(self.bMboard[2, 3]),
+                "grid_bMe": [np.round(bMe, 9).tolist() for bMe, _, _ in views],
+            },
+        )
         dataset.save(self.folder / "grid.npz")
         order = np.random.default_rng([self.settings.seed, 5]).permutation(dataset.size)
         validation = max(dataset.size // 6, 1)
         fit, check = dataset.subset(order[validation:]), dataset.subset(order[:validation])
-        model = train_nn(fit, "planar", validation=check, settings=LMSettings(epochs=self.settings.nn_epochs),
-                         seed=self.settings.seed,
-                         on_epoch=lambda epoch, mse: self._report("nn", epoch, self.settings.nn_epochs,
-                                                                  f"mse {mse:.3g}"))
+        model = train_nn(
+            fit,
+            "planar",
+            validation=check,
+            settings=LMSettings(epochs=self.settings.nn_epochs),
+            seed=self.settings.seed,
+            on_epoch=lambda epoch, mse: self._report("nn", epoch, self.settings.nn_epochs, f"mse {mse:.3g}"),
+        )
         path = self.folder / "nn.npz"
         model.save(path)
         errors = model.world_of(check.pixels_px, check.bMe[check.view]) - check.world_m
         error_mm = 1000 * np.linalg.norm(errors, axis=1)
-        figures = {"views": len(views), "corners": dataset.size, "validation_mean_mm": round(float(error_mm.mean()), 4),
-                   "validation_max_mm": round(float(error_mm.max()), 4), "file": str(path)}
+        figures = {
+            "views": len(views),
+            "corners": dataset.size,
+            "validation_mean_mm": round(float(error_mm.mean()), 4),
+            "validation_max_mm": round(float(error_mm.max()), 4),
+            "file": str(path),
+        }
         good = len(views) >= 10 and float(error_mm.mean()) < 0.5
-        reason = (f"validation error {error_mm.mean():.3f} mm mean over {check.size} corners"
-                  if good else f"retake: {len(views)} grid views, validation error {error_mm.mean():.3f} mm mean")
+        reason = (
+            f"validation error {error_mm.mean():.3f} mm mean over {check.size} corners"
+            if good
+            else f"retake: {len(views)} grid views, validation error {error_mm.mean():.3f} mm mean"
+        )
         return path, StepResult(Step.NN, figures, Verdict(good, reason))
 
     def _acceptance(self) -> dict[str, Any]:
@@ -464,8 +520,12 @@ class Commissioning:
         if not seen:
             raise CommissioningError("the acceptance check saw the board from none of its poses")
         errors = acceptance_errors(BoardPlaneModel(self.model.camera, self.model.eMc, self.bMboard), self.bMboard, seen)
-        return {"corners": len(seen), "errors_mm": [round(float(e), 4) for e in errors.errors_mm],
-                "mean_mm": round(errors.mean_mm, 4), "max_mm": round(errors.max_mm, 4)}
+        return {
+            "corners": len(seen),
+            "errors_mm": [round(float(e), 4) for e in errors.errors_mm],
+            "mean_mm": round(errors.mean_mm, 4),
+            "max_mm": round(errors.max_mm, 4),
+        }
 
     def _write_views(self) -> None:
         (self.folder / "views.json").write_text(json.dumps([v.as_dict() for v in self.views], indent=1))
@@ -479,17 +539,25 @@ def model_errors(model: CellModel, reference: CellModel, depth_m: float) -> dict
     k, r = model.camera.intrinsics, reference.camera.intrinsics
     translation, rotation = pose_error(model.eMc, reference.eMc)
     beam_deg, beam_mm = beam_line_error(model.laser.cMl, reference.laser.cMl, depth_m)
-    return {"fx_percent": round(100 * (k.fx / r.fx - 1), 4), "fy_percent": round(100 * (k.fy / r.fy - 1), 4),
-            "principal_point_px": round(float(np.hypot(k.u0 - r.u0, k.v0 - r.v0)), 4),
-            "eMc_mm": round(1000 * translation, 4), "eMc_deg": round(float(np.degrees(rotation)), 4),
-            "beam_direction_deg": round(beam_deg, 4), f"beam_at_{depth_m * 1000:g}_mm": round(beam_mm, 4)}
+    return {
+        "fx_percent": round(100 * (k.fx / r.fx - 1), 4),
+        "fy_percent": round(100 * (k.fy / r.fy - 1), 4),
+        "principal_point_px": round(float(np.hypot(k.u0 - r.u0, k.v0 - r.v0)), 4),
+        "eMc_mm": round(1000 * translation, 4),
+        "eMc_deg": round(float(np.degrees(rotation)), 4),
+        "beam_direction_deg": round(beam_deg, 4),
+        f"beam_at_{depth_m * 1000:g}_mm": round(beam_mm, 4),
+    }
 
 
 def camera_summary(camera: CameraModel) -> dict[str, Any]:
     k = camera.intrinsics
-    return {"fx_px": round(k.fx, 4), "fy_px": round(k.fy, 4), "principal_point_px": [round(k.u0, 4), round(k.v0, 4)],
-            "distortion": [round(float(v), 6) for v in camera.distortion.as_opencv()]}
-
+    return {
+        "fx_px": round(k.fx, 4),
+        "fy_px": round(k.fy, 4),
+        "principal_point_px": [round(k.u0, 4), round(k.v0, 4)],
+        "distortion": [round(float(v), 6) for v in camera.distortion.as_opencv()],
+    }
 
 
 def commission_summary(result: CommissionResult) -> dict[str, Any]:
@@ -524,21 +592,34 @@ def laser_geometry(cMl: Matrix) -> tuple[float, float]:
 
 
 def camera_figures(camera: CameraCalibration, views: int) -> dict[str, Any]:
-    return {**camera_summary(camera.camera), "views": views, "rms_px": round(camera.rms_px, 4),
-            "worst_view_rms_px": round(float(np.max(camera.view_rms_px)), 4),
-            "std_fx_px": round(camera.std_fx_px, 4), "std_fy_px": round(camera.std_fy_px, 4),
-            "std_principal_point_px": [round(camera.std_u0_px, 4), round(camera.std_v0_px, 4)]}
+    return {
+        **camera_summary(camera.camera),
+        "views": views,
+        "rms_px": round(camera.rms_px, 4),
+        "worst_view_rms_px": round(float(np.max(camera.view_rms_px)), 4),
+        "std_fx_px": round(camera.std_fx_px, 4),
+        "std_fy_px": round(camera.std_fy_px, 4),
+        "std_principal_point_px": [round(camera.std_u0_px, 4), round(camera.std_v0_px, 4)],
+    }
 
 
 def hand_eye_figures(hand_eye: HandEyeCalibration) -> dict[str, Any]:
     from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
 
-    return {"eMc_mm_deg": [round(float(v), 4) for v in pose_to_mm_deg(pose_from_matrix(hand_eye.eMc))],
-            "rms_px": round(hand_eye.rms_px, 4), "spread_mm": round(hand_eye.spread_mm, 4),
-            "spread_deg": round(hand_eye.spread_deg, 4), "wrist_turns_deg": [round(t, 2) for t in hand_eye.turn_deg]}
+    return {
+        "eMc_mm_deg": [round(float(v), 4) for v in pose_to_mm_deg(pose_from_matrix(hand_eye.eMc))],
+        "rms_px": round(hand_eye.rms_px, 4),
+        "spread_mm": round(hand_eye.spread_mm, 4),
+        "spread_deg": round(hand_eye.spread_deg, 4),
+        "wrist_turns_deg": [round(t, 2) for t in hand_eye.turn_deg],
+    }
 
 
 def laser_figures(laser: LaserCalibration) -> dict[str, Any]:
-    return {"spots": len(laser.points_c), "baseline_mm": round(1000 * laser.baseline_m, 4),
-            "alpha_deg": round(float(np.degrees(laser.alpha_rad)), 4), "line_rms_mm": round(laser.rms_mm, 4),
-            "depth_span_mm": round(laser.depth_span_mm, 2)}
+    return {
+        "spots": len(laser.points_c),
+        "baseline_mm": round(1000 * laser.baseline_m, 4),
+        "alpha_deg": round(float(np.degrees(laser.alpha_rad)), 4),
+        "line_rms_mm": round(laser.rms_mm, 4),
+        "depth_span_mm": round(laser.depth_span_mm, 2),
+    }

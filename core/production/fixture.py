@@ -35,8 +35,7 @@ class FixtureClient:
         """The part put down with its frame O (a top-face corner) at (x_m, y_m) in the base
         frame, turned yaw_rad about the vertical; the fixture refuses a place off its table
         or on the metal part."""
-        return self._request("POST", "/part", {"x_mm": 1000.0 * x_m, "y_mm": 1000.0 * y_m,
-                                               "yaw_deg": float(np.degrees(yaw_rad))})
+        return self._request("POST", "/part", {"x_mm": 1000.0 * x_m, "y_mm": 1000.0 * y_m, "yaw_deg": float(np.degrees(yaw_rad))})
 
     def lay_board(self, laid: bool) -> dict:
         """Lay the calibration checkerboard on the table (the parts cleared off it), or take it away."""
@@ -44,13 +43,13 @@ class FixtureClient:
 
     def _request(self, method: str, path: str, body: dict | None = None) -> dict:
         data = None if body is None else json.dumps(body).encode()
-        request = urllib.request.Request(self.url + path, data=data, method=method,
-                                         headers={"Content-Type": "application/json"})
+        request = urllib.request.Request(self.url + path, data=data, method=method, headers={"Content-Type": "application/json"})
         try:
             with urllib.request.urlopen(request, timeout=self.timeout_s) as response:
                 return json.loads(response.read() or b"{}")
         except urllib.error.HTTPError as exc:
-            raise FixtureError(f"fixture {self.url}: {method} {path} refused ({exc.code}): "
-                               f"{exc.read().decode(errors='replace').strip()}") from None
+            raise FixtureError(
+                f"fixture {self.url}: {method} {path} refused ({exc.code}): {exc.read().decode(errors='replace').strip()}"
+            ) from None
         except (urllib.error.URLError, OSError, json.JSONDecodeError) as exc:
             raise FixtureError(f"fixture {self.url}: {method} {path} failed: {exc}") from None

@@ -54,8 +54,15 @@ def turned_grasp(bMe: Matrix, pMo: Matrix, side_m: float, symmetry: int, turns: 
     return np.asarray(bMe, dtype=float) @ pMo @ oTo @ inverse(pMo)
 
 
-def grasp_choice(bMe_taught: Matrix, pMo: Matrix, side_m: float, symmetry: int, bMe_from: Matrix,
-                 reachable: Callable[[Matrix], bool], bMe_next: Matrix | None = None) -> GraspChoice:
+def grasp_choice(
+    bMe_taught: Matrix,
+    pMo: Matrix,
+    side_m: float,
+    symmetry: int,
+    bMe_from: Matrix,
+    reachable: Callable[[Matrix], bool],
+    bMe_next: Matrix | None = None,
+) -> GraspChoice:
     """The grasp of least flange turn from bMe_from (plus on to bMe_next) that ``reachable``
     accepts; the taught grasp (turns 0) when none is, so that its move is refused saying why.
 

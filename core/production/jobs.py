@@ -78,17 +78,23 @@ class TaughtModel:
         if mine.image_size != theirs.image_size:
             return False
         k, k2 = mine.intrinsics, theirs.intrinsics
-        return (np.allclose([k.fx, k.fy, k.u0, k.v0], [k2.fx, k2.fy, k2.u0, k2.v0], rtol=0, atol=self.PIXEL_TOLERANCE)
-                and np.allclose(mine.distortion.as_opencv(), theirs.distortion.as_opencv(), rtol=0, atol=self.TOLERANCE)
-                and np.allclose(self.eMc, model.eMc, rtol=0, atol=self.TOLERANCE)
-                and np.allclose(self.cMl, model.laser.cMl, rtol=0, atol=self.TOLERANCE))
+        return (
+            np.allclose([k.fx, k.fy, k.u0, k.v0], [k2.fx, k2.fy, k2.u0, k2.v0], rtol=0, atol=self.PIXEL_TOLERANCE)
+            and np.allclose(mine.distortion.as_opencv(), theirs.distortion.as_opencv(), rtol=0, atol=self.TOLERANCE)
+            and np.allclose(self.eMc, model.eMc, rtol=0, atol=self.TOLERANCE)
+            and np.allclose(self.cMl, model.laser.cMl, rtol=0, atol=self.TOLERANCE)
+        )
 
     def as_dict(self) -> dict[str, Any]:
         k = self.camera.intrinsics
         return {
-            "camera": {"fx_px": k.fx, "fy_px": k.fy, "principal_point_px": [k.u0, k.v0],
-                       "image_size_px": [k.width, k.height],
-                       "distortion": self.camera.distortion.as_opencv().tolist()},
+            "camera": {
+                "fx_px": k.fx,
+                "fy_px": k.fy,
+                "principal_point_px": [k.u0, k.v0],
+                "image_size_px": [k.width, k.height],
+                "distortion": self.camera.distortion.as_opencv().tolist(),
+            },
             "eMc": self.eMc.tolist(),
             "cMl": self.cMl.tolist(),
         }
@@ -135,8 +141,9 @@ class Job:
     def __post_init__(self) -> None:
         validate_job_name(self.name)
         if self.grasp_symmetry not in SYMMETRIES:
-            raise JobError(f"job {self.name!r}: grasp_symmetry {self.grasp_symmetry!r} is not one of "
-                           f"{', '.join(map(str, SYMMETRIES))}")
+            raise JobError(
+                f"job {self.name!r}: grasp_symmetry {self.grasp_symmetry!r} is not one of {', '.join(map(str, SYMMETRIES))}"
+            )
 
     def as_dict(self) -> dict[str, Any]:
         d = self.desired
@@ -162,7 +169,9 @@ class Job:
             "eMe_pick": self.eMe_pick.tolist(),
             "bMe_place": self.bMe_place.tolist(),
             "placement_tolerance_mm": self.placement_tolerance_mm,
-            "check": None if self.check is None else {
+            "check": None
+            if self.check is None
+            else {
                 "check_bMe": self.check.check_bMe.tolist(),
                 "corners_px": self.check.corners_px.tolist(),
             },
@@ -217,8 +226,11 @@ class _Fields:
     def pose(self, key: str) -> Matrix:
         M = self.array(key, (4, 4))
         R = M[:3, :3]
-        if not (np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.isclose(np.linalg.det(R), 1.0, atol=1e-6)
-                and np.allclose(M[3], [0, 0, 0, 1])):
+        if not (
+            np.allclose(R.T @ R, np.eye(3), atol=1e-6)
+            and np.isclose(np.linalg.det(R), 1.0, atol=1e-6)
+            and np.allclose(M[3], [0, 0, 0, 1])
+        ):
             raise self.fail(key, "not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
         return M
 
@@ -229,8 +241,9 @@ def job_from_dict(data: Any, source: str) -> Job:
         raise JobError(f"{source}: not a vservo job file (format {f.data.get('format')!r}, expected {JOB_FORMAT!r})")
     version = f.data.get("version")
     if version not in READABLE_VERSIONS:
-        raise JobError(f"{source}: job format version {version!r}; this vservo reads versions "
-                       f"{', '.join(map(str, READABLE_VERSIONS))}")
+        raise JobError(
+            f"{source}: job format version {version!r}; this vservo reads versions {', '.join(map(str, READABLE_VERSIONS))}"
+        )
     method = f.get("method")
     if method not in METHODS:
         raise f.fail("method", f"{method!r} is not one of {', '.join(METHODS)}")
@@ -271,8 +284,11 @@ def _grasp_symmetry(f: _Fields) -> int:
     """The optional grasp_symmetry (a job file without it: a square face, 4)."""
     value = f.data.get("grasp_symmetry", 4)
     if isinstance(value, bool) or value not in SYMMETRIES:
-        raise f.fail("grasp_symmetry", f"{value!r} is not one of {', '.join(map(str, SYMMETRIES))} (the turns "
-                                       "about the top face's vertical axis that map the part onto itself)")
+        raise f.fail(
+            "grasp_symmetry",
+            f"{value!r} is not one of {', '.join(map(str, SYMMETRIES))} (the turns "
+            "about the top face's vertical axis that map the part onto itself)",
+        )
     return int(value)
 
 
@@ -295,8 +311,7 @@ def _model_fields(f: _Fields, source: str) -> dict[str, Any]:
         size = camera.array("image_size_px", (2,))
         if np.any(size < 1) or np.any(size != np.round(size)):
             raise camera.fail("image_size_px", f"{size.tolist()} is not two positive whole numbers")
-        intrinsics = Intrinsics(camera.number("fx_px"), camera.number("fy_px"), float(u0), float(v0),
-                                int(size[0]), int(size[1]))
+        intrinsics = Intrinsics(camera.number("fx_px"), camera.number("fy_px"), float(u0), float(v0), int(size[0]), int(size[1]))
         distortion = Distortion(*camera.array("distortion", (5,)))
         model = TaughtModel(CameraModel(intrinsics, distortion), fields.pose("eMc"), fields.pose("cMl"))
     survey = f.get("survey_bMe")

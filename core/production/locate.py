@@ -72,25 +72,33 @@ class PartLocator:
         nn = NNCalibration.load(record.nn_path, "planar")
         grid = nn.training.get("dataset", {})
         if "grid_bMe" not in grid or "board_z_m" not in grid:
-            raise ConfigError(f"{config.source}: commissioning.nn_file {str(record.nn_path)!r} was not trained by "
-                              "vservo commission (it holds no survey grid): commission the nn step")
+            raise ConfigError(
+                f"{config.source}: commissioning.nn_file {str(record.nn_path)!r} was not trained by "
+                "vservo commission (it holds no survey grid): commission the nn step"
+            )
         return cls(nn, config.nominal, float(grid["board_z_m"]), np.array(grid["grid_bMe"], dtype=float))
 
     def check_survey(self, bMe: Matrix) -> None:
         """Refuse a survey pose the network was not trained for (module docstring)."""
         reference = self.grid_bMe[0]
         if abs(bMe[2, 3] - reference[2, 3]) > HEIGHT_TOLERANCE_M:
-            raise LocateError(f"the survey's flange is at z = {bMe[2, 3] * 1000:.1f} mm, the network was trained at "
-                              f"z = {reference[2, 3] * 1000:.1f} mm: commission the nn step at this survey height")
+            raise LocateError(
+                f"the survey's flange is at z = {bMe[2, 3] * 1000:.1f} mm, the network was trained at "
+                f"z = {reference[2, 3] * 1000:.1f} mm: commission the nn step at this survey height"
+            )
         if rotation_angle(bMe[:3, :3].T @ reference[:3, :3]) > ORIENTATION_TOLERANCE_RAD:
-            raise LocateError("the survey's flange is turned from the orientation the network was trained at: "
-                              "survey tool-down as the commissioning grid was")
+            raise LocateError(
+                "the survey's flange is turned from the orientation the network was trained at: "
+                "survey tool-down as the commissioning grid was"
+            )
         low = self.grid_bMe[:, :2, 3].min(axis=0) - GRID_MARGIN_M
         high = self.grid_bMe[:, :2, 3].max(axis=0) + GRID_MARGIN_M
         if np.any(bMe[:2, 3] < low) or np.any(bMe[:2, 3] > high):
-            raise LocateError(f"the survey's flange ({bMe[0, 3] * 1000:.1f}, {bMe[1, 3] * 1000:.1f}) mm is outside the "
-                              f"grid the network was trained on (x {low[0] * 1000:.0f}..{high[0] * 1000:.0f}, "
-                              f"y {low[1] * 1000:.0f}..{high[1] * 1000:.0f} mm)")
+            raise LocateError(
+                f"the survey's flange ({bMe[0, 3] * 1000:.1f}, {bMe[1, 3] * 1000:.1f}) mm is outside the "
+                f"grid the network was trained on (x {low[0] * 1000:.0f}..{high[0] * 1000:.0f}, "
+                f"y {low[1] * 1000:.0f}..{high[1] * 1000:.0f} mm)"
+            )
 
     def locate(self, corners_px: Matrix | None, bMe: Matrix, part_side_m: float) -> LocatedPart:
         """The part frame of the part whose top-face corners were seen at ``corners_px``

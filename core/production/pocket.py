@@ -57,8 +57,12 @@ def pocket_fit(bMo: Matrix, pocket: MetalPart, side_m: float) -> PocketFit:
     """How the part at bMo sits in ``pocket``: offset, turn (modulo quarter turns) and height."""
     pMo = inverse(pocket.bMp) @ bMo
     centre = pMo @ _bottom_centre(side_m)
-    return PocketFit(bMo=bMo, offset_mm=1000.0 * float(np.linalg.norm(centre[:2])),
-                     turn_deg=float(np.rad2deg(_quarter_turn_error(pMo))), height_mm=1000.0 * float(centre[2]))
+    return PocketFit(
+        bMo=bMo,
+        offset_mm=1000.0 * float(np.linalg.norm(centre[:2])),
+        turn_deg=float(np.rad2deg(_quarter_turn_error(pMo))),
+        height_mm=1000.0 * float(centre[2]),
+    )
 
 
 def flange_in_pocket(eMo: Matrix, pocket: MetalPart, side_m: float, bMo_now: Matrix) -> Matrix:

@@ -38,8 +38,9 @@ from vservo.core.perception.features import DesiredImage
 from vservo.core.production.jobs import Job, JobError, TaughtModel
 from vservo.core.production.placement_check import CheckView
 
-NOT_RETARGETED = ("the job records no taught model (a job file before version 3): run as taught, "
-                  "not retargeted to this cell's calibration")
+NOT_RETARGETED = (
+    "the job records no taught model (a job file before version 3): run as taught, not retargeted to this cell's calibration"
+)
 RETARGETED = "retargeted: the job was taught through another camera, hand-eye or laser calibration"
 
 
@@ -84,18 +85,23 @@ def _desired_through(model: CellModel, cdMo: Matrix, part: Cube, name: str) -> D
     corners_c = part.corners_o @ cdMo[:3, :3].T + cdMo[:3, 3]
     corners_px = camera.project(corners_c)
     if not np.all(camera.in_view(corners_px)):
-        raise JobError(f"job {name!r}: through this cell's camera the desired view does not show the part's four "
-                       "corners: teach the desired image again")
+        raise JobError(
+            f"job {name!r}: through this cell's camera the desired view does not show the part's four "
+            "corners: teach the desired image again"
+        )
     normal_c = cdMo[:3, 2]
     spot_c = model.laser.spot_on_plane(normal_c, float(normal_c @ cdMo[:3, 3]))
     spot_o = None if spot_c is None else inverse(cdMo)[:3, :3] @ spot_c + inverse(cdMo)[:3, 3]
     if spot_o is None or not np.all((spot_o[:2] >= 0.0) & (spot_o[:2] <= part.side_m)):
-        raise JobError(f"job {name!r}: this cell's laser beam misses the part's top face at the desired view: "
-                       "teach the desired image again")
+        raise JobError(
+            f"job {name!r}: this cell's laser beam misses the part's top face at the desired view: teach the desired image again"
+        )
     spot_px = camera.project(spot_c)[0]
     if not camera.in_view(spot_px)[0]:
-        raise JobError(f"job {name!r}: through this cell's camera the desired view's laser spot is off the image: "
-                       "teach the desired image again")
+        raise JobError(
+            f"job {name!r}: through this cell's camera the desired view's laser spot is off the image: "
+            "teach the desired image again"
+        )
     # The corners' depths follow from cdMo alone, which a new model does not change.
     return DesiredImage(corners_px, spot_px, float(spot_c[2]), cdMo, corners_c[:, 2])
 
@@ -111,8 +117,10 @@ def _check_through(check: CheckView, taught: TaughtModel, model: CellModel, part
     cMo = inverse(model.eMc) @ taught.eMc @ ctMo
     corners_px = model.camera.project(part.corners_o @ cMo[:3, :3].T + cMo[:3, 3])
     if not np.all(model.camera.in_view(corners_px)):
-        raise JobError(f"job {name!r}: through this cell's camera the check view does not show the placed part's "
-                       "four corners: teach the check view again")
+        raise JobError(
+            f"job {name!r}: through this cell's camera the check view does not show the placed part's "
+            "four corners: teach the check view again"
+        )
     return CheckView(check.check_bMe, corners_px)
 
 

@@ -39,8 +39,9 @@ from vservo.core.sim.vacuum import SimulatedVacuum
 JRC_TIME_SCALE = 40.0
 
 
-def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | None = None,
-                  jrc_time_scale: float = JRC_TIME_SCALE) -> Rig:
+def simulated_rig(
+    config: CellConfig, seed: int | None = None, backend: str | None = None, jrc_time_scale: float = JRC_TIME_SCALE
+) -> Rig:
     """The simulated cell's devices; ``backend`` (default: the cell file's [robot]
     backend) "sim" drives the simulator directly, "jrc" through the JRC link and an
     emulated JRC on a pseudo-terminal."""
@@ -64,7 +65,7 @@ def simulated_rig(config: CellConfig, seed: int | None = None, backend: str | No
         robot = SafetyLayer.from_config(SimulatedBackend(cell), config)
     else:
         if not isinstance(policy, PositionStepPolicy):
-            raise ValueError(f"{config.source}: the JRC takes position steps; set [motion] mode = \"position_steps\"")
+            raise ValueError(f'{config.source}: the JRC takes position steps; set [motion] mode = "position_steps"')
         emulator = JrcEmulator(cell, config.jrc, time_scale=jrc_time_scale, vacuum=vacuum)
         jrc = JrcBackend(replace(config.jrc, time_scale=jrc_time_scale), emulator.start_on_pty())
         robot = SafetyLayer.from_config(jrc, config)

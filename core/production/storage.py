@@ -233,17 +233,34 @@ class Store:
     def run_folder(self, run_id: int) -> Path:
         return self.runs_dir / f"{run_id:06d}"
 
-    def finish_run(self, run_id: int, outcome: Outcome, reason: str, final_error_px: float | None,
-                   placement_error_mm: float | None, duration_s: float, stages: list[dict],
-                   recording: Path | None) -> None:
+    def finish_run(
+        self,
+        run_id: int,
+        outcome: Outcome,
+        reason: str,
+        final_error_px: float | None,
+        placement_error_mm: float | None,
+        duration_s: float,
+        stages: list[dict],
+        recording: Path | None,
+    ) -> None:
         """The run's end on record. ``recording`` (its folder) is stored relative to the data
         folder, so the folder can be moved or opened from any working directory."""
         with self._transaction() as db:
             db.execute(
                 "UPDATE runs SET finished_at = ?, outcome = ?, reason = ?, final_error_px = ?, placement_error_mm = ?,"
                 " duration_s = ?, stages = ?, recording = ? WHERE id = ?",
-                (time.time(), outcome, reason, _finite_or_none(final_error_px), _finite_or_none(placement_error_mm),
-                 duration_s, json.dumps(stages), self._stored_path(recording), run_id),
+                (
+                    time.time(),
+                    outcome,
+                    reason,
+                    _finite_or_none(final_error_px),
+                    _finite_or_none(placement_error_mm),
+                    duration_s,
+                    json.dumps(stages),
+                    self._stored_path(recording),
+                    run_id,
+                ),
             )
 
     def close_unfinished_runs(self) -> list[int]:
@@ -254,10 +271,15 @@ class Store:
             ids = [row[0] for row in db.execute("SELECT id FROM runs WHERE outcome IS NULL ORDER BY id")]
             for run_id in ids:
                 folder = self.run_folder(run_id)
-                db.execute("UPDATE runs SET outcome = ?, reason = ?, recording = ? WHERE id = ?",
-                           (Outcome.INTERRUPTED, "the controller process ended during the run (found unfinished "
-                            "at its next start)",
-                            self._stored_path(folder) if folder.is_dir() else None, run_id))
+                db.execute(
+                    "UPDATE runs SET outcome = ?, reason = ?, recording = ? WHERE id = ?",
+                    (
+                        Outcome.INTERRUPTED,
+                        "the controller process ended during the run (found unfinished at its next start)",
+                        self._stored_path(folder) if folder.is_dir() else None,
+                        run_id,
+                    ),
+                )
         return ids
 
     def _stored_path(self, folder: Path | None) -> str | None:

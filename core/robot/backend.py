@@ -72,34 +72,41 @@ class RobotBackend(Protocol):
     def read_pose(self) -> Matrix:
         """The flange pose bMe as the controller computes it."""
         ...
+
     def servo(self, on: bool) -> None: ...
     def move_to(self, bMe_target: Matrix, speed_m_s: float) -> None:
         """Start a linear move to bMe_target (MOVL). Raises UnreachableTarget or RobotError."""
         ...
+
     def move_by(self, bMe_increment: Matrix, speed_m_s: float) -> None:
         """Start a linear move by an increment in the base frame (IMOV): translation added,
         rotation composed on the left."""
         ...
+
     def move_timed(self, bMe_target: Matrix, duration_s: float) -> None:
         """Start a linear move to bMe_target that lasts duration_s: one control period of a
         velocity-controlled robot (a twist held for duration_s). A controller that takes
         position steps only (the JRC) refuses it with RobotError."""
         ...
+
     def wait_motion(self, timeout_s: float | None = None) -> bool:
         """Block until the motion ends (JWAIT): True when it finished, False when it was
         stopped for another reason (hold, alarm, servo off)."""
         ...
+
     def hold(self, on: bool) -> None: ...
     def reset_alarms(self) -> None: ...
     def clock_s(self) -> float:
         """The robot's clock in s: the plant's simulated time, or the host's monotonic time
         for a real controller. Only differences of it mean anything."""
         ...
+
     def cell_clock_s(self) -> float:
         """How long the real cell would have taken, as a clock: the plant's time for the
         simulator; for a JRC the wall clock with an emulator's speed-up undone and the link
         at its baud rate (on a real JRC, the wall clock). Only differences mean anything."""
         ...
+
     def dwell(self, seconds: float) -> None:
         """Let time pass with the robot standing still (the rest of a sampling period)."""
         ...
@@ -152,6 +159,13 @@ def apply_increment(bMe: Matrix, bMe_increment: Matrix) -> Matrix:
 
 
 __all__ = [
-    "MotionStopped", "RobotBackend", "RobotError", "RobotNotReady", "RobotStatus", "UnreachableTarget",
-    "apply_increment", "carry_out", "move_and_wait",
+    "MotionStopped",
+    "RobotBackend",
+    "RobotError",
+    "RobotNotReady",
+    "RobotStatus",
+    "UnreachableTarget",
+    "apply_increment",
+    "carry_out",
+    "move_and_wait",
 ]

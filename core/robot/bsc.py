@@ -73,7 +73,7 @@ def encode_blocks(message: Message) -> list[bytes]:
         raise ValueError(f"not a header: {message.header!r}")
     if any(b < 0x20 and b != 0x0D for b in text):
         raise ValueError(f"a text may hold printable characters and CR only: {message.text!r}")
-    chunks = [text[i:i + MAX_TEXT_BYTES] for i in range(0, len(text), MAX_TEXT_BYTES)] or [b""]
+    chunks = [text[i : i + MAX_TEXT_BYTES] for i in range(0, len(text), MAX_TEXT_BYTES)] or [b""]
     blocks = []
     for i, chunk in enumerate(chunks):
         end = ETX if i == len(chunks) - 1 else ETB

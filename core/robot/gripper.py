@@ -19,8 +19,6 @@ class VacuumGripper(Protocol):
         ...
 
 
-
-
 class NoVacuum:
     """A cell without a vacuum cup ([vacuum] device = "none"): it can jog, teach views and
     servo, and refuses to pick."""

@@ -271,8 +271,13 @@ class JrcBackend:
                 station.channel.discard_input()
                 station.send(Message(HOST_COMMAND, text + "\r"))
                 reply = station.receive(reply_wait_s or self.line.timer_b_s, f"the reply to {name}")
-                self._count_cell_time(name, reply, time.monotonic() - started_s, station.bid_at_s,
-                                      station.channel.bytes_in + station.channel.bytes_out - bytes_before)
+                self._count_cell_time(
+                    name,
+                    reply,
+                    time.monotonic() - started_s,
+                    station.bid_at_s,
+                    station.channel.bytes_in + station.channel.bytes_out - bytes_before,
+                )
             except LinkError as exc:  # the station has ended the exchange with EOT
                 raise LinkError(f"{name} failed: {exc}; {self._hold_after_failure(name)}") from exc
             except (OSError, serial.SerialException) as exc:  # the port itself is gone (unplugged, closed)
@@ -319,7 +324,10 @@ class JrcBackend:
         alarm = bool(d2 & (D2_ALARM | D2_ERROR))
         detail = holds + ([self.alarm_text()] if alarm else [])
         return RobotStatus(
-            servo_on=bool(d2 & D2_SERVO_ON), running=bool(d1 & D1_RUNNING), held=bool(holds), alarm=alarm,
+            servo_on=bool(d2 & D2_SERVO_ON),
+            running=bool(d1 & D1_RUNNING),
+            held=bool(holds),
+            alarm=alarm,
             detail="; ".join(detail),
         )
 
@@ -367,12 +375,13 @@ class JrcBackend:
         self._sent = [float(v) for v in pose.split(",")]
 
     def move_by(self, bMe_increment: Matrix, speed_m_s: float) -> None:
-        self.command(f"IMOV 0,{self._speed(speed_m_s)},0,{format_pose(wire_pose(bMe_increment))},{self._posture},0,"
-                     "0,0,0,0,0,0")
+        self.command(f"IMOV 0,{self._speed(speed_m_s)},0,{format_pose(wire_pose(bMe_increment))},{self._posture},0,0,0,0,0,0,0")
 
     def move_timed(self, bMe_target: Matrix, duration_s: float) -> None:
-        raise RobotError("the JRC takes one position target at a time and is not real-time (section 5.3): "
-                         "servo it with [motion] mode = \"position_steps\"")
+        raise RobotError(
+            "the JRC takes one position target at a time and is not real-time (section 5.3): "
+            'servo it with [motion] mode = "position_steps"'
+        )
 
     def wait_motion(self, timeout_s: float | None = None) -> bool:
         """JWAITs of jwait_slice_s until the motion ends; between two, a hold can get through.
@@ -448,8 +457,7 @@ class JrcBackend:
         them, time_scale times.
         """
         sped_up_s = 0.0  # the part of this exchange's wall time the emulator ran time_scale times faster
-        if name in ("MOVL", "IMOV") and reply.header == STATUS_REPLY and reply.text.strip().isdigit() \
-                and int(reply.text) == 0:
+        if name in ("MOVL", "IMOV") and reply.header == STATUS_REPLY and reply.text.strip().isdigit() and int(reply.text) == 0:
             self._motion_from_s = bid_at_s
         elif name == "JWAIT" and self._motion_from_s is not None:
             sped_up_s = max(bid_at_s - self._motion_from_s, 0.0)

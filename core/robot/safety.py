@@ -114,8 +114,7 @@ class Watchdog:
             if quiet:
                 source, silence = max(quiet.items(), key=lambda item: item[1])
                 self._disarmed.set()
-                self._on_quiet(f"watchdog: the {source} has been quiet for {silence:.1f} s "
-                               f"(limit {self.timeout_s:g} s)")
+                self._on_quiet(f"watchdog: the {source} has been quiet for {silence:.1f} s (limit {self.timeout_s:g} s)")
                 return
 
 
@@ -181,8 +180,9 @@ class SafetyLayer:
 
     # -- checks ------------------------------------------------------------------------
 
-    def check_target(self, bMe_target: Matrix, speed_m_s: float, bMe_now: Matrix | None = None,
-                     q_seed: Matrix | None = None) -> Matrix:
+    def check_target(
+        self, bMe_target: Matrix, speed_m_s: float, bMe_now: Matrix | None = None, q_seed: Matrix | None = None
+    ) -> Matrix:
         """Raise a SafetyRefusal unless a linear move to bMe_target at speed_m_s is allowed;
         returns the joints the nominal IK finds for it. ``bMe_now`` defaults to the robot's
         pose, ``q_seed`` (where the IK starts) to the joints of the last move sent."""
@@ -192,8 +192,9 @@ class SafetyLayer:
         if not (np.isfinite(speed_m_s) and speed_m_s > 0.0):
             raise TooFast(f"move refused: speed {speed_m_s!r} m/s is not a positive number")
         if speed_m_s > limits.max_speed_m_s:
-            raise TooFast(f"move refused: speed {speed_m_s * 1000:.1f} mm/s exceeds the maximum "
-                          f"{limits.max_speed_m_s * 1000:.1f} mm/s")
+            raise TooFast(
+                f"move refused: speed {speed_m_s * 1000:.1f} mm/s exceeds the maximum {limits.max_speed_m_s * 1000:.1f} mm/s"
+            )
         if bMe_target.shape != (4, 4) or not np.all(np.isfinite(bMe_target)):
             raise OutsideWorkspace(f"move refused: the target is not a finite 4x4 pose: {bMe_target.tolist()}")
 
@@ -206,20 +207,25 @@ class SafetyLayer:
                 raise OutsideWorkspace(
                     f"move refused: the {name} would be at {np.round(p * 1000, 1).tolist()} mm, outside the "
                     f"workspace box on {axis} ({np.round(limits.workspace_min_m * 1000, 1).tolist()} .. "
-                    f"{np.round(limits.workspace_max_m * 1000, 1).tolist()} mm)")
+                    f"{np.round(limits.workspace_max_m * 1000, 1).tolist()} mm)"
+                )
 
         bMe_now = self.read_pose() if bMe_now is None else bMe_now
         translation, rotation = pose_error(bMe_now, bMe_target)
         if translation > limits.max_step_m:
-            raise StepTooLarge(f"move refused: a step of {translation * 1000:.1f} mm exceeds the maximum "
-                               f"{limits.max_step_m * 1000:.1f} mm")
+            raise StepTooLarge(
+                f"move refused: a step of {translation * 1000:.1f} mm exceeds the maximum {limits.max_step_m * 1000:.1f} mm"
+            )
         if rotation > limits.max_step_rad:
-            raise StepTooLarge(f"move refused: a step of {np.degrees(rotation):.2f} deg exceeds the maximum "
-                               f"{np.degrees(limits.max_step_rad):.2f} deg")
+            raise StepTooLarge(
+                f"move refused: a step of {np.degrees(rotation):.2f} deg exceeds the maximum "
+                f"{np.degrees(limits.max_step_rad):.2f} deg"
+            )
 
         try:
-            q = self.arm.ik(bMe_target, self._q_seed if q_seed is None else q_seed,
-                            tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE).q
+            q = self.arm.ik(
+                bMe_target, self._q_seed if q_seed is None else q_seed, tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE
+            ).q
         except UnreachableTarget as exc:
             raise BeyondJointLimits(f"move refused: no joints within the limits reach the target ({exc})") from exc
         margins = np.minimum(q - self.arm.lower, self.arm.upper - q)
@@ -227,7 +233,8 @@ class SafetyLayer:
         if margins[worst] < limits.joint_margin_rad:
             raise BeyondJointLimits(
                 f"move refused: joint {self.arm.joint_names[worst]} would be {np.degrees(margins[worst]):.2f} deg from "
-                f"its limit, closer than the margin {np.degrees(limits.joint_margin_rad):.2f} deg")
+                f"its limit, closer than the margin {np.degrees(limits.joint_margin_rad):.2f} deg"
+            )
         return q
 
     def model_joints(self, bMe: Matrix) -> Matrix:
@@ -314,8 +321,7 @@ class SafetyLayer:
             q = self.check_target(bMe_waypoint, speed_m_s, bMe_before, q)
         return waypoints
 
-    def joint_path(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float,
-                   q_seed: Matrix | None = None) -> list[Matrix]:
+    def joint_path(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float, q_seed: Matrix | None = None) -> list[Matrix]:
         """The steps of a move from bMe_from to bMe_target on the straight line between
         their joints (the nominal IK of each, the target's from the start's), each step
         checked (check_target), no motion.
@@ -332,8 +338,9 @@ class SafetyLayer:
         """
         bMe_target = np.asarray(bMe_target, dtype=float)
         try:
-            q_from = self.arm.ik(bMe_from, self._q_seed if q_seed is None else q_seed,
-                                 tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE).q
+            q_from = self.arm.ik(
+                bMe_from, self._q_seed if q_seed is None else q_seed, tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE
+            ).q
             q_to = self.arm.ik(bMe_target, q_from, tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE).q
         except UnreachableTarget as exc:
             raise BeyondJointLimits(f"move refused: no joints within the limits reach the path's ends ({exc})") from exc

@@ -192,9 +192,19 @@ def run_servo(
             watchdog.disarm()
 
 
-def _servo(cell: MeasurementSource, law: ControlLaw, desired: DesiredImage, model: CellModel, policy: StepPolicy,
-           limits: LoopLimits, on_cycle: Callable[[Cycle], None] | None, perception: Perception, robot: RobotBackend,
-           watchdog: Watchdog | None, joint_limits: JointLimitedSteps | None) -> ServoOutcome:
+def _servo(
+    cell: MeasurementSource,
+    law: ControlLaw,
+    desired: DesiredImage,
+    model: CellModel,
+    policy: StepPolicy,
+    limits: LoopLimits,
+    on_cycle: Callable[[Cycle], None] | None,
+    perception: Perception,
+    robot: RobotBackend,
+    watchdog: Watchdog | None,
+    joint_limits: JointLimitedSteps | None,
+) -> ServoOutcome:
     eVc = twist_transform(model.eMc)
     desired_area = corner_area_px2(desired.corners_px)
     first_area = float("nan")

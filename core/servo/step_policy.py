@@ -72,8 +72,7 @@ class LargestSafeStep:
         step = np.asarray(eVe, dtype=float)
         # |translation of exp(step)| <= |v|: bounding v and w bounds the move the safety layer checks.
         sizes = (float(np.linalg.norm(step[:3])), float(np.linalg.norm(step[3:])))
-        scale = min([1.0] + [limit / size for limit, size in zip((self.max_step_m, self.max_step_rad), sizes)
-                             if size > 0.0])
+        scale = min([1.0] + [limit / size for limit, size in zip((self.max_step_m, self.max_step_rad), sizes) if size > 0.0])
         return PositionCommand(bMe @ exp_twist(scale * step), self.speed_m_s, 0.0)
 
 

@@ -21,8 +21,11 @@ class TeachError(ValueError):
 
 def desired_from_features(features: ImageFeatures, camera: CameraModel, part_side_m: float) -> DesiredImage:
     """The desired image of a part of side ``part_side_m`` from the features seen at the taught pose."""
-    missing = [name for name, seen in (("all four corners", features.all_corners_visible),
-                                       ("the laser spot", features.laser_visible)) if not seen]
+    missing = [
+        name
+        for name, seen in (("all four corners", features.all_corners_visible), ("the laser spot", features.laser_visible))
+        if not seen
+    ]
     if missing:
         raise TeachError(f"the desired view must show {' and '.join(missing)}")
     part = Cube(np.eye(4), part_side_m)

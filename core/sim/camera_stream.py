@@ -109,8 +109,9 @@ class CameraStream:
             raise RuntimeError(f"the camera stream at {self.url} is already started")
         self._threads = [
             threading.Thread(target=self._expose, name="camera-stream-clock", daemon=True),
-            threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.05},
-                             name="camera-stream-server", daemon=True),
+            threading.Thread(
+                target=self._server.serve_forever, kwargs={"poll_interval": 0.05}, name="camera-stream-server", daemon=True
+            ),
         ]
         for thread in self._threads:
             thread.start()
@@ -250,9 +251,7 @@ class _StreamHandler(BaseHTTPRequestHandler):
                 # Blocks while the client's socket is full; the frames sent meanwhile are
                 # skipped for this client, as a camera drops them.
                 self.wfile.write(
-                    f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n".encode()
-                    + jpeg
-                    + b"\r\n"
+                    f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n".encode() + jpeg + b"\r\n"
                 )
         except OSError:  # the client went away, or close() disconnected it
             pass

@@ -155,7 +155,7 @@ class FaultInjector:
             self._fired()
             if kind == "drop":
                 cut = int(self.rng.integers(0, len(data)))
-                return data[:cut] + data[cut + 1:]
+                return data[:cut] + data[cut + 1 :]
             time.sleep(self.rng.uniform(0.3, 1.5) * self.line.timer_a_s)
         return data
 
@@ -200,8 +200,15 @@ class JrcEmulator:
     it is "jrc_io", the cup is wired to the I/O at its addresses.
     """
 
-    def __init__(self, cell: SimulatedCell, line: JrcLineConfig, faults: FaultPlan = FaultPlan(),
-                 time_scale: float = 1.0, pace: bool = False, vacuum: VacuumDeviceConfig | None = None) -> None:
+    def __init__(
+        self,
+        cell: SimulatedCell,
+        line: JrcLineConfig,
+        faults: FaultPlan = FaultPlan(),
+        time_scale: float = 1.0,
+        pace: bool = False,
+        vacuum: VacuumDeviceConfig | None = None,
+    ) -> None:
         if not time_scale > 0.0:
             raise ValueError(f"time scale {time_scale!r} must be positive")
         self.cell, self.line, self.time_scale, self.pace = cell, line, time_scale, pace
@@ -324,11 +331,13 @@ class JrcEmulator:
     def _cmd_rstats(self, fields: list[str]) -> Message:
         _count(fields, 0, 0)
         d1 = D1_PLAY | D1_REMOTE | (D1_RUNNING if self.motion is not None else 0)
-        d2 = ((D2_PENDANT_HOLD if self.pendant_hold_until_s is not None else 0)
-              | (D2_EXTERNAL_HOLD if self.external_hold else 0)
-              | (D2_COMMAND_HOLD if self.command_hold else 0)
-              | (D2_ALARM if self.alarm is not None else 0)
-              | (D2_SERVO_ON if self.servo_on else 0))
+        d2 = (
+            (D2_PENDANT_HOLD if self.pendant_hold_until_s is not None else 0)
+            | (D2_EXTERNAL_HOLD if self.external_hold else 0)
+            | (D2_COMMAND_HOLD if self.command_hold else 0)
+            | (D2_ALARM if self.alarm is not None else 0)
+            | (D2_SERVO_ON if self.servo_on else 0)
+        )
         return _data(f"{d1},{d2}")
 
     def _cmd_ralarm(self, fields: list[str]) -> Message:
@@ -558,5 +567,3 @@ def _switch(fields: list[str]) -> list[bool]:
     if value not in (0, 1):
         raise _Refused(1013)
     return [bool(value)]
-
-

@@ -48,12 +48,16 @@ def place_part(cell: SimulatedCell, x_m: float, y_m: float, yaw_rad: float) -> M
     bMo = transform(rot_z(float(yaw_rad)), (float(x_m), float(y_m), scene.table_height_m + side))
     footprint = scene.cube.moved_to(bMo).corners_b[:, :2]
     if np.any(np.abs(footprint) > scene.table_half_size_m):
-        raise ValueError(f"the part at x = {1000 * x_m:g} mm, y = {1000 * y_m:g} mm would hang off the table "
-                         f"(it spans +-{1000 * scene.table_half_size_m:g} mm about the base)")
+        raise ValueError(
+            f"the part at x = {1000 * x_m:g} mm, y = {1000 * y_m:g} mm would hang off the table "
+            f"(it spans +-{1000 * scene.table_half_size_m:g} mm about the base)"
+        )
     if _overlap(footprint, _outline_b(scene.metal_part.boxes[0].bMx, scene.metal_part.boxes[0].half_extents)):
         px, py = 1000 * scene.metal_part.bMp[:2, 3]
-        raise ValueError(f"the part at x = {1000 * x_m:g} mm, y = {1000 * y_m:g} mm would overlap the metal part "
-                         f"(centred at x = {px:g} mm, y = {py:g} mm)")
+        raise ValueError(
+            f"the part at x = {1000 * x_m:g} mm, y = {1000 * y_m:g} mm would overlap the metal part "
+            f"(centred at x = {px:g} mm, y = {py:g} mm)"
+        )
     cell.vacuum(False)
     cell.place_cube(bMo)
     return bMo

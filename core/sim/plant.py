@@ -190,8 +190,16 @@ class SimulatedCell:
         """
         if not look:
             unseen = np.full(2, np.nan)
-            return Measurement(self.state.time_s, self.state.q.copy(), self.flange_readout(), np.full((4, 2), np.nan), unseen,
-                               ObjectRegion(0.0, unseen), np.full(4, np.nan), unseen)
+            return Measurement(
+                self.state.time_s,
+                self.state.q.copy(),
+                self.flange_readout(),
+                np.full((4, 2), np.nan),
+                unseen,
+                ObjectRegion(0.0, unseen),
+                np.full(4, np.nan),
+                unseen,
+            )
         bMc = self.ground_truth_bMe() @ self.truth.model.eMc
         cMb = inverse(bMc)
         camera = self.truth.model.camera
@@ -220,8 +228,16 @@ class SimulatedCell:
         if spot_b is not None:
             spot_px = self._observe(camera.project((cMb[:3, :3] @ spot_b + cMb[:3, 3])[None, :]))[0]
 
-        return Measurement(self.state.time_s, self.state.q.copy(), self.flange_readout(), corners_px, spot_px, region,
-                           corners_c[:, 2].copy(), reference_px)
+        return Measurement(
+            self.state.time_s,
+            self.state.q.copy(),
+            self.flange_readout(),
+            corners_px,
+            spot_px,
+            region,
+            corners_c[:, 2].copy(),
+            reference_px,
+        )
 
     def flange_readout(self) -> Matrix:
         """The flange pose the robot reports: the JRC's nominal model of its joints; a free
@@ -255,8 +271,7 @@ class SimulatedCell:
         if isinstance(command, VelocityCommand):
             return self.move(command.target(bMe), command.dt_s)
         if isinstance(command, PositionCommand):
-            return self.move(command.bMe_target, max(self.travel_time_s(command.bMe_target, command.speed_m_s),
-                                                     command.period_s))
+            return self.move(command.bMe_target, max(self.travel_time_s(command.bMe_target, command.speed_m_s), command.period_s))
         raise TypeError(f"not a robot command: {command!r}")
 
     def travel_time_s(self, bMe_target: Matrix, speed_m_s: float) -> float:
@@ -268,8 +283,7 @@ class SimulatedCell:
     def jrc_ik(self, bMe_target: Matrix) -> Matrix:
         """The joints the JRC computes for a flange target, from where the arm
         is, with its nominal model; raises UnreachableTarget."""
-        return self.jrc_arm.ik(bMe_target, self.state.q, tolerance_m=IK_TOLERANCE_M,
-                                      tolerance_rad=IK_TOLERANCE_RAD).q
+        return self.jrc_arm.ik(bMe_target, self.state.q, tolerance_m=IK_TOLERANCE_M, tolerance_rad=IK_TOLERANCE_RAD).q
 
     def move(self, bMe_target: Matrix, duration_s: float) -> MoveReport:
         """The arm moves to the JRC's joints for bMe_target in duration_s and settles."""
@@ -372,10 +386,12 @@ class SimulatedCell:
         """A fresh repeatability error: a small random rigid motion of the flange."""
         if not (self.truth.repeatability_m or self.truth.repeatability_rad):
             return np.eye(4)
-        twist = np.concatenate([
-            self.rng.normal(0.0, self.truth.repeatability_m, 3),
-            self.rng.normal(0.0, self.truth.repeatability_rad, 3),
-        ])
+        twist = np.concatenate(
+            [
+                self.rng.normal(0.0, self.truth.repeatability_m, 3),
+                self.rng.normal(0.0, self.truth.repeatability_rad, 3),
+            ]
+        )
         return exp_twist(twist)
 
     def place_cube(self, bMo: Matrix) -> None:

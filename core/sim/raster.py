@@ -76,6 +76,7 @@ def _face_patterns() -> np.ndarray:
 
 _FACE_PATTERNS = _face_patterns()
 
+
 def rasterize(polygons: list[np.ndarray], weights: np.ndarray, x0: int, y0: int, width: int, height: int) -> np.ndarray:
     """Exact area coverage of polygons on a window of pixel cells.
 
@@ -172,6 +173,7 @@ class _Group:
     weights: list[tuple[float, float]] = field(default_factory=list)
     fills_view: float | None = None  # grey if one face covers the whole canvas
     bbox: tuple[float, float, float, float] | None = None
+
 
 class SceneRasterizer:
     """Draws a scene as the camera sees it, before any sensor effect (module docstring)."""
@@ -278,8 +280,9 @@ class SceneRasterizer:
             return st.metal_grey
         return st.metal_grey * (1.0 + st.metal_side_shading * light)
 
-    def _prepare(self, box: Box, kind: str, cMb: np.ndarray, planes, offsets, inner,
-                 decals: tuple[tuple[np.ndarray, float], ...] = ()) -> _Group | None:
+    def _prepare(
+        self, box: Box, kind: str, cMb: np.ndarray, planes, offsets, inner, decals: tuple[tuple[np.ndarray, float], ...] = ()
+    ) -> _Group | None:
         """The box's visible faces; ``decals`` are (polygon in C, grey added) printed on
         its top face, each over the ones before it (the cube's mark, the board's sheet
         and squares)."""
@@ -396,8 +399,7 @@ class SceneRasterizer:
             if box.name in ("cube", "metal_part"):
                 continue
             decals = self._board_decals(scene, cMb) if box.name == "table" else ()
-            group = self._prepare(box, "table" if box.name == "table" else "other", cMb, planes, offsets, inner,
-                                  decals)
+            group = self._prepare(box, "table" if box.name == "table" else "other", cMb, planes, offsets, inner, decals)
             if group is not None:
                 groups.append(group)
         if not scene.parts_on_table:  # the table was cleared to lay the board
@@ -410,8 +412,7 @@ class SceneRasterizer:
         mark_o = cube.mark_o + radius * np.column_stack((np.cos(angles), np.sin(angles), np.zeros(n)))
         cMo = cMb @ cube.bMo
         mark_c = mark_o @ cMo[:3, :3].T + cMo[:3, 3]
-        group = self._prepare(cube.box, "cube", cMb, planes, offsets, inner,
-                              ((mark_c, st.mark_grey - st.top_grey),))
+        group = self._prepare(cube.box, "cube", cMb, planes, offsets, inner, ((mark_c, st.mark_grey - st.top_grey),))
         if group is not None:
             groups.append(group)
         metal = self._prepare_metal(scene.metal_part, cube, cMb, planes, offsets, inner)
@@ -503,6 +504,7 @@ class SceneRasterizer:
             return canvas
         h, w = canvas.shape[0] // k, canvas.shape[1] // k
         return cv2.resize(canvas, (w, h), interpolation=cv2.INTER_AREA)
+
 
 def _covers_rectangle(xn: np.ndarray, rect: np.ndarray) -> bool:
     """True if the convex polygon xn (n, 2) contains the rectangle (xmin, xmax, ymin, ymax)."""

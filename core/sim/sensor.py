@@ -86,6 +86,7 @@ def smear_kernel(length_px: float, angle_rad: float) -> np.ndarray:
     kernel = kernel[:size, :size]
     return (kernel / kernel.sum()).astype(np.float32)
 
+
 class SensorEffects:
     """Turns the rasteriser's float frame into the sensor's 8-bit frame (module docstring)."""
 
@@ -179,4 +180,3 @@ class SensorEffects:
         gx = np.exp(-((np.arange(c0, c1) - u) ** 2) / (2.0 * st.spot_sigma_px**2))
         gy = np.exp(-((np.arange(r0, r1) - v) ** 2) / (2.0 * st.spot_sigma_px**2))
         image[r0:r1, c0:c1] += (st.spot_amplitude * np.outer(gy, gx)).astype(np.float32)
-

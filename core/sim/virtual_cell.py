@@ -108,8 +108,15 @@ def with_truth(cell_tables: dict[str, Any], truth_file: dict[str, Any] | None) -
     return tables
 
 
-def controller_tables(cell_tables: dict[str, Any], *, jrc_port: str, camera_url: str, fixture_url: str,
-                      vacuum: VacuumDeviceConfig, settings: VirtualCellSettings) -> dict[str, Any]:
+def controller_tables(
+    cell_tables: dict[str, Any],
+    *,
+    jrc_port: str,
+    camera_url: str,
+    fixture_url: str,
+    vacuum: VacuumDeviceConfig,
+    settings: VirtualCellSettings,
+) -> dict[str, Any]:
     """The cell file the controller gets: the nominal cell, wired to this virtual cell's devices."""
     tables = {k: copy.deepcopy(v) for k, v in cell_tables.items() if k != "simulation"}
     tables.setdefault("robot", {})["backend"] = "jrc"
@@ -125,8 +132,7 @@ def controller_tables(cell_tables: dict[str, Any], *, jrc_port: str, camera_url:
         "reconnect_attempts": 3,
         "reconnect_delay_s": 0.5,
     }
-    tables.setdefault("vacuum", {}).update(device="jrc_io", suction_output=vacuum.suction_output,
-                                           grip_input=vacuum.grip_input)
+    tables.setdefault("vacuum", {}).update(device="jrc_io", suction_output=vacuum.suction_output, grip_input=vacuum.grip_input)
     motion = tables.setdefault("motion", {})
     motion["sampling_period_s"] = float(motion.get("sampling_period_s", 2.0)) / settings.time_scale
     tables["fixture"] = {"url": fixture_url}
@@ -136,10 +142,16 @@ def controller_tables(cell_tables: dict[str, Any], *, jrc_port: str, camera_url:
 class VirtualCell:
     """The plant, its JRC, its camera stream and its fixture; ``start`` brings them up."""
 
-    def __init__(self, tables: dict[str, Any], source: str, seed: int | None = None,
-                 settings: VirtualCellSettings = VirtualCellSettings(),
-                 on_released: Callable[[Released], None] = lambda released: None, board_laid: bool = False,
-                 addresses: Addresses = Addresses()) -> None:
+    def __init__(
+        self,
+        tables: dict[str, Any],
+        source: str,
+        seed: int | None = None,
+        settings: VirtualCellSettings = VirtualCellSettings(),
+        on_released: Callable[[Released], None] = lambda released: None,
+        board_laid: bool = False,
+        addresses: Addresses = Addresses(),
+    ) -> None:
         self.tables, self.source, self.settings, self.on_released = tables, source, settings, on_released
         self.addresses = addresses
         self.config: CellConfig = parse_cell(tables, source)
@@ -151,8 +163,9 @@ class VirtualCell:
         self.emulator = JrcEmulator(self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum)
         self.renderer = SceneRenderer(self.cell.truth.model.camera, RenderSettings())
         self.camera_rng = np.random.default_rng(self.cell.rng.integers(2**31))
-        self.camera = CameraStream(self._render, fps=settings.fps, exposure_latency_s=settings.exposure_latency_s,
-                                   port=addresses.camera_port)
+        self.camera = CameraStream(
+            self._render, fps=settings.fps, exposure_latency_s=settings.exposure_latency_s, port=addresses.camera_port
+        )
         self.fixture = _FixtureServer(self, port=addresses.fixture_port)
         self.released: list[Released] = []
         self.jrc_port: str | None = None  # the emulator's pseudo-terminal, once started
@@ -198,11 +211,19 @@ class VirtualCell:
         if self.jrc_port is None:
             raise RuntimeError("the virtual cell is not started: its devices have no addresses yet")
         path = Path(path)
-        tables = controller_tables(self.tables, jrc_port=self.jrc_port, camera_url=self.camera.url,
-                                   fixture_url=self.fixture.url, vacuum=self.vacuum, settings=self.settings)
-        header = (f"The virtual cell's devices (vservo virtual-cell, from {self.source}), written "
-                  f"{time.strftime('%Y-%m-%d %H:%M:%S')}.\nValid while that process runs: its JRC port, camera "
-                  "stream and fixture go with it.")
+        tables = controller_tables(
+            self.tables,
+            jrc_port=self.jrc_port,
+            camera_url=self.camera.url,
+            fixture_url=self.fixture.url,
+            vacuum=self.vacuum,
+            settings=self.settings,
+        )
+        header = (
+            f"The virtual cell's devices (vservo virtual-cell, from {self.source}), written "
+            f"{time.strftime('%Y-%m-%d %H:%M:%S')}.\nValid while that process runs: its JRC port, camera "
+            "stream and fixture go with it."
+        )
         write_atomic(path, dumps_cell(tables, header).encode("utf-8"))
         return path
 
@@ -267,9 +288,12 @@ class VirtualCell:
 
 def _planar_pose(bMo: np.ndarray) -> dict[str, float]:
     """A part's pose on the table: its frame's origin in mm and its turn about the vertical."""
-    return {"x_mm": round(1000.0 * float(bMo[0, 3]), 4), "y_mm": round(1000.0 * float(bMo[1, 3]), 4),
-            "z_mm": round(1000.0 * float(bMo[2, 3]), 4),
-            "yaw_deg": round(float(np.degrees(np.arctan2(bMo[1, 0], bMo[0, 0]))), 4)}
+    return {
+        "x_mm": round(1000.0 * float(bMo[0, 3]), 4),
+        "y_mm": round(1000.0 * float(bMo[1, 3]), 4),
+        "z_mm": round(1000.0 * float(bMo[2, 3]), 4),
+        "yaw_deg": round(float(np.degrees(np.arctan2(bMo[1, 0], bMo[0, 0]))), 4),
+    }
 
 
 class _FixtureServer:
@@ -328,8 +352,7 @@ def _post_board(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
     return {"board": virtual.lay_board(body["laid"])}
 
 
-_POSTS: dict[str, Callable[[VirtualCell, dict[str, Any]], dict[str, Any]]] = {"/part": _post_part,
-                                                                              "/board": _post_board}
+_POSTS: dict[str, Callable[[VirtualCell, dict[str, Any]], dict[str, Any]]] = {"/part": _post_part, "/board": _post_board}
 
 
 def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:

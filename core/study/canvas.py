@@ -208,9 +208,7 @@ def draw_marker(img: Image, center: NDArray[np.float64], kind: str, color: BGR, 
     c = np.array([cx, cy])
 
     def segment(dx: float, dy: float) -> None:
-        cv2.line(
-            img, tuple(fixed(c - (dx, dy))), tuple(fixed(c + (dx, dy))), color, 2 if kind != "*" else 1, cv2.LINE_AA, SHIFT
-        )
+        cv2.line(img, tuple(fixed(c - (dx, dy))), tuple(fixed(c + (dx, dy))), color, 2 if kind != "*" else 1, cv2.LINE_AA, SHIFT)
 
     r = float(radius)
     if kind == "o":

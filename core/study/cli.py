@@ -69,8 +69,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     else:
         verdict = "converged" if summary["converged"] else f"failed: {summary['failure']} ({summary['reason']})"
         print(f"{summary['task']}, {summary['method']}: {verdict} after {summary['iterations']} iterations")
-        print(f"  final error {summary['final_error_px']} px, end-effector path {summary['path_length_m']:.3f} m "
-              f"(straight line {summary['straight_line_m']:.3f} m)")
+        print(
+            f"  final error {summary['final_error_px']} px, end-effector path {summary['path_length_m']:.3f} m "
+            f"(straight line {summary['straight_line_m']:.3f} m)"
+        )
         pose = summary["final_pose_error"]
         print(f"  final pose error {pose['translation_m'] * 1000:.3f} mm, {np.degrees(pose['rotation_rad']):.3f} deg")
         print("  stages: " + ", ".join(f"{s['stage']} x{s['iterations']}" for s in summary["stages"]))
@@ -85,7 +87,11 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
     config = load_cell(args.cell)
     progress = Progress(args.n, f"montecarlo {args.method}")
     summary = run_montecarlo(
-        config, RunSettings(method=args.method, arm=Arm(args.arm)), args.n, args.seed, args.processes,
+        config,
+        RunSettings(method=args.method, arm=Arm(args.arm)),
+        args.n,
+        args.seed,
+        args.processes,
         on_sample=lambda outcome: progress.advance("ok" if outcome.converged else outcome.failure),
     )
     progress.close()
@@ -140,8 +146,9 @@ def _cmd_bench_jrc(args: argparse.Namespace) -> int:
         from vservo.core.terminal.progress import Progress
 
         progress = Progress(args.soak, "soak")
-        result = run_soak(config, args.soak, args.fault_rate, args.seed, args.time_scale, args.timer_a, args.timer_b,
-                          on_move=progress.advance)
+        result = run_soak(
+            config, args.soak, args.fault_rate, args.seed, args.time_scale, args.timer_a, args.timer_b, on_move=progress.advance
+        )
         progress.close()
     else:
         from vservo.core.study.link_bench import bench_jrc
@@ -152,9 +159,13 @@ def _cmd_bench_jrc(args: argparse.Namespace) -> int:
 
 
 def _add_arm_option(command: argparse.ArgumentParser) -> None:
-    command.add_argument("--arm", choices=tuple(arm.value for arm in Arm), default=Arm.UPJ.value,
-                         help="what carries the camera: upj, the cell's arm (default), or none, a free camera that "
-                              "moves as the control law commands (no joints, limits or workspace)")
+    command.add_argument(
+        "--arm",
+        choices=tuple(arm.value for arm in Arm),
+        default=Arm.UPJ.value,
+        help="what carries the camera: upj, the cell's arm (default), or none, a free camera that "
+        "moves as the control law commands (no joints, limits or workspace)",
+    )
 
 
 def add_study_commands(commands: argparse._SubParsersAction) -> None:
@@ -180,16 +191,18 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
     simulate.add_argument("--gain", type=positive(float), default=1.0, help="gain of every control law (default 1)")
     simulate.add_argument("--max-iterations", type=positive(int), default=3000)
     simulate.add_argument("--dt", type=positive(float), default=0.1, help="control period in s (default 0.1)")
-    simulate.add_argument("--features", choices=("projected", "rendered"), default="projected",
-                          help="projected points, or detections in the simulated camera's images")
+    simulate.add_argument(
+        "--features",
+        choices=("projected", "rendered"),
+        default="projected",
+        help="projected points, or detections in the simulated camera's images",
+    )
     simulate.add_argument("--record", metavar="FOLDER", help="record the run (frames, features, commands, stages)")
     _add_arm_option(simulate)
     simulate.add_argument("--json", action="store_true", help="one JSON object")
     simulate.set_defaults(run=_cmd_simulate)
 
-    montecarlo = commands.add_parser(
-        "montecarlo", help="success rate of a method from random initial poses, on all cores"
-    )
+    montecarlo = commands.add_parser("montecarlo", help="success rate of a method from random initial poses, on all cores")
     montecarlo.add_argument("--method", choices=("laser", "ibvs", "pbvs", "2.5d"), default="laser")
     montecarlo.add_argument("--n", type=positive(int), default=100, help="number of initial poses (default 100)")
     montecarlo.add_argument("--seed", type=seed, default=0, help="seed of the initial poses (default 0)")
@@ -198,12 +211,15 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
     montecarlo.add_argument("--json", action="store_true", help="one JSON object")
     montecarlo.set_defaults(run=_cmd_montecarlo)
 
-    reproduce = commands.add_parser(
-        "reproduce", help="every task and method of chapter 5: results.json, report.md and figures"
-    )
+    reproduce = commands.add_parser("reproduce", help="every task and method of chapter 5: results.json, report.md and figures")
     reproduce.add_argument("--out", required=True, metavar="DIR", help="folder for the results (created)")
-    reproduce.add_argument("--montecarlo", type=int, default=500, metavar="N",
-                           help="random initial poses per method for the Monte Carlo table (default 500, 0 skips it)")
+    reproduce.add_argument(
+        "--montecarlo",
+        type=int,
+        default=500,
+        metavar="N",
+        help="random initial poses per method for the Monte Carlo table (default 500, 0 skips it)",
+    )
     reproduce.add_argument("--seed", type=seed, default=0, help="seed of the Monte Carlo poses (default 0)")
     _add_arm_option(reproduce)
     reproduce.set_defaults(run=_cmd_reproduce)
@@ -223,21 +239,23 @@ def add_vision_bench(bench: BenchCommand) -> None:
 
 def add_stream_bench(bench: BenchCommand) -> None:
     """Register ``vservo bench stream``."""
-    stream = bench.add("stream", "corner and spot differences and latency of frames through an MJPEG stream",
-                       _cmd_bench_stream)
+    stream = bench.add("stream", "corner and spot differences and latency of frames through an MJPEG stream", _cmd_bench_stream)
     stream.add_argument("--views", type=positive(int), default=24, help="stream: views of the cell (default 24)")
     stream.add_argument("--quality", type=_jpeg_quality, default=100, help="stream: JPEG quality 0..100 (default 100)")
 
 
 def add_locate_bench(bench: BenchCommand) -> None:
     """Register ``vservo bench locate``."""
-    locate = bench.add("locate", "a locating job on parts put anywhere in its survey view (a commissioned cell with "
-                                 "a fixture)", _cmd_bench_locate)
+    locate = bench.add(
+        "locate",
+        "a locating job on parts put anywhere in its survey view (a commissioned cell with a fixture)",
+        _cmd_bench_locate,
+    )
     locate.add_argument("--job", default="demo", help="locate: the taught job to run as a locating job (default demo)")
-    locate.add_argument("--placements", type=positive(int), default=40, help="locate: random placements of the part "
-                                                                             "(default 40)")
-    locate.add_argument("--data", metavar="DIR", help="locate: data folder for the jobs and runs (default: a new "
-                                                      "temporary folder)")
+    locate.add_argument("--placements", type=positive(int), default=40, help="locate: random placements of the part (default 40)")
+    locate.add_argument(
+        "--data", metavar="DIR", help="locate: data folder for the jobs and runs (default: a new temporary folder)"
+    )
 
 
 def _cmd_bench_locate(args: argparse.Namespace) -> int:
@@ -263,8 +281,11 @@ def _jpeg_quality(text: str) -> int:
 
 def add_jrc_bench(bench: BenchCommand) -> None:
     """Register ``vservo bench jrc`` (with its soak)."""
-    jrc = bench.add("jrc", "RPOSC and MOVL round trips over a pty against the wire time, or with --soak the link "
-                    "under injected faults", _cmd_bench_jrc)
+    jrc = bench.add(
+        "jrc",
+        "RPOSC and MOVL round trips over a pty against the wire time, or with --soak the link under injected faults",
+        _cmd_bench_jrc,
+    )
     jrc.add_argument("--samples", type=positive(int), default=50, help="jrc: round trips per command (default 50)")
     jrc.add_argument("--soak", type=positive(int), metavar="MOVES", help="jrc: soak the link with MOVES incremental moves")
     jrc.add_argument("--fault-rate", type=fraction, default=0.05, help="soak: faults per exchange (default 0.05)")

@@ -47,12 +47,14 @@ def run_demo(config: CellConfig, seed: int | None = None, steps: int = 5) -> dic
     report: list[dict[str, Any]] = []
 
     home = cell.measure()
-    report.append({
-        "what": f"{arm.name} arm at home, {arm.dof} joints",
-        "joints_deg": np.round(np.degrees(home.q), 2).tolist(),
-        "flange_pose_mm_deg": _mm_deg(home.bMe),
-        "corners_seen": int(home.corners_visible.sum()),
-    })
+    report.append(
+        {
+            "what": f"{arm.name} arm at home, {arm.dof} joints",
+            "joints_deg": np.round(np.degrees(home.q), 2).tolist(),
+            "flange_pose_mm_deg": _mm_deg(home.bMe),
+            "corners_seen": int(home.corners_visible.sum()),
+        }
+    )
 
     # Teach: put the camera at the task-1 desired pose over the cube.
     bMc_teach = config.simulation.scene.cube.bMo @ inverse(TEACH_cMo)
@@ -60,15 +62,17 @@ def run_demo(config: CellConfig, seed: int | None = None, steps: int = 5) -> dic
     teach = cell.measure()
     depth = nominal.laser.triangulate(nominal.camera, teach.laser_spot_px)
     true_depth = cell.ground_truth_cMo()[2, 3]
-    report.append({
-        "what": "jogged to the teach pose of task 1 (cube 162 mm below the camera)",
-        "move_duration_s": round(move.duration_s, 2),
-        "flange_pose_mm_deg": _mm_deg(teach.bMe),
-        "corners_px": [pixel_or_none(corner, 2) for corner in teach.corners_px],
-        "laser_spot_px": pixel_or_none(teach.laser_spot_px, 2),
-        "laser_depth_mm": round(depth.depth_m * 1000.0, 3),
-        "true_depth_of_cube_face_mm": round(true_depth * 1000.0, 3),
-    })
+    report.append(
+        {
+            "what": "jogged to the teach pose of task 1 (cube 162 mm below the camera)",
+            "move_duration_s": round(move.duration_s, 2),
+            "flange_pose_mm_deg": _mm_deg(teach.bMe),
+            "corners_px": [pixel_or_none(corner, 2) for corner in teach.corners_px],
+            "laser_spot_px": pixel_or_none(teach.laser_spot_px, 2),
+            "laser_depth_mm": round(depth.depth_m * 1000.0, 3),
+            "true_depth_of_cube_face_mm": round(true_depth * 1000.0, 3),
+        }
+    )
 
     # Steps through the cell's motion mode with the thesis's policy, whichever the cell
     # servos with: on the JRC, each control step divided by the factor and one target per
@@ -84,14 +88,19 @@ def run_demo(config: CellConfig, seed: int | None = None, steps: int = 5) -> dic
         cell.execute(command)
     end = cell.measure()
     translation, rotation = pose_error(end.bMe, target)
-    how = (f"JRC-style steps divided by {motion.divide_factor:g}, one per {motion.sampling_period_s:g} s"
-           if motion.mode == "position_steps" else f"velocity steps of {motion.dt_s:g} s")
-    report.append({
-        "what": f"{steps} {how}, camera twist {DEMO_cVc.tolist()}",
-        "elapsed_s": round(end.time_s - start.time_s, 2),
-        "flange_moved_mm": round(float(np.linalg.norm(end.bMe[:3, 3] - start.bMe[:3, 3])) * 1000.0, 3),
-        "deviation_from_last_target_mm": round(translation * 1000.0, 6),
-        "deviation_from_last_target_deg": round(float(np.degrees(rotation)), 6),
-        "laser_spot_px": pixel_or_none(end.laser_spot_px, 2),
-    })
+    how = (
+        f"JRC-style steps divided by {motion.divide_factor:g}, one per {motion.sampling_period_s:g} s"
+        if motion.mode == "position_steps"
+        else f"velocity steps of {motion.dt_s:g} s"
+    )
+    report.append(
+        {
+            "what": f"{steps} {how}, camera twist {DEMO_cVc.tolist()}",
+            "elapsed_s": round(end.time_s - start.time_s, 2),
+            "flange_moved_mm": round(float(np.linalg.norm(end.bMe[:3, 3] - start.bMe[:3, 3])) * 1000.0, 3),
+            "deviation_from_last_target_mm": round(translation * 1000.0, 6),
+            "deviation_from_last_target_deg": round(float(np.degrees(rotation)), 6),
+            "laser_spot_px": pixel_or_none(end.laser_spot_px, 2),
+        }
+    )
     return {"title": f"vservo demo: simulated cell from {config.source}", "steps": report}

@@ -28,8 +28,9 @@ STEP_M = 0.001  # each timed MOVL goes 1 mm back or forth
 TIME_SCALE = 1000.0  # the motions themselves are not what is timed
 
 
-def _round_trips(robot: JrcBackend, send: Callable[[int], None], samples: int,
-                 then: Callable[[], object] | None = None) -> dict[str, Any]:
+def _round_trips(
+    robot: JrcBackend, send: Callable[[int], None], samples: int, then: Callable[[], object] | None = None
+) -> dict[str, Any]:
     """Time ``send(i)`` and count its bytes, ``samples`` times; ``then()`` runs untimed after each."""
     channel = robot.station.channel
     seconds, sizes = [], []
@@ -57,8 +58,12 @@ def _measure(config: CellConfig, samples: int, pace: bool, seed: int) -> dict[st
             bMe = robot.read_pose()
             speed = config.motion.speed_m_s
             rposc = _round_trips(robot, lambda i: robot.read_pose(), samples)
-            movl = _round_trips(robot, lambda i: robot.move_to(transform(t=(STEP_M * (i % 2 == 0), 0.0, 0.0)) @ bMe, speed),
-                                samples, then=robot.wait_motion)
+            movl = _round_trips(
+                robot,
+                lambda i: robot.move_to(transform(t=(STEP_M * (i % 2 == 0), 0.0, 0.0)) @ bMe, speed),
+                samples,
+                then=robot.wait_motion,
+            )
         finally:
             robot.close()
     return {"RPOSC": rposc, "MOVL": movl}

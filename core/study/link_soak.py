@@ -133,13 +133,21 @@ class _Soak:
                 self.imov(np.round(missing_mm, 3))
             except RobotError as exc:
                 self.report(exc)
-        raise SoakFailure(f"the robot did not get back to {target_mm.round(3).tolist()} mm "
-                          f"after {MAX_RECOVERY_ATTEMPTS} attempts")
+        raise SoakFailure(
+            f"the robot did not get back to {target_mm.round(3).tolist()} mm after {MAX_RECOVERY_ATTEMPTS} attempts"
+        )
 
 
-def run_soak(config: CellConfig, moves: int = 2000, fault_rate: float = 0.05, seed: int = 0,
-             time_scale: float = 50.0, timer_a_s: float = 0.1, timer_b_s: float = 1.0,
-             on_move: Callable[[], None] | None = None) -> dict[str, Any]:
+def run_soak(
+    config: CellConfig,
+    moves: int = 2000,
+    fault_rate: float = 0.05,
+    seed: int = 0,
+    time_scale: float = 50.0,
+    timer_a_s: float = 0.1,
+    timer_b_s: float = 1.0,
+    on_move: Callable[[], None] | None = None,
+) -> dict[str, Any]:
     """Soak the link: ``moves`` IMOVs with faults at ``fault_rate`` per exchange.
 
     The timers are shortened (the soak tests recovery, not patience); the emulator runs

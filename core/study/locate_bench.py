@@ -60,8 +60,14 @@ def survey_footprint(locator: PartLocator, bMe: Matrix, part_side_m: float, marg
     at the part's top face (through the calibrated camera and hand-eye)."""
     camera = locator.model.camera
     width, height = camera.image_size
-    pixels = np.array([[margin_px, margin_px], [width - margin_px, margin_px], [width - margin_px, height - margin_px],
-                       [margin_px, height - margin_px]])
+    pixels = np.array(
+        [
+            [margin_px, margin_px],
+            [width - margin_px, margin_px],
+            [width - margin_px, height - margin_px],
+            [margin_px, height - margin_px],
+        ]
+    )
     bMc = bMe @ locator.model.eMc
     rays = np.column_stack((camera.pixel_to_normalized(pixels), np.ones(4))) @ bMc[:3, :3].T
     depth = (locator.table_z_m + part_side_m - bMc[2, 3]) / rays[:, 2]
@@ -139,8 +145,10 @@ def bench_locate(config: CellConfig, job_name: str, runs: int, seed: int, data: 
         raise ConfigError(f"{config.source}: not commissioned (no [commissioning] nn_file): run vservo commission first")
     if rig.place_part is None:
         rig.close()
-        raise ConfigError(f"{config.source}: the cell cannot put a part at a given place (no [fixture] url): the "
-                          "locate bench needs the virtual cell's or the simulated cell's fixture")
+        raise ConfigError(
+            f"{config.source}: the cell cannot put a part at a given place (no [fixture] url): the "
+            "locate bench needs the virtual cell's or the simulated cell's fixture"
+        )
     store = Store(data)
     controller = CellController(rig, store, seed=seed)
     try:
@@ -160,8 +168,7 @@ def bench_locate(config: CellConfig, job_name: str, runs: int, seed: int, data: 
                     continue
                 # The part frame O is a top-face corner: put the part's centre at xy.
                 half = 0.5 * job.part_side_m * np.array([np.cos(yaw) - np.sin(yaw), np.sin(yaw) + np.cos(yaw)])
-                bMo = transform(rot_z(yaw)[:3, :3], (xy[0] - half[0], xy[1] - half[1],
-                                                     rig.locator.table_z_m + job.part_side_m))
+                bMo = transform(rot_z(yaw)[:3, :3], (xy[0] - half[0], xy[1] - half[1], rig.locator.table_z_m + job.part_side_m))
                 if not _servable(rig, located, bMo):
                     unservable += 1
                     continue
@@ -175,10 +182,17 @@ def bench_locate(config: CellConfig, job_name: str, runs: int, seed: int, data: 
             controller.start(located.name)
             controller.wait()
             outcome = controller.last_outcome
-            results.append({"x_mm": round(1000 * float(xy[0]), 2), "y_mm": round(1000 * float(xy[1]), 2),
-                            "yaw_deg": round(float(np.degrees(yaw)), 1), "outcome": str(outcome.outcome),
-                            "reason": outcome.reason, "placement_error_mm": outcome.placement_error_mm,
-                            "gauge_placement_error_mm": outcome.gauge_placement_error_mm})
+            results.append(
+                {
+                    "x_mm": round(1000 * float(xy[0]), 2),
+                    "y_mm": round(1000 * float(xy[1]), 2),
+                    "yaw_deg": round(float(np.degrees(yaw)), 1),
+                    "outcome": str(outcome.outcome),
+                    "reason": outcome.reason,
+                    "placement_error_mm": outcome.placement_error_mm,
+                    "gauge_placement_error_mm": outcome.gauge_placement_error_mm,
+                }
+            )
             progress.advance(str(outcome.outcome))
         progress.close()
     finally:
@@ -186,12 +200,21 @@ def bench_locate(config: CellConfig, job_name: str, runs: int, seed: int, data: 
         store.close()
     placed = [r for r in results if r["outcome"] == Outcome.PLACED]
     errors = [r["placement_error_mm"] for r in placed if r["placement_error_mm"] is not None]
-    return {"job": located.name, "runs": runs, "unservable_draws": unservable, "placed": len(placed),
-            "placed_share": round(len(placed) / runs, 4),
-            "survey_bMe_mm": [round(1000 * v, 2) for v in located.survey_bMe[:3, 3]],
-            "footprint_mm": np.round(1000 * footprint, 1).tolist(),
-            "placement_error_mm": {"median": round(float(np.median(errors)), 4) if errors else None,
-                                   "max": round(float(np.max(errors)), 4) if errors else None},
-            "failures_by_reason": dict(Counter(failure_kind(r["reason"]) for r in results
-                                               if r["outcome"] != Outcome.PLACED).most_common()),
-            "failures": [r for r in results if r["outcome"] != Outcome.PLACED], "results": results}
+    return {
+        "job": located.name,
+        "runs": runs,
+        "unservable_draws": unservable,
+        "placed": len(placed),
+        "placed_share": round(len(placed) / runs, 4),
+        "survey_bMe_mm": [round(1000 * v, 2) for v in located.survey_bMe[:3, 3]],
+        "footprint_mm": np.round(1000 * footprint, 1).tolist(),
+        "placement_error_mm": {
+            "median": round(float(np.median(errors)), 4) if errors else None,
+            "max": round(float(np.max(errors)), 4) if errors else None,
+        },
+        "failures_by_reason": dict(
+            Counter(failure_kind(r["reason"]) for r in results if r["outcome"] != Outcome.PLACED).most_common()
+        ),
+        "failures": [r for r in results if r["outcome"] != Outcome.PLACED],
+        "results": results,
+    }

@@ -49,10 +49,12 @@ def draw_initial_cMo(rng: np.random.Generator, desired_cMo: Matrix, config: Cell
     side = config.simulation.scene.cube.side_m
     corners_o = np.array([[0.0, 0.0, 0.0], [side, 0.0, 0.0], [side, side, 0.0], [0.0, side, 0.0]])
     for _ in range(MAX_DRAWS):
-        twist = np.concatenate([
-            _random_unit(rng) * rng.uniform(0.0, MAX_TRANSLATION_M),
-            _random_unit(rng) * rng.uniform(0.0, MAX_ROTATION_RAD),
-        ])
+        twist = np.concatenate(
+            [
+                _random_unit(rng) * rng.uniform(0.0, MAX_TRANSLATION_M),
+                _random_unit(rng) * rng.uniform(0.0, MAX_ROTATION_RAD),
+            ]
+        )
         # exp of a pure rotation then a translation: the camera turned in place, then moved.
         cdMc = exp_twist(np.concatenate([np.zeros(3), twist[3:]]))
         cdMc[:3, 3] = twist[:3]
@@ -90,8 +92,9 @@ def run_sample(config: CellConfig, settings: RunSettings, seed: int, index: int)
             continue  # the arm cannot start there: not a failure of the method
         summary = result.summary()
         last_stage = str(result.outcome.cycles[-1].output.stage) if result.outcome.cycles else ""
-        return SampleOutcome(index, summary["converged"], summary["failure"], last_stage, result.path_length_m,
-                             summary["iterations"], draw)
+        return SampleOutcome(
+            index, summary["converged"], summary["failure"], last_stage, result.path_length_m, summary["iterations"], draw
+        )
     raise RuntimeError(f"sample {index}: no reachable initial pose in {MAX_DRAWS} draws")
 
 

@@ -35,8 +35,7 @@ class Provenance:
 def _git(*args: str) -> str:
     """One git command run beside this module's source; raises when git cannot answer."""
     here = Path(__file__).resolve()
-    return subprocess.run(["git", *args], cwd=here.parent, capture_output=True, text=True, check=True,
-                          timeout=30).stdout.strip()
+    return subprocess.run(["git", *args], cwd=here.parent, capture_output=True, text=True, check=True, timeout=30).stdout.strip()
 
 
 def source_commit() -> str:
@@ -55,8 +54,7 @@ def source_commit() -> str:
     return f"{commit}-dirty" if dirty else commit
 
 
-def reproduce_command(out: Path, cell_path: str | Path | None, montecarlo_n: int, seed: int,
-                      arm: Arm = Arm.UPJ) -> str:
+def reproduce_command(out: Path, cell_path: str | Path | None, montecarlo_n: int, seed: int, arm: Arm = Arm.UPJ) -> str:
     """The ``vservo reproduce`` command line that makes a snapshot with these arguments."""
     args = ["vservo", "reproduce", "--out", str(out), "--montecarlo", str(montecarlo_n), "--seed", str(seed)]
     if arm is not Arm.UPJ:  # the arm is the default: a snapshot of the thesis's cell keeps its command

@@ -43,8 +43,7 @@ def image_trajectory(result: RunResult, title: str) -> canvas.Image:
     """Corner and laser-spot trajectories on the image plane (Figs. 5-1a .. 5-5a, 5-7)."""
     trace = result.trace
     series = [
-        plots.Series(f"corner {i + 1}", trace.corners_px[:, i, 0], trace.corners_px[:, i, 1], CORNER_COLORS[i])
-        for i in range(4)
+        plots.Series(f"corner {i + 1}", trace.corners_px[:, i, 0], trace.corners_px[:, i, 1], CORNER_COLORS[i]) for i in range(4)
     ]
     series.append(plots.Series("laser spot", trace.laser_px[:, 0], trace.laser_px[:, 1], LASER_COLOR))
     return plots.image_trajectory_plot(
@@ -60,11 +59,17 @@ def camera_velocity(result: RunResult) -> canvas.Image:
     t, cVc = result.trace.time_s, result.trace.cVc
     linear = plots.line_plot(
         [plots.Series(name, t, cVc[:, i]) for i, name in enumerate(("vx", "vy", "vz"))],
-        "camera translational velocity", "time (s)", "m/s", size=(480, 300),
+        "camera translational velocity",
+        "time (s)",
+        "m/s",
+        size=(480, 300),
     )
     angular = plots.line_plot(
         [plots.Series(name, t, cVc[:, 3 + i]) for i, name in enumerate(("wx", "wy", "wz"))],
-        "camera rotational velocity", "time (s)", "rad/s", size=(480, 300),
+        "camera rotational velocity",
+        "time (s)",
+        "rad/s",
+        size=(480, 300),
     )
     return canvas.grid([linear, angular], columns=1)
 
@@ -91,9 +96,7 @@ def feature_errors(result: RunResult) -> canvas.Image:
 
 
 def path_3d(results: dict[str, RunResult], title: str) -> canvas.Image:
-    return plots.path_3d_plot(
-        [plots.Series3(label, result.trace.bMe_position_true) for label, result in results.items()], title
-    )
+    return plots.path_3d_plot([plots.Series3(label, result.trace.bMe_position_true) for label, result in results.items()], title)
 
 
 def run_figure(result: RunResult, title: str, full: bool) -> canvas.Image:
@@ -197,36 +200,45 @@ def differences(runs: dict[str, dict[str, Any]], robust: dict[str, Any]) -> list
     """Where the runs and the thesis part: outcomes, paths beyond PATH_TOLERANCE, the robustness test."""
     notes = []
     if not robust["converged"]:
-        notes.append(f"Robustness test: the thesis's task 2 converges under the errors of Table 5-3; here the laser "
-                     f"method stops after {robust['iterations']} iterations ({robust['failure']}: {robust['reason']}), "
-                     f"after stages {_stages(robust)}.")
+        notes.append(
+            f"Robustness test: the thesis's task 2 converges under the errors of Table 5-3; here the laser "
+            f"method stops after {robust['iterations']} iterations ({robust['failure']}: {robust['reason']}), "
+            f"after stages {_stages(robust)}."
+        )
     for task in TASKS:
         for method in ("laser", "2.5d", "ibvs"):
             s, thesis = runs[f"{task}/{method}"], THESIS_PATH_LENGTH_M[task][method]
             if (thesis is None) == s["converged"]:
                 what = "converges" if s["converged"] else f"fails ({s['failure']}: {s['reason']})"
-                notes.append(f"Task {task}, {method}: the thesis reports {'a failure' if thesis is None else 'success'}, "
-                             f"here it {what}.")
+                notes.append(
+                    f"Task {task}, {method}: the thesis reports {'a failure' if thesis is None else 'success'}, here it {what}."
+                )
             off = path_off_thesis(task, method, s)
             if off:
                 notes.append(off)
     pbvs = runs["2/pbvs"]
     if pbvs["converged"]:
-        notes.append(f"Task 2, PBVS: the thesis reports that the corners leave the image (Fig. 5-7); here they stay in "
-                     f"it and PBVS converges in {pbvs['iterations']} iterations, along a path of "
-                     f"{pbvs['path_length_m']:.3f} m for a straight line of {pbvs['straight_line_m']:.3f} m.")
+        notes.append(
+            f"Task 2, PBVS: the thesis reports that the corners leave the image (Fig. 5-7); here they stay in "
+            f"it and PBVS converges in {pbvs['iterations']} iterations, along a path of "
+            f"{pbvs['path_length_m']:.3f} m for a straight line of {pbvs['straight_line_m']:.3f} m."
+        )
     return notes or [f"None: every outcome is the thesis's and every path within {PATH_TOLERANCE:.0%} of the thesis's."]
 
 
 def robustness_outcome(robust: dict[str, Any], nominal: dict[str, Any]) -> str:
     """How the robustness run ended, beside task 2's run without the errors."""
     if not robust["converged"]:
-        return (f"Under the errors of Table 5-3 the laser method stops after {robust['iterations']} iterations "
-                f"({_stages(robust)}): {robust['failure']}, {robust['reason']}. The thesis's run converges.")
+        return (
+            f"Under the errors of Table 5-3 the laser method stops after {robust['iterations']} iterations "
+            f"({_stages(robust)}): {robust['failure']}, {robust['reason']}. The thesis's run converges."
+        )
     change = (robust["path_length_m"] - nominal["path_length_m"]) / nominal["path_length_m"]
-    return (f"Under the errors of Table 5-3 the laser method converges, as in the thesis, after {robust['iterations']} "
-            f"iterations ({_stages(robust)}) where task 2 without them takes {nominal['iterations']}; its path is "
-            f"{robust['path_length_m']:.3f} m against {nominal['path_length_m']:.3f} m ({change:+.1%}).")
+    return (
+        f"Under the errors of Table 5-3 the laser method converges, as in the thesis, after {robust['iterations']} "
+        f"iterations ({_stages(robust)}) where task 2 without them takes {nominal['iterations']}; its path is "
+        f"{robust['path_length_m']:.3f} m against {nominal['path_length_m']:.3f} m ({change:+.1%})."
+    )
 
 
 def montecarlo_outcome(montecarlo: dict[str, dict[str, Any]]) -> str:
@@ -273,8 +285,13 @@ def report_markdown(summaries: dict[str, Any]) -> str:
     lines += [f"- {task_outcome(task, runs)}" for task in TASKS]
     lines += [""]
 
-    lines += ["## Every run", "", "| task | method | converged | failure | iterations | final error (px) | "
-              "path (m) | straight line (m) | final pose error (mm, deg) | stages |", "|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "## Every run",
+        "",
+        "| task | method | converged | failure | iterations | final error (px) | "
+        "path (m) | straight line (m) | final pose error (mm, deg) | stages |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for key, s in runs.items():
         task, method = key.split("/")
         pose = s["final_pose_error"]
@@ -306,21 +323,32 @@ def report_markdown(summaries: dict[str, Any]) -> str:
     for task in TASKS:
         taught = np.array(summaries["desired_features_px"][str(task)])
         thesis = THESIS_DESIRED_FEATURES_PX[2 if task in (1, 3) else 1]
-        lines.append(f"- task {task}: taught {np.round(taught, 1).tolist()}, thesis {thesis.astype(int).tolist()}, "
-                     f"largest distance between the sets {distance_to_thesis_set(taught, thesis):.1f} px")
+        lines.append(
+            f"- task {task}: taught {np.round(taught, 1).tolist()}, thesis {thesis.astype(int).tolist()}, "
+            f"largest distance between the sets {distance_to_thesis_set(taught, thesis):.1f} px"
+        )
 
     montecarlo = summaries.get("montecarlo")
     if montecarlo:
         first = next(iter(montecarlo.values()))
         draws = first["draws_per_sample"]
-        reach = (f"On average {draws} poses that passed the view checks were drawn for each one the arm could reach: "
-                 "the arm's reach filters the distribution." if draws > 1
-                 else "The arm could reach every pose that passed the view checks." if first.get("arm", Arm.UPJ) == Arm.UPJ
-                 else "No arm carries the camera (a free camera): every pose that passed the view checks is kept.")
-        lines += ["", f"## Monte Carlo: {first['n']} random initial poses, seed {first['seed']}", "",
-                  f"{first['distribution']}. {reach} Every method meets the same poses.", "",
-                  "| method | success rate | path median (m) | path p95 (m) | iterations median | iterations p95 | failures |",
-                  "|---|---|---|---|---|---|---|"]
+        reach = (
+            f"On average {draws} poses that passed the view checks were drawn for each one the arm could reach: "
+            "the arm's reach filters the distribution."
+            if draws > 1
+            else "The arm could reach every pose that passed the view checks."
+            if first.get("arm", Arm.UPJ) == Arm.UPJ
+            else "No arm carries the camera (a free camera): every pose that passed the view checks is kept."
+        )
+        lines += [
+            "",
+            f"## Monte Carlo: {first['n']} random initial poses, seed {first['seed']}",
+            "",
+            f"{first['distribution']}. {reach} Every method meets the same poses.",
+            "",
+            "| method | success rate | path median (m) | path p95 (m) | iterations median | iterations p95 | failures |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for method, m in montecarlo.items():
             lines.append(
                 f"| {method} | {m['success_rate']:.1%} | {m['path_length_m']['median']} | {m['path_length_m']['p95']} | "
@@ -373,8 +401,9 @@ def run_study(config: CellConfig, robust_config: CellConfig, dt_s: float, arm: A
     return StudyRuns(results, robust)
 
 
-def reproduce(out: Path, cell_path: str | Path | None = None, montecarlo_n: int = 500, seed: int = 0,
-              dt_s: float = 0.1, arm: Arm = Arm.UPJ) -> dict[str, Any]:
+def reproduce(
+    out: Path, cell_path: str | Path | None = None, montecarlo_n: int = 500, seed: int = 0, dt_s: float = 0.1, arm: Arm = Arm.UPJ
+) -> dict[str, Any]:
     """Run the whole study, write results.json, report.md and the figures into ``out``.
 
     The provenance is taken first, before anything in ``out`` changes: regenerating the
@@ -391,7 +420,10 @@ def reproduce(out: Path, cell_path: str | Path | None = None, montecarlo_n: int 
         for method in MONTECARLO_METHODS:
             bar = Progress(montecarlo_n, f"montecarlo {method}")
             summaries["montecarlo"][method] = run_montecarlo(
-                config, RunSettings(method=method, dt_s=dt_s, arm=arm), montecarlo_n, seed,
+                config,
+                RunSettings(method=method, dt_s=dt_s, arm=arm),
+                montecarlo_n,
+                seed,
                 on_sample=lambda outcome, bar=bar: bar.advance("ok" if outcome.converged else outcome.failure),
             )
             bar.close()

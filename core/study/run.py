@@ -51,8 +51,7 @@ class RunSettings(LawSettings):
     arm: Arm = Arm.UPJ  # what carries the camera: the cell's arm, or nothing (a free camera)
 
 
-def perception_for(cell: SimulatedCell, model: CellModel, settings: RunSettings, camera: FrameSource | None = None
-                   ) -> Perception:
+def perception_for(cell: SimulatedCell, model: CellModel, settings: RunSettings, camera: FrameSource | None = None) -> Perception:
     """The features the run's control law sees: projected points, or detections in rendered
     frames (of ``camera``, by default the cell's simulated camera with ``settings.render``)."""
     if settings.features == "projected":
@@ -123,11 +122,16 @@ def camera_pose_error(cMo: Matrix, cdMo: Matrix) -> tuple[float, float]:
     return pose_error(inverse(cMo), inverse(cdMo))
 
 
-def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: int | None = None,
-             on_cycle: Callable[[Cycle], None] | None = None,
-             robot: Callable[[SimulatedCell], RobotBackend] | None = None,
-             policy: StepPolicy | None = None,
-             camera: Callable[[SimulatedCell], FrameSource] | None = None) -> RunResult:
+def run_task(
+    config: CellConfig,
+    task: ServoTask,
+    settings: RunSettings,
+    seed: int | None = None,
+    on_cycle: Callable[[Cycle], None] | None = None,
+    robot: Callable[[SimulatedCell], RobotBackend] | None = None,
+    policy: StepPolicy | None = None,
+    camera: Callable[[SimulatedCell], FrameSource] | None = None,
+) -> RunResult:
     """Teach ``task``'s desired image, start at its initial pose and servo with ``settings``.
 
     ``on_cycle`` sees every cycle as the loop does (for benchmarks and recordings).
@@ -177,8 +181,7 @@ def run_task(config: CellConfig, task: ServoTask, settings: RunSettings, seed: i
         perception=perception,
         robot=(robot or simulated_robot)(cell),
         # The arm's limits, on the controller's model of it; a free camera has none.
-        joint_limits=JointLimitedSteps(ArmKinematics(load_arm(config.arm), model.mount)) if settings.arm is Arm.UPJ
-        else None,
+        joint_limits=JointLimitedSteps(ArmKinematics(load_arm(config.arm), model.mount)) if settings.arm is Arm.UPJ else None,
     )
     path.append(cell.ground_truth_bMe()[:3, 3])
     if recorder is not None:

@@ -38,8 +38,9 @@ def simulate(
     task = servo_task(task_number or 2, robust)
     if initial is not None or desired is not None:
         task = _scene_task(task, initial, desired, config, arm)
-    settings = RunSettings(method=method, gain=gain, dt_s=dt_s, max_iterations=max_iterations, features=features,
-                           record_to=record_to, arm=arm)
+    settings = RunSettings(
+        method=method, gain=gain, dt_s=dt_s, max_iterations=max_iterations, features=features, record_to=record_to, arm=arm
+    )
     return run_task(config, task, settings, seed)
 
 
@@ -52,7 +53,20 @@ def _scene_task(task: ServoTask, initial: Matrix | None, desired: Matrix | None,
     if arm is Arm.UPJ:
         kinematics = ArmKinematics(load_arm(config.arm), config.nominal.mount)
         scene = config.simulation.scene
-        placement, _ = find_placement(kinematics, config.home_q, scene.table_height_m, scene.cube.side_m, initial_cMo,
-                                      desired_cMo, config.simulation.truth.eMc)
-    return replace(task, name="scene", initial_cMo=initial_cMo, desired_cMo=desired_cMo, placement=placement,
-                   description="poses given on the command line")
+        placement, _ = find_placement(
+            kinematics,
+            config.home_q,
+            scene.table_height_m,
+            scene.cube.side_m,
+            initial_cMo,
+            desired_cMo,
+            config.simulation.truth.eMc,
+        )
+    return replace(
+        task,
+        name="scene",
+        initial_cMo=initial_cMo,
+        desired_cMo=desired_cMo,
+        placement=placement,
+        description="poses given on the command line",
+    )

@@ -137,8 +137,9 @@ def bench_stream(config: CellConfig, views: int = 24, quality: int = 100, seed: 
             screen.show(image)
             streamed = _next_frame(source, black=False)
             corners, agree, spot = _compare(config, image, streamed.image)
-            results.append(ViewResult(corners, agree, spot, len(encode_jpeg(image, quality)),
-                                      streamed.timestamp_s - screen.first_exposure_s))
+            results.append(
+                ViewResult(corners, agree, spot, len(encode_jpeg(image, quality)), streamed.timestamp_s - screen.first_exposure_s)
+            )
     return _summary(results, quality, images[0].shape, load_before)
 
 
@@ -150,8 +151,7 @@ def _summary(results: list[ViewResult], quality: int, shape: tuple[int, ...], lo
     def px(values: np.ndarray) -> dict[str, float | int | None]:
         if values.size == 0:
             return {"median_px": None, "max_px": None, "n": 0}
-        return {"median_px": round(float(np.median(values)), 4), "max_px": round(float(np.max(values)), 4),
-                "n": int(values.size)}
+        return {"median_px": round(float(np.median(values)), 4), "max_px": round(float(np.max(values)), 4), "n": int(values.size)}
 
     return {
         "views": len(results),
@@ -160,8 +160,7 @@ def _summary(results: list[ViewResult], quality: int, shape: tuple[int, ...], lo
         "corners": {**px(corners), "views_disagreeing": sum(not r.corners_agree for r in results)},
         "spot": px(spots),
         "jpeg_kib_median": round(float(np.median([r.jpeg_bytes for r in results])) / 1024.0, 1),
-        "exposure_to_read": {"median_ms": round(float(np.median(latency_ms)), 2),
-                             "max_ms": round(float(np.max(latency_ms)), 2)},
+        "exposure_to_read": {"median_ms": round(float(np.median(latency_ms)), 2), "max_ms": round(float(np.max(latency_ms)), 2)},
         "load_average_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
         "cpu_count": os.cpu_count(),
     }

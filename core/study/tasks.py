@@ -128,8 +128,9 @@ def _interpolate(aMb: Matrix, aMc: Matrix, s: float, rotate_first: bool) -> Matr
     return aMb @ exp_twist(s * np.concatenate([bMc[:3, 3], theta_u(bMc[:3, :3])]))
 
 
-def placement_margin(arm: ArmKinematics, q_seed: Matrix, bMo: Matrix, initial_cMo: Matrix, desired_cMo: Matrix,
-                     eMc: Matrix, samples: int = 9) -> float:
+def placement_margin(
+    arm: ArmKinematics, q_seed: Matrix, bMo: Matrix, initial_cMo: Matrix, desired_cMo: Matrix, eMc: Matrix, samples: int = 9
+) -> float:
     """How comfortably the arm serves a task with the cube at bMo; 0 if it cannot.
 
     Both ways a servo may go from the initial to the desired camera pose are sampled
@@ -153,8 +154,15 @@ def placement_margin(arm: ArmKinematics, q_seed: Matrix, bMo: Matrix, initial_cM
     return worst
 
 
-def find_placement(arm: ArmKinematics, q_seed: Matrix, table_height_m: float, side_m: float, initial_cMo: Matrix,
-                   desired_cMo: Matrix, eMc: Matrix) -> tuple[Placement, float]:
+def find_placement(
+    arm: ArmKinematics,
+    q_seed: Matrix,
+    table_height_m: float,
+    side_m: float,
+    initial_cMo: Matrix,
+    desired_cMo: Matrix,
+    eMc: Matrix,
+) -> tuple[Placement, float]:
     """The placement with the best margin on a grid of distances (2 cm) and yaws (15 deg).
 
     How the placements of TASKS were found (for the shipped cell's table); a scene given

@@ -180,8 +180,13 @@ def bench_vision(config: CellConfig, seed: int = 0, cycles: int = 3, repeats: in
             cameras.append(_TimedCamera(cell, rendered_settings.render))
             return cameras[-1]
 
-        run_task(config, TASKS[2], rendered_settings, camera=timed_camera,
-                 on_cycle=lambda cycle: stamps.append((time.perf_counter(), time.process_time())))
+        run_task(
+            config,
+            TASKS[2],
+            rendered_settings,
+            camera=timed_camera,
+            on_cycle=lambda cycle: stamps.append((time.perf_counter(), time.process_time())),
+        )
         wall, cpu = np.diff(np.array(stamps), axis=0).T
         render_wall, render_cpu = np.array(cameras[0].times[1:]).T  # the frame read in each interval
         whole.append(wall)

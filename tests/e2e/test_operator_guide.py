@@ -69,6 +69,7 @@ def press(page, button: str, done: str, timeout_s: float = 60.0) -> None:
     def said() -> bool:
         notices = " ".join(page.locator(".mantine-Notification-root").all_inner_texts())
         return re.search(done, notices + status_text(page)) is not None
+
     wait_until(said, f"{button}: the page never said {done!r}; last {status_text(page)!r}", timeout_s)
 
 
@@ -101,12 +102,17 @@ def present(page, x: float, y: float, turn: float) -> None:
 
 def seen_at(page, x: float, y: float) -> None:
     """Wait until the tab's "Part seen" puts the part's top-face centre within 2 mm of X, Y."""
+
     def there() -> bool:
         seen = page.get_by_text("Part seen").first.inner_text()
         found = re.search(r"Part seen: top-face centre X (-?[\d.]+) Y (-?[\d.]+)", seen)
         return found is not None and abs(float(found.group(1)) - x) < 2.0 and abs(float(found.group(2)) - y) < 2.0
-    wait_until(there, f"the part seen at X {x:g}, Y {y:g}; the tab says {page.get_by_text('Part seen').first.inner_text()!r}"
-                      f" at {status_text(page)!r}")
+
+    wait_until(
+        there,
+        f"the part seen at X {x:g}, Y {y:g}; the tab says {page.get_by_text('Part seen').first.inner_text()!r}"
+        f" at {status_text(page)!r}",
+    )
 
 
 def jog(page, button: str, times: int, axis: int, mm: float) -> None:
@@ -181,10 +187,12 @@ def test_teach_a_new_job_as_the_guide_says_and_assemble_it_three_times(page):
         page.get_by_role("tab", name="Assemble").click()
         choose(page, "Job", "shifted")
         page.get_by_role("button", name="Start", exact=True).click()
+
         # The run's end (the fast step policy servoes in a handful of cycles: its start may pass unseen).
         def ended_after(last: int = run_id) -> bool:
             found = re.search(r"(Done|FAULT|E-STOPPED) · job shifted · run (\d+)", status_text(page))
             return found is not None and int(found.group(2)) > last
+
         wait_until(ended_after, f"run {run} of job shifted never ended", timeout_s=180)
         ended = status_text(page)
         run_id = int(re.search(r"run (\d+)", ended).group(1))

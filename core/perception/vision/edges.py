@@ -118,8 +118,17 @@ def sample_strips(
         count = max(last - first + 1, 0)
         # (steep, normal across, normal along, offset, extent across, and the index
         # steps in the flattened image of a pixel along and of a pixel across)
-        table.append((steep, n0 if steep else n1, n1 if steep else n0, float(offset), width if steep else height,
-                      width if steep else 1, 1 if steep else width))
+        table.append(
+            (
+                steep,
+                n0 if steep else n1,
+                n1 if steep else n0,
+                float(offset),
+                width if steep else height,
+                width if steep else 1,
+                1 if steep else width,
+            )
+        )
         counts.append(count)
         shifts.append(first - total)
         total += count

@@ -114,8 +114,9 @@ def feature_error_px(features: ImageFeatures, desired: DesiredImage) -> float:
     return float(np.linalg.norm(desired.corners_px - features.corners_px))
 
 
-def verdict_on_all_corners(stage: Stage, features: ImageFeatures, error_px: float, final_threshold_px: float
-                           ) -> ControlOutput | None:
+def verdict_on_all_corners(
+    stage: Stage, features: ImageFeatures, error_px: float, final_threshold_px: float
+) -> ControlOutput | None:
     """The verdict a law on the four corners reaches before computing anything, or None.
 
     It stops (zero twist) when a corner is not seen and reports convergence once the

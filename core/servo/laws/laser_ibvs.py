@@ -152,8 +152,9 @@ class LaserIbvs:
         # plane (a real laser mount) can leave more than f0 of it, and 1.A would turn forever.
         turning_px = float(np.linalg.norm(J @ w)) / self.k_rotation_1a
         if turning_px <= self.f0_turn_px:
-            return self._stage_2(features, desired, error_px,
-                                 note=f"1A -> 2: turned as far as turning helps (||f_id - f|| = {stage_error:.2f} px)")
+            return self._stage_2(
+                features, desired, error_px, note=f"1A -> 2: turned as far as turning helps (||f_id - f|| = {stage_error:.2f} px)"
+            )
         return ControlOutput(self._with_compensation(w), Stage.ALIGN_1A, error_px, stage_error)
 
     def _beam_at_part(self, features: ImageFeatures, desired: DesiredImage) -> Matrix:
@@ -203,8 +204,10 @@ class LaserIbvs:
         # stage 1) the translation and the rotation of eq. 4-49 balance with the spot a few
         # px beyond f0^l, and stage 2 would creep on forever; stage 3 regulates the corners
         # themselves and takes the view round.
-        moving_px = float(np.linalg.norm(
-            pixel_interaction_matrix(self.camera, features.corners_px, features.laser_depth_m) @ cVc)) / self.k_translation
+        moving_px = (
+            float(np.linalg.norm(pixel_interaction_matrix(self.camera, features.corners_px, features.laser_depth_m) @ cVc))
+            / self.k_translation
+        )
         if moving_px <= self.f0_turn_px:
             switch = f"2 -> 3: stage 2 moves the corners no more ({moving_px:.2f} px, ||f_d^l - f^l|| = {laser_error_px:.2f} px)"
             return self._stage_3(features, desired, error_px, note=f"{note}; {switch}" if note else switch)
