@@ -15,7 +15,7 @@ the import graph), so nothing in perception, servo or robot sees the simulator a
 production never depends on the study. Under all of them, terminal/ holds what every
 layer's command line shares (each layer registers its commands from its own cli.py on
 the parser that vservo.app.cli builds) and the progress bar; it imports nothing else of
-vservo.
+vservo. errors.py holds VservoError, the root of every error vservo raises on purpose.
 """
 
 if __name__ != "vservo.core":  # a second copy under another name would split every class and enum in two

@@ -55,9 +55,9 @@ def import_graph(modules: dict[str, Path]) -> Graph:
 
 def layer_of(module: str) -> int | None:
     """The rank of a module of vservo.core: its layer's place in LAYERS, -1 for the core
-    package itself and terminal/ (the base every layer may use); None elsewhere."""
+    package itself, its error root and terminal/ (the base every layer may use); None elsewhere."""
     parts = module.split(".")
-    if module == "vservo.core" or parts[:3] == ["vservo", "core", "terminal"]:
+    if module in ("vservo.core", "vservo.core.errors") or parts[:3] == ["vservo", "core", "terminal"]:
         return -1
     if parts[:2] != ["vservo", "core"] or len(parts) < 3 or parts[2] not in LAYERS:
         return None
