@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from vservo.core.cell.config import BoardConfig
+from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.spatial import Matrix
 
@@ -33,7 +34,7 @@ _COLOUR_AGREEMENT = 0.9
 _DETECTOR_SEED = 0
 
 
-class BoardNotFound(ValueError):
+class BoardNotFound(VservoError, ValueError):
     """No checkerboard, or none that can be named, in an image; the message says why."""
 
 

@@ -17,13 +17,14 @@ from typing import Any
 
 import numpy as np
 
+from vservo.core.errors import VservoError
 from vservo.core.perception.recording import to_jsonable, write_atomic
 
 FORMAT_VERSION = 1
 _HEADER = "header_json"
 
 
-class CalibrationFileError(ValueError):
+class CalibrationFileError(VservoError, ValueError):
     """A calibration file that cannot be used; the message names the file and the fault."""
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from vservo.core.errors import VservoError
 from vservo.core.perception.recording import write_atomic
 from vservo.core.production.assembly import Outcome
 from vservo.core.production.jobs import Job, JobError, job_from_json, read_job_file, validate_job_name
@@ -60,7 +61,7 @@ CREATE TABLE IF NOT EXISTS runs (
 """
 
 
-class StoreError(RuntimeError):
+class StoreError(VservoError, RuntimeError):
     """The data folder cannot be used; the message names the file and the cause."""
 
 

@@ -26,6 +26,7 @@ import numpy as np
 from vservo.core.cell.config import CellConfig, CellModel, ConfigError
 from vservo.core.cell.kinematics import ArmKinematics
 from vservo.core.cell.scene import Scene
+from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix, exp_twist, inverse, pose_error, rot_z, transform
 from vservo.core.perception.features import ObjectRegion, polygon_moments
 from vservo.core.perception.measurement import Measurement
@@ -47,7 +48,7 @@ IK_TOLERANCE_M = 1e-7
 IK_TOLERANCE_RAD = 1e-7
 
 
-class CellStateError(RuntimeError):
+class CellStateError(VservoError, RuntimeError):
     """The plant refuses what it is asked in its present state (the cup holds the part,
     the board lies on the table); the message says what is in the way."""
 

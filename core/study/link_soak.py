@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from vservo.core.cell.config import CellConfig, JrcLineConfig
+from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix, pose_error, transform
 from vservo.core.robot.backend import MotionStopped, RobotError
 from vservo.core.robot.jrc import JrcBackend, Reply
@@ -45,7 +46,7 @@ ON_PATH_MM = 0.02
 MAX_RECOVERY_ATTEMPTS = 30
 
 
-class SoakFailure(RuntimeError):
+class SoakFailure(VservoError, RuntimeError):
     """The soak could not bring the robot back on its path."""
 
 

@@ -18,6 +18,7 @@ from typing import Protocol
 
 import numpy as np
 
+from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 
@@ -89,7 +90,7 @@ class ControlLaw(Protocol):
     def step(self, features: ImageFeatures, desired: DesiredImage, stage: Stage | None) -> ControlOutput: ...
 
 
-class SingularJacobian(ValueError):
+class SingularJacobian(VservoError, ValueError):
     """A Jacobian too close to singular to invert."""
 
 
