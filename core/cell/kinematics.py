@@ -174,6 +174,7 @@ class ArmKinematics:
             if best is None or self._cost(attempt) < self._cost(best):
                 best = attempt
 
+        assert best is not None  # the chain of seeds starts with q_seed: one attempt at least was made
         at_limits = [
             f"{name} at its {'lower' if abs(q - lo) < abs(q - hi) else 'upper'} limit"
             for name, q, lo, hi in zip(self.joint_names, best.q, self.lower, self.upper)

@@ -65,7 +65,7 @@ class CellTruth:
 
     @classmethod
     def from_config(cls, config: CellConfig, nominal_arm: ArmKinematics, rng: np.random.Generator) -> CellTruth:
-        sim = config.simulation
+        sim = config.plant()
         arm = nominal_arm.with_mount(sim.truth.mount)
         if sim.joint_placement_error_m > 0.0 or sim.joint_placement_error_rad > 0.0:
             arm = arm.with_joint_placement_errors(rng, sim.joint_placement_error_m, sim.joint_placement_error_rad)
@@ -154,16 +154,15 @@ class SimulatedCell:
     """
 
     def __init__(self, config: CellConfig, seed: int | None = None, arm: Arm = Arm.UPJ) -> None:
-        if config.simulation is None:
-            raise ConfigError(f"{config.source}: no [simulation] table: this file describes no plant to simulate")
-        self.rng = np.random.default_rng(config.simulation.seed if seed is None else seed)
+        simulation = config.plant()
+        self.rng = np.random.default_rng(simulation.seed if seed is None else seed)
         self.jrc_arm = ArmKinematics(load_arm(config.arm), config.nominal.mount)
         self.truth = CellTruth.from_config(config, self.jrc_arm, self.rng)
         self.arm = Arm(arm)
         bMe_free = self.jrc_arm.fk(config.home_q) if self.arm is Arm.NONE else None
-        self.state = PlantState(0.0, config.home_q.copy(), np.eye(4), config.simulation.scene, bMe_free=bMe_free)
+        self.state = PlantState(0.0, config.home_q.copy(), np.eye(4), simulation.scene, bMe_free=bMe_free)
         self.source = config.source
-        self.board = config.simulation.board  # the TRUE board, where it lies when laid
+        self.board = simulation.board  # the TRUE board, where it lies when laid
 
     # -- the table -------------------------------------------------------------------
 
