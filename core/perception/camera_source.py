@@ -195,7 +195,7 @@ def to_mono8(image: np.ndarray) -> NDArray[np.uint8]:
     elif image.ndim != 2:
         raise CameraSourceError(f"unsupported image shape {image.shape}: expected (H, W) or (H, W, 1|3|4)")
     if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
+        image = np.right_shift(image, 8).astype(np.uint8)
     return np.ascontiguousarray(image)
 
 
@@ -220,9 +220,15 @@ class CaptureLike(Protocol):
 
     def release(self) -> None: ...
 
-    def set(self, prop_id: int, value: float) -> bool: ...
+    # Positional-only: OpenCV names these parameters propId.
+    def set(self, prop_id: int, value: float, /) -> bool: ...
 
-    def get(self, prop_id: int) -> float: ...
+    def get(self, prop_id: int, /) -> float: ...
+
+
+def _video_capture(spec: int | str) -> CaptureLike:
+    """OpenCV's capture on a device index or a path, URL or pipeline (the default opener)."""
+    return cv2.VideoCapture(spec)
 
 
 def is_video_file(spec: int | str) -> bool:
@@ -309,7 +315,7 @@ class VideoCaptureSource(BaseSource):
         self._clock = clock
         self._stopping = threading.Event()
         self._sleep: Callable[[float], object] = sleep if sleep is not None else self._stopping.wait
-        self._opener: Callable[[int | str], CaptureLike] = opener if opener is not None else cv2.VideoCapture
+        self._opener: Callable[[int | str], CaptureLike] = opener if opener is not None else _video_capture
         self._next_index = 0
         self._last_size: Size | None = None
         self._lost: str | None = None  # why the source is gone, once it is
@@ -345,7 +351,8 @@ class VideoCaptureSource(BaseSource):
         if cap.isOpened():
             return cap, ""
         cap.release()
-        if self.is_file and not Path(self.spec).exists() and "%" not in self.spec:
+        # (a file's spec is a str: is_video_file)
+        if self.is_file and isinstance(self.spec, str) and not Path(self.spec).exists() and "%" not in self.spec:
             return None, "no such file"
         if self.is_file:
             return None, "OpenCV cannot decode it (not a video, or a codec this build lacks)"
