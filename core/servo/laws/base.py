@@ -85,7 +85,8 @@ class ControlOutput:
 class ControlLaw(Protocol):
     """A visual servo control law: one frame's features to a camera twist, e = s - s*."""
 
-    name: str
+    @property
+    def name(self) -> str: ...
 
     def step(self, features: ImageFeatures, desired: DesiredImage, stage: Stage | None) -> ControlOutput: ...
 
