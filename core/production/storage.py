@@ -229,7 +229,8 @@ class Store:
     def start_run(self, job: str, backend: str) -> int:
         with self._transaction() as db:
             cursor = db.execute("INSERT INTO runs (job, backend, started_at) VALUES (?, ?, ?)", (job, backend, time.time()))
-            return int(cursor.lastrowid)
+            assert cursor.lastrowid is not None  # an INSERT sets it
+            return cursor.lastrowid
 
     def run_folder(self, run_id: int) -> Path:
         return self.runs_dir / f"{run_id:06d}"
