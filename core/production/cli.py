@@ -8,10 +8,16 @@ import os
 import sys
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
 from vservo.core.production.storage import default_data_dir
 from vservo.core.terminal.command_line import print_result, seed
+
+if TYPE_CHECKING:  # imported when a command runs: `vservo --help` stays quick
+    from vservo.core.production.cell_controller import CellController
+    from vservo.core.production.rig import Rig
+    from vservo.core.production.storage import Store
 
 BACKEND_HELP = (
     "the simulated cell's robot: sim drives the simulator directly, jrc through the JRC link to an "
@@ -23,13 +29,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     import signal
 
     from vservo.core.production.assembly import Outcome
-    from vservo.core.production.cell_controller import CellController, CommandRefused, run_job_once
+    from vservo.core.production.cell_controller import CommandRefused, run_job_once
     from vservo.core.production.cell_rig import build_rig
     from vservo.core.production.storage import Store
 
     config = load_cell(args.cell)
     store = Store.for_controller(args.data or default_data_dir(), config.recordings)
-    controller = CellController(build_rig(config, args.seed, args.backend), store, seed=args.seed or 0)
+    controller = _controller_on(build_rig(config, args.seed, args.backend), store, seed=args.seed or 0)
     try:
         summary = run_job_once(controller, args.job)
     except CommandRefused as exc:
@@ -53,7 +59,6 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_controller(args: argparse.Namespace) -> int:
     import signal
 
-    from vservo.core.production.cell_controller import CellController
     from vservo.core.production.cell_rig import build_rig
     from vservo.core.production.channel import KEY_ENVIRONMENT, ControllerServer
     from vservo.core.production.storage import Store
@@ -72,7 +77,7 @@ def _cmd_controller(args: argparse.Namespace) -> int:
         return 2
     config = load_cell(args.cell)
     store = Store.for_controller(args.data or default_data_dir(), config.recordings)
-    controller = CellController(
+    controller = _controller_on(
         build_rig(config, args.seed, args.backend), store, seed=args.seed or 0, cycle_period_s=args.cycle_period
     )
     server = ControllerServer(controller, authkey, port=args.port)
@@ -90,6 +95,18 @@ def _cmd_controller(args: argparse.Namespace) -> int:
     controller.close()  # holds the robot if a run is under way
     store.close()
     return 0
+
+
+def _controller_on(rig: Rig, store: Store, **settings: Any) -> CellController:
+    """The cell controller on ``rig``; the rig closed if it cannot start (a robot port another
+    program holds, say), so no camera thread is left reading at the interpreter's exit."""
+    from vservo.core.production.cell_controller import CellController
+
+    try:
+        return CellController(rig, store, **settings)
+    except BaseException:
+        rig.close()
+        raise
 
 
 def _cmd_commission(args: argparse.Namespace) -> int:
