@@ -27,8 +27,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from vservo.core.production.cell_rig import build_rig
     from vservo.core.production.storage import Store
 
-    store = Store(args.data or default_data_dir())
-    controller = CellController(build_rig(load_cell(args.cell), args.seed, args.backend), store, seed=args.seed or 0)
+    config = load_cell(args.cell)
+    store = Store.for_controller(args.data or default_data_dir(), config.recordings)
+    controller = CellController(build_rig(config, args.seed, args.backend), store, seed=args.seed or 0)
     try:
         summary = run_job_once(controller, args.job)
     except CommandRefused as exc:
@@ -69,9 +70,10 @@ def _cmd_controller(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    store = Store(args.data or default_data_dir())
+    config = load_cell(args.cell)
+    store = Store.for_controller(args.data or default_data_dir(), config.recordings)
     controller = CellController(
-        build_rig(load_cell(args.cell), args.seed, args.backend), store, seed=args.seed or 0, cycle_period_s=args.cycle_period
+        build_rig(config, args.seed, args.backend), store, seed=args.seed or 0, cycle_period_s=args.cycle_period
     )
     server = ControllerServer(controller, authkey, port=args.port)
     stop = threading.Event()
