@@ -10,7 +10,6 @@ included, the robot is left held and the run's end is on record.
 from __future__ import annotations
 
 import logging
-import sqlite3
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -35,7 +34,7 @@ from vservo.core.production.controller_state import CommandRefused, EStopLatch, 
 from vservo.core.production.jobs import Job, JobError
 from vservo.core.production.retarget import retarget, retarget_note
 from vservo.core.production.rig import Rig
-from vservo.core.production.storage import Store
+from vservo.core.production.storage import Store, StoreError
 from vservo.core.servo.loop import Cycle, cycle_record
 
 log = logging.getLogger("vservo.controller")
@@ -207,7 +206,7 @@ class AssemblyRun:
                 outcome.stages,
                 self._recorded_to,
             )
-        except (sqlite3.Error, OSError) as exc:  # the operator learns now
+        except (StoreError, OSError) as exc:  # the operator learns now
             log.error("run %d: its end could not be stored: %s", self.run_id, exc)
             outcome = replace(outcome, notes=(*outcome.notes, f"its end could not be stored: {exc}"))
         return outcome

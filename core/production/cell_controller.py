@@ -65,7 +65,7 @@ from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job
 from vservo.core.production.placement_check import CheckView
 from vservo.core.production.rig import Rig
-from vservo.core.production.storage import Store
+from vservo.core.production.storage import Store, validate_part_id
 from vservo.core.production.teaching_session import PART_SIDE_M, TeachingSession
 from vservo.core.robot.backend import MotionStopped, RobotError, apply_increment
 from vservo.core.robot.safety import SafetyLayer
@@ -391,17 +391,20 @@ class CellController:
 
     # -- assembly (assembly_run.py) -------------------------------------------------------
 
-    def start(self, job_name: str, record: bool = True) -> int:
-        """Start one assembly of ``job_name`` in the background; returns the run's id.
+    def start(self, job_name: str, record: bool = True, part_id: str | None = None) -> int:
+        """Start one assembly of ``job_name`` in the background, its run recording ``part_id``
+        (for traceability) when given; returns the run's id.
 
         The job is first retargeted to the cell file's model (core/production/retarget.py):
         a job taught through another calibration of the camera, hand-eye or laser sees
         the same part through this one."""
+        if part_id is not None:
+            validate_part_id(part_id)  # refused before anything moves
         with self._lock:
             self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
             job, note = retargeted_job(self.store, self.rig.config.nominal, job_name)
             self._enable_motion()
-            run_id = self.store.start_run(job.name, self.rig.robot.name)
+            run_id = self.store.start_run(job.name, self.rig.robot.name, part_id)
             self._desired = job.desired
             self.update(
                 phase=Phase.SERVOING.value,
@@ -544,7 +547,7 @@ class CellController:
         self.rig.close()
 
 
-def run_job_once(controller: CellController, job_name: str) -> dict:
+def run_job_once(controller: CellController, job_name: str, part_id: str | None = None) -> dict:
     """One headless assembly (``vservo run``): a new part where the cell can present one,
     start, wait. The command is the operator's explicit go: a hold left by an earlier
     session's fault is released first, as its Reset would."""
@@ -552,9 +555,9 @@ def run_job_once(controller: CellController, job_name: str) -> dict:
         controller.reset()
     if controller.rig.present_part is not None:
         controller.present_part()
-    run_id = controller.start(job_name)
+    run_id = controller.start(job_name, part_id=part_id)
     controller.wait()
     outcome = controller.last_outcome
     if outcome is None:  # the run thread stores one whatever happens; a bug otherwise
         raise RuntimeError(f"run {run_id} of {job_name!r} ended without an outcome")
-    return {**outcome.summary(), "job": job_name, "run_id": run_id}
+    return {**outcome.summary(), "job": job_name, "run_id": run_id, "part_id": part_id}
