@@ -46,7 +46,7 @@ def real_rig(config: CellConfig) -> Rig:
         raise ConfigError(f'{config.source}: the JRC takes position steps; set [motion] mode = "position_steps"')
     model = config.nominal
     intrinsics = model.camera.intrinsics
-    camera = open_camera(config.camera_source, (intrinsics.width, intrinsics.height))
+    camera = open_camera(config.camera_source, (intrinsics.width, intrinsics.height), config.safety.watchdog_s)
     jrc = JrcBackend(config.jrc)
     vacuum = config.vacuum_device
     gripper: VacuumGripper = JrcVacuum(jrc, *vacuum.jrc_io()) if vacuum.device == "jrc_io" else NoVacuum()
@@ -62,16 +62,17 @@ def real_rig(config: CellConfig) -> Rig:
         # No gauge on a real cell: the assembly measures the placement by vision alone.
         measure_placement=lambda: None,
         locator=PartLocator.from_config(config),
-        reopen_camera=lambda: open_camera(config.camera_source, (intrinsics.width, intrinsics.height)),
+        reopen_camera=lambda: open_camera(config.camera_source, (intrinsics.width, intrinsics.height), config.safety.watchdog_s),
         present_part=fixture.present_part if fixture else None,
         lay_board=fixture.lay_board if fixture else None,
         place_part=fixture.place_part if fixture else None,
     )
 
 
-def open_camera(source: CameraSourceConfig, size: tuple[int, int]) -> FrameSource:
+def open_camera(source: CameraSourceConfig, size: tuple[int, int], frame_timeout_s: float) -> FrameSource:
     """The camera of [camera.source] (kind "capture" or "folder"), delivering frames of ``size``
-    (width, height), the size the intrinsics were calibrated at."""
+    (width, height), the size the intrinsics were calibrated at; a live camera that sends
+    no frame for ``frame_timeout_s`` (the [safety] watchdog) is lost."""
     if source.kind == "capture" and source.device is not None:  # (the cell file requires a device)
         return VideoCaptureSource(
             source.device,
@@ -81,6 +82,7 @@ def open_camera(source: CameraSourceConfig, size: tuple[int, int]) -> FrameSourc
             loop=source.loop,
             exposure_latency_s=source.exposure_latency_s,
             buffer_frames=source.buffer_frames,
+            frame_timeout_s=frame_timeout_s,
         )
     if source.kind == "folder" and source.path is not None:  # (the cell file requires a path)
         folder = ImageFolderSource(source.path, source.pattern)
