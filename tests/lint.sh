@@ -2,8 +2,8 @@
 # Lint and types: ruff's checks and format, then mypy over vservo.core and vservo.app.
 # Exits non-zero on any finding. Run from anywhere: bash tests/lint.sh
 #
-# The type checker is mypy, not pyright: mypy is pure Python from PyPI, installed and pinned
-# by pip and constraints.txt like every other tool here. pyright is written in TypeScript; its
+# The type checker is mypy, not pyright: mypy is a Python package on PyPI, installed and
+# pinned by pip and constraints.txt like every other tool here. pyright is TypeScript; its
 # PyPI package is a wrapper that, at its first run, installs pyright itself from the npm
 # registry with npm, and needs Node.js for it (the one on PATH, else a Node build that
 # nodeenv downloads from nodejs.org, which a machine that reaches only package registries
