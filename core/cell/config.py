@@ -31,6 +31,7 @@ import numpy as np
 
 from vservo.core.cell.kinematics import ToolMount
 from vservo.core.cell.scene import Cube, LaidBoard, MetalPart, Scene
+from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
 from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import Matrix, matrix_from_pose, pose_from_mm_deg
@@ -44,7 +45,7 @@ MAX_IMAGE_SIDE_PX = 20_000
 MAX_WATCHDOG_S = 600.0
 
 
-class ConfigError(ValueError):
+class ConfigError(VservoError, ValueError):
     """A cell configuration that cannot be used; the message names the key and value."""
 
 
@@ -147,6 +148,12 @@ class VacuumDeviceConfig:
     device: str
     suction_output: int | None = None
     grip_input: int | None = None
+
+    def jrc_io(self) -> tuple[int, int]:
+        """(suction_output, grip_input) of the "jrc_io" device; ConfigError for a device not wired to the JRC."""
+        if self.device != "jrc_io" or self.suction_output is None or self.grip_input is None:
+            raise ConfigError(f"the vacuum device {self.device!r} is not wired to the JRC's I/O")
+        return self.suction_output, self.grip_input
 
 
 class StepPolicyKind(StrEnum):
@@ -297,6 +304,12 @@ class CellConfig:
     metal_part: MetalPart | None = None
     recordings: RecordingRetention = RecordingRetention()
 
+    def plant(self) -> SimulationConfig:
+        """The [simulation] table, for code that simulates this cell; ConfigError when the file has none."""
+        if self.simulation is None:
+            raise ConfigError(f"{self.source}: no [simulation] table: this file describes no plant to simulate")
+        return self.simulation
+
     @property
     def real(self) -> bool:
         """A real cell: its camera is not the simulator's (and, checked on load, neither are its robot and cup)."""
@@ -309,7 +322,8 @@ class _Table:
     def __init__(self, data: Any, path: str, source: str) -> None:
         if not isinstance(data, dict):
             raise ConfigError(f"{source}: {path} must be a table, got {data!r}")
-        self._data, self._path, self._source, self._used = data, path, source, set()
+        self._data, self._path, self._source = data, path, source
+        self._used: set[str] = set()
 
     def _key(self, key: str) -> str:
         return f"{self._path}.{key}" if self._path else key

@@ -37,6 +37,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from vservo.core.errors import VservoError
+
 log = logging.getLogger("vservo.camera")
 
 Size = tuple[int, int]  # (width, height) in pixels
@@ -49,7 +51,7 @@ DEFAULT_FRAME_TIMEOUT_S = 5.0
 MAX_FRAME_TIMEOUT_S = 600.0
 
 
-class CameraSourceError(RuntimeError):
+class CameraSourceError(VservoError, RuntimeError):
     """A source that cannot be opened, or a frame it delivered that cannot be used."""
 
 
@@ -197,7 +199,7 @@ def to_mono8(image: np.ndarray) -> NDArray[np.uint8]:
     elif image.ndim != 2:
         raise CameraSourceError(f"unsupported image shape {image.shape}: expected (H, W) or (H, W, 1|3|4)")
     if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
+        image = np.right_shift(image, 8).astype(np.uint8)
     return np.ascontiguousarray(image)
 
 
@@ -222,9 +224,10 @@ class CaptureLike(Protocol):
 
     def release(self) -> None: ...
 
-    def set(self, prop_id: int, value: float) -> bool: ...
+    # Positional-only: OpenCV names these parameters propId.
+    def set(self, prop_id: int, value: float, /) -> bool: ...
 
-    def get(self, prop_id: int) -> float: ...
+    def get(self, prop_id: int, /) -> float: ...
 
 
 def is_video_file(spec: int | str) -> bool:
@@ -367,7 +370,8 @@ class VideoCaptureSource(BaseSource):
         if cap.isOpened():
             return cap, ""
         cap.release()
-        if self.is_file and not Path(self.spec).exists() and "%" not in self.spec:
+        # (a file's spec is a str: is_video_file)
+        if self.is_file and isinstance(self.spec, str) and not Path(self.spec).exists() and "%" not in self.spec:
             return None, "no such file"
         if self.is_file:
             return None, "OpenCV cannot decode it (not a video, or a codec this build lacks)"

@@ -271,10 +271,11 @@ class JrcBackend:
         """Close a port whose device is gone: its file descriptor never works again, and
         connect() opens the device anew. What to tell the caller."""
         self._lost = f"the serial port {self.port} is lost ({exc})"
-        try:
-            self._serial.close()
-        except (OSError, serial.SerialException):
-            pass  # closing a dead descriptor may fail too; it is dropped either way
+        if self._serial is not None:
+            try:
+                self._serial.close()
+            except (OSError, serial.SerialException):
+                pass  # closing a dead descriptor may fail too; it is dropped either way
         self._serial = self._station = None
         log.error("%s; the link is closed until it is connected again", self._lost)
         return self._lost
