@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_config import default_data
+from tests.cell.test_config import default_data
 from vservo.core.cell.config import CellConfig, StepPolicyKind, parse_cell, write_thesis_policy_cell
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.sim.jrc_emulator import FaultPlan, JrcEmulator

@@ -325,7 +325,7 @@ def test_corners_when_the_outline_leaves_the_edge_strips(view):
 def test_corners_in_the_demo_frame_that_lost_them():
     """A frame of the demo assembly (the part where it was taught, a 1.5 - 2 px side face
     along the left side, 0.8 deg off the grid) in which the corners were once lost."""
-    img = cv2.imread(str(Path(__file__).parent / "data" / "lost_corners_clean_frame.png"), cv2.IMREAD_UNCHANGED)
+    img = cv2.imread(str(Path(__file__).parents[1] / "data" / "lost_corners_clean_frame.png"), cv2.IMREAD_UNCHANGED)
     detection = detect_corners(img, detect_laser_spot(img))
     assert detection.found, detection.reason
     # Independently: the face's outline at half its contrast, a quadrilateral.

@@ -37,7 +37,7 @@ from vservo.core.geometry.spatial import transform
 from vservo.core.production.storage import Store
 
 TOKEN = "e2e-state-token"
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 IMAGES = Path(os.environ.get("VSERVO_DOC_IMAGES") or os.environ.get("VSERVO_ARTIFACTS", ROOT / "test-artifacts"))
 # Whether an element is shown whole: no scrolling box it sits in (up to the panel) hides part of it.
 SHOWN_WHOLE = """(element) => {

@@ -38,7 +38,7 @@ from vservo.app.browser import (
 )
 
 TOKEN = "e2e-operator-token"
-ARTIFACTS = Path(os.environ.get("VSERVO_ARTIFACTS", Path(__file__).resolve().parent.parent / "test-artifacts"))
+ARTIFACTS = Path(os.environ.get("VSERVO_ARTIFACTS", Path(__file__).resolve().parents[2] / "test-artifacts"))
 # Calls a button's React click handler directly, as a client that ignores the disabled state would.
 FORCE_REACT_CLICK = """(button) => {
     const props = button[Object.keys(button).find((key) => key.startsWith('__reactProps'))];

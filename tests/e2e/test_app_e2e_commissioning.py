@@ -24,7 +24,7 @@ from vservo.app.browser import (
 from vservo.core.cell.config import load_cell
 
 TOKEN = "e2e-commissioning-token"
-ARTIFACTS = Path(os.environ.get("VSERVO_ARTIFACTS", Path(__file__).resolve().parent.parent / "test-artifacts"))
+ARTIFACTS = Path(os.environ.get("VSERVO_ARTIFACTS", Path(__file__).resolve().parents[2] / "test-artifacts"))
 
 
 def test_commission_the_simulated_cell_from_the_calibrate_tab_and_apply(tmp_path):

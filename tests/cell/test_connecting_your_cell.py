@@ -15,7 +15,7 @@ from vservo.core.production.cell_controller import JOG_SPEED_M_S
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.robot.safety import SafetyLayer, TooFast
 
-PAGE = Path(__file__).resolve().parent.parent / "docs" / "connecting-your-cell.md"
+PAGE = Path(__file__).resolve().parents[2] / "docs" / "connecting-your-cell.md"
 HEADER = re.compile(r"^\[[^\]]+\]", re.MULTILINE)
 
 

@@ -19,7 +19,7 @@ from vservo.core.production.commissioning import CommissionSettings
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import DEMO_JOB, Store
 
-SHIPPED = Path(__file__).resolve().parent.parent / "static" / "cell.toml"
+SHIPPED = Path(__file__).resolve().parents[2] / "static" / "cell.toml"
 # The NN step on a grid too small to trust (at most 3 x 3 views, fewer than the 10 it needs): it says retake.
 SMALL_GRID = CommissionSettings(grid_half_m=(0.02, 0.02), grid_step_m=0.02, nn_epochs=5)
 

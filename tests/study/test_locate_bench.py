@@ -38,7 +38,7 @@ def test_a_place_whose_desired_view_through_the_cells_hand_eye_is_out_of_reach_i
     deg (seed 1's draw that the servo left 29 px short with joint 3 at its upper limit):
     through the taught eMc its desired view is reachable, but the run servoes to the view
     through the cell's eMc, which no branch of the arm reaches (joint 3 past its limit)."""
-    text = (Path(__file__).parents[1] / "static" / "cell.toml").read_text()
+    text = (Path(__file__).parents[2] / "static" / "cell.toml").read_text()
     taught_eMc = re.search(r"^eMc = .*$", text, re.MULTILINE).group(0)
     cell_file = tmp_path / "cell.toml"
     cell_file.write_text(text.replace(taught_eMc, "eMc = [-20.0, 20.0, 19.9, 5.0, 5.0, 5.0]"))

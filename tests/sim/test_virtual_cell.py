@@ -19,7 +19,7 @@ from pathlib import Path
 import cv2
 import pytest
 
-from tests.test_real_cell import SIMULATOR_MODULES, loaded_modules
+from tests.production.test_real_cell import SIMULATOR_MODULES, loaded_modules
 from tests.virtual_cell_process import ROOT, VirtualCellProcess
 from vservo.core.cell.cell_file import dumps_cell
 from vservo.core.cell.config import ConfigError, load_cell, read_cell_data

@@ -18,7 +18,7 @@ from vservo.core.production.locate import LocateError, PartLocator
 from vservo.core.production.rig import Rig
 from vservo.core.study.locate_bench import bench_locate, survey_pose
 
-SHIPPED = Path(__file__).resolve().parents[1] / "static" / "cell.toml"
+SHIPPED = Path(__file__).resolve().parents[2] / "static" / "cell.toml"
 
 
 def _vservo(*args: str) -> subprocess.CompletedProcess:

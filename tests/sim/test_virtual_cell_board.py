@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.test_virtual_cell import fixture_request
+from tests.sim.test_virtual_cell import fixture_request
 from tests.virtual_cell_process import VirtualCellProcess
 from vservo.core.cell.config import load_cell, read_cell_data
 from vservo.core.geometry.spatial import inverse, rot_x, transform

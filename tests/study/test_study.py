@@ -29,7 +29,7 @@ from vservo.core.study.run import RunSettings, run_task, teach
 from vservo.core.study.simulate import simulate
 from vservo.core.study.tasks import ROBUSTNESS_TASK, TASKS, THESIS_PATH_LENGTH_M
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SHIPPED_CELL = ROOT / "static" / "cell.toml"
 SNAPSHOT = ROOT / "static" / "study"  # made by `vservo reproduce --out static/study`
 

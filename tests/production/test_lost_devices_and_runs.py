@@ -30,7 +30,7 @@ from vservo.core.robot.jrc import JrcBackend
 from vservo.core.sim.jrc_emulator import JrcEmulator
 from vservo.core.sim.plant import SimulatedCell
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_a_lost_jrc_port_raises_link_error_and_connect_opens_it_again_when_it_is_back(tmp_path):

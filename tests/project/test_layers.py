@@ -151,7 +151,7 @@ def test_every_package_folder_is_installed():
     """A package folder missing from pyproject.toml's list would be absent from a wheel."""
     import tomllib
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     listed = set(tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     folders = {m for m, path in package_modules().items() if path.name == "__init__.py"}
     assert folders == listed

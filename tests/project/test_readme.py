@@ -4,7 +4,7 @@ short: at most 150 lines, the rest in docs/, every docs/ link pointing at a file
 import re
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def readme_commands() -> list[str]:

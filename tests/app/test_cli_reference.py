@@ -12,7 +12,7 @@ from pathlib import Path
 
 from vservo.app.cli import build_parser
 
-CLI_REFERENCE = Path(__file__).resolve().parent.parent / "docs" / "cli.md"
+CLI_REFERENCE = Path(__file__).resolve().parents[2] / "docs" / "cli.md"
 HEADING = re.compile(r"^## `(vservo(?: [a-z][a-z0-9-]*)*)`$")
 ROW = re.compile(r"^\| `([^` ]+)[^`]*`")
 
