@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.chromium import chromium_or_fail, headless_chromium
+from tests.chromium import chromium_or_fail
 from tests.jrc_fixtures import thesis_policy_cell_file
 from vservo.app.browser import (
     ServeProcess,
@@ -60,15 +60,9 @@ def app(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def browser(app):
-    with headless_chromium() as chromium:
-        yield chromium
-
-
-@pytest.fixture(scope="module")
-def pages(app, browser):
+def pages(app, chromium):
     """The operator's page (large, for the screenshots) and a monitor's, each its own browser context."""
-    operator, monitor = open_pages(browser, app.url, [(1600, 1000), (1400, 900)])
+    operator, monitor = open_pages(chromium, app.url, [(1600, 1000), (1400, 900)])
     return operator, monitor
 
 

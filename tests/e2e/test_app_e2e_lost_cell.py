@@ -14,14 +14,13 @@ from __future__ import annotations
 import re
 import time
 
-from tests.chromium import chromium_or_fail
+from tests.chromium import chromium_or_fail, headless_chromium
 from tests.jrc_fixtures import thesis_policy_cell_file
 from tests.virtual_cell_process import VirtualCellProcess
 from vservo.app.browser import (
     ServeProcess,
     choose,
     free_port,
-    launch_chromium,
     open_pages,
     present_part_and_start,
     status_text,
@@ -55,11 +54,8 @@ def test_the_virtual_cell_killed_mid_run_shows_the_fault_and_reset_reconnects_on
     )  # a servo long enough to kill the cell in
     cell = VirtualCellProcess(*addresses)
     serve = ServeProcess.start(tmp_path / "data", TOKEN, cycle_period_s=0.0, cell=cell.addresses["cell_file"])
-    from playwright.sync_api import sync_playwright
-
     try:
-        with sync_playwright() as playwright:
-            chromium = launch_chromium(playwright)
+        with headless_chromium() as chromium:
             page = open_pages(chromium, serve.url, [(1400, 900)])[0]
             take_control(page, serve.token)
             page.get_by_role("tab", name="Assemble").click()
@@ -88,7 +84,6 @@ def test_the_virtual_cell_killed_mid_run_shows_the_fault_and_reset_reconnects_on
             wait_for_status(page, rf"Servoing .*run {again}.*cycle [2-9]", timeout_s=60)
             page.get_by_role("button", name="E-STOP", exact=True).click()
             wait_for_status(page, r"E-STOPPED", timeout_s=10)
-            chromium.close()
     finally:
         assert serve.stop() == 0, serve.stderr()[-3000:]
         cell.stop()

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.chromium import chromium_or_fail
+from tests.chromium import chromium_or_fail, headless_chromium
 from tests.jrc_fixtures import thesis_policy_cell_file
 from vservo.app.banner import Kind
 from vservo.app.browser import (
@@ -27,7 +27,6 @@ from vservo.app.browser import (
     banner,
     choose,
     dismiss_notifications,
-    launch_chromium,
     open_pages,
     take_control,
     wait_for_banner,
@@ -60,9 +59,7 @@ def _rgb(kind: Kind) -> str:
 
 @pytest.fixture(scope="module")
 def page(tmp_path_factory):
-    chromium_or_fail()
-    from playwright.sync_api import sync_playwright
-
+    chromium_or_fail()  # before `vservo serve` starts
     IMAGES.mkdir(parents=True, exist_ok=True)
     data = tmp_path_factory.mktemp("serve-data")
     store_a_job_that_misses(data)
@@ -70,12 +67,10 @@ def page(tmp_path_factory):
     # (the shipped fast policy's takes a handful).
     serve = ServeProcess.start(data, TOKEN, cycle_period_s=0.02, cell=thesis_policy_cell_file(data))
     try:
-        with sync_playwright() as playwright:
-            chromium = launch_chromium(playwright)
+        with headless_chromium() as chromium:
             (operator,) = open_pages(chromium, serve.url, [(1600, 1000)])
             take_control(operator, TOKEN)
             yield operator
-            chromium.close()
     finally:
         assert serve.stop() == 0
         assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]

@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from tests.chromium import chromium_or_fail, headless_chromium
+from tests.chromium import chromium_or_fail
 from tests.jrc_fixtures import thesis_policy_cell_file
 from tests.virtual_cell_process import VirtualCellProcess
 from vservo.app.browser import (
@@ -51,13 +51,12 @@ def app(virtual_cell, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def operator(app):
-    with headless_chromium() as chromium:
-        page = open_pages(chromium, app.url, [(1400, 900)])[0]
-        take_control(page, app.token)
-        page.get_by_role("tab", name="Assemble").click()
-        choose(page, "Job", "demo")
-        yield page
+def operator(app, chromium):
+    page = open_pages(chromium, app.url, [(1400, 900)])[0]
+    take_control(page, app.token)
+    page.get_by_role("tab", name="Assemble").click()
+    choose(page, "Job", "demo")
+    return page
 
 
 def _assemble(page, virtual_cell) -> None:

@@ -11,7 +11,6 @@ import threading
 import pytest
 import viser
 
-from tests.chromium import headless_chromium
 from vservo.app.browser import (
     ServeProcess,
     free_port,
@@ -38,12 +37,6 @@ def app(tmp_path_factory):
         yield serve
 
 
-@pytest.fixture(scope="module")
-def browser(app):
-    with headless_chromium() as chromium:
-        yield chromium
-
-
 @pytest.fixture
 def foreign_site(tmp_path):
     """Another web site on this PC (another origin: another port), serving one empty page."""
@@ -56,18 +49,18 @@ def foreign_site(tmp_path):
     server.server_close()
 
 
-def test_a_page_of_another_site_cannot_open_the_apps_websocket(app, browser, foreign_site):
+def test_a_page_of_another_site_cannot_open_the_apps_websocket(app, chromium, foreign_site):
     websocket_url = app.url.replace("http://", "ws://")
-    foreign = browser.new_context().new_page()
+    foreign = chromium.new_context().new_page()
     foreign.goto(foreign_site)
     assert foreign.evaluate(OPEN_WEBSOCKET, websocket_url) == "refused"
-    own = open_pages(browser, app.url, [(1200, 800)])[0]
+    own = open_pages(chromium, app.url, [(1200, 800)])[0]
     assert own.evaluate(OPEN_WEBSOCKET, websocket_url) == "open"
     assert "WebSocket from 127.0.0.1 refused: Origin 'http://127.0.0.1:" in app.stderr()
 
 
-def test_wrong_tokens_count_against_the_address_across_reloads(app, browser):
-    page = open_pages(browser, app.url, [(1200, 800)])[0]
+def test_wrong_tokens_count_against_the_address_across_reloads(app, chromium):
+    page = open_pages(chromium, app.url, [(1200, 800)])[0]
     for _ in range(MAX_TOKEN_FAILURES):
         type_into(page, "Operator token", "a-wrong-guess")
         page.get_by_role("button", name="Take control").click()

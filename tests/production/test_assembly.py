@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import json
 import threading
-from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.controller_fixtures import simulated_controller
 from tests.jrc_fixtures import with_the_thesis_policy
 from vservo.app.cli import main
 from vservo.core.cell.config import CellConfig, load_cell
@@ -21,24 +21,11 @@ from vservo.core.production.storage import Store
 from vservo.core.robot.safety import SafetyLayer
 
 
-def controller_of(config: CellConfig, tmp_path: Path) -> Iterator[CellController]:
-    store = Store(tmp_path / "data")
-    controller = CellController(simulated_rig(config, seed=3), store, seed=3)
-    yield controller
-    controller.close()
-    store.close()
-
-
-@pytest.fixture
-def controller(tmp_path):
-    """A controller of the simulated shipped cell (the fast step policy)."""
-    yield from controller_of(load_cell(), tmp_path)
-
-
 @pytest.fixture
 def thesis_controller(tmp_path):
-    """The same with the thesis's step policy: hundreds of servo cycles, one per 2 s."""
-    yield from controller_of(with_the_thesis_policy(load_cell()), tmp_path)
+    """The conftest's controller with the thesis's step policy: hundreds of servo cycles, one per 2 s."""
+    with simulated_controller(with_the_thesis_policy(load_cell()), tmp_path / "data") as controller:
+        yield controller
 
 
 def test_demo_job_places_the_part(controller):

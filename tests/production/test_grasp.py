@@ -8,15 +8,6 @@ import pytest
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import rotation_angle
 from vservo.core.production.grasp import grasp_choice, turned_grasp
-from vservo.core.production.storage import DEMO_JOB, Store
-
-
-@pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    store = Store(tmp_path_factory.mktemp("data"))
-    job = store.load_job(DEMO_JOB)
-    store.close()
-    return job
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.jrc_fixtures import TEST_LINE, TIME_SCALE, no_leaked_threads  # noqa: F401 (a fixture)
+from tests.jrc_fixtures import TEST_LINE, TIME_SCALE
 from vservo.core.cell.config import ConfigError, VacuumDeviceConfig, load_cell
 from vservo.core.geometry.spatial import inverse
 from vservo.core.perception.camera_source import CameraSourceError

@@ -22,7 +22,7 @@ from vservo.core.production.cell_controller import CellController
 from vservo.core.production.jobs import Job, JobError
 from vservo.core.production.retarget import NOT_RETARGETED, RETARGETED, retarget, retarget_note, start_pose_for_part
 from vservo.core.production.simulated_rig import simulated_rig
-from vservo.core.production.storage import DEMO_JOB, Store
+from vservo.core.production.storage import Store
 
 
 def moved(aMb: np.ndarray, mm: float, deg: float, along: tuple, about: tuple) -> np.ndarray:
@@ -56,14 +56,6 @@ def recalibrated(shipped) -> CellModel:
 def recalibrated_cell(shipped, recalibrated) -> CellConfig:
     """The shipped cell whose truth is the recalibrated model, and whose file says so."""
     return replace(shipped, nominal=recalibrated, simulation=replace(shipped.simulation, truth=recalibrated))
-
-
-@pytest.fixture(scope="module")
-def demo(tmp_path_factory) -> Job:
-    store = Store(tmp_path_factory.mktemp("data"))
-    job = store.load_job(DEMO_JOB)
-    store.close()
-    return job
 
 
 def part_pose_taught(job: Job) -> np.ndarray:

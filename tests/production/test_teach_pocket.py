@@ -9,13 +9,11 @@ import pytest
 
 from vservo.app.scene3d import part_pose_from_corners
 from vservo.app.teach_panel import above_pocket, cup_on_part, view_over_part
-from vservo.core.cell.config import ConfigError, load_cell, parse_cell, read_cell_data
+from vservo.core.cell.config import ConfigError, parse_cell, read_cell_data
 from vservo.core.cell.scene import MetalPart
 from vservo.core.geometry.spatial import Pose6, inverse, matrix_from_pose, rot_z, transform
 from vservo.core.production.cell_controller import CellController
 from vservo.core.production.pocket import flange_in_pocket, pocket_fit
-from vservo.core.production.simulated_rig import simulated_rig
-from vservo.core.production.storage import Store
 
 SIDE_M = 0.020
 
@@ -43,14 +41,6 @@ def test_a_metal_part_whose_pocket_does_not_open_up_is_refused_by_name():
     data["metal_part"] = {"pose": [-400.0, 120.0, -165.0, 0.0, 10.0, 0.0]}
     with pytest.raises(ConfigError, match=r"metal_part\.pose = .*opens straight up"):
         parse_cell(data, "bent.toml")
-
-
-@pytest.fixture
-def controller(tmp_path):
-    controller = CellController(simulated_rig(load_cell(), seed=3, backend="sim"), Store(tmp_path / "data"), seed=3)
-    yield controller
-    controller.close()
-    controller.store.close()
 
 
 def teach_up_to_the_pick(controller: CellController) -> None:

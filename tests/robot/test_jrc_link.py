@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import serial
 
-from tests.jrc_fixtures import TEST_LINE, TIME_SCALE, jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
+from tests.jrc_fixtures import TEST_LINE, TIME_SCALE, jrc_link, short_timer_cell
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Pose6, inverse, matrix_from_pose, pose_error, rot_x, rot_z, transform
 from vservo.core.robot.backend import RobotError

@@ -6,7 +6,7 @@ from contextlib import ExitStack
 
 import pytest
 
-from tests.jrc_fixtures import jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
+from tests.jrc_fixtures import jrc_link, short_timer_cell
 from vservo.core.robot.safety import SafetyLayer
 from vservo.core.servo.step_policy import DividedPositionStep
 from vservo.core.study.run import RunSettings, run_task

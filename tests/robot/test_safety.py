@@ -10,7 +10,7 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from tests.jrc_fixtures import jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
+from tests.jrc_fixtures import jrc_link, short_timer_cell
 from vservo.core.geometry.spatial import pose_error, rot_z, transform
 from vservo.core.robot.safety import (
     BeyondJointLimits,

@@ -13,9 +13,7 @@ taught desired image came from with the end of the jog before the capture.
 from collections import deque
 
 import numpy as np
-import pytest
 
-from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import transform
 from vservo.core.perception.camera_source import BaseSource, CameraSourceError, Frame, Size
 from vservo.core.production.cell_controller import CellController
@@ -87,11 +85,6 @@ class StillSince(SimulatedBackend):
         finished = super().wait_motion(timeout_s)
         self.still_since.append(self.clock_s())
         return finished
-
-
-@pytest.fixture(scope="module")
-def cell_config():
-    return load_cell()
 
 
 def test_a_plain_read_after_a_move_returns_a_frame_from_before_it(cell_config):

@@ -9,7 +9,6 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from vservo.core.cell.config import load_cell
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
 from vservo.core.geometry.spatial import inverse
 from vservo.core.robot.commands import PositionCommand, VelocityCommand
@@ -25,11 +24,6 @@ from vservo.core.study.tasks import TASKS
 from vservo.robot_models.loader import load_arm
 
 DT_S = 0.1
-
-
-@pytest.fixture(scope="module")
-def cell_config():
-    return load_cell()
 
 
 @pytest.fixture(scope="module")

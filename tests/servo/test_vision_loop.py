@@ -9,7 +9,6 @@ import cv2
 import numpy as np
 import pytest
 
-from vservo.core.cell.config import load_cell
 from vservo.core.cell.scene import Cube
 from vservo.core.geometry.spatial import inverse
 from vservo.core.perception.camera_source import Frame
@@ -24,11 +23,6 @@ from vservo.core.sim.sensor import FrameFault
 from vservo.core.study.replay import replay
 from vservo.core.study.run import RunSettings, run_task
 from vservo.core.study.tasks import TASKS
-
-
-@pytest.fixture(scope="module")
-def cell_config():
-    return load_cell()
 
 
 def extractor(config):

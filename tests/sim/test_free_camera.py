@@ -8,7 +8,6 @@ import sys
 import numpy as np
 import pytest
 
-from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import exp_twist, pose_error, rot_x, transform
 from vservo.core.robot.backend import carry_out
 from vservo.core.robot.commands import PositionCommand, VelocityCommand
@@ -20,11 +19,6 @@ from vservo.core.study.provenance import reproduce_command
 from vservo.core.study.run import RunSettings, run_task
 from vservo.core.study.simulate import simulate
 from vservo.core.study.tasks import TASKS
-
-
-@pytest.fixture(scope="module")
-def cell_config():
-    return load_cell()
 
 
 def free_cell(cell_config):

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from vservo.core.cell.config import load_cell, read_cell_data
+from vservo.core.cell.config import read_cell_data
 from vservo.core.geometry.spatial import inverse, pose_error
 from vservo.core.servo.laws.base import ControlOutput, Failure
 from vservo.core.servo.loop import LoopLimits, run_servo
@@ -32,11 +32,6 @@ from vservo.core.study.tasks import ROBUSTNESS_TASK, TASKS, THESIS_PATH_LENGTH_M
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED_CELL = ROOT / "static" / "cell.toml"
 SNAPSHOT = ROOT / "static" / "study"  # made by `vservo reproduce --out static/study`
-
-
-@pytest.fixture(scope="module")
-def cell_config():
-    return load_cell()
 
 
 @pytest.fixture(scope="module")
