@@ -1,10 +1,11 @@
-"""Fixtures shared by the tests of several layers.
+"""Fixtures shared by the tests of several layers, and the browser marker by folder.
 
 The support modules beside this file hold what a test imports by name (tests.jrc_fixtures,
 tests.chromium, ...); the fixtures here are the ones several test files asked for alike.
 """
 
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -12,6 +13,19 @@ from tests.chromium import headless_chromium
 from tests.controller_fixtures import simulated_controller
 from vservo.core.cell.config import load_cell
 from vservo.core.production.storage import DEMO_JOB, Store
+
+E2E = Path(__file__).parent / "e2e"
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The tests that drive Chromium live under tests/e2e: each is marked browser, and slow too
+    (alone, each starts `vservo serve` and Chromium: tens of seconds), so that
+    `-m "not browser and not slow"` (the fast loop) leaves them out. Slow tests elsewhere are
+    marked where they are defined."""
+    for item in items:
+        if E2E in item.path.parents:
+            item.add_marker(pytest.mark.browser)
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture(scope="module")

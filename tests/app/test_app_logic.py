@@ -131,6 +131,7 @@ def recorded_run(tmp_path_factory):
     return states, outcome
 
 
+@pytest.mark.slow
 def test_the_session_traces_the_run_from_the_state_stream(recorded_run):
     states, outcome = recorded_run
     session = Session()
@@ -149,6 +150,7 @@ def test_the_session_traces_the_run_from_the_state_stream(recorded_run):
     assert trace.cycle_rate_hz() > 0
 
 
+@pytest.mark.slow
 def test_the_session_ignores_an_older_state_and_starts_a_new_trace_per_run(recorded_run):
     states, _ = recorded_run
     session = Session()
@@ -221,6 +223,7 @@ def test_a_bad_jpeg_is_named():
 # -- texts and numbers the screens show ---------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_status_progress_and_outcome_texts(recorded_run):
     states, outcome = recorded_run
     servoing = next(s for s in states if s["phase"] == "servoing" and s["iteration"] > 5)

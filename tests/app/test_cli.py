@@ -159,6 +159,7 @@ def test_a_negative_seed_is_refused_naming_the_option(command):
     assert refused.stderr.strip().endswith("error: argument --seed: expected a non-negative integer, got '-5'"), refused.stderr
 
 
+@pytest.mark.slow
 def test_the_cell_option_goes_before_or_after_the_command():
     for args in (
         ("--cell", "/nowhere/cell.toml", "info"),

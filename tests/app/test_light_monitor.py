@@ -69,6 +69,7 @@ async def _watch_an_assembly(running) -> LightMonitor:
     return monitor
 
 
+@pytest.mark.slow
 def test_a_light_monitor_decodes_the_camera_frames_of_the_app(running):
     monitor = asyncio.run(_watch_an_assembly(running))
 
@@ -83,6 +84,7 @@ def test_a_light_monitor_decodes_the_camera_frames_of_the_app(running):
     assert monitor.messages > len(camera.times)  # the page's other messages were decoded too
 
 
+@pytest.mark.slow
 def test_light_monitors_in_their_own_process_each_receive_the_frames(running):
     with LightMonitors(running.url, 3) as monitors:
         _assemble(running)
@@ -96,6 +98,7 @@ def test_light_monitors_of_no_server_say_so():
         LightMonitors("http://127.0.0.1:9", 1)
 
 
+@pytest.mark.slow
 def test_bench_ui_light_json_has_the_figures_per_client_count():
     command = [
         sys.executable,

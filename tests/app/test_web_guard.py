@@ -162,6 +162,7 @@ def test_a_token_unfit_for_the_network_is_refused(tmp_path, token, file_text, en
         assert str(path) in str(refused.value)
 
 
+@pytest.mark.slow
 def test_serve_beyond_loopback_with_a_short_token_refuses_in_one_line(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "vservo.app.cli", "serve", "--host", "0.0.0.0", "--token", "hunter2", "--data", str(tmp_path)],

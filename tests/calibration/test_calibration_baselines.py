@@ -95,6 +95,7 @@ def test_free_hand_eye_is_exact_with_a_k1_lens_and_misses_higher_order_distortio
     assert np.max(world_error_mm(lens_fit, projected(LENS, test_poses))) > 0.1
 
 
+@pytest.mark.slow
 def test_classical_calibrations_survive_a_save_load_round_trip(tmp_path, cell_data):
     rotated, planar, test = cell_data
     camera, _, _ = calibrate_camera(rotated, sony_xc55())

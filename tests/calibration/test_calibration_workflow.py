@@ -27,6 +27,7 @@ def ideal_folder(tmp_path_factory):
     return folder, summary
 
 
+@pytest.mark.slow
 def test_collection_records_every_reachable_viewpoint_with_the_reported_pose(ideal_folder):
     folder, summary = ideal_folder
     assert summary["grid"] == {"viewpoints": 9, "reachable": 9}
@@ -38,6 +39,7 @@ def test_collection_records_every_reachable_viewpoint_with_the_reported_pose(ide
     assert CalibrationDataset.load(folder / "rotated.npz").views >= 6
 
 
+@pytest.mark.slow
 def test_every_method_predicts_held_out_corners_of_the_ideal_cell(ideal_folder):
     folder, _ = ideal_folder
     result = evaluate(folder)
@@ -46,6 +48,7 @@ def test_every_method_predicts_held_out_corners_of_the_ideal_cell(ideal_folder):
         assert errors["xy_mm"] < 0.05, name
 
 
+@pytest.mark.slow
 def test_pbvs_brings_the_end_effector_over_random_targets(ideal_folder):
     folder, _ = ideal_folder
     result = track(load_cell(), folder, "random", points=2, settings=TrackingSettings(), methods=("nn", "planar_homography"))
@@ -65,6 +68,7 @@ def run(*args):
     return subprocess.run([sys.executable, "-m", "vservo.app.cli", *args], capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.slow
 def test_evaluating_an_empty_folder_is_a_one_line_error(tmp_path):
     result = run("calibrate", "evaluate", "--dir", str(tmp_path), "--json")
     assert result.returncode == 2 and result.stdout == ""
@@ -72,6 +76,7 @@ def test_evaluating_an_empty_folder_is_a_one_line_error(tmp_path):
     assert "test.npz: no such file; run vservo calibrate collect first" in result.stderr
 
 
+@pytest.mark.slow
 def test_training_on_a_dataset_with_nan_is_a_one_line_error(tmp_path, ideal_folder):
     data = CalibrationDataset.load(ideal_folder[0] / "planar.npz")
     pixels = data.pixels_px.copy()
@@ -89,6 +94,7 @@ def test_training_on_a_dataset_with_nan_is_a_one_line_error(tmp_path, ideal_fold
     assert "pixels_px holds 1 NaN" in result.stderr
 
 
+@pytest.mark.slow
 def test_evaluate_prints_one_json_object(ideal_folder):
     result = run("calibrate", "evaluate", "--dir", str(ideal_folder[0]), "--json")
     assert result.returncode == 0

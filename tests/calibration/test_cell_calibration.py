@@ -158,6 +158,7 @@ def test_find_board_refuses_what_it_cannot_find_or_name() -> None:
 # -- the camera --------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_camera_calibration_recovers_the_true_camera(commissioning: dict) -> None:
     calibration = commissioning["camera"]
     found, truth = calibration.camera.intrinsics, TRUE_CAMERA.intrinsics
@@ -173,6 +174,7 @@ def test_camera_calibration_recovers_the_true_camera(commissioning: dict) -> Non
     assert calibration.verdict.reason.startswith("good: RMS 0.0")
 
 
+@pytest.mark.slow
 def test_camera_verdict_says_retake_for_few_or_flat_views(commissioning: dict) -> None:
     few = calibrate_camera_views(commissioning["views"][:6], NOMINAL)
     assert not few.verdict.good and "only 6 views, take at least 10" in few.verdict.reason
@@ -181,6 +183,7 @@ def test_camera_verdict_says_retake_for_few_or_flat_views(commissioning: dict) -
     assert not flat.verdict.good and "tilt the camera more" in flat.verdict.reason
 
 
+@pytest.mark.slow
 def test_camera_refuses_bad_views(commissioning: dict) -> None:
     views = list(commissioning["views"][:5])
     with pytest.raises(ValueError, match="at least 3 views, got 2"):
@@ -192,6 +195,7 @@ def test_camera_refuses_bad_views(commissioning: dict) -> None:
         BoardView(np.zeros((5, 2)), np.zeros((4, 3)))
 
 
+@pytest.mark.slow
 def test_a_blurred_view_is_named_in_the_verdict(commissioning: dict) -> None:
     views = list(commissioning["views"])
     rng = np.random.default_rng(5)
@@ -203,6 +207,7 @@ def test_a_blurred_view_is_named_in_the_verdict(commissioning: dict) -> None:
 # -- hand-eye and the board -------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_hand_eye_recovers_eMc_and_the_board(commissioning: dict) -> None:
     hand_eye = commissioning["hand_eye"]
     mm, deg = pose_error_mm_deg(hand_eye.eMc, eMc_TRUE)
@@ -215,6 +220,7 @@ def test_hand_eye_recovers_eMc_and_the_board(commissioning: dict) -> None:
     assert hand_eye.verdict.good, hand_eye.verdict.reason
 
 
+@pytest.mark.slow
 def test_hand_eye_holds_when_the_arm_is_off(commissioning: dict) -> None:
     """A 0.2 mm / 0.02 deg error in each reading: eMc still within 1 mm and 0.2 deg, and
     the reprojection through the arm's poses shows the readings' error."""
@@ -230,6 +236,7 @@ def test_hand_eye_holds_when_the_arm_is_off(commissioning: dict) -> None:
     assert hand_eye.verdict.good, hand_eye.verdict.reason
 
 
+@pytest.mark.slow
 def test_hand_eye_says_retake_for_turns_about_one_axis_and_a_moved_board(commissioning: dict) -> None:
     rng = np.random.default_rng(4)
     # Turns about the board's x axis, plus a sliver about y: solvable, badly posed.
@@ -253,6 +260,7 @@ def test_hand_eye_says_retake_for_turns_about_one_axis_and_a_moved_board(commiss
     assert not verdict.good and "the board moved" in verdict.reason
 
 
+@pytest.mark.slow
 def test_hand_eye_refuses_views_that_cannot_fix_eMc(commissioning: dict) -> None:
     views, camera = commissioning["views"], commissioning["camera"]
     with pytest.raises(ValueError, match="4 poses, 5 views, 5 board poses"):
@@ -286,6 +294,7 @@ def laser_views(camera: CameraModel, rng: np.random.Generator) -> tuple[Matrix, 
     return np.array(spots), cMboard
 
 
+@pytest.mark.slow
 def test_laser_beam_is_recovered_through_the_calibrated_camera(commissioning: dict) -> None:
     camera = commissioning["camera"].camera
     spots, cMboard = laser_views(camera, np.random.default_rng(9))
@@ -311,6 +320,7 @@ def test_the_in_plane_laser_is_written_as_in_plane() -> None:
     assert laser.baseline_m == pytest.approx(0.030) and np.degrees(laser.alpha_rad) == pytest.approx(80.0)
 
 
+@pytest.mark.slow
 def test_laser_verdict_and_refusals(commissioning: dict) -> None:
     camera = commissioning["camera"].camera
     spots, cMboard = laser_views(camera, np.random.default_rng(9))
@@ -341,6 +351,7 @@ def test_beam_line_error_measures_angle_and_offset_at_a_depth() -> None:
 # -- the network's data and the acceptance check ---------------------------------------
 
 
+@pytest.mark.slow
 def test_grid_dataset_and_acceptance(commissioning: dict) -> None:
     hand_eye = commissioning["hand_eye"]
     rng = np.random.default_rng(2)

@@ -58,6 +58,7 @@ def assemble_through_the_jrc_link(config: CellConfig, tmp_path: Path) -> tuple[A
         store.close()
 
 
+@pytest.mark.slow
 def test_the_demo_job_places_the_part_through_the_jrc_link_in_fewer_steps_than_the_thesis_policy(tmp_path):
     fast, fast_moves = assemble_through_the_jrc_link(load_cell(), tmp_path / "fast")
     assert fast.outcome is Outcome.PLACED, fast.reason

@@ -19,6 +19,8 @@ from vservo.core.production.rig import Rig
 from vservo.core.study.locate_bench import bench_locate, survey_pose
 
 SHIPPED = Path(__file__).resolve().parents[2] / "static" / "cell.toml"
+# Every test here takes `commissioned`: one `vservo commission` run, about a minute.
+pytestmark = pytest.mark.slow
 
 
 def _vservo(*args: str) -> subprocess.CompletedProcess:

@@ -58,6 +58,7 @@ def cell_file(tmp_path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_commission_over_the_channel_apply_and_assemble_on_the_new_model(cell_file, tmp_path):
     controller, store = controller_on(load_cell(cell_file), tmp_path / "data")
     states = States(controller)

@@ -19,6 +19,7 @@ pytestmark = pytest.mark.usefixtures("no_leaked_threads")
 TIME_SCALE = 1000.0
 
 
+@pytest.mark.slow
 def test_the_laser_servo_of_task_2_converges_through_the_jrc_link():
     config = short_timer_cell()
     motion = config.motion

@@ -144,6 +144,7 @@ def rendered_runs(cell_config):
     }
 
 
+@pytest.mark.slow
 def test_every_task_converges_on_rendered_features_like_on_ideal_ones(rendered_runs):
     for task, (ideal, rendered) in rendered_runs.items():
         assert rendered.outcome.converged, (task, rendered.outcome.reason)

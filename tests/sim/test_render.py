@@ -431,6 +431,7 @@ def check_against_raycast(image, camera, bMc, scene, step=16, around_b=None):
         ((0.0, 0.0, 0.25), (0.7, 0.0, 0.0), PINHOLE, (0.7, 0.0)),
     ],
 )
+@pytest.mark.slow
 def test_visibility_matches_ray_casting(eye, target, camera, cube_xy):
     scene = make_scene(yaw_deg=20.0, cube_xy=cube_xy, part_xy=(0.17, 0.0))
     bMc = look_at(eye, target)
@@ -438,6 +439,7 @@ def test_visibility_matches_ray_casting(eye, target, camera, cube_xy):
     assert check_against_raycast(image, camera, bMc, scene) > 800
 
 
+@pytest.mark.slow
 def test_cube_in_the_pocket_is_occluded_by_the_walls():
     part_p = homogeneous(np.eye(3), (0.17, 0.0, 0.010))
     # Resting on the pocket floor, centred, turned by 0.04 rad (its footprint, 20.8 mm wide,

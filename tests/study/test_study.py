@@ -51,6 +51,7 @@ def test_tasks_have_the_relative_motions_of_the_thesis():
     assert TASKS[3].camera_motion == pytest.approx((0.32, 2.92), abs=0.02)
 
 
+@pytest.mark.slow
 def test_the_laser_method_converges_on_every_task_with_the_thesis_path_lengths(runs):
     for task in TASKS:
         result = runs[task, "laser"]
@@ -64,11 +65,13 @@ def test_the_laser_method_converges_on_every_task_with_the_thesis_path_lengths(r
         assert runs[task, "laser"].path_length_m == pytest.approx(THESIS_PATH_LENGTH_M[task]["laser"], rel=0.25)
 
 
+@pytest.mark.slow
 def test_stages_run_in_the_order_of_section_4_4(runs):
     assert [s["stage"] for s in runs[2, "laser"].outcome.stages] == ["1A", "2", "3"]
     assert [s["stage"] for s in runs[4, "laser"].outcome.stages] == ["1B", "1A", "2", "3"]
 
 
+@pytest.mark.slow
 def test_classic_ibvs_retreats_on_task_1_and_fails_tasks_3_and_4(runs):
     assert runs[1, "ibvs"].outcome.failure is Failure.CAMERA_RETREAT
     assert runs[2, "ibvs"].outcome.converged
@@ -76,12 +79,14 @@ def test_classic_ibvs_retreats_on_task_1_and_fails_tasks_3_and_4(runs):
     assert runs[4, "ibvs"].outcome.failure is Failure.FEATURES_LOST
 
 
+@pytest.mark.slow
 def test_2_5d_succeeds_on_tasks_1_to_3_and_fails_task_4(runs):
     for task in (1, 2, 3):
         assert runs[task, "2.5d"].outcome.converged, task
     assert runs[4, "2.5d"].outcome.failure is Failure.FEATURES_LOST
 
 
+@pytest.mark.slow
 def test_pbvs_moves_the_camera_along_a_straight_line(runs):
     result = runs[2, "pbvs"]
     assert result.outcome.converged
@@ -149,12 +154,14 @@ def test_the_arm_that_cannot_follow_is_named(cell_config):
     assert "IK" in result.outcome.reason
 
 
+@pytest.mark.slow
 def test_a_short_occlusion_of_the_spot_does_not_stop_the_run(runs):
     """On task 2 the spot hides behind the cube's edge as it climbs onto it; the run goes on."""
     spots = runs[2, "laser"].trace.laser_px
     assert runs[2, "laser"].outcome.converged and not np.isnan(spots).any()
 
 
+@pytest.mark.slow
 def test_the_robustness_test_converges_with_the_spot_off_its_row(runs):
     """Table 5-3: task 2 converges with the miscalibrated model, on a longer path (section
     5.2.2), and the laser spot leaves its image row as the thesis sees in Fig. 5-5 (a)."""
@@ -199,6 +206,7 @@ def test_simulate_prints_one_json_object_with_every_field():
     assert all(set(stage) == {"stage", "iterations"} for stage in summary["stages"])
 
 
+@pytest.mark.slow
 def test_simulate_runs_a_scene_given_by_its_poses():
     result = simulate_cli("--initial=0.011,-0.01,0.18,3.0,0.0,-3.1416", "--desired=0.011,-0.01,0.162,3.1416,0,-3.1416", "--json")
     assert result.returncode == 0, result.stderr
@@ -240,6 +248,7 @@ def test_montecarlo_draws_within_the_documented_distribution(cell_config):
         assert visible_region(corners, camera.image_size).seen  # at least part of the face in the image
 
 
+@pytest.mark.slow
 def test_montecarlo_is_reproducible_and_counts_every_sample(cell_config):
     settings = RunSettings(method="laser")
     first = run_montecarlo(cell_config, settings, n=4, seed=11, processes=2)
@@ -256,6 +265,7 @@ def reproduced(tmp_path_factory):
     return out, reproduce(out, montecarlo_n=0)
 
 
+@pytest.mark.slow
 def test_reproduce_writes_the_report_figures_and_results(reproduced):
     tmp_path, summaries = reproduced
     report = (tmp_path / "report.md").read_text()
@@ -274,6 +284,7 @@ def test_reproduce_writes_the_report_figures_and_results(reproduced):
         assert image is not None and image.shape[0] > 200 and image.std() > 5
 
 
+@pytest.mark.slow
 def test_the_report_says_what_its_own_results_say(reproduced):
     """The Table 5-4 analogue shows the run's paths beside Table 5-4's, and a path more than
     10 % from the thesis's gets its own line: exactly those paths, recomputed here."""
@@ -327,6 +338,7 @@ def _assert_same(fresh, committed, where="results"):
         assert fresh == committed, where
 
 
+@pytest.mark.slow
 def test_the_committed_study_snapshot_is_what_the_code_makes():
     """static/study/ is re-made (the four tasks with every method and the robustness run,
     not the Monte Carlo) with its recorded settings; its numbers and report must be these."""
