@@ -1,5 +1,6 @@
-"""README.md starts with the two set-up commands, CI runs the test one, and the README stays
-short: at most 150 lines, the rest in docs/, every docs/ link pointing at a file."""
+"""README.md starts with the two set-up commands, the test one sets up and runs the whole suite,
+CI runs it, and the README stays short: at most 150 lines, the rest in docs/, every docs/ link
+pointing at a file."""
 
 import re
 from pathlib import Path
@@ -18,7 +19,12 @@ def readme_commands() -> list[str]:
 def test_readme_opens_with_the_main_job_and_the_test_command():
     main_job, tests = readme_commands()
     assert main_job.startswith("pip install -c constraints.txt") and "vservo" in main_job
-    assert tests.startswith("pip install -c constraints.txt") and "pytest" in tests
+    assert tests == "bash tests/run.sh"  # which sets up, then runs pytest with its arguments:
+    run = (ROOT / "tests" / "run.sh").read_text().splitlines()
+    install = (ROOT / "tests" / "install.sh").read_text().splitlines()
+    assert run.index("bash tests/install.sh") < run.index('exec python -m pytest "$@"')
+    assert "python -m pip install -c constraints.txt -e '.[test]'" in install
+    assert any("apt-get install" in line and "chromium" in line for line in install)
 
 
 def test_ci_runs_the_readme_test_command():
