@@ -4,7 +4,7 @@
 a kind (its colour), the words an operator reads from across the room, and what to do
 next. ``live_buttons`` says which of the page's buttons can act now; every panel enables
 its buttons from it, so no button is ever live where pressing it would only be refused.
-Both are viser-free and tested without a browser (tests/test_app_banner.py).
+Both are viser-free and tested without a browser (tests/app/test_app_banner.py).
 """
 
 from __future__ import annotations

@@ -59,7 +59,7 @@ def require_chromium() -> Path:
     if not CHROMIUM.is_file():
         raise ChromiumMissing(
             f"Chromium is not installed at {CHROMIUM}: install it with "
-            "`apt-get update && apt-get install -y chromium` (.ci/run does) or set VSERVO_CHROMIUM"
+            "`apt-get update && apt-get install -y chromium` (tests/install.sh does) or set VSERVO_CHROMIUM"
         )
     return CHROMIUM
 

@@ -10,7 +10,7 @@ calibration  the NN hand-eye calibration and the classical methods
 production   jobs, storage, assembly, the cell controller and its channel, the rig
 study        the thesis's tasks, Monte Carlo, reports, figures, benches
 
-A layer imports only layers above it in this list (tests/test_layers.py checks it on
+A layer imports only layers above it in this list (tests/project/test_layers.py checks it on
 the import graph), so nothing in perception, servo or robot sees the simulator and
 production never depends on the study. Under all of them, terminal/ holds what every
 layer's command line shares (each layer registers its commands from its own cli.py on

@@ -1,13 +1,10 @@
 """A test cell with short JRC timers, and a JRC link to an emulator of a simulated cell."""
 
-import threading
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
-import pytest
-
-from tests.test_config import default_data
+from tests.cell.test_config import default_data
 from vservo.core.cell.config import CellConfig, StepPolicyKind, parse_cell, write_thesis_policy_cell
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.sim.jrc_emulator import FaultPlan, JrcEmulator
@@ -50,12 +47,3 @@ def jrc_link(cell, config, faults=FaultPlan(), time_scale=TIME_SCALE):
             yield robot, emulator
         finally:
             robot.close()
-
-
-@pytest.fixture
-def no_leaked_threads():
-    """Fails a test that leaves an emulator, a watchdog or a host thread running."""
-    before = set(threading.enumerate())
-    yield
-    leaked = [thread.name for thread in threading.enumerate() if thread not in before and thread.is_alive()]
-    assert not leaked, f"threads left running: {leaked}"

@@ -2,7 +2,7 @@
 the command that makes it again.
 
 A committed snapshot (static/study/) is only worth its numbers if a reader can tell which
-code and which cell produced them; tests/test_study.py re-runs it against this record.
+code and which cell produced them; tests/study/test_study.py re-runs it against this record.
 """
 
 from __future__ import annotations

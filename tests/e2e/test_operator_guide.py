@@ -20,14 +20,13 @@ from pathlib import Path
 
 import pytest
 
-from tests.chromium import chromium_or_fail
+from tests.chromium import chromium_or_fail, headless_chromium
 from tests.polling import wait_until
 from vservo.app.browser import (
     ServeProcess,
     choose,
     dismiss_notifications,
     flange_of,
-    launch_chromium,
     open_pages,
     status_text,
     take_control,
@@ -46,16 +45,12 @@ POSE = r"((?:-?[\d.]+ ){5}-?[\d.]+)"
 
 @pytest.fixture(scope="module")
 def page(tmp_path_factory):
-    chromium_or_fail()
-    from playwright.sync_api import sync_playwright
-
+    chromium_or_fail()  # before `vservo serve` starts
     serve = ServeProcess.start(tmp_path_factory.mktemp("guide-data"), TOKEN, cycle_period_s=0.02)
     try:
-        with sync_playwright() as playwright:
-            chromium = launch_chromium(playwright)
+        with headless_chromium() as chromium:
             (operator,) = open_pages(chromium, serve.url, [(1600, 1000)])
             yield operator
-            chromium.close()
     finally:
         assert serve.stop() == 0
         assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]  # nor a display update that failed

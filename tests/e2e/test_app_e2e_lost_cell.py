@@ -1,0 +1,90 @@
+"""The virtual cell killed in the middle of a run, from the operator's browser.
+
+`vservo virtual-cell` on fixed addresses (its JRC behind a symbolic link, its camera and
+fixture on chosen ports, as a real cell's devices keep their names) and `vservo serve`
+on its cell file, as real processes; headless Chromium as the operator. The virtual
+cell is killed with SIGKILL while the arm servos: the page shows the fault, naming the
+lost device, within 2 s. Reset is refused while the cell is gone and says why; once a
+virtual cell is back on the same addresses, Reset opens the link and the camera again
+and the next run starts, without restarting `vservo serve`.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+
+from tests.chromium import chromium_or_fail, headless_chromium
+from tests.jrc_fixtures import thesis_policy_cell_file
+from tests.virtual_cell_process import VirtualCellProcess
+from vservo.app.browser import (
+    ServeProcess,
+    choose,
+    free_port,
+    open_pages,
+    present_part_and_start,
+    status_text,
+    take_control,
+    wait_for_status,
+)
+
+TOKEN = "e2e-lost-cell-token"
+FAULT_SHOWN_WITHIN_S = 2.0
+
+
+def _reset(page) -> None:
+    page.get_by_role("button", name=re.compile("^Reset")).click()
+
+
+def test_the_virtual_cell_killed_mid_run_shows_the_fault_and_reset_reconnects_once_it_is_back(tmp_path):
+    chromium_or_fail()
+    addresses = (
+        "--seed",
+        "4",
+        "--jrc-link",
+        str(tmp_path / "jrc"),
+        "--camera-port",
+        str(free_port()),
+        "--fixture-port",
+        str(free_port()),
+        "--out",
+        str(tmp_path / "cell.toml"),
+        "--cell",
+        thesis_policy_cell_file(tmp_path),
+    )  # a servo long enough to kill the cell in
+    cell = VirtualCellProcess(*addresses)
+    serve = ServeProcess.start(tmp_path / "data", TOKEN, cycle_period_s=0.0, cell=cell.addresses["cell_file"])
+    try:
+        with headless_chromium() as chromium:
+            page = open_pages(chromium, serve.url, [(1400, 900)])[0]
+            take_control(page, serve.token)
+            page.get_by_role("tab", name="Assemble").click()
+            choose(page, "Job", "demo")
+
+            run = present_part_and_start(page)
+            wait_for_status(page, rf"Servoing .*run {run}.*cycle [2-9]", timeout_s=60)
+            cell.process.kill()
+            killed_at = time.monotonic()
+            fault = wait_for_status(page, r"FAULT", timeout_s=30)
+            shown_after_s = time.monotonic() - killed_at
+            assert shown_after_s < FAULT_SHOWN_WITHIN_S, (shown_after_s, fault)
+            assert "serial port" in fault or "camera" in fault, fault  # the lost device, named
+            page.get_by_text(f"Run {run}: FAULT").wait_for(timeout=10_000)
+
+            _reset(page)  # nothing to open yet: refused, the page says which device
+            page.get_by_text(re.compile("reset failed: the (robot link|camera)")).first.wait_for(timeout=30_000)
+            assert "FAULT" in status_text(page)
+
+            cell.stop()  # reaps the killed process
+            cell = VirtualCellProcess(*addresses)
+            _reset(page)
+            wait_for_status(page, r"Idle", timeout_s=30)
+            again = present_part_and_start(page)
+            assert again == run + 1
+            wait_for_status(page, rf"Servoing .*run {again}.*cycle [2-9]", timeout_s=60)
+            page.get_by_role("button", name="E-STOP", exact=True).click()
+            wait_for_status(page, r"E-STOPPED", timeout_s=10)
+    finally:
+        assert serve.stop() == 0, serve.stderr()[-3000:]
+        cell.stop()
+    assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]
