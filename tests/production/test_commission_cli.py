@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.test_cell_file import comments_of, is_subsequence
+from tests.cell.test_cell_file import comments_of, is_subsequence
 from vservo.core.cell.config import load_cell
 from vservo.core.production.cell_rig import build_rig
 from vservo.core.production.commissioning import CommissionSettings
