@@ -26,7 +26,6 @@ servo off) with the code's meaning.
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 from dataclasses import dataclass
@@ -41,8 +40,6 @@ from vservo.core.robot.bsc import BscStation
 from vservo.core.robot.ethernet_link import EthernetLink
 from vservo.core.robot.host_link import Answer, Exchange, HostLink, LinkError, LinkLost, ReplyKind
 from vservo.core.robot.serial_link import SerialLink
-
-log = logging.getLogger("vservo.jrc")
 
 # Status codes of a status answer, after the host-control manuals of the ERC/MRC/XRC family.
 ERROR_MESSAGES = {
