@@ -10,10 +10,11 @@ from dataclasses import replace
 
 import pytest
 
-from tests.jrc_fixtures import TEST_LINE, TIME_SCALE, jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
+from tests.jrc_fixtures import ETHERNET_TIMER_A_S, TEST_LINE, TIME_SCALE, jrc_link, no_leaked_threads, short_timer_cell  # noqa: F401 (a fixture)
 from tests.test_config import default_data
 from vservo.core.cell.config import ConfigError, HostTransport, parse_cell
 from vservo.core.geometry.spatial import pose_error, transform
+from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.robot.backend import RobotError
 from vservo.core.robot.ethernet_link import EthernetLink, keep_alive_of
 from vservo.core.robot.host_link import CommandNotOffered, LinkError
@@ -372,3 +373,17 @@ def test_the_ethernet_keys_are_refused_on_a_serial_line_and_the_host_is_required
     data["jrc"] = {"transport": "wifi"}
     with pytest.raises(ConfigError, match="jrc.transport = 'wifi': must be one of serial, ethernet"):
         parse_cell(data, "test cell")
+
+
+def test_a_simulated_cell_file_on_ethernet_gets_its_emulated_jrc_as_an_ethernet_server():
+    data = default_data()
+    data["robot"]["backend"] = "jrc"
+    data["jrc"] = {"transport": "ethernet", "host": "192.168.255.1", "timer_a_s": ETHERNET_TIMER_A_S, "timer_b_s": 0.5}
+    rig = simulated_rig(parse_cell(data, "test cell"), seed=1)
+    try:
+        jrc = rig.robot.robot
+        assert isinstance(jrc.link, EthernetLink) and jrc.port.startswith("127.0.0.1:")  # the emulator's, not the file's
+        rig.robot.connect()
+        assert pose_error(rig.robot.read_pose(), rig.cell.jrc_arm.fk(rig.cell.state.q))[0] < 1e-6
+    finally:
+        rig.close()

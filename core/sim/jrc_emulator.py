@@ -44,12 +44,12 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import serial
 
-from vservo.core.cell.config import JrcLineConfig, VacuumDeviceConfig
+from vservo.core.cell.config import HostTransport, JrcLineConfig, VacuumDeviceConfig
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, pose_error
 from vservo.core.robot.backend import apply_increment
@@ -274,6 +274,13 @@ class JrcEmulator:
         self.address = self.ethernet.address
         self._run(self.ethernet.serve, "jrc-emulator-tcp")
         return self.address
+
+    def start_for(self, line: JrcLineConfig) -> JrcLineConfig:
+        """Serve the link ``line`` names, a new pseudo-terminal for a serial line or a
+        loopback TCP port for an Ethernet server, and return ``line`` pointed at it."""
+        if line.transport is HostTransport.ETHERNET:
+            return line.on_ethernet(*self.start_on_tcp())
+        return replace(line, port=self.start_on_pty())
 
     def start_on_port(self, device: str) -> None:
         """Serve on a real serial port, with the line settings of ``line``."""

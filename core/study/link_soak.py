@@ -92,13 +92,6 @@ class _AccountedJrc(JrcBackend):
         return Counter({kind: n for kind, n in new.items() if kind not in MOTION_FAULTS})
 
 
-def _accounted_link(emulator: JrcEmulator, line: JrcLineConfig, transport: HostTransport) -> _AccountedJrc:
-    """A host on ``emulator``, started on a pseudo-terminal or a loopback TCP port."""
-    if transport is HostTransport.ETHERNET:
-        return _AccountedJrc(line.on_ethernet(*emulator.start_on_tcp()), None, emulator.faults)
-    return _AccountedJrc(line, emulator.start_on_pty(), emulator.faults)
-
-
 def _link_counters(robot: JrcBackend) -> dict[str, int]:
     """The serial link's recoveries, or how many connections the Ethernet link made."""
     if isinstance(robot.link, EthernetLink):
@@ -181,7 +174,7 @@ def run_soak(
     moves_with_reports = moves_off_path = 0
     kinds = ETHERNET_FAULT_KINDS if transport is HostTransport.ETHERNET else FAULT_KINDS
     emulator = JrcEmulator(cell, line, FaultPlan(fault_rate, seed, kinds), time_scale)
-    robot = _accounted_link(emulator, line, transport)
+    robot = _AccountedJrc(emulator.start_for(replace(line, transport=transport)), None, emulator.faults)
     try:
         robot.connect()
         soak = _Soak(robot, emulator)
