@@ -341,6 +341,7 @@ def test_the_cell_file_names_the_controllers_address_and_its_timers():
     assert line.transport is ETHERNET and line.address == "192.168.255.1:80"
     assert line.timer_a_s == 1.0 and line.timer_b_s == 20.0 and line.status_poll_s == 0.02
     assert ethernet_cell().jrc.tcp_port == 80  # the Ethernet server's port by default
+    assert "baud" not in line.in_use() and line.in_use()["host"] == "192.168.255.1"  # what `vservo info` shows
     assert isinstance(JrcBackend(ethernet_cell().jrc).link, EthernetLink)  # built, not connected
 
 

@@ -229,6 +229,11 @@ class JrcLineConfig:
         """Where the controller is: the serial device, or host:port."""
         return f"{self.host}:{self.tcp_port}" if self.transport is HostTransport.ETHERNET else self.port
 
+    def in_use(self) -> dict[str, Any]:
+        """The settings its transport reads (an Ethernet line's serial fields are defaults nothing reads)."""
+        foreign = _SERIAL_FIELDS if self.transport is HostTransport.ETHERNET else _ETHERNET_FIELDS
+        return {name: value for name, value in vars(self).items() if name not in foreign}
+
     def on_ethernet(self, host: str, tcp_port: int) -> JrcLineConfig:
         """This line's timers and time scale, to the Ethernet server at host:tcp_port."""
         return replace(self, transport=HostTransport.ETHERNET, host=host, tcp_port=tcp_port, port="")
@@ -681,6 +686,9 @@ def _integer_in(t: _Table, key: str, default: int, options: Sequence[int]) -> in
     return value
 
 
+# The fields of JrcLineConfig only one transport reads.
+_SERIAL_FIELDS = ("port", "baud", "parity", "data_bits", "stop_bits", "rtscts", "retry_1", "retry_2", "jwait_slice_s")
+_ETHERNET_FIELDS = ("host", "tcp_port", "status_poll_s")
 # The [jrc] keys only one transport has; the other refuses them by name.
 SERIAL_ONLY_KEYS = ("baud", "parity", "data_bits", "stop_bits", "rtscts", "retry_1", "retry_2", "jwait_slice_s")
 ETHERNET_ONLY_KEYS = ("host", "status_poll_s")
