@@ -223,7 +223,7 @@ def test_a_refused_connection_says_where(config):
     robot = JrcBackend(config.jrc.on_ethernet(*address))
     with pytest.raises(LinkError, match=f"cannot connect to the Ethernet server at 127.0.0.1:{address[1]}"):
         robot.connect()
-    assert not robot.link.is_open
+    assert robot.link.connections == 0
 
 
 # -- the emulator's Ethernet server ------------------------------------------------------

@@ -607,14 +607,12 @@ def test_the_cell_clock_undoes_the_emulators_speed_up_and_counts_the_wire(cell, 
         assert wire >= 10 * line.wire_time_s(len("RPOSC 0,0") + 40)  # at least the command and a short pose
 
 
-@TRANSPORTS
-def test_the_cell_clock_counts_the_motion_from_the_move_to_its_end_whatever_the_host_does_meanwhile(cell, config, transport):
-    """The arm moves from the JRC's taking the MOVL, not from the host's JWAIT (or, over
-    Ethernet, its status reads): a host busy elsewhere for most of a 4 s motion (80 ms on
-    the wall at 50 x) still counts the 4 s; counting only the waiting exchanges 50 times
-    would count the rest of it."""
+def test_the_cell_clock_counts_the_motion_from_the_move_to_its_end_whatever_the_host_does_meanwhile(cell, config):
+    """The arm moves from the JRC's taking the MOVL, not from the host's JWAIT: a host
+    busy elsewhere for most of a 4 s motion (80 ms on the wall at 50 x) still counts the
+    4 s; counting only the JWAIT's exchange 50 times would count the rest of it."""
     line = replace(config.jrc, time_scale=TIME_SCALE)
-    with jrc_link(cell, replace(config, jrc=line), transport=transport) as (robot, _):
+    with jrc_link(cell, replace(config, jrc=line)) as (robot, _):
         robot.servo(True)
         moved = _cell_time_of_a_4_s_move(robot, host_busy_s=0.06)  # 3 s of the arm's 4
     assert 4.0 <= moved <= 4.0 + 1.5  # the motion, plus MOVL's and the JWAITs' bytes

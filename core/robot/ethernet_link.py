@@ -87,10 +87,6 @@ class EthernetLink:
     def where(self) -> str:
         return self.line.address
 
-    @property
-    def is_open(self) -> bool:
-        return self._opened
-
     def open(self) -> None:
         """Connect and start a session now (a failure raises LinkError)."""
         self._opened = True

@@ -83,9 +83,6 @@ class HostLink(Protocol):
 
     def close(self) -> None: ...
 
-    @property
-    def is_open(self) -> bool: ...
-
     def exchange(self, text: str, reply_wait_s: float) -> Exchange:
         """Send one host command (its text without line end) and take its answer,
         waiting up to ``reply_wait_s`` for it."""

@@ -76,10 +76,6 @@ class SerialLink:
     def where(self) -> str:
         return self.port
 
-    @property
-    def is_open(self) -> bool:
-        return self._station is not None
-
     def open(self) -> None:
         """Open the port, without a word to the controller yet."""
         if self._serial is None:
