@@ -31,8 +31,9 @@ class ArmDescription:
 def _example_robot_data_share() -> Path:
     # The wheel installs its data under <site-packages>/cmeel.prefix/share; asking the
     # distribution where that lies works for any site or virtual environment.
+    # (locate_file is typed as returning a protocol of path-like things; str() of it is its path.)
     try:
-        return Path(importlib.metadata.distribution("example-robot-data").locate_file("cmeel.prefix/share"))
+        return Path(str(importlib.metadata.distribution("example-robot-data").locate_file("cmeel.prefix/share")))
     except importlib.metadata.PackageNotFoundError as error:
         raise FileNotFoundError("the example-robot-data package is not installed") from error
 

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.test_cell_file import comments_of, is_subsequence
 from vservo.core.cell.config import load_cell
 from vservo.core.production.cell_rig import build_rig
 from vservo.core.production.commissioning import CommissionSettings
@@ -59,6 +60,11 @@ def test_commission_measures_the_cell_and_writes_a_new_file(commissioned):
     flange_m = np.array([np.asarray(v["bMe"])[:3, 3] for v in views if v["bMe"] is not None])
     way_m = np.linalg.norm(np.diff(flange_m, axis=0), axis=1).sum()
     assert way_m > 1.0 and summary["cell_time_s"] >= way_m / CommissionSettings().speed_m_s
+
+
+def test_the_commissioned_file_keeps_every_comment_of_its_input(commissioned):
+    out, _ = commissioned
+    assert is_subsequence(comments_of(SHIPPED.read_text()), comments_of(out.read_text()))
 
 
 def test_commission_never_writes_over_its_input_or_an_existing_file(commissioned):

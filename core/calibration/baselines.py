@@ -58,13 +58,13 @@ def _object_points(world_m: Matrix) -> Matrix:
     return np.column_stack((world_m, np.zeros(len(world_m)))).astype(np.float32)
 
 
-def _camera(K: Matrix, dist: Matrix, size: tuple[int, int]) -> CameraModel:
+def _camera(K: np.ndarray, dist: np.ndarray, size: tuple[int, int]) -> CameraModel:
     d = np.ravel(dist)
     intrinsics = Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(size[0]), int(size[1]))
     return CameraModel(intrinsics, Distortion(*(float(v) for v in d[:5])))
 
 
-def _pose(rvec: Matrix, tvec: Matrix) -> Matrix:
+def _pose(rvec: np.ndarray, tvec: np.ndarray) -> Matrix:
     return transform(cv2.Rodrigues(rvec)[0], np.ravel(tvec))
 
 
@@ -196,7 +196,7 @@ class PlanarHomography:
         H, _ = cv2.findHomography(xn, offsets, 0)
         if H is None:
             raise ValueError("no homography fits the planar dataset")
-        return cls(camera, H)
+        return cls(camera, np.asarray(H, dtype=np.float64))  # (float64 already; typed as any Mat)
 
     def world_of(self, pixels_px: Matrix, bMe: Matrix) -> Matrix:
         xn = self.camera.pixel_to_normalized(pixels_px)
@@ -241,5 +241,6 @@ def load_classical(path: str | Path) -> FreeHandEye | HandEyeAXXB | PlanarHomogr
     for name in ("K", "distortion", "image_size", *fields):
         if name not in arrays or not np.all(np.isfinite(arrays[name])):
             raise CalibrationFileError(f"{path}: array {name} is missing or not finite")
-    camera = _camera(arrays["K"], arrays["distortion"], tuple(int(v) for v in arrays["image_size"]))
+    size = arrays["image_size"]
+    camera = _camera(arrays["K"], arrays["distortion"], (int(size[0]), int(size[1])))
     return cls(camera, *(arrays[name] for name in fields))

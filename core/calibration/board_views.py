@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from vservo.core.cell.config import BoardConfig
+from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.spatial import Matrix
 
@@ -33,7 +34,7 @@ _COLOUR_AGREEMENT = 0.9
 _DETECTOR_SEED = 0
 
 
-class BoardNotFound(ValueError):
+class BoardNotFound(VservoError, ValueError):
     """No checkerboard, or none that can be named, in an image; the message says why."""
 
 
@@ -117,7 +118,10 @@ def find_board(board: BoardConfig, image: np.ndarray, spot_px: Matrix | None = N
     if grey.dtype != np.uint8:
         raise BoardNotFound(f"an image must hold 8-bit pixels, got {grey.dtype}")
     cv2.setRNGSeed(_DETECTOR_SEED)
-    found, corners = cv2.findChessboardCornersSB(grey, (cols, rows), cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+    # mypy is right here: the binding's third positional parameter is ``corners``, not
+    # ``flags``, so OpenCV runs with no flags (the corners equal those of a call without
+    # them). Passing flags= changes the corners and about doubles the time: its own change.
+    found, corners = cv2.findChessboardCornersSB(grey, (cols, rows), cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)  # type: ignore[call-overload]
     if not found:
         raise BoardNotFound(f"no checkerboard of {cols} x {rows} inner corners in the image (all of it must be in view)")
     grid = corners.reshape(rows, cols, 2).astype(np.float64)

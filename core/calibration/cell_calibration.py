@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import torch
+from numpy.typing import ArrayLike
 
 from vservo.core.calibration.baselines import PlanarCalibration, solve_axxb
 from vservo.core.calibration.board_views import BoardView
@@ -73,7 +74,7 @@ class Verdict:
         return cls(True, "good: " + summary)
 
 
-def read_only(array: Matrix) -> Matrix:
+def read_only(array: ArrayLike) -> Matrix:
     """A read-only float copy, so that a frozen result really is frozen."""
     out = np.array(array, dtype=float)
     out.flags.writeable = False

@@ -131,7 +131,7 @@ class Checkerboard:
         wMc = inverse(self.bMw) @ np.asarray(bMc, dtype=float)
         cMw = inverse(wMc)
         width, height = camera.image_size
-        image = np.full((height, width), self.white_grey, dtype=np.float64)
+        image: np.ndarray = np.full((height, width), self.white_grey, dtype=np.float64)  # (GaussianBlur's result is any Mat)
         rows, cols = self._visible_squares(camera, wMc)
         squares = np.array([(i, j) for i in rows for j in cols if (i + j) % 2 == 0], dtype=float)
         if len(squares):

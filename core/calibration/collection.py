@@ -61,9 +61,9 @@ REALISTIC_REPEATABILITY = (0.01e-3, np.deg2rad(0.002))
 
 def cell_with_truth(config: CellConfig, truth: str) -> CellConfig:
     """The cell file's nominal model with the simulated truth of ``truth`` (TRUTHS)."""
-    sim = config.simulation
     if truth == "cell":
         return config
+    sim = config.plant()
     if truth == "ideal":
         simulation = replace(
             sim,
@@ -157,7 +157,7 @@ class Collector:
         self.seed = seed
         self.workspace = workspace
         self.cell = SimulatedCell(self.config, seed)
-        self.board = Checkerboard.covering(workspace.x_range_m, workspace.y_range_m, self.config.simulation.scene.table_height_m)
+        self.board = Checkerboard.covering(workspace.x_range_m, workspace.y_range_m, self.config.plant().scene.table_height_m)
         self.arm = self.cell.jrc_arm
 
     # -- where to look --------------------------------------------------------------
@@ -271,8 +271,12 @@ class Collector:
         """Look from every target; viewpoints the arm cannot reach or whose board cannot be
         named are skipped and counted. Pixels are noise-free detections (see add_pixel_noise)."""
         targets = list(targets)
-        pixels, world, views, poses = [], [], [], []
-        unreachable, refused = 0, {}
+        pixels: list[Matrix] = []
+        world: list[Matrix] = []
+        views: list[np.ndarray] = []
+        poses: list[Matrix] = []
+        unreachable = 0
+        refused: dict[str, int] = {}
         for bMe_target in targets:
             try:
                 px, w, bMe = self.look(bMe_target)

@@ -17,13 +17,14 @@ from typing import Any
 
 import numpy as np
 
+from vservo.core.errors import VservoError
 from vservo.core.perception.recording import to_jsonable, write_atomic
 
 FORMAT_VERSION = 1
 _HEADER = "header_json"
 
 
-class CalibrationFileError(ValueError):
+class CalibrationFileError(VservoError, ValueError):
     """A calibration file that cannot be used; the message names the file and the fault."""
 
 
@@ -33,7 +34,8 @@ def write_archive(path: str | Path, kind: str, arrays: dict[str, np.ndarray], me
     path.parent.mkdir(parents=True, exist_ok=True)
     header = {"kind": kind, "format_version": FORMAT_VERSION, "metadata": to_jsonable(metadata)}
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays, **{_HEADER: np.array(json.dumps(header, allow_nan=False))})
+    # (numpy's stub fears an array named allow_pickle among the keywords; the names are ours)
+    np.savez_compressed(buffer, **arrays, **{_HEADER: np.array(json.dumps(header, allow_nan=False))})  # type: ignore[arg-type]
     write_atomic(path, buffer.getvalue())
     return path
 

@@ -86,7 +86,7 @@ class Tracker:
         self.config = cell_with_truth(config, truth)
         self.cell = SimulatedCell(self.config, seed)
         self.settings = settings
-        self.table_height_m = self.config.simulation.scene.table_height_m
+        self.table_height_m = self.config.plant().scene.table_height_m
         self.noise = np.random.default_rng([seed, 11])
 
     def flange_over(self, xy: Matrix) -> Matrix:
@@ -167,7 +167,8 @@ def random_targets(
     workspace within ``reach_m`` of it (so the target is in view); the arm reaches both."""
     rng = np.random.default_rng([seed, 13])
     arm = tracker.cell.jrc_arm
-    targets, starts = [], []
+    targets: list[Matrix] = []
+    starts: list[Matrix] = []
     for _ in range(500 * count):
         if len(targets) == count:
             break

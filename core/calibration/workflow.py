@@ -80,7 +80,7 @@ def collect(
     config: CellConfig, folder: Path, truth: str, noise_px: float | None, seed: int, plan: CollectPlan = CollectPlan()
 ) -> dict[str, Any]:
     """Collect every dataset of the plan into ``folder`` (module docstring)."""
-    noise = DEFAULT_NOISE_PX.get(truth, config.simulation.pixel_noise_px) if noise_px is None else noise_px
+    noise = DEFAULT_NOISE_PX.get(truth, config.plant().pixel_noise_px) if noise_px is None else noise_px
     collector = Collector(config, truth, seed, plan.workspace)
     rng = np.random.default_rng([seed, 3])
     grid, unreachable = collector.grid_targets()
@@ -316,7 +316,7 @@ def compare(
 def _realistic_description(config: CellConfig) -> dict[str, Any]:
     from vservo.core.calibration import collection
 
-    truth = cell_with_truth(config, "realistic").simulation
+    truth = cell_with_truth(config, "realistic").plant()
     return {
         "distortion_k1_k2_p1_p2_k3": truth.truth.camera.distortion.as_opencv().tolist(),
         "eMc_error_mm_deg": list(collection.REALISTIC_eMc_MM_DEG),

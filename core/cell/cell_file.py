@@ -1,53 +1,78 @@
-"""Writing a cell file: TOML text from the tables a cell file is read into.
+"""Writing a cell file: TOML text from the tables a cell file is read into, with tomlkit.
 
-Commissioning and the virtual cell write cell files for the controller. Python reads
-TOML (tomllib) but does not write it, and a cell file needs only a little of TOML:
-tables, nested tables, strings, numbers, booleans and flat arrays of them. ``dumps_cell``
-writes exactly that (the caller writes the text, atomically), so ``tomllib.loads(dumps_cell(tables)) == tables``; anything else is
-refused with the key that holds it.
+Commissioning and the virtual cell write cell files for the controller. ``update_cell``
+lays tables over the text of an existing cell file: a value that did not change keeps its
+line, a changed one keeps its comment, a new key joins the end of its table and a key the
+tables no longer hold is removed, so the integrator's comments and layout survive.
+``dumps_cell`` writes tables as a new file. Either way ``tomllib.loads(text) == tables``
+(the caller writes the text, atomically), any Unicode string included: a cell file holds
+tables, strings, numbers, booleans and arrays of them, and anything else (a NaN, None, an
+object, a string that is no text) is refused with the key that holds it.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from typing import Any
+
+import tomlkit
 
 Tables = dict[str, Any]
 
 
 def dumps_cell(tables: Tables, header: str = "") -> str:
-    """The TOML text of ``tables``, each comment line of ``header`` first."""
-    lines = [f"# {line}".rstrip() for line in header.splitlines()]
-    _write_table(tables, [], lines)
-    return "\n".join(lines).strip("\n") + "\n"
+    """The TOML text of ``tables``, each line of ``header`` first as a comment."""
+    return update_cell("", tables, header)
 
 
-def _write_table(table: Tables, path: list[str], lines: list[str]) -> None:
-    values = {k: v for k, v in table.items() if not isinstance(v, dict)}
-    if path and (values or not any(isinstance(v, dict) for v in table.values())):
-        lines += ["", f"[{'.'.join(_key(p) for p in path)}]"]
-    lines += [f"{_key(k)} = {_value(v, [*path, k])}" for k, v in values.items()]
-    for key, sub in table.items():
-        if isinstance(sub, dict):
-            _write_table(sub, [*path, key], lines)
+def update_cell(text: str, tables: Tables, header: str = "") -> str:
+    """``text``, a cell file, holding ``tables`` instead of its own values (module docstring);
+    each line of ``header`` goes first as a comment, a blank line after it."""
+    _check(tables, [])
+    document = tomlkit.parse(text)
+    _lay_over(document, tables)
+    comments = "".join(f"# {line}".rstrip() + "\n" for line in header.splitlines())
+    body = tomlkit.dumps(document).lstrip("\n")
+    return comments + "\n" + body if comments and body else comments + body
 
 
-def _key(key: str) -> str:
-    return key if key.replace("_", "").replace("-", "").isalnum() and key.isascii() else json.dumps(key)
+def _lay_over(container: dict[str, Any], tables: Tables) -> None:
+    """Make ``container`` (a tomlkit document or table) hold ``tables``, touching only what differs."""
+    for key in [key for key in container if key not in tables]:
+        del container[key]
+    for key, value in tables.items():
+        old = container.get(key)
+        if isinstance(value, dict) and isinstance(old, dict):  # (tomlkit's tables are dicts)
+            _lay_over(old, value)
+        elif old is None or repr(tomlkit.item(old).unwrap()) != repr(value):
+            # (by repr: 6 is not 6.0 in a cell file; an equal value keeps its spelling; a bool is no Item)
+            container[key] = value
 
 
-def _value(value: Any, path: list[str]) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            raise ValueError(f"{'.'.join(path)}: {value!r} has no place in a cell file")
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)  # a JSON string is a TOML basic string
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_value(v, path) for v in value) + "]"
-    raise ValueError(f"{'.'.join(path)}: cannot write {type(value).__name__} {value!r} to a cell file")
+def _check(value: Any, path: list[str]) -> None:
+    """Refuse what a cell file cannot hold, naming the key that holds it."""
+    where = ".".join(path)
+    if isinstance(value, dict):
+        for key, sub in value.items():
+            if not isinstance(key, str):
+                raise ValueError(f"{where}: key {key!r} is not a string")
+            _check_text(key, where)
+            _check(sub, [*path, key])
+    elif isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{where}: {value!r} has no place in a cell file")
+    elif isinstance(value, str):
+        _check_text(value, where)
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            if isinstance(item, dict):
+                raise ValueError(f"{where}: cannot write a table inside an array to a cell file")
+            _check(item, path)
+    elif not isinstance(value, (bool, int, float)):
+        raise ValueError(f"{where}: cannot write {type(value).__name__} {value!r} to a cell file")
+
+
+def _check_text(text: str, where: str) -> None:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError(f"{where}: {text!r} is no text (it holds a lone surrogate)") from None

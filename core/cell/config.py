@@ -4,7 +4,8 @@ One file describes a cell. Its nominal sections (robot, camera, hand_eye, laser,
 vacuum, motion) are what control laws and calibrations may use; ``[camera.source]``
 and the ``[vacuum]`` device keys say which devices the controller drives (the
 simulator's, or a real camera and the vacuum on the JRC's I/O); ``[jrc]`` holds the
-serial line to a JRC and ``[safety]`` the limits on every move; ``[simulation]``
+serial line to a JRC, ``[safety]`` the limits on every move and ``[recordings]`` how many
+runs' recordings the data folder keeps; ``[simulation]``
 describes the plant the simulator plays: its seed and noise, ``[simulation.scene]``
 (where the table, cube, metal part and the checkerboard, when laid, really are) and ``[simulation.truth.*]`` tables
 that override nominal values with what the cell really is (the robustness test of
@@ -30,6 +31,7 @@ import numpy as np
 
 from vservo.core.cell.kinematics import ToolMount
 from vservo.core.cell.scene import Cube, LaidBoard, MetalPart, Scene
+from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
 from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import Matrix, matrix_from_pose, pose_from_mm_deg
@@ -43,7 +45,7 @@ MAX_IMAGE_SIDE_PX = 20_000
 MAX_WATCHDOG_S = 600.0
 
 
-class ConfigError(ValueError):
+class ConfigError(VservoError, ValueError):
     """A cell configuration that cannot be used; the message names the key and value."""
 
 
@@ -146,6 +148,12 @@ class VacuumDeviceConfig:
     device: str
     suction_output: int | None = None
     grip_input: int | None = None
+
+    def jrc_io(self) -> tuple[int, int]:
+        """(suction_output, grip_input) of the "jrc_io" device; ConfigError for a device not wired to the JRC."""
+        if self.device != "jrc_io" or self.suction_output is None or self.grip_input is None:
+            raise ConfigError(f"the vacuum device {self.device!r} is not wired to the JRC's I/O")
+        return self.suction_output, self.grip_input
 
 
 class StepPolicyKind(StrEnum):
@@ -270,6 +278,25 @@ class SafetyConfig:
 
 
 @dataclass(frozen=True)
+class RecordingRetention:
+    """[recordings]: which runs' recordings the data folder keeps. After each run the oldest
+    are removed first until at most ``keep_runs`` recordings and ``max_bytes`` remain; the
+    runs themselves stay on record, their recording marked removed.
+
+    The default bounds the recordings at 20 GB: on a 64 GB disk a cell recording camera
+    images (about 1.7 MB a run) runs for months, its oldest recordings making room.
+    """
+
+    keep_runs: int = 2000
+    max_bytes: int = 20 * 10**9
+
+
+# What [recordings] accepts: one run's recording at least, and no more than a large disk.
+MAX_KEEP_RUNS = 10_000_000
+MAX_RECORDINGS_GB = 100_000.0
+
+
+@dataclass(frozen=True)
 class SimulationConfig:
     """The plant: the true cell and the noise a real one has."""
 
@@ -306,6 +333,13 @@ class CellConfig:
     # pocket floor's centre); None when the file does not say. Teaching draws it and checks
     # a place pose against its pocket; the simulator's own is [simulation.scene].
     metal_part: MetalPart | None = None
+    recordings: RecordingRetention = RecordingRetention()
+
+    def plant(self) -> SimulationConfig:
+        """The [simulation] table, for code that simulates this cell; ConfigError when the file has none."""
+        if self.simulation is None:
+            raise ConfigError(f"{self.source}: no [simulation] table: this file describes no plant to simulate")
+        return self.simulation
 
     @property
     def real(self) -> bool:
@@ -319,7 +353,8 @@ class _Table:
     def __init__(self, data: Any, path: str, source: str) -> None:
         if not isinstance(data, dict):
             raise ConfigError(f"{source}: {path} must be a table, got {data!r}")
-        self._data, self._path, self._source, self._used = data, path, source, set()
+        self._data, self._path, self._source = data, path, source
+        self._used: set[str] = set()
 
     def _key(self, key: str) -> str:
         return f"{self._path}.{key}" if self._path else key
@@ -531,6 +566,22 @@ def _metal_part(t: _Table) -> MetalPart | None:
         )
     t.finish()
     return part
+
+
+def _recordings(t: _Table) -> RecordingRetention:
+    """[recordings]: keep_runs and max_gb, each bounded (a typo must not switch retention off)."""
+    default = RecordingRetention()
+    keep_runs = t.integer("keep_runs", default.keep_runs)
+    if not 1 <= keep_runs <= MAX_KEEP_RUNS:
+        raise t.fail("keep_runs", keep_runs, f"must be a whole number from 1 to {MAX_KEEP_RUNS}")
+    max_gb = t.number(
+        "max_gb",
+        default.max_bytes / 1e9,
+        check=lambda gb: 0.0 < gb <= MAX_RECORDINGS_GB,
+        why=f"must be more than 0 and at most {MAX_RECORDINGS_GB:g} GB",
+    )
+    t.finish()
+    return RecordingRetention(keep_runs, int(max_gb * 1e9))
 
 
 def _commissioning(t: _Table, base_dir: Path | None) -> CommissioningRecord | None:
@@ -860,6 +911,7 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     fixture_url = _fixture_url(root.table("fixture"))
     commissioning = _commissioning(root.table("commissioning"), base_dir)
     metal_part = _metal_part(root.table("metal_part"))
+    recordings = _recordings(root.table("recordings"))
     root.finish()
     camera_source = _camera_source(_Table(wiring.get("camera", {}), "camera", source).table("source"), base_dir)
     vacuum_device = _vacuum_device(_Table(wiring.get("vacuum", {}), "vacuum", source))
@@ -879,6 +931,7 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
         board,
         commissioning,
         metal_part,
+        recordings,
     )
     _check_devices(config)
     return config

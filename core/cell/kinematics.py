@@ -16,6 +16,7 @@ import numpy as np
 import pinocchio as pin
 from numpy.typing import ArrayLike
 
+from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix, exp_twist
 from vservo.robot_models.loader import ArmDescription
 
@@ -42,7 +43,7 @@ class ToolMount:
             object.__setattr__(self, name, _pose(getattr(self, name), name))
 
 
-class KinematicsError(Exception):
+class KinematicsError(VservoError):
     """A kinematic query that cannot be answered."""
 
 
@@ -173,6 +174,7 @@ class ArmKinematics:
             if best is None or self._cost(attempt) < self._cost(best):
                 best = attempt
 
+        assert best is not None  # the chain of seeds starts with q_seed: one attempt at least was made
         at_limits = [
             f"{name} at its {'lower' if abs(q - lo) < abs(q - hi) else 'upper'} limit"
             for name, q, lo, hi in zip(self.joint_names, best.q, self.lower, self.upper)

@@ -14,6 +14,7 @@ builds that pose and ``in_plane_range`` is the closed form of eqs. 4-18 .. 4-21;
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +22,9 @@ from numpy.typing import ArrayLike
 
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.spatial import Matrix, rot_y, transform
+
+# A spot's pixel (u, v), as a pair of numbers or a 2-vector.
+Pixel = Sequence[float] | Matrix
 
 # Below this sine of the angle between two lines (about 1e-6 rad) they are parallel
 # for any purpose: the crossing point would sit kilometres away.
@@ -146,7 +150,7 @@ class LaserPointer:
         s = beam_c.intersect_plane(n_c, offset_c)
         return None if s is None else beam_c.point_at(s)
 
-    def triangulate(self, camera: CameraModel, spot_px: ArrayLike) -> LaserDepth:
+    def triangulate(self, camera: CameraModel, spot_px: Pixel) -> LaserDepth:
         """Depth of the laser spot seen at pixel ``spot_px`` (2,), for any calibrated cMl.
 
         The viewing ray r through the undistorted spot and the beam o + s b are two lines
@@ -182,7 +186,7 @@ class LaserPointer:
         )
 
 
-def in_plane_range(spot_px: ArrayLike, camera: CameraModel, baseline_m: float, alpha_rad: float) -> tuple[float, float]:
+def in_plane_range(spot_px: Pixel, camera: CameraModel, baseline_m: float, alpha_rad: float) -> tuple[float, float]:
     """(range_m, depth_m) of the spot for the in-plane laser of Fig. 4-2, eqs. 4-18 .. 4-21.
 
     The spot's image radius r along the baseline (signed, positive on the laser's side,

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.laser import LaserPointer
@@ -79,8 +80,8 @@ class ImageFeatures:
     reference_px: Matrix
 
     @property
-    def corners_visible(self) -> Matrix:
-        return ~np.isnan(self.corners_px).any(axis=1)
+    def corners_visible(self) -> NDArray[np.bool_]:
+        return ~np.any(np.isnan(self.corners_px), axis=1)
 
     @property
     def all_corners_visible(self) -> bool:

@@ -30,16 +30,18 @@ import math
 import os
 import re
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Generator, Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from enum import Enum
 from pathlib import Path, PurePath
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
+from vservo.core.errors import VservoError
 from vservo.core.perception.camera_source import BaseSource, Frame, Size, SourceLost
 
 log = logging.getLogger("vservo.recording")
@@ -57,7 +59,7 @@ _FRAME_FILE = re.compile(r"frames/[0-9]{6,}\.png")
 _PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]  # fast: the recorder runs inside the loop
 
 
-class RecordingError(RuntimeError):
+class RecordingError(VservoError, RuntimeError):
     """A recording that cannot be written as asked, or read back as it is on disk."""
 
 
@@ -337,7 +339,7 @@ class Recording:
             return None
         return self._load(self.folder / ref["file"], ref)
 
-    def frames(self) -> Iterator[Frame]:
+    def frames(self) -> Generator[Frame, None, None]:
         """The recorded frames in order, with their recorded timestamps and source indices."""
         for cycle in self.cycles:
             frame = self.frame_of(cycle)
@@ -355,7 +357,8 @@ class Recording:
         size = self.image_size
         if size is not None and (image.shape[1], image.shape[0]) != size:
             raise RecordingError(f"frame {str(path)!r} is {image.shape[1]}x{image.shape[0]}, meta.json says {size[0]}x{size[1]}")
-        return Frame(image, float(ref["timestamp_s"]), int(ref["index"]))
+        # (imdecode is typed as returning any Mat; the check above made it 8-bit)
+        return Frame(cast(NDArray[np.uint8], image), float(ref["timestamp_s"]), int(ref["index"]))
 
 
 def _read_meta(path: Path) -> dict[str, Any]:

@@ -12,8 +12,6 @@ when the file names the simulated camera.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 from vservo.core.cell.config import CameraSourceConfig, CellConfig, ConfigError
 from vservo.core.perception.camera_source import FrameSource, ImageFolderSource, VideoCaptureSource, read_mono8
 from vservo.core.production.fixture import FixtureClient
@@ -48,10 +46,12 @@ def real_rig(config: CellConfig) -> Rig:
         raise ConfigError(f'{config.source}: the JRC takes position steps; set [motion] mode = "position_steps"')
     model = config.nominal
     intrinsics = model.camera.intrinsics
-    camera = open_camera(config.camera_source, (intrinsics.width, intrinsics.height))
+    camera = open_camera(config.camera_source, (intrinsics.width, intrinsics.height), config.safety.watchdog_s)
     jrc = JrcBackend(config.jrc)
     vacuum = config.vacuum_device
-    gripper: VacuumGripper = JrcVacuum(jrc, vacuum.suction_output, vacuum.grip_input) if vacuum.device == "jrc_io" else NoVacuum()
+    gripper: VacuumGripper = JrcVacuum(jrc, *vacuum.jrc_io()) if vacuum.device == "jrc_io" else NoVacuum()
+    # A test cell's part feeder and gauge, on the fixture of [fixture] url; none on a production cell.
+    fixture = FixtureClient(config.fixture_url) if config.fixture_url else None
     return Rig(
         config=config,
         robot=SafetyLayer.from_config(jrc, config),
@@ -62,23 +62,18 @@ def real_rig(config: CellConfig) -> Rig:
         # No gauge on a real cell: the assembly measures the placement by vision alone.
         measure_placement=lambda: None,
         locator=PartLocator.from_config(config),
-        reopen_camera=lambda: open_camera(config.camera_source, (intrinsics.width, intrinsics.height)),
-        **_fixture_hooks(config),
+        reopen_camera=lambda: open_camera(config.camera_source, (intrinsics.width, intrinsics.height), config.safety.watchdog_s),
+        present_part=fixture.present_part if fixture else None,
+        lay_board=fixture.lay_board if fixture else None,
+        place_part=fixture.place_part if fixture else None,
     )
 
 
-def _fixture_hooks(config: CellConfig) -> dict[str, Callable[..., object]]:
-    """The rig's test-cell hooks, on the fixture of [fixture] url; none without one."""
-    if not config.fixture_url:
-        return {}
-    fixture = FixtureClient(config.fixture_url)
-    return {"present_part": fixture.present_part, "lay_board": fixture.lay_board, "place_part": fixture.place_part}
-
-
-def open_camera(source: CameraSourceConfig, size: tuple[int, int]) -> FrameSource:
+def open_camera(source: CameraSourceConfig, size: tuple[int, int], frame_timeout_s: float) -> FrameSource:
     """The camera of [camera.source] (kind "capture" or "folder"), delivering frames of ``size``
-    (width, height), the size the intrinsics were calibrated at."""
-    if source.kind == "capture":
+    (width, height), the size the intrinsics were calibrated at; a live camera that sends
+    no frame for ``frame_timeout_s`` (the [safety] watchdog) is lost."""
+    if source.kind == "capture" and source.device is not None:  # (the cell file requires a device)
         return VideoCaptureSource(
             source.device,
             expected_size=size,
@@ -87,8 +82,9 @@ def open_camera(source: CameraSourceConfig, size: tuple[int, int]) -> FrameSourc
             loop=source.loop,
             exposure_latency_s=source.exposure_latency_s,
             buffer_frames=source.buffer_frames,
+            frame_timeout_s=frame_timeout_s,
         )
-    if source.kind == "folder":
+    if source.kind == "folder" and source.path is not None:  # (the cell file requires a path)
         folder = ImageFolderSource(source.path, source.pattern)
         # The folder checks its images against its first one; the first is checked here.
         height, width = read_mono8(folder.paths[0]).shape

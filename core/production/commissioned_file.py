@@ -20,11 +20,15 @@ from typing import Any
 
 import numpy as np
 
-from vservo.core.cell.cell_file import dumps_cell
-from vservo.core.cell.config import ConfigError, parse_cell
+from vservo.core.cell.cell_file import update_cell
+from vservo.core.cell.config import DEFAULT_CELL, ConfigError, parse_cell, read_cell_bytes
 from vservo.core.geometry.spatial import Matrix, pose_from_matrix, pose_to_mm_deg
 from vservo.core.perception.recording import write_atomic
 from vservo.core.production.commissioning import CommissionResult, Step
+
+# The header a commissioned file starts with (a blank line ends it).
+_HEADER_START = "Commissioned from "
+_HEADER_NOTE = "[camera], [hand_eye], [laser] and [board] pose hold measured values; [commissioning] says how."
 
 
 def _pose_mm_deg(aMb: Matrix) -> list[float]:
@@ -78,16 +82,32 @@ def commissioned_tables(
 
 
 def write_commissioned_cell(input_path: str | Path, tables: dict[str, Any], out_path: str | Path) -> Path:
-    """Write the new cell file atomically; refuse to overwrite the input, and check that
-    what was written reads back as a cell file."""
+    """Write the new cell file atomically: the input file's text holding ``tables``, so its
+    comments and layout stay (cell_file.update_cell), under a header saying where it came
+    from. Refuse to overwrite the input, and check that what was written reads back as a
+    cell file."""
     out = Path(out_path)
     if Path(input_path).resolve() == out.resolve():
         raise ConfigError(f"--out {out}: that is the input cell file; commissioning writes a new one")
-    header = (
-        f"Commissioned from {input_path} by vservo commission, {time.strftime('%Y-%m-%d %H:%M:%S')}.\n"
-        "[camera], [hand_eye], [laser] and [board] pose hold measured values; [commissioning] says how."
-    )
-    text = dumps_cell(tables, header)
+    header = f"{_HEADER_START}{input_path} by vservo commission, {time.strftime('%Y-%m-%d %H:%M:%S')}.\n{_HEADER_NOTE}"
+    text = update_cell(_without_header(_input_text(input_path)), tables, header)
     parse_cell(tomllib.loads(text), str(out), out.parent)
     write_atomic(out, text.encode("utf-8"))
     return out
+
+
+def _input_text(input_path: str | Path) -> str:
+    """The text of the cell file commissioned: a file, or the shipped cell by the name it is
+    loaded under (config.read_cell_bytes)."""
+    shipped = str(input_path) == f"static/{DEFAULT_CELL}" and not Path(input_path).is_file()
+    raw, _ = read_cell_bytes(None if shipped else input_path)
+    return raw.decode("utf-8")
+
+
+def _without_header(text: str) -> str:
+    """The text without the header of an earlier commissioning: a commissioned cell
+    commissioned again says where it came from once."""
+    if not text.startswith(f"# {_HEADER_START}"):
+        return text
+    _, blank, rest = text.partition("\n\n")
+    return rest if blank else ""

@@ -51,6 +51,7 @@ from vservo.core.calibration.levenberg_marquardt import LMSettings
 from vservo.core.calibration.mlp import train_nn
 from vservo.core.cell.config import BoardConfig, CellModel, ConfigError
 from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import Matrix, exp_twist, inverse, rot_x, rot_z, transform
@@ -75,7 +76,7 @@ class Step(StrEnum):
 ALL_STEPS = tuple(Step)
 
 
-class CommissioningError(RuntimeError):
+class CommissioningError(VservoError, RuntimeError):
     """Commissioning cannot go on; the message says what to do."""
 
 

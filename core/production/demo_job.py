@@ -41,6 +41,7 @@ def teach_demo_job(config: CellConfig) -> tuple[Job, np.ndarray, np.ndarray]:
     """The demo job, its desired image and its check image."""
     rig = simulated_rig(config)
     cell, robot, model = rig.cell, rig.robot, config.nominal
+    assert cell is not None  # a simulated rig carries its plant
     scene = cell.state.scene
     side = scene.cube.side_m
     robot.connect()

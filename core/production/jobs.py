@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from vservo.core.cell.config import CellModel
+from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage
@@ -47,7 +48,7 @@ READABLE_VERSIONS = (1, 2, JOB_VERSION)
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
-class JobError(ValueError):
+class JobError(VservoError, ValueError):
     """A job that cannot be used; the message names the job or file and the field."""
 
 

@@ -92,7 +92,7 @@ def _desired_through(model: CellModel, cdMo: Matrix, part: Cube, name: str) -> D
     normal_c = cdMo[:3, 2]
     spot_c = model.laser.spot_on_plane(normal_c, float(normal_c @ cdMo[:3, 3]))
     spot_o = None if spot_c is None else inverse(cdMo)[:3, :3] @ spot_c + inverse(cdMo)[:3, 3]
-    if spot_o is None or not np.all((spot_o[:2] >= 0.0) & (spot_o[:2] <= part.side_m)):
+    if spot_c is None or spot_o is None or not np.all((spot_o[:2] >= 0.0) & (spot_o[:2] <= part.side_m)):
         raise JobError(
             f"job {name!r}: this cell's laser beam misses the part's top face at the desired view: teach the desired image again"
         )

@@ -40,11 +40,12 @@ class Rig:
     extractor: ImageFeatureExtractor
     policy: StepPolicy
     measure_placement: Callable[[], PlacementReport | None]
-    present_part: Callable[[np.random.Generator], None] | None = None
+    # The test cell's hooks (their answers, a fixture's reply, go unread: object).
+    present_part: Callable[[np.random.Generator], object] | None = None
     # The checkerboard laid (True: the table cleared of the parts) or taken away (False).
-    lay_board: Callable[[bool], None] | None = None
+    lay_board: Callable[[bool], object] | None = None
     # The part put down with its frame O at (x_m, y_m) in the base frame, turned yaw_rad.
-    place_part: Callable[[float, float, float], None] | None = None
+    place_part: Callable[[float, float, float], object] | None = None
     # The chapter 2 network of a commissioned cell, for jobs that locate their part; None before.
     locator: PartLocator | None = None
     cell: SimulatedCell | None = None  # the plant, for the 3D view and evaluation; None on a real cell

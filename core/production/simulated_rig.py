@@ -50,7 +50,7 @@ def simulated_rig(
     if backend not in ROBOT_BACKENDS:
         raise ValueError(f"robot backend {backend!r}: choose one of {', '.join(ROBOT_BACKENDS)}")
     cell = SimulatedCell(config, seed)
-    taught_bMo = config.simulation.scene.cube.bMo
+    taught_bMo = config.plant().scene.cube.bMo
 
     def measure_placement() -> PlacementReport:
         placement = cell.ground_truth_placement()
@@ -71,7 +71,7 @@ def simulated_rig(
         jrc = JrcBackend(emulator.start_for(replace(config.jrc, time_scale=jrc_time_scale)))
         robot = SafetyLayer.from_config(jrc, config)
         if vacuum.device == "jrc_io":
-            gripper = JrcVacuum(jrc, vacuum.suction_output, vacuum.grip_input)
+            gripper = JrcVacuum(jrc, *vacuum.jrc_io())
         if isinstance(policy, DividedPositionStep):  # the period in the emulator's time
             policy = replace(policy, sampling_period_s=policy.sampling_period_s / jrc_time_scale)
     # The emulator's thread moves the plant: the table changes between its commands.

@@ -333,7 +333,8 @@ class BscStation:
                 block = self._read_block(b, deadline)
                 if block == _INTERRUPTED:
                     self._write(last_ack, "ack")
-                elif block == _BAD or (header is None and block.header is None):
+                # _BAD (the one other str), or a first block without its header
+                elif isinstance(block, str) or (header is None and block.header is None):
                     self.counters.naks_sent += 1
                     self._write(bytes((NAK,)), "nak")
                 elif complete:  # the last block again: the sender missed our answer
@@ -373,8 +374,8 @@ class BscStation:
                 return _BAD
         # The BCC by position; a sender that stops mid-block is given timer A, not B.
         bcc_deadline = min(deadline, time.monotonic() + self.line.timer_a_s)
-        bcc = [self.channel.read_byte(bcc_deadline) for _ in range(2)]
-        if None in bcc or bytes(bcc) != block_check(bytes(body)):
+        first, second = (self.channel.read_byte(bcc_deadline) for _ in range(2))
+        if first is None or second is None or bytes((first, second)) != block_check(bytes(body)):
             return _BAD
         content = bytes(body[:-1])
         header: str | None = None
@@ -387,7 +388,8 @@ class BscStation:
 
     def _write(self, data: bytes, what: str) -> None:
         if self.faults is not None:
-            data = self.faults.outgoing(data, what)
-            if not data:
+            altered = self.faults.outgoing(data, what)
+            if not altered:
                 return
+            data = altered
         self.channel.write(data)

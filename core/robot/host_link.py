@@ -17,11 +17,10 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Protocol
 
-from vservo.core.errors import VservoError
 from vservo.core.robot.backend import RobotError
 
 
-class LinkError(RobotError, VservoError):
+class LinkError(RobotError):
     """The link failed after its recovery; the message names the phase and the cause."""
 
 
@@ -30,7 +29,7 @@ class LinkLost(LinkError):
     the link is opened again (connect)."""
 
 
-class CommandNotOffered(RobotError, VservoError):
+class CommandNotOffered(RobotError):
     """The controller's server does not offer the command over this link (JWAIT over
     Ethernet); the message names the command and the server's words."""
 

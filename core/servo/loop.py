@@ -18,6 +18,7 @@ import logging
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from itertools import groupby
 from typing import Any, Protocol
 
 import numpy as np
@@ -86,13 +87,8 @@ class ServoOutcome:
     @property
     def stages(self) -> list[dict[str, int | Stage]]:
         """Consecutive stages in the order they ran, with their iteration counts."""
-        runs: list[dict[str, int | Stage]] = []
-        for cycle in self.cycles:
-            if runs and runs[-1]["stage"] == cycle.output.stage:
-                runs[-1]["iterations"] += 1
-            else:
-                runs.append({"stage": cycle.output.stage, "iterations": 1})
-        return runs
+        runs = groupby(cycle.output.stage for cycle in self.cycles)
+        return [{"stage": stage, "iterations": sum(1 for _ in run)} for stage, run in runs]
 
 
 class MeasurementSource(Protocol):
@@ -108,7 +104,8 @@ class Perception(Protocol):
     uses_projection: whether it reads the measurement's projected features at all.
     """
 
-    uses_projection: bool
+    @property
+    def uses_projection(self) -> bool: ...
 
     def perceive(self, measurement: Measurement, motion_ended_s: float) -> ImageFeatures:
         """The features seen in a view exposed at or after ``motion_ended_s``, the robot's

@@ -95,7 +95,7 @@ class CameraStream:
 
     @property
     def url(self) -> str:
-        host, port = self._server.server_address[:2]
+        host, port = self._server.socket.getsockname()[:2]  # (server_address, typed for every address family)
         return f"http://{host}:{port}{STREAM_PATH}"
 
     @property

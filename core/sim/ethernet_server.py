@@ -31,6 +31,7 @@ from typing import NoReturn, Protocol
 import numpy as np
 
 from vservo.core.cell.config import JrcLineConfig
+from vservo.core.errors import VservoError
 from vservo.core.robot.ethernet_link import ACCEPTED, COMMAND_REQUEST, DONE, FAILED, NOT_OFFERED, REFUSED, UNLIMITED
 from vservo.core.robot.host_link import Answer, ReplyKind
 
@@ -52,8 +53,8 @@ class ServerFaults(Protocol):
     def draw(self) -> str | None: ...
 
 
-class _Closed(Exception):
-    """The host closed the connection, or the server is stopping."""
+class _Closed(VservoError):
+    """The host closed the connection, or the server is stopping (caught by the server)."""
 
 
 def framed(name: str, answer: Answer) -> bytes:

@@ -166,13 +166,13 @@ class FaultInjector:
     def outgoing(self, data: bytes, what: str) -> bytes | None:
         kind = self._armed
         if kind == "bcc" and what == "block":
-            self._fired()
+            self._fired(kind)
             return data[:-1] + bytes(((data[-1] + 1) & 0xFF,))
         if kind in ("drop", "delay") and what in ("ack", "enq", "block"):
             if self._countdown > 0:
                 self._countdown -= 1
                 return data
-            self._fired()
+            self._fired(kind)
             if kind == "drop":
                 cut = int(self.rng.integers(0, len(data)))
                 return data[:cut] + data[cut + 1 :]
@@ -180,10 +180,10 @@ class FaultInjector:
         return data
 
     def on_block(self) -> str | None:
-        if self._armed in ("nak", "missing_ack"):
-            verdict = "nak" if self._armed == "nak" else "no_ack"
-            self._fired()
-            return verdict
+        kind = self._armed
+        if kind in ("nak", "missing_ack"):
+            self._fired(kind)
+            return "nak" if kind == "nak" else "no_ack"
         return None
 
     def take_motion_fault(self) -> str | None:
@@ -191,8 +191,8 @@ class FaultInjector:
         kind, self.pending_motion_fault = self.pending_motion_fault, None
         return kind
 
-    def _fired(self) -> None:
-        self.injected[self._armed] += 1
+    def _fired(self, kind: str) -> None:
+        self.injected[kind] += 1
         self._armed = None
 
 
@@ -232,7 +232,8 @@ class JrcEmulator:
         if not time_scale > 0.0:
             raise ValueError(f"time scale {time_scale!r} must be positive")
         self.cell, self.line, self.time_scale, self.pace = cell, line, time_scale, pace
-        self.vacuum = vacuum if vacuum is not None and vacuum.device == "jrc_io" else None
+        # (suction_output, grip_input) when the cup is wired to the I/O
+        self.vacuum_io = vacuum.jrc_io() if vacuum is not None and vacuum.device == "jrc_io" else None
         self.network_inputs: dict[int, int] = {}  # byte address -> the value the host wrote
         self.faults = FaultInjector(faults, line)
         self.executed: list[str] = []
@@ -290,8 +291,8 @@ class JrcEmulator:
 
     def _start(self, port: Port) -> None:
         channel = ByteChannel(port, self.line.wire_time_s(1) if self.pace else None)
-        self.station = BscStation(channel, self.line, yields=False, faults=self.faults)
-        self._run(self._serve, "jrc-emulator")
+        station = self.station = BscStation(channel, self.line, yields=False, faults=self.faults)
+        self._run(lambda: self._serve(station), "jrc-emulator")
 
     def _run(self, serve: Callable[[], None], name: str) -> None:
         self._last_real_s = time.monotonic()
@@ -319,8 +320,8 @@ class JrcEmulator:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    def _serve(self) -> None:
-        station, ignoring = self.station, 0
+    def _serve(self, station: BscStation) -> None:
+        ignoring = 0
         while not self._stop.is_set():
             if not station.wait_for_bid(time.monotonic() + IDLE_POLL_S):
                 continue
@@ -468,18 +469,18 @@ class JrcEmulator:
         address, count, *values = _integers(fields)
         if len(values) != _io_bytes(address, count) or not all(0 <= v <= 0xFF for v in values):
             raise _Refused(1013)
-        if self.vacuum is None or len(values) != 1 or address != io_byte(self.vacuum.suction_output)[0]:
+        if self.vacuum_io is None or len(values) != 1 or address != io_byte(self.vacuum_io[0])[0]:
             raise _Refused(NOT_ACCESSIBLE)
         self.network_inputs[address] = values[0]
         # The ladder line: the suction network input drives the valve's output.
-        _, bit = io_byte(self.vacuum.suction_output)
+        _, bit = io_byte(self.vacuum_io[0])
         self.cell.vacuum(bool(values[0] >> bit & 1))
         return Answer.status(0)
 
     def _io_value(self, byte: int) -> int:
         value = self.network_inputs.get(byte, 0)
-        if self.vacuum is not None:
-            grip_byte, bit = io_byte(self.vacuum.grip_input)
+        if self.vacuum_io is not None:
+            grip_byte, bit = io_byte(self.vacuum_io[1])
             if byte == grip_byte:  # the pressure switch
                 value = value | 1 << bit if self.cell.holding_part else value & ~(1 << bit)
         return value

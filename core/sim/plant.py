@@ -26,6 +26,7 @@ import numpy as np
 from vservo.core.cell.config import CellConfig, CellModel, ConfigError
 from vservo.core.cell.kinematics import ArmKinematics
 from vservo.core.cell.scene import Scene
+from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix, exp_twist, inverse, pose_error, rot_z, transform
 from vservo.core.perception.features import ObjectRegion, polygon_moments
 from vservo.core.perception.measurement import Measurement
@@ -47,7 +48,7 @@ IK_TOLERANCE_M = 1e-7
 IK_TOLERANCE_RAD = 1e-7
 
 
-class CellStateError(RuntimeError):
+class CellStateError(VservoError, RuntimeError):
     """The plant refuses what it is asked in its present state (the cup holds the part,
     the board lies on the table); the message says what is in the way."""
 
@@ -64,7 +65,7 @@ class CellTruth:
 
     @classmethod
     def from_config(cls, config: CellConfig, nominal_arm: ArmKinematics, rng: np.random.Generator) -> CellTruth:
-        sim = config.simulation
+        sim = config.plant()
         arm = nominal_arm.with_mount(sim.truth.mount)
         if sim.joint_placement_error_m > 0.0 or sim.joint_placement_error_rad > 0.0:
             arm = arm.with_joint_placement_errors(rng, sim.joint_placement_error_m, sim.joint_placement_error_rad)
@@ -153,16 +154,15 @@ class SimulatedCell:
     """
 
     def __init__(self, config: CellConfig, seed: int | None = None, arm: Arm = Arm.UPJ) -> None:
-        if config.simulation is None:
-            raise ConfigError(f"{config.source}: no [simulation] table: this file describes no plant to simulate")
-        self.rng = np.random.default_rng(config.simulation.seed if seed is None else seed)
+        simulation = config.plant()
+        self.rng = np.random.default_rng(simulation.seed if seed is None else seed)
         self.jrc_arm = ArmKinematics(load_arm(config.arm), config.nominal.mount)
         self.truth = CellTruth.from_config(config, self.jrc_arm, self.rng)
         self.arm = Arm(arm)
         bMe_free = self.jrc_arm.fk(config.home_q) if self.arm is Arm.NONE else None
-        self.state = PlantState(0.0, config.home_q.copy(), np.eye(4), config.simulation.scene, bMe_free=bMe_free)
+        self.state = PlantState(0.0, config.home_q.copy(), np.eye(4), simulation.scene, bMe_free=bMe_free)
         self.source = config.source
-        self.board = config.simulation.board  # the TRUE board, where it lies when laid
+        self.board = simulation.board  # the TRUE board, where it lies when laid
 
     # -- the table -------------------------------------------------------------------
 

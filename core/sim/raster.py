@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -316,7 +317,9 @@ class SceneRasterizer:
                         group.weights.append((0.0, added_grey))
         return group if group.polygons else None
 
-    def _prepare_metal(self, part: MetalPart, cube: Cube, cMb: np.ndarray, planes, offsets, inner) -> _Group | None | bool:
+    def _prepare_metal(
+        self, part: MetalPart, cube: Cube, cMb: np.ndarray, planes, offsets, inner
+    ) -> _Group | Literal[False] | None:
         """The metal part as ONE group: the outer box with a hole in its top, and the
         pocket's inside seen through that hole (clipped to the pyramid from the eye
         through the hole's rim). Drawing its five boxes one by one would leave faint

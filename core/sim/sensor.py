@@ -139,7 +139,8 @@ class SensorEffects:
             # four times faster than numpy's; the noise is still fully determined by rng.
             noise = self._buffer("noise", (height, width))
             cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
-            cv2.randn(noise, 0.0, float(st.noise_sigma))
+            # OpenCV's stubs type mean and stddev as arrays; randn takes plain numbers (Scalars) as well.
+            cv2.randn(noise, 0.0, float(st.noise_sigma))  # type: ignore[call-overload]
             np.add(image, noise, out=image)
         np.clip(image, 0.0, 255.0, out=image)
         image += 0.5

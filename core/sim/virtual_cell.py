@@ -180,7 +180,7 @@ class VirtualCell:
         self.cell = SimulatedCell(self.config, seed)
         if board_laid:
             self.cell.lay_board(True)
-        self.taught_bMo = self.config.simulation.scene.cube.bMo
+        self.taught_bMo = self.config.plant().scene.cube.bMo
         self.vacuum = self.config.vacuum_device if self.config.vacuum_device.device == "jrc_io" else DEFAULT_VACUUM_IO
         self.emulator = JrcEmulator(self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum)
         self.renderer = SceneRenderer(self.cell.truth.model.camera, RenderSettings())

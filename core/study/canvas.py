@@ -13,9 +13,10 @@ Conventions:
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -63,13 +64,12 @@ def default_color(index: int) -> BGR:
     return PALETTE[index % len(PALETTE)]
 
 
-def check_color(color: object) -> BGR | None:
-    if color is None:
-        return None
-    values = tuple(int(c) for c in color)  # type: ignore[union-attr]
+def check_color(color: object) -> BGR:
+    """``color`` as a BGR triple of 0..255; ValueError otherwise."""
+    values = tuple(int(c) for c in color) if isinstance(color, Iterable) else ()
     if len(values) != 3 or any(not 0 <= c <= 255 for c in values):
         raise ValueError(f"color must be a BGR triple of 0..255, got {color!r}")
-    return values  # type: ignore[return-value]
+    return values[0], values[1], values[2]
 
 
 def blank(width: int, height: int) -> Image:
@@ -111,11 +111,11 @@ def put_text_vertical(img: Image, text: str, cx: float, cy: float, scale: float,
     width, height, baseline = text_size(text, scale)
     patch = blank(width + 4, height + baseline + 4)
     cv2.putText(patch, text, (2, height + 2), _FONT, scale, color, 1, cv2.LINE_AA)
-    patch = cv2.rotate(patch, cv2.ROTATE_90_COUNTERCLOCKWISE)
-    _paste_darker(img, patch, round(cx - patch.shape[1] / 2), round(cy - (width + 4) / 2))
+    rotated = cv2.rotate(patch, cv2.ROTATE_90_COUNTERCLOCKWISE)
+    _paste_darker(img, rotated, round(cx - rotated.shape[1] / 2), round(cy - (width + 4) / 2))
 
 
-def _paste_darker(img: Image, patch: Image, x0: int, y0: int) -> None:
+def _paste_darker(img: Image, patch: np.ndarray, x0: int, y0: int) -> None:
     """Darken img with patch at (x0, y0), clipped to img: dark text on white shows through."""
     h, w = patch.shape[:2]
     top, left = max(y0, 0), max(x0, 0)
@@ -292,7 +292,7 @@ def _as_bgr(panel: ArrayLike) -> Image:
     if array.dtype != np.uint8:
         raise ValueError(f"panels must be uint8 images, got {array.dtype}")
     if array.ndim == 2:
-        return cv2.cvtColor(array, cv2.COLOR_GRAY2BGR)
+        return cast(Image, cv2.cvtColor(array, cv2.COLOR_GRAY2BGR))  # (typed as any Mat; uint8 in, uint8 out)
     if array.ndim == 3 and array.shape[2] == 3:
         return array
     raise ValueError(f"panels must be (H, W) or (H, W, 3) images, got shape {array.shape}")

@@ -378,9 +378,9 @@ def draw_box_3d(
         for t, text in zip(axis_ticks, tick_labels(axis_ticks)):
             point = np.array(edge.start, dtype=float)
             point[edge.axis] = t
-            p = view.to_pixel(point)
-            cv2.line(img, tuple(fixed(p)), tuple(fixed(p + outward * TICK_LEN)), BLACK, 1, cv2.LINE_AA, SHIFT)
-            w, h = put_text_beside(img, text, p, outward, TICK_LEN + GAP, TICK_SCALE)
+            tick_px = view.to_pixel(point)
+            cv2.line(img, tuple(fixed(tick_px)), tuple(fixed(tick_px + outward * TICK_LEN)), BLACK, 1, cv2.LINE_AA, SHIFT)
+            w, h = put_text_beside(img, text, tick_px, outward, TICK_LEN + GAP, TICK_SCALE)
             reach = max(reach, abs(outward[0]) * w + abs(outward[1]) * h)
         middle = view.to_pixel((np.array(edge.start) + np.array(edge.end)) / 2)
         gap = TICK_LEN + GAP + reach + 2 * GAP

@@ -92,7 +92,7 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
         args.n,
         args.seed,
         args.processes,
-        on_sample=lambda outcome: progress.advance("ok" if outcome.converged else outcome.failure),
+        on_sample=lambda outcome: progress.advance("ok" if outcome.converged else str(outcome.failure)),
     )
     progress.close()
     if args.json:

@@ -57,7 +57,7 @@ def run_demo(config: CellConfig, seed: int | None = None, steps: int = 5) -> dic
     )
 
     # Teach: put the camera at the task-1 desired pose over the cube.
-    bMc_teach = config.simulation.scene.cube.bMo @ inverse(TEACH_cMo)
+    bMc_teach = config.plant().scene.cube.bMo @ inverse(TEACH_cMo)
     move = cell.execute(PositionCommand(bMc_teach @ inverse(nominal.eMc), config.motion.speed_m_s, 0.0))
     teach = cell.measure()
     depth = nominal.laser.triangulate(nominal.camera, teach.laser_spot_px)

@@ -29,7 +29,7 @@ TIME_SCALE = 1000.0  # the motions themselves are not what is timed
 
 
 def _round_trips(
-    robot: JrcBackend, send: Callable[[int], None], samples: int, then: Callable[[], object] | None = None
+    robot: JrcBackend, send: Callable[[int], object], samples: int, then: Callable[[], object] | None = None
 ) -> dict[str, Any]:
     """Time ``send(i)`` and count its bytes, ``samples`` times; ``then()`` runs untimed after each."""
     channel = robot.station.channel

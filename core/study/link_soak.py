@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from vservo.core.cell.config import CellConfig, HostTransport, JrcLineConfig
+from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix, pose_error, transform
 from vservo.core.robot.backend import MotionStopped, RobotError
 from vservo.core.robot.ethernet_link import EthernetLink
@@ -48,7 +49,7 @@ ON_PATH_MM = 0.02
 MAX_RECOVERY_ATTEMPTS = 30
 
 
-class SoakFailure(RuntimeError):
+class SoakFailure(VservoError, RuntimeError):
     """The soak could not bring the robot back on its path."""
 
 
@@ -56,7 +57,8 @@ def soak_increments(moves: int, seed: int) -> Matrix:
     """(moves, 3) increments in mm, 3 decimals, every one different: a walk that stays
     within a few centimetres of its start."""
     rng = np.random.default_rng(seed)
-    increments, offset, seen = [], np.zeros(3), set()
+    increments: list[Matrix] = []
+    offset, seen = np.zeros(3), set()
     while len(increments) < moves:
         step = np.round(rng.uniform(-MAX_STEP_MM, MAX_STEP_MM, 3) - PULL_BACK * offset, 3)
         key = tuple(step)

@@ -88,6 +88,7 @@ def _servable(rig: Rig, job: Job, bMo: Matrix) -> bool:
     whose eMc is turned by degrees from the taught one, that goal lies tens of millimetres
     from the taught model's and may be past joint 2's or 3's limit where the taught one is not."""
     job = retarget(job, rig.config.nominal)
+    assert job.survey_bMe is not None  # the bench's job surveys (bench_locate sets the pose)
     taught = job.taught_model or TaughtModel.of(rig.config.nominal)
     start = start_pose_for_part(job, taught, bMo)
     view = desired_view_for_part(job, taught, bMo)
@@ -153,12 +154,14 @@ def bench_locate(config: CellConfig, job_name: str, runs: int, seed: int, data: 
     controller = CellController(rig, store, seed=seed)
     try:
         job = store.load_job(job_name)
-        located = replace(job, name=f"{job.name}-locate", survey_bMe=survey_pose(rig.locator))
+        survey_bMe = survey_pose(rig.locator)
+        located = replace(job, name=f"{job.name}-locate", survey_bMe=survey_bMe)
         store.save_job(located, store.job_image(job_name), store.job_image(job_name, check=True))
-        footprint = survey_footprint(rig.locator, located.survey_bMe, job.part_side_m)
+        footprint = survey_footprint(rig.locator, survey_bMe, job.part_side_m)
         low, high = footprint.min(axis=0), footprint.max(axis=0)
         rng = np.random.default_rng([seed, 17])
-        results, unservable = [], 0
+        results: list[dict[str, Any]] = []  # one JSON record a run
+        unservable = 0
         progress = Progress(runs, "bench locate")
         for _ in range(runs):
             while True:
@@ -182,6 +185,7 @@ def bench_locate(config: CellConfig, job_name: str, runs: int, seed: int, data: 
             controller.start(located.name)
             controller.wait()
             outcome = controller.last_outcome
+            assert outcome is not None  # wait() returns once the run has its outcome
             results.append(
                 {
                     "x_mm": round(1000 * float(xy[0]), 2),
@@ -206,7 +210,7 @@ def bench_locate(config: CellConfig, job_name: str, runs: int, seed: int, data: 
         "unservable_draws": unservable,
         "placed": len(placed),
         "placed_share": round(len(placed) / runs, 4),
-        "survey_bMe_mm": [round(1000 * v, 2) for v in located.survey_bMe[:3, 3]],
+        "survey_bMe_mm": [round(1000 * v, 2) for v in survey_bMe[:3, 3]],
         "footprint_mm": np.round(1000 * footprint, 1).tolist(),
         "placement_error_mm": {
             "median": round(float(np.median(errors)), 4) if errors else None,

@@ -45,8 +45,8 @@ def _random_unit(rng: np.random.Generator) -> Matrix:
 
 def draw_initial_cMo(rng: np.random.Generator, desired_cMo: Matrix, config: CellConfig) -> Matrix:
     """One candidate initial pose of the cube in the camera frame (not yet checked for reach)."""
-    camera = config.simulation.truth.camera
-    side = config.simulation.scene.cube.side_m
+    camera = config.plant().truth.camera
+    side = config.plant().scene.cube.side_m
     corners_o = np.array([[0.0, 0.0, 0.0], [side, 0.0, 0.0], [side, side, 0.0], [0.0, side, 0.0]])
     for _ in range(MAX_DRAWS):
         twist = np.concatenate(

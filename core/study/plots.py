@@ -88,7 +88,7 @@ class Series:
             raise ValueError(f"series {self.label!r}: x and y must be 1-D of equal length, got {x.shape} and {y.shape}")
         object.__setattr__(self, "x", x)
         object.__setattr__(self, "y", y)
-        object.__setattr__(self, "color", check_color(self.color))
+        object.__setattr__(self, "color", None if self.color is None else check_color(self.color))
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,10 +104,10 @@ class Series3:
         if xyz.ndim != 2 or xyz.shape[1] != 3:
             raise ValueError(f"path {self.label!r}: xyz must have shape (T, 3), got {np.shape(self.xyz)}")
         object.__setattr__(self, "xyz", xyz)
-        object.__setattr__(self, "color", check_color(self.color))
+        object.__setattr__(self, "color", None if self.color is None else check_color(self.color))
 
 
-def _colors(items: Sequence[Series] | Sequence[Series3]) -> list[BGR]:
+def _colors(items: Sequence[Series | Series3]) -> list[BGR]:
     return [item.color if item.color is not None else default_color(i) for i, item in enumerate(items)]
 
 

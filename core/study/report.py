@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ from vservo.core.cell.config import CellConfig, parse_cell, read_cell_bytes, rea
 from vservo.core.servo.methods import METHODS
 from vservo.core.sim import Arm
 from vservo.core.study import canvas, plots, provenance
-from vservo.core.study.montecarlo import run_montecarlo
+from vservo.core.study.montecarlo import SampleOutcome, run_montecarlo
 from vservo.core.study.run import RunResult, RunSettings, run_task
 from vservo.core.study.tasks import (
     ROBUSTNESS_TASK,
@@ -424,7 +425,7 @@ def reproduce(
                 RunSettings(method=method, dt_s=dt_s, arm=arm),
                 montecarlo_n,
                 seed,
-                on_sample=lambda outcome, bar=bar: bar.advance("ok" if outcome.converged else outcome.failure),
+                on_sample=partial(_advance, bar),
             )
             bar.close()
 
@@ -433,3 +434,8 @@ def reproduce(
     (out / "results.json").write_text(json.dumps(summaries, indent=2) + "\n")
     (out / "report.md").write_text(report_markdown(summaries))
     return summaries
+
+
+def _advance(bar: Progress, outcome: SampleOutcome) -> None:
+    """One Monte Carlo sample done: the bar notes "ok" or why it failed."""
+    bar.advance("ok" if outcome.converged else str(outcome.failure))

@@ -144,7 +144,7 @@ def run_task(
     them).
     """
     cell = SimulatedCell(config, seed, settings.arm)
-    scene = config.simulation.scene
+    scene = config.plant().scene
     cell.place_cube(task.placement.bMo(scene.table_height_m, scene.cube.side_m))
     model = config.nominal
     desired = teach(cell, task.desired_cMo, model, perception_for(cell, model, settings))

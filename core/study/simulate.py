@@ -52,7 +52,7 @@ def _scene_task(task: ServoTask, initial: Matrix | None, desired: Matrix | None,
     placement = task.placement
     if arm is Arm.UPJ:
         kinematics = ArmKinematics(load_arm(config.arm), config.nominal.mount)
-        scene = config.simulation.scene
+        scene = config.plant().scene
         placement, _ = find_placement(
             kinematics,
             config.home_q,
@@ -60,7 +60,7 @@ def _scene_task(task: ServoTask, initial: Matrix | None, desired: Matrix | None,
             scene.cube.side_m,
             initial_cMo,
             desired_cMo,
-            config.simulation.truth.eMc,
+            config.plant().truth.eMc,
         )
     return replace(
         task,

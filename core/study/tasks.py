@@ -49,6 +49,7 @@ where the arm follows it with every joint at least 3 deg from its limits.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -216,12 +217,13 @@ TASKS: dict[int, ServoTask] = {
 
 # Table 5-3 (mm, deg, px), read as the module's docstring says: the control law keeps the
 # actual values, the simulated cell has the applied ones.
-ROBUSTNESS_NOMINAL = {  # the actual values: what the control law believes
+# Cell-file tables: table -> key -> value, as a TOML reader gives them.
+ROBUSTNESS_NOMINAL: dict[str, dict[str, Any]] = {  # the actual values: what the control law believes
     "camera": {"focal_length_mm": 6.0, "principal_point_px": [320.0, 240.0]},
     "laser": {"cMl": [30.0, 0.0, 0.0, 0.0, -10.0, 0.0]},
     "hand_eye": {"eMc": [-20.0, 20.0, 20.0, 5.0, 5.0, 5.0]},
 }
-ROBUSTNESS_TRUTH = {  # the applied values: what the cell is
+ROBUSTNESS_TRUTH: dict[str, dict[str, Any]] = {  # the applied values: what the cell is
     "camera": {"focal_length_mm": 7.2, "principal_point_px": [384.0, 288.0]},
     "laser": {"cMl": [30.0, 10.0, 10.0, 0.0, -12.0, 2.0]},
     "hand_eye": {"eMc": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]},

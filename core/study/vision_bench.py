@@ -107,7 +107,7 @@ def bench_vision(config: CellConfig, seed: int = 0, cycles: int = 3, repeats: in
     load_before = os.getloadavg()[0]
     rng = np.random.default_rng(seed)
     cell = SimulatedCell(config, seed)
-    scene = config.simulation.scene
+    scene = config.plant().scene
     cell.place_cube(TASKS[2].placement.bMo(scene.table_height_m, scene.cube.side_m))
     views = _servo_joints(config)
     winding = front_winding(cell.state.scene.cube.corners_o)

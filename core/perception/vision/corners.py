@@ -170,7 +170,7 @@ def _detect(image: np.ndarray, spot: SpotDetection | None, previous_px: np.ndarr
     if refined == _DIM_SIDE:
         quad, outline, _ = _rough_quadrilateral(img, face_floor, spot_out)
         refined = None if quad is None or outline is None else _refine(img, quad, outline, keep_out, spot_out, -np.inf)
-    if refined is None or refined == _DIM_SIDE:
+    if refined is None or isinstance(refined, str):  # (the one str _refine returns is _DIM_SIDE)
         return _no_corners("top face sides could not be fitted (too little clean edge)", mark_px)
     corners, side_quality = refined
 
@@ -278,7 +278,7 @@ def _find_mark(img: np.ndarray, quad: Matrix, face_level: float, below_level: fl
     cv2.fillConvexPoly(face_mask, np.round(inner * 16).astype(np.int32), 1, lineType=cv2.LINE_8, shift=4)
     dark_level = min(below_level, face_level - 40.0)
     _, dark = cv2.threshold(roi, 0.5 * (face_level + dark_level), 1, cv2.THRESH_BINARY_INV)
-    dark &= face_mask
+    dark = cv2.bitwise_and(dark, face_mask)
     contours, _ = cv2.findContours(dark, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     if not contours:
         return not_seen
@@ -518,9 +518,10 @@ def _outline_lines(quad: Matrix, outline: Matrix, spot_out: list[tuple[Matrix, f
         for centre, radius in spot_out:
             offset = outline - centre
             near &= ((offset * offset).sum(axis=1) > radius * radius)[:, None]
-        lines = _least_squares_lines(outline, near, normals)
-        if lines is None:
+        fitted = _least_squares_lines(outline, near, normals)
+        if fitted is None:
             return None
+        lines = fitted
         corners = polygon_corners(lines)
         if not (np.all(np.isfinite(corners)) and spot_near):
             break

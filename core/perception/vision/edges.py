@@ -6,6 +6,7 @@ Pixel convention (OpenCV): the pixel at row r, column c has its centre at (u, v)
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -45,8 +46,8 @@ def bright_contours(img: np.ndarray, threshold: float, approximation: int, whole
     passes.
     """
     height, width = img.shape
-    coarse = None if whole_frame else (np.ascontiguousarray(img[::2, ::2]) >= threshold).view(np.uint8)
-    found = () if whole_frame else cv2.findContours(coarse, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)[0]
+    coarse = (np.ascontiguousarray(img[::2, ::2]) >= threshold).view(np.uint8) if not whole_frame else None
+    found = cv2.findContours(coarse, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)[0] if coarse is not None else ()
     if found:
         x, y, w, h = cv2.boundingRect(max(found, key=cv2.contourArea))
         x0, y0 = max(2 * x - _WINDOW_MARGIN_PX, 0), max(2 * y - _WINDOW_MARGIN_PX, 0)
@@ -95,7 +96,7 @@ def sample_strips(
     image: np.ndarray,
     segments: list[Segment],
     reach: int,
-    keep_out: list[tuple[Matrix, float]] = (),
+    keep_out: Sequence[tuple[Matrix, float]] = (),
     end_margin: float = 0.0,
 ) -> Strips | None:
     """One strip of 2 reach + 1 pixels per column (per row for a steep edge) across each
@@ -164,7 +165,7 @@ def edge_points_many(
     segments: list[Segment],
     half_width: float = 1.5,
     level_px: int = 1,
-    keep_out: list[tuple[Matrix, float]] = (),
+    keep_out: Sequence[tuple[Matrix, float]] = (),
     end_margin: float = 0.0,
     min_contrast: float = 12.0,
 ) -> list[Matrix]:

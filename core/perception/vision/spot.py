@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from vservo.core.geometry.spatial import Matrix
-from vservo.core.perception.vision.edges import edge_points_many, fit_lines, frozen_array, image_problem
+from vservo.core.perception.vision.edges import Segment, edge_points_many, fit_lines, frozen_array, image_problem
 from vservo.core.perception.vision.least_squares import levenberg_marquardt
 
 #: Grey level from which a pixel counts as clipped by the sensor.
@@ -236,6 +236,26 @@ def _plane_background(win: Matrix, uu: Matrix, vv: Matrix, ring: np.ndarray) -> 
     return plane, bool(structured)
 
 
+@dataclass
+class _HoleEdge:
+    """A straight edge across the hole: its line (normal . p = offset, refitted on the
+    strips), the strip it is sampled along (start .. stop), where along the line it shows
+    (t_lo .. t_hi) and the line the gradients gave first."""
+
+    normal: Matrix
+    offset: float
+    start: Matrix
+    stop: Matrix
+    t_lo: float
+    t_hi: float
+    rough_normal: Matrix
+    rough_offset: float
+
+    @property
+    def strip(self) -> Segment:
+        return (self.normal, self.offset, self.start, self.stop)
+
+
 def _edge_background(
     img: np.ndarray, win: Matrix, uu: Matrix, vv: Matrix, centre: Matrix, radius: Matrix, r_hole: float, r_ring: float
 ) -> tuple[Matrix, np.ndarray] | None:
@@ -257,7 +277,7 @@ def _edge_background(
     usable = inner & (radius >= r_hole + 1.5) & (radius <= r_ring)
     # No straight edge at all (only the mark's curved rim nearby) leaves one cell.
     rough = _find_lines(uu[usable], vv[usable], gu[usable], gv[usable], centre, r_hole + 1.0)
-    segments = []  # [normal, offset, start, stop, t_lo, t_hi, rough normal, rough offset]
+    segments: list[_HoleEdge] = []
     far: list[tuple[Matrix, float]] = []
     for normal, offset, t_lo, t_hi in rough:
         if abs(float(normal @ centre) - offset) > r_hole + 1.0:
@@ -276,24 +296,25 @@ def _edge_background(
         foot = offset * normal
         start = foot + (t_lo - _EXTEND_PX) * direction
         stop = foot + (t_hi + _EXTEND_PX) * direction
-        segments.append([normal, offset, start, stop, t_lo, t_hi, normal, offset])
+        segments.append(_HoleEdge(normal, offset, start, stop, t_lo, t_hi, normal, offset))
     # Narrow strips (they stay clear of the mark and of a narrow side face), twice: the
     # second pass centred on the first fit.
     for half_width in (1.5, 1.0):
-        found = edge_points_many(img, [tuple(seg[:4]) for seg in segments], half_width, 1, [(centre, r_hole + 0.5)])
-        for seg, fit in zip(segments, fit_lines(found, [seg[0] for seg in segments], min_points=3), strict=True):
+        found = edge_points_many(img, [seg.strip for seg in segments], half_width, 1, [(centre, r_hole + 0.5)])
+        for seg, fit in zip(segments, fit_lines(found, [seg.normal for seg in segments], min_points=3), strict=True):
             if fit is not None:
-                seg[0], seg[1] = fit[0], fit[1]
+                seg.normal, seg.offset = fit[0], fit[1]
     lines, extents = [], []
-    for normal, offset, _, _, t_lo, t_hi, rough_normal, rough_offset in segments:
-        moved = abs(float(normal @ centre) - offset - (float(rough_normal @ centre) - rough_offset))
-        if moved > _STEADY_PX or float(normal @ rough_normal) < math.cos(math.radians(10.0)):
+    for seg in segments:
+        normal, offset = seg.normal, seg.offset
+        moved = abs(float(normal @ centre) - offset - (float(seg.rough_normal @ centre) - seg.rough_offset))
+        if moved > _STEADY_PX or float(normal @ seg.rough_normal) < math.cos(math.radians(10.0)):
             # The strips strayed (a narrow wedge of side face at the junction): keep the
             # line the gradients gave.
-            normal, offset = rough_normal, rough_offset
+            normal, offset = seg.rough_normal, seg.rough_offset
         if abs(float(normal @ centre) - offset) <= r_hole + 1.0:
             lines.append((normal, offset))
-            extents.append((t_lo, t_hi))
+            extents.append((seg.t_lo, seg.t_hi))
         else:
             far.append((normal, offset))
     # No edge under the spot (an edge across the ring only): one cell, on the spot's side.
@@ -433,8 +454,12 @@ def _fit_spot(
     res = np.zeros(values.size)
     for _ in range(2):
         kept = (values[keep], background[keep], u[keep], v[keep], clipped[keep])
+
+        def model(p: Matrix) -> tuple[Matrix, Matrix]:
+            return _residuals(p, *kept)  # called within this pass only: kept is this pass's
+
         params, res = levenberg_marquardt(
-            lambda p, kept=kept: _residuals(p, *kept),
+            model,
             params,
             lower,
             upper,

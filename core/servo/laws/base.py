@@ -18,6 +18,7 @@ from typing import Protocol
 
 import numpy as np
 
+from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 
@@ -84,12 +85,13 @@ class ControlOutput:
 class ControlLaw(Protocol):
     """A visual servo control law: one frame's features to a camera twist, e = s - s*."""
 
-    name: str
+    @property
+    def name(self) -> str: ...
 
     def step(self, features: ImageFeatures, desired: DesiredImage, stage: Stage | None) -> ControlOutput: ...
 
 
-class SingularJacobian(ValueError):
+class SingularJacobian(VservoError, ValueError):
     """A Jacobian too close to singular to invert."""
 
 
