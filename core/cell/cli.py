@@ -52,7 +52,7 @@ def cell_info(config: CellConfig) -> dict[str, Any]:
         },
         "link": {
             "backend": config.robot_backend,
-            **vars(config.jrc),
+            **config.jrc.in_use(),
         },
         "safety": {
             "workspace_min_mm": _round(config.safety.workspace_min_m * 1000.0, 3),

@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import tomllib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 from importlib import resources
 from pathlib import Path
@@ -187,19 +187,32 @@ class MotionConfig:
     move_speed_m_s: float  # taught moves (start, pick, place, check); approach and press at half
 
 
+class HostTransport(StrEnum):
+    """What carries the host commands to the controller (docs/robot-link.md)."""
+
+    SERIAL = "serial"  # BSC blocks over RS-232: the JRC, and every controller of its family
+    ETHERNET = "ethernet"  # the Ethernet server function of DX100 and later controllers, over TCP
+
+
 @dataclass(frozen=True)
 class JrcLineConfig:
-    """The RS-232 host link to a JRC (docs/robot-link.md, parameters RS030..RS038).
+    """The host link to a JRC-family controller: RS-232 (docs/robot-link.md, parameters
+    RS030..RS038) or, on DX100 and later controllers, the Ethernet server over TCP.
 
     The defaults are the JRC's factory values; check them on the pendant before
     first use. timer_a_s: how long a sender waits for the answer to a control character
-    or a block (RS034); timer_b_s: how long a receiver waits for a text to end, and the
-    host for a command's reply (RS035); retry_1: repeats of a control character left
+    or a block (RS034); over Ethernet, for the connection and each "OK:" of the server.
+    timer_b_s: how long a receiver waits for a text to end, and the host for a command's
+    reply (RS035); retry_1: repeats of a control character left
     unanswered (RS036); retry_2: repeats of a text the receiver refused with NAK (RS037).
     jwait_slice_s: a wait for the end of a motion is split into JWAITs this long, so a
     hold from the host (e-stop, watchdog) reaches the JRC within one slice.
     time_scale: an emulated JRC runs this many times faster than real time (the virtual
     cell writes it); 1, a real JRC. The host's cell clock undoes it.
+
+    Over Ethernet (``transport``) the controller is ``host``:``tcp_port``, and as its
+    server offers no JWAIT the end of a motion is found by reading its status (RSTATS)
+    every ``status_poll_s`` of controller time; the serial line's keys do not apply.
     """
 
     port: str
@@ -214,6 +227,24 @@ class JrcLineConfig:
     retry_2: int
     jwait_slice_s: float
     time_scale: float = 1.0
+    transport: HostTransport = HostTransport.SERIAL
+    host: str = ""
+    tcp_port: int = 80
+    status_poll_s: float = 0.05
+
+    @property
+    def address(self) -> str:
+        """Where the controller is: the serial device, or host:port."""
+        return f"{self.host}:{self.tcp_port}" if self.transport is HostTransport.ETHERNET else self.port
+
+    def in_use(self) -> dict[str, Any]:
+        """The settings its transport reads (an Ethernet line's serial fields are defaults nothing reads)."""
+        foreign = _SERIAL_FIELDS if self.transport is HostTransport.ETHERNET else _ETHERNET_FIELDS
+        return {name: value for name, value in vars(self).items() if name not in foreign}
+
+    def on_ethernet(self, host: str, tcp_port: int) -> JrcLineConfig:
+        """This line's timers and time scale, to the Ethernet server at host:tcp_port."""
+        return replace(self, transport=HostTransport.ETHERNET, host=host, tcp_port=tcp_port, port="")
 
     @property
     def bits_per_character(self) -> int:
@@ -706,27 +737,83 @@ def _integer_in(t: _Table, key: str, default: int, options: Sequence[int]) -> in
     return value
 
 
+# The fields of JrcLineConfig only one transport reads.
+_SERIAL_FIELDS = ("port", "baud", "parity", "data_bits", "stop_bits", "rtscts", "retry_1", "retry_2", "jwait_slice_s")
+_ETHERNET_FIELDS = ("host", "tcp_port", "status_poll_s")
+# The [jrc] keys only one transport has; the other refuses them by name.
+SERIAL_ONLY_KEYS = ("baud", "parity", "data_bits", "stop_bits", "rtscts", "retry_1", "retry_2", "jwait_slice_s")
+ETHERNET_ONLY_KEYS = ("host", "status_poll_s")
+TCP_PORTS = (1, 65535)
+
+
 def _jrc(t: _Table) -> JrcLineConfig:
+    transport = HostTransport(t.choice("transport", tuple(HostTransport), HostTransport.SERIAL))
+    foreign = ETHERNET_ONLY_KEYS if transport is HostTransport.SERIAL else SERIAL_ONLY_KEYS
+    for key in foreign:
+        if key in t._data:
+            raise t.fail(key, t._data[key], f'has no meaning with transport = "{transport}": remove it')
+    line = _ethernet_line(t) if transport is HostTransport.ETHERNET else _serial_line(t)
+    t.finish()
+    return line
+
+
+def _line_timers(t: _Table) -> tuple[float, float, float]:
+    """timer_a_s, timer_b_s and time_scale, which both transports have."""
+    return (
+        t.number("timer_a_s", 3.0, check=_positive, why="must be positive"),
+        t.number("timer_b_s", 20.0, check=_positive, why="must be positive"),
+        t.number("time_scale", 1.0, check=lambda v: 1.0 <= v <= 1000.0, why="must be 1 (a real JRC) to 1000"),
+    )
+
+
+def _serial_line(t: _Table) -> JrcLineConfig:
     retries = {}
     for key, default in (("retry_1", 10), ("retry_2", 3)):
         retries[key] = t.integer(key, default)
         if retries[key] < 0:
             raise t.fail(key, retries[key], "must be >= 0")
-    line = JrcLineConfig(
+    timer_a_s, timer_b_s, time_scale = _line_timers(t)
+    return JrcLineConfig(
         port=t.text("port", "/dev/ttyS0"),
         baud=_integer_in(t, "baud", 9600, BAUD_RATES),
         parity=t.choice("parity", ("even", "odd", "none"), "even"),
         data_bits=_integer_in(t, "data_bits", 8, (7, 8)),
         stop_bits=_integer_in(t, "stop_bits", 1, (1, 2)),
         rtscts=t.flag("rtscts", True),
-        timer_a_s=t.number("timer_a_s", 3.0, check=_positive, why="must be positive"),
-        timer_b_s=t.number("timer_b_s", 20.0, check=_positive, why="must be positive"),
+        timer_a_s=timer_a_s,
+        timer_b_s=timer_b_s,
+        retry_1=retries["retry_1"],
+        retry_2=retries["retry_2"],
         jwait_slice_s=t.number("jwait_slice_s", 0.5, check=_positive, why="must be positive"),
-        time_scale=t.number("time_scale", 1.0, check=lambda v: 1.0 <= v <= 1000.0, why="must be 1 (a real JRC) to 1000"),
-        **retries,
+        time_scale=time_scale,
     )
-    t.finish()
-    return line
+
+
+def _ethernet_line(t: _Table) -> JrcLineConfig:
+    """[jrc] with transport = "ethernet": the controller's address; the serial fields keep
+    their defaults, which nothing reads."""
+    tcp_port = t.integer("port", 80)
+    if not TCP_PORTS[0] <= tcp_port <= TCP_PORTS[1]:
+        raise t.fail("port", tcp_port, f"a TCP port, {TCP_PORTS[0]} to {TCP_PORTS[1]} (the Ethernet server listens on 80)")
+    timer_a_s, timer_b_s, time_scale = _line_timers(t)
+    return JrcLineConfig(
+        port="",
+        baud=9600,
+        parity="even",
+        data_bits=8,
+        stop_bits=1,
+        rtscts=True,
+        timer_a_s=timer_a_s,
+        timer_b_s=timer_b_s,
+        retry_1=0,
+        retry_2=0,
+        jwait_slice_s=0.5,
+        time_scale=time_scale,
+        transport=HostTransport.ETHERNET,
+        host=t.text("host"),
+        tcp_port=tcp_port,
+        status_poll_s=t.number("status_poll_s", 0.05, check=_positive, why="must be positive"),
+    )
 
 
 def _safety(t: _Table) -> SafetyConfig:

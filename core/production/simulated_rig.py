@@ -44,7 +44,8 @@ def simulated_rig(
 ) -> Rig:
     """The simulated cell's devices; ``backend`` (default: the cell file's [robot]
     backend) "sim" drives the simulator directly, "jrc" through the JRC link and an
-    emulated JRC on a pseudo-terminal."""
+    emulated JRC on a pseudo-terminal (or, for [jrc] transport = "ethernet", as an
+    Ethernet server on a loopback TCP port)."""
     backend = backend or config.robot_backend
     if backend not in ROBOT_BACKENDS:
         raise ValueError(f"robot backend {backend!r}: choose one of {', '.join(ROBOT_BACKENDS)}")
@@ -67,7 +68,7 @@ def simulated_rig(
         if not isinstance(policy, PositionStepPolicy):
             raise ValueError(f'{config.source}: the JRC takes position steps; set [motion] mode = "position_steps"')
         emulator = JrcEmulator(cell, config.jrc, time_scale=jrc_time_scale, vacuum=vacuum)
-        jrc = JrcBackend(replace(config.jrc, time_scale=jrc_time_scale), emulator.start_on_pty())
+        jrc = JrcBackend(emulator.start_for(replace(config.jrc, time_scale=jrc_time_scale)))
         robot = SafetyLayer.from_config(jrc, config)
         if vacuum.device == "jrc_io":
             gripper = JrcVacuum(jrc, *vacuum.jrc_io())

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 from vservo.core.cell.config import JrcLineConfig
-from vservo.core.robot.backend import RobotError
+from vservo.core.robot.host_link import LinkError
 
 log = logging.getLogger("vservo.bsc")
 
@@ -43,10 +43,6 @@ ACK0 = bytes((DLE, 0x30))
 ACK1 = bytes((DLE, 0x31))
 MAX_TEXT_BYTES = 256
 MAX_HEADER_BYTES = 16
-
-
-class LinkError(RobotError):
-    """The serial link failed after its retries; the message names the phase and the cause."""
 
 
 @dataclass(frozen=True)

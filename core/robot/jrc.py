@@ -1,10 +1,13 @@
-"""The JRC over RS-232: a RobotBackend speaking the Yaskawa host commands.
+"""The JRC and its family: a RobotBackend speaking the Yaskawa host commands.
 
-Each method is one or two host commands (docs/robot-link.md): a ``01,000`` message sent
-over the BSC link (core/robot/bsc.py) and the JRC's reply, ``90,000`` with a
-status code or ``90,001`` with data. The commands used: RPOSC (pose), RSTATS (status),
-RALARM (alarm text), RESET and CANCEL, SVON, HOLD, MOVL (linear move to a Cartesian
-target), IMOV (incremental linear move), JWAIT (wait for the end of the motion),
+Each method is one or two host commands (docs/robot-link.md), carried by a HostLink
+(core/robot/host_link.py): BSC blocks over RS-232 (core/robot/serial_link.py), as the
+JRC takes them, or TCP to the Ethernet server of a DX100 or later controller
+(core/robot/ethernet_link.py), as the cell file's ``[jrc] transport`` says. The answer
+is a status code or data, whatever the link. The commands used: RPOSC (pose), RSTATS
+(status), RALARM (alarm text), RESET and CANCEL, SVON, HOLD, MOVL (linear move to a
+Cartesian target), IMOV (incremental linear move), JWAIT (wait for the end of the
+motion; over Ethernet, which does not offer it, RSTATS read until the motion has ended),
 IOREAD and IOWRITE (the I/O signals a vacuum cup is wired to; their forms are inferred).
 
 Units and angles at the wire: X, Y, Z in mm, Rx, Ry, Rz in degrees, base coordinates.
@@ -14,39 +17,31 @@ R = Rz(Rz) Ry(Ry) Rx(Rx): eq. 2-13 with phi = Rz, theta = Ry, psi = Rx
 are the conventions of the Yaskawa manuals of the family and need one check on the real
 controller (jog about one axis, compare the pendant's readout with ``read_pose``).
 
-A command that fails after the link's retries ends the exchange with EOT (the ACK parity
-starts again with the next one), holds the robot with HOLD 1 if the link still carries
-it, and raises LinkError naming the command, the cause and whether the hold got
-through. An error code in a reply raises JrcCommandError (RobotNotReady for holds,
-alarms and servo off) with the code's meaning.
+A command whose link fails (after the BSC link's retries, or a TCP connection that
+closed or stayed silent) holds the robot with HOLD 1 if the link still carries it, and
+raises LinkError naming the command, the cause and whether the hold got through. An
+error code in an answer raises JrcCommandError (RobotNotReady for holds, alarms and
+servo off) with the code's meaning.
 """
 
 from __future__ import annotations
 
-import logging
-import os
-import termios
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
-import serial
 
-from vservo.core.cell.config import JrcLineConfig
+from vservo.core.cell.config import HostTransport, JrcLineConfig
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, Pose6, matrix_from_pose, pose_from_matrix, pose_from_mm_deg, pose_to_mm_deg
-from vservo.core.robot.backend import RobotError, RobotNotReady, RobotStatus
-from vservo.core.robot.bsc import BscStation, ByteChannel, LinkError, Message
+from vservo.core.robot.backend import RobotError, RobotNotReady, RobotStatus, apply_increment
+from vservo.core.robot.bsc import BscStation
+from vservo.core.robot.ethernet_link import EthernetLink
+from vservo.core.robot.host_link import Answer, Exchange, HostLink, LinkError, LinkLost, ReplyKind
+from vservo.core.robot.serial_link import SerialLink
 
-log = logging.getLogger("vservo.jrc")
-
-HOST_COMMAND = "01,000"
-STATUS_REPLY = "90,000"
-DATA_REPLY = "90,001"
-
-# Status codes of a 90,000 reply, after the host-control manuals of the ERC/MRC/XRC family.
+# Status codes of a status answer, after the host-control manuals of the ERC/MRC/XRC family.
 ERROR_MESSAGES = {
     1010: "command error: the JRC does not know this command",
     1011: "too many operands",
@@ -88,6 +83,7 @@ ROBOT_OPERATING = 2010
 D1_RUNNING = 1 << 3
 D2_PENDANT_HOLD, D2_EXTERNAL_HOLD, D2_COMMAND_HOLD = 1 << 1, 1 << 2, 1 << 3
 D2_HOLDS = {D2_PENDANT_HOLD: "pendant hold", D2_EXTERNAL_HOLD: "external hold", D2_COMMAND_HOLD: "command hold"}
+D2_ANY_HOLD = D2_PENDANT_HOLD | D2_EXTERNAL_HOLD | D2_COMMAND_HOLD
 D2_ALARM, D2_ERROR, D2_SERVO_ON = 1 << 4, 1 << 5, 1 << 6
 
 
@@ -150,57 +146,34 @@ READBACK_TOLERANCE_MM = 0.0015
 READBACK_TOLERANCE_DEG = 0.0055
 
 
-def reads_as(reading: list[float], sent: list[float]) -> bool:
-    """Whether an RPOSC reading is the wire pose ``sent``, to the reading's resolution."""
+# Where no JWAIT says whether a motion ended done or stopped (over Ethernet), the arm
+# must stand at its target to count as done: within twice a reading's resolution, as an
+# IMOV's target, worked out from a reading, may lie that far from where the JRC aimed.
+ARRIVED_MM = 0.002
+ARRIVED_DEG = 0.011
+
+
+def reads_as(
+    reading: list[float],
+    sent: list[float],
+    tolerance_mm: float = READBACK_TOLERANCE_MM,
+    tolerance_deg: float = READBACK_TOLERANCE_DEG,
+) -> bool:
+    """Whether an RPOSC reading is the wire pose ``sent``, to the reading's resolution
+    (or to the tolerances given)."""
     mm = np.abs(np.subtract(reading[:3], sent[:3]))
     deg = np.abs((np.subtract(reading[3:], sent[3:]) + 180.0) % 360.0 - 180.0)
-    return bool(np.all(mm <= READBACK_TOLERANCE_MM) and np.all(deg <= READBACK_TOLERANCE_DEG))
+    return bool(np.all(mm <= tolerance_mm) and np.all(deg <= tolerance_deg))
 
 
-def open_serial(line: JrcLineConfig, port: str) -> serial.SerialBase:
-    """Open a serial port (a device or a pyserial URL) with the line settings, exclusively:
-    a second program's bytes on the line would wreck the first one's exchanges, so a port
-    another process holds is refused, naming that process."""
-    try:
-        return serial.serial_for_url(
-            port,
-            baudrate=line.baud,
-            bytesize={7: serial.SEVENBITS, 8: serial.EIGHTBITS}[line.data_bits],
-            parity={"even": serial.PARITY_EVEN, "odd": serial.PARITY_ODD, "none": serial.PARITY_NONE}[line.parity],
-            stopbits={1: serial.STOPBITS_ONE, 2: serial.STOPBITS_TWO}[line.stop_bits],
-            rtscts=line.rtscts,
-            timeout=0.005,  # a short poll: the link keeps its own deadlines
-            exclusive=True,
-        )
-    except serial.SerialException as exc:
-        if "exclusively lock" in str(exc):
-            raise RobotError(
-                f"the serial port {port} is in use by {_holders(port)}: stop it first (one program drives a robot)"
-            ) from None
-        raise RobotError(f"cannot open the serial port {port}: {exc}") from exc
-    except (ValueError, OSError, termios.error) as exc:
-        raise RobotError(f"cannot open the serial port {port}: {exc}") from exc
-
-
-def _holders(port: str) -> str:
-    """Who holds ``port``'s exclusive lock, as 'process PID (command)', from the kernel's
-    table of file locks (Linux); 'another process' where it cannot be seen."""
-    try:
-        device = os.stat(port)
-        locks = Path("/proc/locks").read_text().splitlines()
-    except OSError:
-        return "another process"
-    wanted = f"{os.major(device.st_dev):02x}:{os.minor(device.st_dev):02x}:{device.st_ino}"
-    found = []
-    for line in locks:  # "1: FLOCK  ADVISORY  WRITE 4242 00:1a:5 0 EOF"
-        fields = line.split()
-        if len(fields) > 5 and fields[1] == "FLOCK" and fields[5] == wanted:
-            try:
-                command = Path(f"/proc/{fields[4]}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-            except OSError:
-                command = "?"
-            found.append(f"process {fields[4]} ({command.strip()[:80]})")
-    return ", ".join(found) or "another process"
+def host_link(line: JrcLineConfig, port: str | None = None) -> HostLink:
+    """The link [jrc] names: its serial port (``port`` in its place, an emulator's
+    pseudo-terminal, say), or its Ethernet server."""
+    if line.transport is HostTransport.ETHERNET:
+        if port is not None:
+            raise ValueError(f"a serial port ({port}) given for a JRC on Ethernet at {line.address}")
+        return EthernetLink(line)
+    return SerialLink(line, port or line.port)
 
 
 @dataclass(frozen=True)
@@ -211,51 +184,47 @@ class Reply:
 
 
 class JrcBackend:
-    """A JRC on a serial port, with the line settings of the cell file's [jrc].
+    """A JRC-family controller on the link of the cell file's [jrc].
 
-    ``port`` overrides the configured one (an emulator's pseudo-terminal, say). Every
-    method is safe to call from several threads (the loop, an e-stop, the watchdog):
-    commands go out one at a time.
+    ``port`` overrides the configured serial port (an emulator's pseudo-terminal, say);
+    ``link`` replaces the link altogether. Every method is safe to call from several
+    threads (the loop, an e-stop, the watchdog): commands go out one at a time.
 
     The cell clock (``cell_clock_s``) undoes an emulated JRC's speed-up (the line's
     ``time_scale``, 1 on a real JRC): the wall clock, with every motion of the arm (from
     the JRC taking the move to its answer that the move ended) and every dwell counted
     ``time_scale`` times, and every
-    exchange at least as long as its bytes take at the line's baud rate (a
+    exchange at least as long as its bytes take on the link (at the line's baud rate: a
     pseudo-terminal carries them faster).
     """
 
     name = "jrc"
 
-    def __init__(self, line: JrcLineConfig, port: str | None = None) -> None:
+    def __init__(self, line: JrcLineConfig, port: str | None = None, link: HostLink | None = None) -> None:
         self.line = line
-        self.port = port or line.port
+        self.link = link if link is not None else host_link(line, port)
+        self.port = self.link.where
         self._cell_ahead_s = 0.0  # how far the cell clock runs ahead of the wall clock
         self._motion_from_s: float | None = None  # a motion's span not yet counted starts here (_count_cell_time)
-        self._serial: serial.SerialBase | None = None
-        self._station: BscStation | None = None
         self._lock = threading.RLock()
-        self._holds_waiting = 0  # holds from other threads (e-stop, watchdog) go before the next JWAIT
+        self._holds_waiting = 0  # holds from other threads (e-stop, watchdog) go before the next motion wait
         self._posture = 0  # the RPOSC "type": the arm configuration, sent back with MOVL
         self._sent: list[float] | None = None  # the wire pose of the last MOVL
+        self._aim: list[float] | None = None  # the wire pose the last move aims at, when a motion wait checks it
         self.last_command = ""  # the text of the last command sent, for diagnostics
-        self._lost: str | None = None  # why the port was given up, until it is opened again
 
     # -- the link --------------------------------------------------------------------
 
     def open(self) -> None:
-        """Open the port, without a word to the JRC yet; a lost one is opened anew (the
-        device may be back, under the same name, as another one)."""
+        """Open the link, without a command to the JRC yet; a lost one is opened anew
+        (the device may be back, under the same name, as another one)."""
         with self._lock:
-            if self._serial is None:
-                self._serial = open_serial(self.line, self.port)
-                self._station = BscStation(ByteChannel(self._serial), self.line, yields=True)
-                self._lost = None
+            self.link.open()
 
     def connect(self) -> None:
-        """Open the port and ask the JRC for its status: fails clearly if nothing answers."""
-        self.open()
+        """Open the link and ask the JRC for its status: fails clearly if nothing answers."""
         try:
+            self.open()
             self.status()
         except RobotError:
             self.close()
@@ -263,91 +232,58 @@ class JrcBackend:
 
     def close(self) -> None:
         with self._lock:
-            if self._serial is not None:
-                self._serial.close()
-            self._serial = self._station = None
-
-    def _drop_lost_port(self, exc: Exception) -> str:
-        """Close a port whose device is gone: its file descriptor never works again, and
-        connect() opens the device anew. What to tell the caller."""
-        self._lost = f"the serial port {self.port} is lost ({exc})"
-        if self._serial is not None:
-            try:
-                self._serial.close()
-            except (OSError, serial.SerialException):
-                pass  # closing a dead descriptor may fail too; it is dropped either way
-        self._serial = self._station = None
-        log.error("%s; the link is closed until it is connected again", self._lost)
-        return self._lost
+            self.link.close()
 
     @property
     def station(self) -> BscStation:
-        """The data link, for its counters (and for benchmarks)."""
-        if self._station is None:
-            if self._lost is not None:
-                raise LinkError(f"{self._lost}: reset (connect) to open it again")
-            raise RobotError(f"the JRC on {self.port} is not connected: call connect() first")
-        return self._station
+        """The serial link's BSC data link, for its counters (and for benchmarks)."""
+        if not isinstance(self.link, SerialLink):
+            raise RobotError(f"the JRC at {self.port} is reached over Ethernet: its link has no BSC station")
+        return self.link.station
 
     def command(self, text: str, reply_wait_s: float | None = None) -> Reply:
         """Send one host command (text without CR) and return its reply.
 
         Raises JrcCommandError for an error code; LinkError, after holding the robot, when
-        the link fails after its retries.
+        the link fails; CommandNotOffered for a command the link's server does not take.
         """
         name = text.split(" ", 1)[0]
         with self._lock:
-            station = self.station
             self.last_command = text
-            started_s, bytes_before = time.monotonic(), station.channel.bytes_in + station.channel.bytes_out
+            started_s = time.monotonic()
             try:
-                station.channel.discard_input()
-                station.send(Message(HOST_COMMAND, text + "\r"))
-                reply = station.receive(reply_wait_s or self.line.timer_b_s, f"the reply to {name}")
-                self._count_cell_time(
-                    name,
-                    reply,
-                    time.monotonic() - started_s,
-                    station.bid_at_s,
-                    station.channel.bytes_in + station.channel.bytes_out - bytes_before,
-                )
-            except LinkError as exc:  # the station has ended the exchange with EOT
-                raise LinkError(f"{name} failed: {exc}; {self._hold_after_failure(name)}") from exc
-            except (OSError, serial.SerialException) as exc:  # the port itself is gone (unplugged, closed)
+                exchange = self.link.exchange(text, reply_wait_s or self.line.timer_b_s)
+            except LinkLost as exc:  # the device itself is gone (unplugged, closed)
                 unheld = "" if name == "HOLD" else "no hold could be sent: "  # a failed HOLD says so itself
-                raise LinkError(f"{name} failed: {self._drop_lost_port(exc)}; {unheld}the robot may still be moving") from exc
-        return self._parse(name, reply)
+                raise LinkError(f"{name} failed: {exc}; {unheld}the robot may still be moving") from exc
+            except LinkError as exc:  # the link has ended the exchange
+                raise LinkError(f"{name} failed: {exc}; {self._hold_after_failure(name)}") from exc
+            self._count_cell_time(name, exchange, time.monotonic() - started_s)
+        return self._parse(name, exchange.answer)
 
     def _hold_after_failure(self, failed: str) -> str:
         """Hold the robot after a failed command, if the link carries HOLD 1 at all."""
         if failed == "HOLD":
             return "the hold itself failed: the robot may still be moving"
         try:
-            self._parse("HOLD", self._exchange("HOLD 1"))
+            self._parse("HOLD", self.link.exchange("HOLD 1", self.line.timer_b_s).answer)
+        except LinkLost as exc:  # the device went while the link was failing
+            return f"HOLD 1 could not be sent ({exc}): the robot may still be moving"
         except RobotError as exc:
             return f"HOLD 1 failed too ({exc}): the robot may still be moving"
-        except (OSError, serial.SerialException) as exc:  # the port went while the link was failing
-            return f"HOLD 1 could not be sent ({self._drop_lost_port(exc)}): the robot may still be moving"
         return "the robot is held (release with HOLD 0)"
 
-    def _exchange(self, text: str) -> Message:
-        self.station.send(Message(HOST_COMMAND, text + "\r"))
-        return self.station.receive(self.line.timer_b_s, f"the reply to {text}")
-
-    def _parse(self, name: str, reply: Message) -> Reply:
-        text = reply.text.rstrip("\r")
-        if reply.header == STATUS_REPLY:
-            try:
-                code = int(text)
-            except ValueError:
-                raise RobotError(f"{name}: the JRC's status reply {text!r} is not a code") from None
-            if code == 0:
-                return Reply(())
-            error = JrcNotReady if code in NOT_READY_CODES else JrcOutOfRange if code == OUT_OF_RANGE else JrcCommandError
-            raise error(name, code)
-        if reply.header == DATA_REPLY:
-            return Reply(tuple(v.strip() for v in text.split(",")))
-        raise RobotError(f"{name}: unexpected reply header {reply.header!r} (text {text!r})")
+    def _parse(self, name: str, answer: Answer) -> Reply:
+        if answer.kind is ReplyKind.DATA:
+            return Reply(tuple(v.strip() for v in answer.text.split(",")))
+        try:
+            code = int(answer.text)
+        except ValueError:
+            raise RobotError(f"{name}: the JRC's status reply {answer.text!r} is not a code") from None
+        if code == 0:
+            return Reply(())
+        error = JrcNotReady if code in NOT_READY_CODES else JrcOutOfRange if code == OUT_OF_RANGE else JrcCommandError
+        raise error(name, code)
 
     # -- RobotBackend ----------------------------------------------------------------
 
@@ -371,14 +307,7 @@ class JrcBackend:
         return "; ".join(pairs) or "no alarm code"
 
     def read_pose(self) -> Matrix:
-        values = self.command("RPOSC 0,0").values
-        try:
-            numbers = [float(v) for v in values[:8]]
-        except ValueError:
-            raise RobotError(f"RPOSC: the JRC's reply {values!r} is not a pose") from None
-        if len(numbers) < 8:
-            raise RobotError(f"RPOSC: the JRC's reply {values!r} has fewer than 8 values")
-        self._posture = int(numbers[6])
+        numbers = self._reading()
         # A servo step of a fiftieth (section 5.3) turns by less than the reading's 0.01 deg:
         # aimed from the reading, the next step would aim at the same target again, and the
         # arm would stand still. Where the reading is the target last sent, that target is
@@ -404,11 +333,17 @@ class JrcBackend:
 
     def move_to(self, bMe_target: Matrix, speed_m_s: float) -> None:
         pose = format_pose(wire_pose(bMe_target))
+        self._aim = None
         self.command(f"MOVL 0,{self._speed(speed_m_s)},0,{pose},{self._posture},0,0,0,0,0,0,0")
         self._sent = [float(v) for v in pose.split(",")]
+        self._aim = self._sent
 
     def move_by(self, bMe_increment: Matrix, speed_m_s: float) -> None:
+        self._aim = None
+        # Without JWAIT the end of the move is checked against its target: worked out here.
+        aim = None if self.link.offers("JWAIT") else wire_pose(apply_increment(self.read_pose(), bMe_increment))
         self.command(f"IMOV 0,{self._speed(speed_m_s)},0,{format_pose(wire_pose(bMe_increment))},{self._posture},0,0,0,0,0,0,0")
+        self._aim = aim
 
     def move_timed(self, bMe_target: Matrix, duration_s: float) -> None:
         raise RobotError(
@@ -417,28 +352,52 @@ class JrcBackend:
         )
 
     def wait_motion(self, timeout_s: float | None = None) -> bool:
-        """JWAITs of jwait_slice_s until the motion ends; between two, a hold can get through.
-
-        JWAIT answers 0 when the motion is done, -1 when it was stopped (hold, alarm,
-        servo off), and 2010 (robot operating) when its time ran out with the robot still
-        moving (the last is inferred: check it on the real JRC). A motion still
-        running after timeout_s is held and reported.
-        """
+        """Wait until the motion ends: True when it reached its target, False when it
+        was stopped (hold, alarm, servo off). A motion still running after timeout_s is
+        held and reported. Between two of the commands that wait, a hold from another
+        thread gets through."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        slice_s = self.line.jwait_slice_s
+        wait = self._jwait if self.link.offers("JWAIT") else self._poll_status
         while True:
             while self._holds_waiting:  # a lock is not fair: let a hold from another thread through first
                 time.sleep(0.001)
-            try:
-                (done,) = self._integers(f"JWAIT {slice_s:g}", 1, reply_wait_s=self.line.timer_b_s + slice_s)
-            except JrcCommandError as exc:
-                if exc.code != ROBOT_OPERATING:
-                    raise
-                if deadline is not None and time.monotonic() > deadline:
-                    self.hold(True)
-                    raise RobotError(f"the motion has not ended after {timeout_s:g} s: the robot is held") from None
-                continue
-            return done == 0
+            ended = wait()
+            if ended is not None:
+                return ended
+            if deadline is not None and time.monotonic() > deadline:
+                self.hold(True)
+                raise RobotError(f"the motion has not ended after {timeout_s:g} s: the robot is held")
+
+    def _jwait(self) -> bool | None:
+        """One JWAIT of jwait_slice_s: whether the motion ended done, None while it runs.
+
+        JWAIT answers 0 when the motion is done, -1 when it was stopped (hold, alarm,
+        servo off), and 2010 (robot operating) when its time ran out with the robot still
+        moving (the last is inferred: check it on the real JRC).
+        """
+        slice_s = self.line.jwait_slice_s
+        try:
+            (done,) = self._integers(f"JWAIT {slice_s:g}", 1, reply_wait_s=self.line.timer_b_s + slice_s)
+        except JrcCommandError as exc:
+            if exc.code != ROBOT_OPERATING:
+                raise
+            return None
+        return done == 0
+
+    def _poll_status(self) -> bool | None:
+        """One RSTATS, after status_poll_s of controller time while the motion runs: whether
+        it ended done, None while it runs. Where no JWAIT is offered (the Ethernet server)
+        nothing says whether the motion ended at its target or was stopped short (hold,
+        alarm, servo off; a hold may even come and go between two reads): it was done
+        when the arm stands at the target of the last move, one RPOSC more; without a
+        move to compare with, when the robot stands ready for the next."""
+        d1, d2 = self._integers("RSTATS", 2)
+        if d1 & D1_RUNNING:
+            time.sleep(self.line.status_poll_s / self.line.time_scale)
+            return None
+        if self._aim is not None:
+            return reads_as(self._reading()[:6], self._aim, ARRIVED_MM, ARRIVED_DEG)
+        return bool(d2 & D2_SERVO_ON) and not d2 & (D2_ALARM | D2_ERROR | D2_ANY_HOLD)
 
     # -- I/O (docs/robot-link.md, "I/O"; the command forms are inferred) -------------------
 
@@ -479,28 +438,42 @@ class JrcBackend:
             time.sleep(seconds)
             self._cell_ahead_s += (self.line.time_scale - 1.0) * seconds
 
-    def _count_cell_time(self, name: str, reply: Message, wall_s: float, bid_at_s: float, n_bytes: int) -> None:
+    def _count_cell_time(self, name: str, exchange: Exchange, wall_s: float) -> None:
         """What one exchange cost the cell beyond its wall time (class docstring).
 
         The arm's motion, which an emulator runs time_scale times faster, lasts from the
-        JRC's bid to answer the MOVL or IMOV it has just set going to its bid to answer the
-        JWAIT that finds the motion ended (``bid_at_s``, as the host sees them): that span
-        counts time_scale times, the link's exchanges outside it once. Scaling each JWAIT's
-        whole exchange instead would count its handshakes, and a loaded host's delays in
-        them, time_scale times.
+        JRC's answer to the MOVL or IMOV it has just set going to its answer that finds
+        the motion ended (a JWAIT's, or an RSTATS's: ``exchange.answered_at_s``, as the
+        host sees them): that span counts time_scale times, the link's exchanges outside
+        it once. Scaling each waiting exchange whole instead would count its handshakes,
+        and a loaded host's delays in them, time_scale times.
         """
+        answer = exchange.answer
         sped_up_s = 0.0  # the part of this exchange's wall time the emulator ran time_scale times faster
-        if name in ("MOVL", "IMOV") and reply.header == STATUS_REPLY and reply.text.strip().isdigit() and int(reply.text) == 0:
-            self._motion_from_s = bid_at_s
-        elif name == "JWAIT" and self._motion_from_s is not None:
-            sped_up_s = max(bid_at_s - self._motion_from_s, 0.0)
-            # A data reply: the motion ended (done or stopped); a status: still running, go on from here.
-            self._motion_from_s = None if reply.header == DATA_REPLY else bid_at_s
+        running = _still_moving(name, answer)
+        if name in ("MOVL", "IMOV") and answer.kind is ReplyKind.STATUS and answer.text.isdigit() and int(answer.text) == 0:
+            self._motion_from_s = exchange.answered_at_s
+        elif running is not None and self._motion_from_s is not None:
+            sped_up_s = max(exchange.answered_at_s - self._motion_from_s, 0.0)
+            self._motion_from_s = exchange.answered_at_s if running else None
         cell_s = wall_s + (self.line.time_scale - 1.0) * sped_up_s
-        # The exchange's bytes take their time at the baud rate, during the arm's motion as on a real line.
-        self._cell_ahead_s += max(self.line.wire_time_s(n_bytes), cell_s) - wall_s
+        # The exchange's bytes take their time on the link, during the arm's motion as on a real line.
+        self._cell_ahead_s += max(self.link.wire_time_s(exchange.n_bytes), cell_s) - wall_s
 
     # -- helpers ---------------------------------------------------------------------
+
+    def _reading(self) -> list[float]:
+        """RPOSC's 8 numbers: X, Y, Z (mm), Rx, Ry, Rz (deg), type, tool; keeps the type
+        (the arm's posture) for the next MOVL."""
+        values = self.command("RPOSC 0,0").values
+        try:
+            numbers = [float(v) for v in values[:8]]
+        except ValueError:
+            raise RobotError(f"RPOSC: the JRC's reply {values!r} is not a pose") from None
+        if len(numbers) < 8:
+            raise RobotError(f"RPOSC: the JRC's reply {values!r} has fewer than 8 values")
+        self._posture = int(numbers[6])
+        return numbers
 
     def _integers(self, text: str, count: int, reply_wait_s: float | None = None) -> list[int]:
         values = self.command(text, reply_wait_s).values
@@ -519,3 +492,15 @@ class JrcBackend:
         if not np.isfinite(mm_s) or round(mm_s, 2) <= 0.0:
             raise RobotError(f"speed {speed_m_s!r} m/s cannot be sent: V must be at least 0.01 mm/s")
         return f"{mm_s:.2f}"
+
+
+def _still_moving(name: str, answer: Answer) -> bool | None:
+    """What an answer says of the motion: True while it runs, False once it has ended,
+    None when it says nothing of it. JWAIT's data answer comes when it has ended, its
+    status (2010) while it runs; RSTATS's running bit says it directly."""
+    if name == "JWAIT":
+        return answer.kind is ReplyKind.STATUS
+    if name == "RSTATS" and answer.kind is ReplyKind.DATA:
+        first = answer.text.split(",", 1)[0].strip()
+        return bool(int(first) & D1_RUNNING) if first.isdigit() else None
+    return None

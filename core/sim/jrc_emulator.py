@@ -1,7 +1,9 @@
 """An emulator of the JRC's side of the host link, on the kinematic simulator.
 
 It answers the host commands of docs/robot-link.md over a real serial device (a
-pseudo-terminal it creates, or a given port) with its own controller state: servo power,
+pseudo-terminal it creates, or a given port) in BSC blocks, or, as a DX100 or later
+controller's Ethernet server, on a loopback TCP port (core/sim/ethernet_server.py); what
+a command does (``answer``) is the same behind either. Its own controller state: servo power,
 the three holds (pendant, external, command), an alarm, and one motion at a time. The
 robot is a SimulatedCell, the same plant the simulated camera looks at: a MOVL or IMOV
 target goes through the JRC's nominal IK, and the arm travels there in joint
@@ -24,7 +26,8 @@ of a kind drawn uniformly from ``kinds``: a reply block with a corrupted BCC, a 
 dropped or an answer delayed (0.3 .. 1.5 timer A) in one of the emulator's next
 transmissions, a block accepted without its ACK (missing ACK), a good block refused
 with NAK, a silence that outlasts the host's retries (timeout), or an alarm or a
-pendant hold in the middle of the next motion.
+pendant hold in the middle of the next motion. Over TCP only the kinds a connection can
+meet (ETHERNET_FAULT_KINDS): the connection dropped, the answer delayed or never sent.
 
 Inferred behaviour (no public JRC document; check on the real JRC): JWAIT answers
 0 when the motion ended, -1 when it was stopped, and status 2010 when its time ran out
@@ -40,16 +43,18 @@ import logging
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 import serial
 
-from vservo.core.cell.config import JrcLineConfig, VacuumDeviceConfig
+from vservo.core.cell.config import HostTransport, JrcLineConfig, VacuumDeviceConfig
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, pose_error
 from vservo.core.robot.backend import apply_increment
 from vservo.core.robot.bsc import BscStation, ByteChannel, LinkError, Message, Port
+from vservo.core.robot.host_link import Answer
 from vservo.core.robot.jrc import (
     D1_RUNNING,
     D2_ALARM,
@@ -57,23 +62,24 @@ from vservo.core.robot.jrc import (
     D2_EXTERNAL_HOLD,
     D2_PENDANT_HOLD,
     D2_SERVO_ON,
-    DATA_REPLY,
-    HOST_COMMAND,
     OUT_OF_RANGE,
     ROBOT_OPERATING,
     SIGNALS_PER_BYTE,
-    STATUS_REPLY,
     io_byte,
-    open_serial,
     pose_from_wire,
     wire_pose,
 )
+from vservo.core.robot.serial_link import HOST_COMMAND, open_serial, reply_message
+from vservo.core.sim.ethernet_server import EthernetServer
 from vservo.core.sim.plant import ROTATION_SPEED_RAD_S, SimulatedCell
 from vservo.core.sim.pseudo_terminal import PseudoTerminal
 
 log = logging.getLogger("vservo.jrc_emulator")
 
 FAULT_KINDS = ("bcc", "drop", "delay", "missing_ack", "nak", "timeout", "alarm", "hold")
+# A TCP connection has no BCC, ACK or NAK to fault: over Ethernet a drop closes the
+# connection, a delay holds the answer back, a timeout never answers.
+ETHERNET_FAULT_KINDS = ("drop", "delay", "timeout", "alarm", "hold")
 MOTION_FAULTS = ("alarm", "hold")
 MAX_SPEED_MM_S = 1000.0
 MAX_ROTATION_SPEED_DEG_S = 180.0
@@ -117,16 +123,23 @@ class FaultInjector:
         self._countdown = 0  # outgoing transmissions before a drop or delay hits
         self.pending_motion_fault: str | None = None
         self._forced: list[str] = []
+        self.kinds_here: tuple[str, ...] = FAULT_KINDS  # the kinds the link being served can meet
+
+    def serve_over(self, kinds: tuple[str, ...]) -> None:
+        """Serve a link that can meet only ``kinds``: a plan drawing others is refused."""
+        foreign = sorted(set(self.plan.kinds) - set(kinds)) if self.plan.rate > 0.0 else []
+        if foreign:
+            raise ValueError(f"fault kinds {foreign} cannot happen on this link: choose from {', '.join(kinds)}")
+        self.kinds_here = kinds
 
     def inject(self, kind: str) -> None:
         """Force a fault of ``kind`` on the next exchange (an alarm or hold: on the next motion)."""
-        if kind not in FAULT_KINDS:
-            raise ValueError(f"unknown fault kind {kind!r}: choose from {', '.join(FAULT_KINDS)}")
+        if kind not in self.kinds_here:
+            raise ValueError(f"unknown fault kind {kind!r} on this link: choose from {', '.join(self.kinds_here)}")
         self._forced.append(kind)
 
-    def begin_exchange(self) -> str | None:
-        """Draw this exchange's fault; returns "timeout" when the bid is to be ignored."""
-        self._armed = None
+    def draw(self) -> str | None:
+        """This exchange's fault, if any; an alarm or a hold is set aside for the next motion."""
         if self._forced:
             kind = self._forced.pop(0)
         elif self.rng.random() < self.plan.rate:
@@ -135,10 +148,17 @@ class FaultInjector:
             return None
         if kind in MOTION_FAULTS:
             self.pending_motion_fault = kind  # strikes the next motion, whichever exchange carries it
-        elif kind == "timeout":
+            return None
+        return kind
+
+    def begin_exchange(self) -> str | None:
+        """Draw a BSC exchange's fault; returns "timeout" when the bid is to be ignored."""
+        self._armed = None
+        kind = self.draw()
+        if kind == "timeout":
             self.injected[kind] += 1
             return kind
-        else:
+        if kind is not None:
             self._armed = kind
             self._countdown = int(self.rng.integers(0, 4))  # ACK0, ACK1, the reply's ENQ, the reply block
         return None
@@ -225,8 +245,10 @@ class JrcEmulator:
         self.alarm: tuple[int, str] | None = None
         self.motion: Motion | None = None
         self.last_motion_stopped = False
-        self.device: str | None = None
+        self.device: str | None = None  # the serial device served, or None
+        self.address: tuple[str, int] | None = None  # the TCP address served, or None
         self.station: BscStation | None = None
+        self.ethernet: EthernetServer | None = None
         self._pty: PseudoTerminal | None = None
         self._serial: serial.SerialBase | None = None
         self._stop = threading.Event()
@@ -245,6 +267,22 @@ class JrcEmulator:
         self._start(self._pty.port)
         return self.device
 
+    def start_on_tcp(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
+        """Serve the Ethernet server's framing on a TCP port (0: any free one), and return
+        the (host, port) the host connects to."""
+        self.faults.serve_over(ETHERNET_FAULT_KINDS)
+        self.ethernet = EthernetServer(self.answer, self.line, self.faults, self._stop, host, port)
+        self.address = self.ethernet.address
+        self._run(self.ethernet.serve, "jrc-emulator-tcp")
+        return self.address
+
+    def start_for(self, line: JrcLineConfig) -> JrcLineConfig:
+        """Serve the link ``line`` names, a new pseudo-terminal for a serial line or a
+        loopback TCP port for an Ethernet server, and return ``line`` pointed at it."""
+        if line.transport is HostTransport.ETHERNET:
+            return line.on_ethernet(*self.start_on_tcp())
+        return replace(line, port=self.start_on_pty())
+
     def start_on_port(self, device: str) -> None:
         """Serve on a real serial port, with the line settings of ``line``."""
         self._serial = open_serial(self.line, device)
@@ -254,9 +292,12 @@ class JrcEmulator:
     def _start(self, port: Port) -> None:
         channel = ByteChannel(port, self.line.wire_time_s(1) if self.pace else None)
         station = self.station = BscStation(channel, self.line, yields=False, faults=self.faults)
+        self._run(lambda: self._serve(station), "jrc-emulator")
+
+    def _run(self, serve: Callable[[], None], name: str) -> None:
         self._last_real_s = time.monotonic()
         self._stop.clear()
-        self._thread = threading.Thread(target=self._serve, args=(station,), name="jrc-emulator", daemon=True)
+        self._thread = threading.Thread(target=serve, name=name, daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
@@ -295,7 +336,6 @@ class JrcEmulator:
             except LinkError as exc:
                 log.info("host message lost: %s", exc)
                 continue
-            self.exchanges += 1
             reply = self.handle(request)
             try:
                 station.send(reply)
@@ -305,9 +345,16 @@ class JrcEmulator:
     # -- the JRC -----------------------------------------------------------------------
 
     def handle(self, request: Message) -> Message:
-        """One host command in, its reply out."""
+        """One host command in a BSC message in, its reply message out."""
+        if request.header != HOST_COMMAND:
+            return reply_message(Answer.status(1010))
+        return reply_message(self.answer(request.text.rstrip("\r")))
+
+    def answer(self, text: str) -> Answer:
+        """One host command (its text, no line end) in, its answer out, whatever the link."""
         with self.lock:
-            return self._handle(request)
+            self.exchanges += 1
+            return self._answer(text)
 
     def advance(self) -> None:
         """Bring the plant up to now: a camera looking at it between commands sees the arm
@@ -315,21 +362,19 @@ class JrcEmulator:
         with self.lock:
             self._advance()
 
-    def _handle(self, request: Message) -> Message:
+    def _answer(self, text: str) -> Answer:
         self._advance()
-        if request.header != HOST_COMMAND:
-            return _status(1010)
-        name, _, operands = request.text.rstrip("\r").partition(" ")
+        name, _, operands = text.partition(" ")
         fields = [f.strip() for f in operands.split(",")] if operands.strip() else []
         handler = getattr(self, f"_cmd_{name.lower()}", None)
         if handler is None:
-            return _status(1010)
+            return Answer.status(1010)
         try:
             return handler(fields)
         except _Refused as refusal:
-            return _status(refusal.code)
+            return Answer.status(refusal.code)
 
-    def _cmd_rstats(self, fields: list[str]) -> Message:
+    def _cmd_rstats(self, fields: list[str]) -> Answer:
         _count(fields, 0, 0)
         d1 = D1_PLAY | D1_REMOTE | (D1_RUNNING if self.motion is not None else 0)
         d2 = (
@@ -339,54 +384,54 @@ class JrcEmulator:
             | (D2_ALARM if self.alarm is not None else 0)
             | (D2_SERVO_ON if self.servo_on else 0)
         )
-        return _data(f"{d1},{d2}")
+        return Answer.data(f"{d1},{d2}")
 
-    def _cmd_ralarm(self, fields: list[str]) -> Message:
+    def _cmd_ralarm(self, fields: list[str]) -> Answer:
         _count(fields, 0, 0)
         code, text = self.alarm or (0, "")
-        return _data(f"{code},{text}")
+        return Answer.data(f"{code},{text}")
 
-    def _cmd_reset(self, fields: list[str]) -> Message:
+    def _cmd_reset(self, fields: list[str]) -> Answer:
         _count(fields, 0, 0)
         self.alarm = None
-        return _status(0)
+        return Answer.status(0)
 
-    def _cmd_cancel(self, fields: list[str]) -> Message:
+    def _cmd_cancel(self, fields: list[str]) -> Answer:
         _count(fields, 0, 0)
-        return _status(0)
+        return Answer.status(0)
 
-    def _cmd_rposc(self, fields: list[str]) -> Message:
+    def _cmd_rposc(self, fields: list[str]) -> Answer:
         _count(fields, 2, 2)
         frame, external = _integers(fields)
         if frame != 0 or external not in (0, 1):
             raise _Refused(1013)  # base coordinates only
         x, y, z, rx, ry, rz = wire_pose(self.cell.jrc_arm.fk(self.cell.state.q))
         values = f"{x:.3f},{y:.3f},{z:.3f},{rx:.2f},{ry:.2f},{rz:.2f},0,0" + (",0" * 6 if external else "")
-        return _data(values)
+        return Answer.data(values)
 
-    def _cmd_svon(self, fields: list[str]) -> Message:
+    def _cmd_svon(self, fields: list[str]) -> Answer:
         (on,) = _switch(fields)
         if on and self.alarm is not None:
             raise _Refused(2060)
         self.servo_on = on
         if not on:
             self._stop_motion()
-        return _status(0)
+        return Answer.status(0)
 
-    def _cmd_hold(self, fields: list[str]) -> Message:
+    def _cmd_hold(self, fields: list[str]) -> Answer:
         (on,) = _switch(fields)
         self.command_hold = on
         if on:
             self._stop_motion()
-        return _status(0)
+        return Answer.status(0)
 
-    def _cmd_movl(self, fields: list[str]) -> Message:
+    def _cmd_movl(self, fields: list[str]) -> Answer:
         return self._start_motion("MOVL", fields, lambda bMe, target: target)
 
-    def _cmd_imov(self, fields: list[str]) -> Message:
+    def _cmd_imov(self, fields: list[str]) -> Answer:
         return self._start_motion("IMOV", fields, apply_increment)
 
-    def _cmd_jwait(self, fields: list[str]) -> Message:
+    def _cmd_jwait(self, fields: list[str]) -> Answer:
         _count(fields, 1, 1)
         try:
             wait_s = float(fields[0])
@@ -408,18 +453,18 @@ class JrcEmulator:
                 self.lock.acquire()
             waited_s += self._advance()
         if self.motion is not None:
-            return _status(ROBOT_OPERATING)
-        return _data("-1" if self.last_motion_stopped else "0")
+            return Answer.status(ROBOT_OPERATING)
+        return Answer.data("-1" if self.last_motion_stopped else "0")
 
     # -- I/O ---------------------------------------------------------------------------
 
-    def _cmd_ioread(self, fields: list[str]) -> Message:
+    def _cmd_ioread(self, fields: list[str]) -> Answer:
         _count(fields, 2, 2)
         address, count = _integers(fields)
         n_bytes = _io_bytes(address, count)
-        return _data(",".join(str(self._io_value(address + 10 * i)) for i in range(n_bytes)))
+        return Answer.data(",".join(str(self._io_value(address + 10 * i)) for i in range(n_bytes)))
 
-    def _cmd_iowrite(self, fields: list[str]) -> Message:
+    def _cmd_iowrite(self, fields: list[str]) -> Answer:
         _count(fields, 3, 2 + 64)
         address, count, *values = _integers(fields)
         if len(values) != _io_bytes(address, count) or not all(0 <= v <= 0xFF for v in values):
@@ -430,7 +475,7 @@ class JrcEmulator:
         # The ladder line: the suction network input drives the valve's output.
         _, bit = io_byte(self.vacuum_io[0])
         self.cell.vacuum(bool(values[0] >> bit & 1))
-        return _status(0)
+        return Answer.status(0)
 
     def _io_value(self, byte: int) -> int:
         value = self.network_inputs.get(byte, 0)
@@ -442,7 +487,7 @@ class JrcEmulator:
 
     # -- motion ------------------------------------------------------------------------
 
-    def _start_motion(self, name: str, fields: list[str], target_of) -> Message:
+    def _start_motion(self, name: str, fields: list[str], target_of) -> Answer:
         _count(fields, MOTION_FIELDS, MOTION_FIELDS)
         try:
             numbers = [float(f) for f in fields]
@@ -465,13 +510,16 @@ class JrcEmulator:
             duration = max(translation * 1000.0 / speed, rotation / ROTATION_SPEED_RAD_S)
         else:
             duration = max(np.degrees(rotation) / speed, translation * 1000.0 / MAX_SPEED_MM_S)
+        # The arm stood still while the JRC worked the target out: the motion starts now,
+        # not when the command arrived (else it would end that much early on the host's clock).
+        self._advance()
         motion = Motion(self.cell.state.q.copy(), q_end, duration)
         fault = self.faults.take_motion_fault()
         if fault is not None:
             motion.stop_at_s, motion.stop_kind = float(self.faults.rng.uniform(0.2, 0.8)) * duration, fault
         self.motion, self.last_motion_stopped = motion, False
         self.executed.append(f"{name} {','.join(fields)}")
-        return _status(0)
+        return Answer.status(0)
 
     def _refuse_unless_ready(self) -> None:
         if self.alarm is not None:
@@ -531,14 +579,6 @@ class JrcEmulator:
 class _Refused(Exception):
     def __init__(self, code: int) -> None:
         self.code = code
-
-
-def _status(code: int) -> Message:
-    return Message(STATUS_REPLY, f"{code:04d}\r")
-
-
-def _data(text: str) -> Message:
-    return Message(DATA_REPLY, text + "\r")
 
 
 def _count(fields: list[str], low: int, high: int) -> None:

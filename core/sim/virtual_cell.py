@@ -2,8 +2,10 @@
 
 The controller reaches it only as it reaches hardware, through the cell file it writes:
 
-- the robot: the JRC emulator on a pseudo-terminal (``[jrc] port``), the only thing that
-  moves the plant; the vacuum cup on the emulator's I/O (``[vacuum] device = "jrc_io"``);
+- the robot: the JRC emulator on a pseudo-terminal (``[jrc] port``) or, as a DX100 or
+  later controller's Ethernet server, on a loopback TCP port (``[jrc] transport =
+  "ethernet"``, ``host``, ``port``), the only thing that moves the plant; the vacuum cup
+  on the emulator's I/O (``[vacuum] device = "jrc_io"``);
 - the camera: an MJPEG stream over HTTP that OpenCV opens by URL
   (``[camera.source] device``), exposed on a steady frame clock and sent a camera's
   latency later;
@@ -34,7 +36,16 @@ from typing import Any
 import numpy as np
 
 from vservo.core.cell.cell_file import dumps_cell
-from vservo.core.cell.config import CellConfig, ConfigError, VacuumDeviceConfig, parse_cell, read_cell_data
+from vservo.core.cell.config import (
+    ETHERNET_ONLY_KEYS,
+    SERIAL_ONLY_KEYS,
+    CellConfig,
+    ConfigError,
+    HostTransport,
+    VacuumDeviceConfig,
+    parse_cell,
+    read_cell_data,
+)
 from vservo.core.perception.recording import write_atomic
 from vservo.core.sim.camera_stream import CameraStream
 from vservo.core.sim.jrc_emulator import JrcEmulator
@@ -57,13 +68,16 @@ class VirtualCellSettings:
     fps, exposure_latency_s: the camera stream's (its JPEG quality stays the stream's default, 100:
     at 95 the laser stage stalled on the demo job, docs/vision.md). latency_margin_s: what the
     written cell file adds to the camera's latency for the network and the decoder, so
-    that its ``exposure_latency_s`` is an upper bound."""
+    that its ``exposure_latency_s`` is an upper bound. robot_link: what carries the host
+    commands to the emulated JRC: a pseudo-terminal (BSC), or a loopback TCP port (the
+    Ethernet server of later controllers)."""
 
     time_scale: float = 40.0
     fps: float = 30.0
     exposure_latency_s: float = 0.05
     latency_margin_s: float = 0.05
     release_poll_s: float = 0.01
+    robot_link: HostTransport = HostTransport.SERIAL
 
 
 @dataclass(frozen=True)
@@ -73,12 +87,14 @@ class Addresses:
     Fixed ones let a virtual cell restarted after a crash come back where the controller
     looks for it, as a real cell's devices do (a serial adapter's /dev/serial/by-id name,
     a camera's address): jrc_link is a symbolic link to the JRC's pseudo-terminal, put in
-    place at every start; camera_port and fixture_port are TCP ports (0: any free one).
+    place at every start; jrc_tcp_port (the JRC's Ethernet server, when it has one),
+    camera_port and fixture_port are TCP ports (0: any free one).
     """
 
     jrc_link: Path | None = None
     camera_port: int = 0
     fixture_port: int = 0
+    jrc_tcp_port: int = 0
 
 
 @dataclass(frozen=True)
@@ -108,10 +124,18 @@ def with_truth(cell_tables: dict[str, Any], truth_file: dict[str, Any] | None) -
     return tables
 
 
+def jrc_table(cell_jrc: dict[str, Any], link: dict[str, Any], time_scale: float) -> dict[str, Any]:
+    """The controller's [jrc]: the --cell file's settings with the virtual JRC's link keys
+    (``link``) and time scale, less the keys only the other link has."""
+    foreign = SERIAL_ONLY_KEYS if link.get("transport") == HostTransport.ETHERNET else ETHERNET_ONLY_KEYS
+    kept = {k: v for k, v in cell_jrc.items() if k not in (*foreign, "transport", "port")}
+    return {**kept, **link, "time_scale": time_scale}
+
+
 def controller_tables(
     cell_tables: dict[str, Any],
     *,
-    jrc_port: str,
+    jrc_link: dict[str, Any],
     camera_url: str,
     fixture_url: str,
     vacuum: VacuumDeviceConfig,
@@ -120,9 +144,7 @@ def controller_tables(
     """The cell file the controller gets: the nominal cell, wired to this virtual cell's devices."""
     tables = {k: copy.deepcopy(v) for k, v in cell_tables.items() if k != "simulation"}
     tables.setdefault("robot", {})["backend"] = "jrc"
-    # Linux drops a pseudo-terminal's parity bit and then refuses it on the next opening,
-    # so the virtual JRC's line runs without parity (pendant RS032 allows none).
-    tables.setdefault("jrc", {}).update(port=jrc_port, parity="none", time_scale=settings.time_scale)
+    tables["jrc"] = jrc_table(tables.get("jrc", {}), jrc_link, settings.time_scale)
     camera = tables.setdefault("camera", {})
     camera["source"] = {
         "kind": "capture",
@@ -168,13 +190,26 @@ class VirtualCell:
         )
         self.fixture = _FixtureServer(self, port=addresses.fixture_port)
         self.released: list[Released] = []
-        self.jrc_port: str | None = None  # the emulator's pseudo-terminal, once started
+        self.jrc_port: str | None = None  # where the emulator serves, once started: its pseudo-terminal, or host:port
+        self._jrc_keys: dict[str, Any] = {}  # the controller's [jrc] keys for the link, once started
         self._stop = threading.Event()
         self._watch: threading.Thread | None = None
 
     # -- running -----------------------------------------------------------------------
 
     def start(self) -> None:
+        if self.settings.robot_link is HostTransport.ETHERNET:
+            host, port = self.emulator.start_on_tcp(port=self.addresses.jrc_tcp_port)
+            self.jrc_port = f"{host}:{port}"
+            self._jrc_keys = {"transport": str(HostTransport.ETHERNET), "host": host, "port": port}
+        else:
+            self._start_on_pty()
+        self.camera.start()
+        self.fixture.start()
+        self._watch = threading.Thread(target=self._watch_releases, name="release-gauge", daemon=True)
+        self._watch.start()
+
+    def _start_on_pty(self) -> None:
         self.jrc_port = self.emulator.start_on_pty()
         if self.addresses.jrc_link is not None:
             # A new link beside the old one, then renamed over it: the name is never missing
@@ -184,10 +219,9 @@ class VirtualCell:
             fresh.symlink_to(self.jrc_port)
             fresh.replace(self.addresses.jrc_link)
             self.jrc_port = str(self.addresses.jrc_link)
-        self.camera.start()
-        self.fixture.start()
-        self._watch = threading.Thread(target=self._watch_releases, name="release-gauge", daemon=True)
-        self._watch.start()
+        # Linux drops a pseudo-terminal's parity bit and then refuses it on the next opening,
+        # so the virtual JRC's line runs without parity (pendant RS032 allows none).
+        self._jrc_keys = {"port": self.jrc_port, "parity": "none"}
 
     def close(self) -> None:
         """Stop everything; safe to call twice."""
@@ -213,7 +247,7 @@ class VirtualCell:
         path = Path(path)
         tables = controller_tables(
             self.tables,
-            jrc_port=self.jrc_port,
+            jrc_link=self._jrc_keys,
             camera_url=self.camera.url,
             fixture_url=self.fixture.url,
             vacuum=self.vacuum,

@@ -1,4 +1,5 @@
-"""The link soak: thousands of incremental moves over a pseudo-terminal with faults injected.
+"""The link soak: thousands of incremental moves over a pseudo-terminal (or the Ethernet
+server's TCP port) with faults injected.
 
 The host (a JrcBackend) sends IMOV after IMOV to the JRC emulator, which injects
 faults of every kind at the given rate. A fault the link recovers from leaves no trace
@@ -11,7 +12,8 @@ send an IMOV for whatever of the move is missing.
 What it proves: no move lost (the final pose is the start plus the sum of the commanded
 increments), none carried out twice (every command the JRC accepted was sent
 once), every fault either recovered or reported. A fault of the link (corrupted BCC,
-dropped or delayed bytes, missing ACK, NAK, a silence) counts as recovered when the host
+dropped or delayed bytes, missing ACK, NAK, a silence; over TCP a dropped connection,
+a late answer, a silence) counts as recovered when the host
 command it struck still returned its reply, as reported when that command raised; an
 alarm or a pendant hold counts as reported when its move raised (MotionStopped, or a
 LinkError whose recovery then found the alarm or the hold). The
@@ -28,12 +30,13 @@ from typing import Any
 
 import numpy as np
 
-from vservo.core.cell.config import CellConfig, JrcLineConfig
+from vservo.core.cell.config import CellConfig, HostTransport, JrcLineConfig
 from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix, pose_error, transform
 from vservo.core.robot.backend import MotionStopped, RobotError
+from vservo.core.robot.ethernet_link import EthernetLink
 from vservo.core.robot.jrc import JrcBackend, Reply
-from vservo.core.sim.jrc_emulator import FAULT_KINDS, MOTION_FAULTS, FaultInjector, FaultPlan, JrcEmulator
+from vservo.core.sim.jrc_emulator import ETHERNET_FAULT_KINDS, FAULT_KINDS, MOTION_FAULTS, FaultInjector, FaultPlan, JrcEmulator
 from vservo.core.sim.plant import SimulatedCell
 
 SPEED_M_S = 0.05
@@ -70,7 +73,7 @@ def soak_increments(moves: int, seed: int) -> Matrix:
 class _AccountedJrc(JrcBackend):
     """A JrcBackend that files the emulator's link faults under the command they struck."""
 
-    def __init__(self, line: JrcLineConfig, port: str, faults: FaultInjector) -> None:
+    def __init__(self, line: JrcLineConfig, port: str | None, faults: FaultInjector) -> None:
         super().__init__(line, port)
         self.faults = faults
         self.recovered: Counter[str] = Counter()
@@ -89,6 +92,13 @@ class _AccountedJrc(JrcBackend):
     def _link_faults_since(self, before: Counter[str]) -> Counter[str]:
         new = self.faults.injected - before
         return Counter({kind: n for kind, n in new.items() if kind not in MOTION_FAULTS})
+
+
+def _link_counters(robot: JrcBackend) -> dict[str, int]:
+    """The serial link's recoveries, or how many connections the Ethernet link made."""
+    if isinstance(robot.link, EthernetLink):
+        return {"connections": robot.link.connections}
+    return robot.station.counters.as_dict()
 
 
 class _Soak:
@@ -149,46 +159,50 @@ def run_soak(
     timer_a_s: float = 0.1,
     timer_b_s: float = 1.0,
     on_move: Callable[[], None] | None = None,
+    transport: HostTransport = HostTransport.SERIAL,
 ) -> dict[str, Any]:
-    """Soak the link: ``moves`` IMOVs with faults at ``fault_rate`` per exchange.
+    """Soak the link: ``moves`` IMOVs with faults at ``fault_rate`` per exchange, over
+    ``transport`` (its own fault kinds).
 
     The timers are shortened (the soak tests recovery, not patience); the emulator runs
     ``time_scale`` times faster than real time. ``on_move()`` is called after each move.
     """
-    line = replace(config.jrc, timer_a_s=timer_a_s, timer_b_s=timer_b_s)
+    # The line knows the emulator's pace: over Ethernet the host reads the status that often.
+    line = replace(config.jrc, timer_a_s=timer_a_s, timer_b_s=timer_b_s, time_scale=time_scale)
     cell = SimulatedCell(config, seed)
     increments = soak_increments(moves, seed)
     started = time.monotonic()
     motion_faults_reported: Counter[str] = Counter()
     moves_with_reports = moves_off_path = 0
-    with JrcEmulator(cell, line, FaultPlan(fault_rate, seed), time_scale) as emulator:
-        assert emulator.device is not None  # the with started it on a pseudo-terminal
-        robot = _AccountedJrc(line, emulator.device, emulator.faults)
+    kinds = ETHERNET_FAULT_KINDS if transport is HostTransport.ETHERNET else FAULT_KINDS
+    emulator = JrcEmulator(cell, line, FaultPlan(fault_rate, seed, kinds), time_scale)
+    robot = _AccountedJrc(emulator.start_for(replace(line, transport=transport)), None, emulator.faults)
+    try:
         robot.connect()
-        try:
-            soak = _Soak(robot, emulator)
-            soak.recover(robot.read_pose()[:3, 3] * 1000.0)  # servo on, wherever the arm is
-            bMe_start = cell.jrc_arm.fk(cell.state.q)  # evaluation: the emulator's own pose
-            target_mm = bMe_start[:3, 3] * 1000.0
-            for increment in increments:
-                target_mm = target_mm + increment
-                injected_before = Counter(emulator.faults.injected)
-                try:
-                    soak.imov(increment)
-                except RobotError as exc:
-                    soak.report(exc)
-                    soak.recover(target_mm)
-                    moves_with_reports += 1
-                    new = emulator.faults.injected - injected_before
-                    motion_faults_reported.update({kind: new[kind] for kind in MOTION_FAULTS})
-                # Evaluation: the emulator's own pose, not what the link reports.
-                off = np.abs(cell.jrc_arm.fk(cell.state.q)[:3, 3] * 1000.0 - target_mm).max()
-                moves_off_path += int(off > ON_PATH_MM)
-                if on_move is not None:
-                    on_move()
-            counters = robot.station.counters.as_dict()
-        finally:
-            robot.close()
+        soak = _Soak(robot, emulator)
+        soak.recover(robot.read_pose()[:3, 3] * 1000.0)  # servo on, wherever the arm is
+        bMe_start = cell.jrc_arm.fk(cell.state.q)  # evaluation: the emulator's own pose
+        target_mm = bMe_start[:3, 3] * 1000.0
+        for increment in increments:
+            target_mm = target_mm + increment
+            injected_before = Counter(emulator.faults.injected)
+            try:
+                soak.imov(increment)
+            except RobotError as exc:
+                soak.report(exc)
+                soak.recover(target_mm)
+                moves_with_reports += 1
+                new = emulator.faults.injected - injected_before
+                motion_faults_reported.update({kind: new[kind] for kind in MOTION_FAULTS})
+            # Evaluation: the emulator's own pose, not what the link reports.
+            off = np.abs(cell.jrc_arm.fk(cell.state.q)[:3, 3] * 1000.0 - target_mm).max()
+            moves_off_path += int(off > ON_PATH_MM)
+            if on_move is not None:
+                on_move()
+        counters = _link_counters(robot)
+    finally:
+        robot.close()
+        emulator.stop()
     bMe_end = cell.jrc_arm.fk(cell.state.q)
     translation_error_m, rotation_error_rad = pose_error(bMe_end, transform(bMe_start[:3, :3], target_mm / 1000.0))
     accepted = Counter(emulator.executed)
@@ -198,10 +212,11 @@ def run_soak(
         "moves": moves,
         "fault_rate": fault_rate,
         "exchanges": emulator.exchanges,
-        "faults_injected": {kind: injected[kind] for kind in FAULT_KINDS},
+        "transport": str(transport),
+        "faults_injected": {kind: injected[kind] for kind in kinds},
         "faults_injected_total": sum(injected.values()),
-        "faults_recovered": {kind: robot.recovered[kind] for kind in FAULT_KINDS},
-        "faults_reported": {kind: reported[kind] for kind in FAULT_KINDS},
+        "faults_recovered": {kind: robot.recovered[kind] for kind in kinds},
+        "faults_reported": {kind: reported[kind] for kind in kinds},
         "faults_unaccounted": sum((injected - robot.recovered - reported).values()),
         "moves_with_reported_errors": moves_with_reports,
         "errors_reported": dict(soak.reported),

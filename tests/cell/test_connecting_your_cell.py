@@ -2,7 +2,7 @@
 
 The page's first ```toml block is a whole real cell file; each later block is a set of
 tables that replace the same-named tables of a copy of it, as the page tells the
-integrator to do (the dry run's [camera.source]).
+integrator to do (the dry run's [camera.source], the Ethernet controller's [jrc]).
 """
 
 import re
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from vservo.core.cell.config import load_cell
+from vservo.core.cell.config import HostTransport, load_cell
 from vservo.core.production.cell_controller import JOG_SPEED_M_S
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.robot.safety import SafetyLayer, TooFast
@@ -57,6 +57,7 @@ def test_the_examples_first_jog_limits_let_a_jog_through_and_refuse_a_runs_speed
 
 def test_the_dry_run_reads_the_image_folder_beside_the_cell_file(tmp_path):
     example, *fragments = toml_blocks()
+    fragments = [fragment for fragment in fragments if "[camera.source]" in fragment]
     assert fragments, "the page shows the dry run's [camera.source]"
     for index, fragment in enumerate(fragments):
         cell_file = tmp_path / f"dry{index}.toml"
@@ -64,3 +65,17 @@ def test_the_dry_run_reads_the_image_folder_beside_the_cell_file(tmp_path):
         config = load_cell(cell_file)
         assert config.real and config.camera_source.kind == "folder"
         assert config.camera_source.path == tmp_path / "frames"
+
+
+def test_the_ethernet_controllers_jrc_makes_the_example_a_cell_on_its_ethernet_server(tmp_path):
+    """Section 8: the example with its [jrc] replaced loads as a real cell on the Ethernet
+    server, and the check that it answers is built on the link it names (not connected)."""
+    example, *fragments = toml_blocks()
+    (ethernet,) = [fragment for fragment in fragments if "[jrc]" in fragment]
+    cell_file = tmp_path / "mycell.toml"
+    cell_file.write_text(replace_tables(example, ethernet))
+    config = load_cell(cell_file)
+    assert config.real and config.jrc.transport is HostTransport.ETHERNET
+    assert config.jrc.address == "192.168.255.1:80" and JrcBackend(config.jrc).port == config.jrc.address
+    words = " ".join(PAGE.read_text().split())
+    assert f"cannot connect to the Ethernet server at {config.jrc.address}" in words  # the error, as the link words it

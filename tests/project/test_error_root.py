@@ -19,7 +19,7 @@ from vservo.core.errors import VservoError
 # Classes that must not derive from VservoError, each with the reason.
 EXEMPT = {
     # The emulator's control flow inside one reply: raised and caught within
-    # JrcEmulator._handle, where it becomes the status reply the real controller would send; it never
+    # JrcEmulator._answer, where it becomes the status reply the real controller would send; it never
     # leaves the emulator.
     "vservo.core.sim.jrc_emulator._Refused",
 }

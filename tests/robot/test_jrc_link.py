@@ -1,6 +1,8 @@
 """The JRC host link over a real pseudo-terminal: the framing and its test vectors, the
 data link's recovery against a scripted JRC, the host commands against the
-JRC emulator, every injected fault, and a short soak."""
+JRC emulator, every injected fault, and a short soak. The host commands are tested over
+the Ethernet server's loopback TCP port too (``TRANSPORTS``); its framing and failures
+are in tests/test_jrc_ethernet.py."""
 
 import os
 import threading
@@ -11,7 +13,8 @@ import numpy as np
 import pytest
 import serial
 
-from tests.jrc_fixtures import TEST_LINE, TIME_SCALE, jrc_link, short_timer_cell
+from tests.jrc_fixtures import ETHERNET_TIMER_A_S, TEST_LINE, TIME_SCALE, jrc_link, short_timer_cell
+from vservo.core.cell.config import HostTransport
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Pose6, inverse, matrix_from_pose, pose_error, rot_x, rot_z, transform
 from vservo.core.robot.backend import RobotError
@@ -42,7 +45,7 @@ from vservo.core.robot.jrc import (
     wire_pose,
 )
 from vservo.core.robot.jrc_vacuum import JrcVacuum
-from vservo.core.sim.jrc_emulator import FAULT_KINDS, FaultPlan, JrcEmulator
+from vservo.core.sim.jrc_emulator import ETHERNET_FAULT_KINDS, FAULT_KINDS, FaultPlan, JrcEmulator
 from vservo.core.sim.plant import SimulatedCell
 from vservo.core.sim.pseudo_terminal import PseudoTerminal
 from vservo.core.study.link_soak import run_soak
@@ -60,9 +63,18 @@ def cell(config):
     return SimulatedCell(config)
 
 
+# The host command set behind either link: a test parametrized over these runs over both.
+TRANSPORTS = pytest.mark.parametrize("transport", list(HostTransport))
+
+
 @pytest.fixture
-def link(cell, config):
-    with jrc_link(cell, config) as (robot, emulator):
+def transport():
+    return HostTransport.SERIAL
+
+
+@pytest.fixture
+def link(cell, config, transport):
+    with jrc_link(cell, config, transport=transport) as (robot, emulator):
         yield robot, emulator
 
 
@@ -344,6 +356,7 @@ def test_the_emulator_serves_a_serial_port_it_is_given(cell, config):
 # -- host commands against the emulator ------------------------------------------------
 
 
+@TRANSPORTS
 def test_status_servo_pose_and_moves(robot, cell):
     assert not robot.status().servo_on
     robot.servo(True)
@@ -366,6 +379,7 @@ def test_status_servo_pose_and_moves(robot, cell):
     assert np.allclose(after[:3, :3], before[:3, :3], atol=1e-6)
 
 
+@TRANSPORTS
 def test_a_turn_finer_than_the_readback_is_not_lost(robot, cell):
     """RPOSC reads degrees to 0.01; a servo step of a fiftieth turns by less. Aimed from
     a reading rounded back to where it started, the arm would stand still step after step."""
@@ -386,6 +400,7 @@ def test_a_turn_finer_than_the_readback_is_not_lost(robot, cell):
     assert translation < 1e-6 and rotation < np.radians(0.006)
 
 
+@TRANSPORTS
 def test_refusals_carry_the_jrcs_reason(robot):
     bMe = robot.read_pose()
     with pytest.raises(JrcNotReady, match="2070 servo power is off"):
@@ -405,6 +420,7 @@ def test_refusals_carry_the_jrcs_reason(robot):
         robot.move_to(transform(t=(2.0, 0.0, 0.0)) @ bMe, 0.05)
 
 
+@TRANSPORTS
 def test_a_hold_stops_the_motion_where_it_is(robot, cell, emulator):
     emulator.time_scale = 1.0  # a 40 mm move at 10 mm/s lasts 4 s
     robot.servo(True)
@@ -418,6 +434,7 @@ def test_a_hold_stops_the_motion_where_it_is(robot, cell, emulator):
     assert pose_error(cell.jrc_arm.fk(cell.state.q), target)[0] > 0.03
 
 
+@TRANSPORTS
 def test_an_alarm_in_the_middle_of_a_move_is_reported_and_reset(robot, cell, emulator):
     robot.servo(True)
     start = robot.read_pose()
@@ -438,10 +455,11 @@ def test_an_alarm_in_the_middle_of_a_move_is_reported_and_reset(robot, cell, emu
     assert emulator.faults.injected["alarm"] == 1
 
 
-def test_a_pendant_hold_lasts_until_the_pendant_releases_it(cell, config):
+@TRANSPORTS
+def test_a_pendant_hold_lasts_until_the_pendant_releases_it(cell, config, transport):
     # A hold of 40 s of JRC time, 2 s of wall time: long enough that a loaded machine still
     # reads the status before the pendant releases it.
-    with jrc_link(cell, config, FaultPlan(pendant_hold_s=40.0)) as (robot, emulator):
+    with jrc_link(cell, config, FaultPlan(pendant_hold_s=40.0), transport=transport) as (robot, emulator):
         robot.servo(True)
         target = transform(t=(0.0, -0.03, 0.0)) @ robot.read_pose()
         emulator.faults.inject("hold")
@@ -503,11 +521,12 @@ def test_the_emulator_refuses_bad_fault_plans():
 VACUUM_IO = {"device": "jrc_io", "suction_output": 27013, "grip_input": 20}
 
 
-def test_the_cup_on_the_jrcs_io_switches_suction_and_reads_its_pressure_switch(cell):
+@TRANSPORTS
+def test_the_cup_on_the_jrcs_io_switches_suction_and_reads_its_pressure_switch(cell, transport):
     """Suction is bit 3 of network input byte 27010, which the emulator's ladder copies to the
     valve; the pressure switch is input 20. The byte's other signals keep their state."""
     config = short_timer_cell(robot={"backend": "jrc"}, vacuum=VACUUM_IO)
-    with jrc_link(cell, config) as (robot, emulator):
+    with jrc_link(cell, config, transport=transport) as (robot, emulator):
         cup = JrcVacuum(robot, 27013, 20)
         emulator.network_inputs[27010] = 0b1000_0001  # two signals the cell's ladder uses for something else
         cup.set_vacuum(True)
@@ -525,9 +544,10 @@ def test_the_cup_on_the_jrcs_io_switches_suction_and_reads_its_pressure_switch(c
         assert not cell.holding_part and not cup.holding() and robot.read_io(20) == [0]
 
 
-def test_io_commands_take_whole_bytes_and_write_only_the_wired_network_input(cell):
+@TRANSPORTS
+def test_io_commands_take_whole_bytes_and_write_only_the_wired_network_input(cell, transport):
     config = short_timer_cell(robot={"backend": "jrc"}, vacuum=VACUUM_IO)
-    with jrc_link(cell, config) as (robot, emulator):
+    with jrc_link(cell, config, transport=transport) as (robot, emulator):
         robot.write_io(27010, [5])
         assert robot.read_io(27010, 2) == [5, 0]
         for text in ("IOREAD 27013,8", "IOREAD 27010,4", "IOWRITE 27010,8,256", "IOWRITE 27010,16,1"):
@@ -536,7 +556,7 @@ def test_io_commands_take_whole_bytes_and_write_only_the_wired_network_input(cel
             assert refused.value.code == 1013, text
         with pytest.raises(JrcCommandError, match="2110"):
             robot.write_io(30000, [1])  # no ladder reads this byte
-    with jrc_link(cell, short_timer_cell()) as (robot, emulator):  # a cell whose cup is not on the I/O
+    with jrc_link(cell, short_timer_cell(), transport=transport) as (robot, emulator):  # a cell whose cup is not on the I/O
         with pytest.raises(JrcCommandError, match="2110"):
             robot.write_signal(27013, True)
         assert robot.read_signal(20) is False
@@ -545,22 +565,29 @@ def test_io_commands_take_whole_bytes_and_write_only_the_wired_network_input(cel
 # -- the soak --------------------------------------------------------------------------
 
 
-def test_a_short_soak_loses_no_move_and_accounts_for_every_fault(config):
+@TRANSPORTS
+def test_a_short_soak_loses_no_move_and_accounts_for_every_fault(config, transport):
+    """Over TCP the faults are a connection's own (ETHERNET_FAULT_KINDS), with no retries:
+    one timer A, and a dropped connection loses the answer as a silence does."""
+    ethernet = transport is HostTransport.ETHERNET
     result = run_soak(
         config,
         moves=120,
         fault_rate=0.15,
         seed=5,
         time_scale=TIME_SCALE,
-        timer_a_s=TEST_LINE["timer_a_s"],
+        timer_a_s=ETHERNET_TIMER_A_S if ethernet else TEST_LINE["timer_a_s"],
         timer_b_s=TEST_LINE["timer_b_s"],
+        transport=transport,
     )
     injected = result["faults_injected"]
-    assert all(injected[kind] > 0 for kind in FAULT_KINDS), injected
-    for kind in FAULT_KINDS:
+    assert set(injected) == set(ETHERNET_FAULT_KINDS if ethernet else FAULT_KINDS)
+    assert all(injected[kind] > 0 for kind in injected), injected
+    for kind in injected:
         assert result["faults_recovered"][kind] + result["faults_reported"][kind] == injected[kind], kind
     assert result["faults_unaccounted"] == 0
-    assert result["faults_reported"]["timeout"] == injected["timeout"]  # a silence outlasts every retry
+    for kind in ("timeout", "drop") if ethernet else ("timeout",):  # a silence outlasts every retry
+        assert result["faults_reported"][kind] == injected[kind], kind
     assert sum(result["faults_recovered"].values()) > 0
     assert result["moves_off_path"] == 0 and result["commands_accepted_twice"] == 0
     assert result["final_pose_error_mm"] < 0.01 and result["final_pose_error_deg"] < 0.001

@@ -1,12 +1,14 @@
 """A whole assembly servo through the JRC link: the laser method on task 2, the loop
-commanding a JRC backend behind the safety layer, over a pty, to the JRC emulator
-that moves the very SimulatedCell the camera looks at."""
+commanding a JRC backend behind the safety layer, over a pty (or the Ethernet server's
+loopback TCP port), to the JRC emulator that moves the very SimulatedCell the camera
+looks at."""
 
 from contextlib import ExitStack
 
 import pytest
 
 from tests.jrc_fixtures import jrc_link, short_timer_cell
+from vservo.core.cell.config import HostTransport
 from vservo.core.robot.safety import SafetyLayer
 from vservo.core.servo.step_policy import DividedPositionStep
 from vservo.core.study.run import RunSettings, run_task
@@ -20,7 +22,8 @@ TIME_SCALE = 1000.0
 
 
 @pytest.mark.slow
-def test_the_laser_servo_of_task_2_converges_through_the_jrc_link():
+@pytest.mark.parametrize("transport", list(HostTransport))
+def test_the_laser_servo_of_task_2_converges_through_the_jrc_link(transport):
     config = short_timer_cell()
     motion = config.motion
     emulators = []
@@ -28,7 +31,7 @@ def test_the_laser_servo_of_task_2_converges_through_the_jrc_link():
     with ExitStack() as links:
 
         def through_the_jrc(cell):
-            robot, emulator = links.enter_context(jrc_link(cell, config, time_scale=TIME_SCALE))
+            robot, emulator = links.enter_context(jrc_link(cell, config, time_scale=TIME_SCALE, transport=transport))
             emulators.append(emulator)
             robot.servo(True)
             return SafetyLayer.from_config(robot, config)

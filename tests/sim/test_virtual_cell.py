@@ -2,13 +2,15 @@
 the product drives it through the cell file it writes, exactly as it drives a real cell.
 
 Everything here crosses process boundaries as on a real cell: the JRC emulator answers on
-a pseudo-terminal, the camera is an MJPEG stream OpenCV opens by URL, and the fixture is an
-HTTP port. The test reads the virtual cell's released lines (its gauge) to check what the
+a pseudo-terminal (or, with --robot-link ethernet, as a later controller's Ethernet server
+on a TCP port: every test runs on both), the camera is an MJPEG stream OpenCV opens by URL,
+and the fixture is an HTTP port. The test reads the virtual cell's released lines (its gauge) to check what the
 controller process, which has no gauge, reports by vision.
 """
 
 import json
 import os
+import socket
 import subprocess
 import sys
 import tomllib
@@ -23,7 +25,7 @@ import pytest
 from tests.production.test_real_cell import SIMULATOR_MODULES, loaded_modules
 from tests.virtual_cell_process import ROOT, VirtualCellProcess
 from vservo.core.cell.cell_file import dumps_cell
-from vservo.core.cell.config import ConfigError, load_cell, read_cell_data
+from vservo.core.cell.config import SERIAL_ONLY_KEYS, ConfigError, HostTransport, load_cell, read_cell_data
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.sim.virtual_cell import with_truth
 
@@ -37,9 +39,10 @@ def fixture_request(url: str, method: str = "GET", body: bytes | None = None) ->
         return exc.code, json.loads(exc.read())
 
 
-@pytest.fixture(scope="module")
-def virtual_cell():
-    cell = VirtualCellProcess("--seed", "3")
+@pytest.fixture(scope="module", params=list(HostTransport))
+def virtual_cell(request):
+    cell = VirtualCellProcess("--seed", "3", "--robot-link", request.param)
+    cell.robot_link = request.param
     yield cell
     assert cell.stop() == 0
 
@@ -48,12 +51,18 @@ def test_it_prints_its_devices_and_writes_a_real_cell_file_with_no_truth_in_it(v
     addresses = virtual_cell.addresses
     assert set(addresses) == {"cell_file", "jrc_port", "camera_url", "fixture"}
     config = load_cell(addresses["cell_file"])
-    assert config.real and config.robot_backend == "jrc" and config.jrc.port == addresses["jrc_port"]
+    assert config.real and config.robot_backend == "jrc" and config.jrc.address == addresses["jrc_port"]
+    assert config.jrc.transport is virtual_cell.robot_link
     assert config.camera_source.kind == "capture" and config.camera_source.device == addresses["camera_url"]
     assert config.vacuum_device.device == "jrc_io" and config.fixture_url == addresses["fixture"]
     assert config.simulation is None  # the plant's layout and truth stay in the virtual cell
-    assert "simulation" not in tomllib.loads(Path(addresses["cell_file"]).read_text())
-    assert os.path.exists(addresses["jrc_port"])
+    tables = tomllib.loads(Path(addresses["cell_file"]).read_text())
+    assert "simulation" not in tables
+    if config.jrc.transport is HostTransport.ETHERNET:
+        assert not set(tables["jrc"]) & set(SERIAL_ONLY_KEYS)  # no serial line's keys on a TCP link
+        socket.create_connection((config.jrc.host, config.jrc.tcp_port), timeout=5).close()
+    else:
+        assert os.path.exists(addresses["jrc_port"])
 
 
 def test_its_camera_is_a_stream_opencv_opens_by_url(virtual_cell):
@@ -132,6 +141,8 @@ def test_a_truth_file_without_truth_is_refused(tmp_path):
     assert "truth" not in tables["simulation"]  # the cell's own tables are not changed
 
 
+# A serial port is opened exclusively; over TCP a second session waits for the server instead.
+@pytest.mark.parametrize("virtual_cell", [HostTransport.SERIAL], indirect=True)
 def test_a_second_program_on_the_robots_port_is_refused_naming_the_holder_and_moves_nothing(virtual_cell, tmp_path):
     """While this test holds the virtual cell's JRC port (as a running controller does),
     `vservo run` on the same cell file is refused at once in one line naming the port and
@@ -156,3 +167,17 @@ def test_a_second_program_on_the_robots_port_is_refused_naming_the_holder_and_mo
         assert np.array_equal(holder.read_pose(), before)
     finally:
         holder.close()
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["--robot-link", "ethernet", "--jrc-link", "/tmp/jrc"], "--jrc-link names a pseudo-terminal"),
+        (["--jrc-tcp-port", "10080"], "--jrc-tcp-port is the Ethernet server's port"),
+    ],
+)
+def test_a_link_option_for_the_other_link_is_refused(args, words):
+    run = subprocess.run(
+        [sys.executable, "-m", "vservo.app.cli", "virtual-cell", *args], capture_output=True, text=True, timeout=120, cwd=ROOT
+    )
+    assert run.returncode == 2 and words in run.stderr, run.stderr
