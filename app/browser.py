@@ -94,12 +94,15 @@ class ServeProcess:
         seed: int = 3,
         timeout_s: float = 120.0,
         cell: str | None = None,
+        python_options: tuple[str, ...] = (),
     ) -> ServeProcess:
+        """``python_options``: the interpreter's own (``-X importtime``: its imports on standard error)."""
         stderr_path = Path(data) / "serve.stderr"
         Path(data).mkdir(parents=True, exist_ok=True)
         cell_option = ["--cell", cell] if cell else []
         command = [
             sys.executable,
+            *python_options,
             "-m",
             "vservo.app.cli",
             *cell_option,

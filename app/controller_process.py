@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from vservo.core.production.channel import KEY_ENVIRONMENT, new_key
+from vservo.core.production.protocol import KEY_ENVIRONMENT, new_key
 
 START_TIMEOUT_S = 60.0  # loading the arm model and the camera takes seconds on a loaded machine
 

@@ -7,7 +7,8 @@ Drawn with OpenCV on the decoded JPEG (grey camera image, colour overlays):
 - corner trajectories so far in this run: one thin line per corner;
 - laser spot: a yellow cross; its target (the taught spot): a yellow ring, joined to the spot.
 
-Pixels arrive as the channel sends them: lists, with -1 (or None) for a feature not seen.
+Pixels arrive as the channel's FrameMeta carries them, NaN for a feature not seen (a
+recording's, replayed, as lists with -1 or None).
 Drawing uses fixed-point coordinates (OpenCV's ``shift``) so a marker sits within 1/16 px
 of the sub-pixel measurement. Viser-free.
 """
@@ -18,6 +19,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from vservo.core.production.protocol import FrameMeta
 
 SHIFT = 4  # fixed-point bits of the drawn coordinates
 SEEN_BGR = (60, 220, 60)
@@ -50,15 +53,15 @@ class Overlay:
     trail_px: np.ndarray | None = None  # (T, 4, 2)
 
     @classmethod
-    def from_meta(cls, meta: dict) -> Overlay:
-        """From a channel frame message's meta (vservo.core.production.channel.frame_message)."""
-        trail = meta.get("trail_px")
+    def from_meta(cls, meta: FrameMeta) -> Overlay:
+        """From what the controller saw in a frame (its shapes checked: a bad one is not drawn)."""
+        trail = meta.trail_px
         return cls(
-            corners_px=pixel_array(meta.get("corners_px"), (4, 2)),
-            laser_spot_px=pixel_array(meta.get("laser_spot_px"), (2,)),
-            desired_corners_px=pixel_array(meta.get("desired_corners_px"), (4, 2)),
-            desired_laser_px=pixel_array(meta.get("desired_laser_px"), (2,)),
-            trail_px=None if not trail else pixel_array(trail, (len(trail), 4, 2)),
+            corners_px=pixel_array(meta.corners_px, (4, 2)),
+            laser_spot_px=pixel_array(meta.laser_spot_px, (2,)),
+            desired_corners_px=pixel_array(meta.desired_corners_px, (4, 2)),
+            desired_laser_px=pixel_array(meta.desired_laser_px, (2,)),
+            trail_px=None if trail is None or len(trail) == 0 else pixel_array(trail, (len(trail), 4, 2)),
         )
 
 
@@ -134,7 +137,7 @@ def encode_jpeg(image: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:
     return jpeg.tobytes()
 
 
-def render(jpeg: bytes, meta: dict) -> bytes:
+def render(jpeg: bytes, meta: FrameMeta) -> bytes:
     """The channel's frame with its overlay, as JPEG: one call per frame for all browsers."""
     return encode_jpeg(draw(decode(jpeg), Overlay.from_meta(meta)))
 

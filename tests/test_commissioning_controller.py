@@ -14,8 +14,9 @@ import pytest
 from vservo.core.cell.config import load_cell
 from vservo.core.production.assembly import Outcome, Phase
 from vservo.core.production.cell_controller import CellController, CommandRefused, commissioned_path
-from vservo.core.production.channel import ControllerClient, ControllerServer, new_key
+from vservo.core.production.channel import ControllerServer
 from vservo.core.production.commissioning import CommissionSettings
+from vservo.core.production.protocol import ApplyCommissioning, Commission, ControllerClient, Jog, new_key
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import DEMO_JOB, Store
 
@@ -68,14 +69,14 @@ def test_commission_over_the_channel_apply_and_assemble_on_the_new_model(cell_fi
     client = ControllerClient(server.address, key)
     try:
         nominal_fx = controller.rig.config.nominal.camera.intrinsics.fx
-        reply = client.call("commission", steps=["camera", "hand-eye", "laser", "nn"])
+        reply = client.call(Commission(steps=("camera", "hand-eye", "laser", "nn")))
         assert reply.ok, reply.error
         out = Path(reply.result)
         assert out == cell_file.with_name("line3-commissioned.toml")  # beside the running file
         assert controller.state.phase == Phase.COMMISSIONING.value
-        refused = client.call("jog", translation_m=[0, 0, 0.01])
+        refused = client.call(Jog(translation_m=(0, 0, 0.01)))
         assert not refused.ok and "commissioning is under way" in refused.error
-        assert not client.call("commission").ok  # one at a time
+        assert not client.call(Commission()).ok  # one at a time
 
         finished = states.wait_for(
             lambda s: s.commissioning and (s.commissioning["summary"] or s.commissioning["error"]), "finished commissioning"
@@ -101,7 +102,7 @@ def test_commission_over_the_channel_apply_and_assemble_on_the_new_model(cell_fi
         assert len(frames) > 20  # what the camera saw was shown
         assert not out.exists()  # nothing is written before Apply
 
-        applied = client.call("apply_commissioning", timeout_s=60.0)
+        applied = client.call(ApplyCommissioning(), timeout_s=60.0)
         assert applied.ok, applied.error
         assert Path(applied.result) == out
         written = load_cell(out)
@@ -114,7 +115,7 @@ def test_commission_over_the_channel_apply_and_assemble_on_the_new_model(cell_fi
         assert controller.rig.extractor.camera is config.nominal.camera
         assert controller.state.cell_file == str(out)
         assert controller.state.commissioning["applied"] == str(out)
-        again = client.call("apply_commissioning")
+        again = client.call(ApplyCommissioning())
         assert not again.ok and "nothing to apply" in again.error
 
         # The demo job, taught before, assembles on the commissioned model.

@@ -31,6 +31,7 @@ import numpy as np
 
 from vservo.core.cell.kinematics import ToolMount
 from vservo.core.cell.scene import Cube, LaidBoard, MetalPart, Scene
+from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
 from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import Matrix, matrix_from_pose, pose_from_mm_deg
@@ -44,7 +45,7 @@ MAX_IMAGE_SIDE_PX = 20_000
 MAX_WATCHDOG_S = 600.0
 
 
-class ConfigError(ValueError):
+class ConfigError(VservoError, ValueError):
     """A cell configuration that cannot be used; the message names the key and value."""
 
 

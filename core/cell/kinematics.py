@@ -16,6 +16,7 @@ import numpy as np
 import pinocchio as pin
 from numpy.typing import ArrayLike
 
+from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix, exp_twist
 from vservo.robot_models.loader import ArmDescription
 
@@ -42,7 +43,7 @@ class ToolMount:
             object.__setattr__(self, name, _pose(getattr(self, name), name))
 
 
-class KinematicsError(Exception):
+class KinematicsError(VservoError):
     """A kinematic query that cannot be answered."""
 
 

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
+from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel, as_points
 from vservo.core.geometry.spatial import Matrix, transform
 
@@ -41,7 +42,7 @@ _PLANAR_RTOL = 1e-6
 _DEGENERATE_RTOL = 1e-9
 
 
-class PoseEstimationError(ValueError):
+class PoseEstimationError(VservoError, ValueError):
     """The image points do not determine a pose; the message says why."""
 
 

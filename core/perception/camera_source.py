@@ -37,6 +37,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from vservo.core.errors import VservoError
+
 log = logging.getLogger("vservo.camera")
 
 Size = tuple[int, int]  # (width, height) in pixels
@@ -45,7 +47,7 @@ Size = tuple[int, int]  # (width, height) in pixels
 CLOSE_WAIT_S = 2.0
 
 
-class CameraSourceError(RuntimeError):
+class CameraSourceError(VservoError, RuntimeError):
     """A source that cannot be opened, or a frame it delivered that cannot be used."""
 
 

@@ -40,6 +40,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from vservo.core.errors import VservoError
 from vservo.core.perception.camera_source import BaseSource, Frame, Size, SourceLost
 
 log = logging.getLogger("vservo.recording")
@@ -57,7 +58,7 @@ _FRAME_FILE = re.compile(r"frames/[0-9]{6,}\.png")
 _PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]  # fast: the recorder runs inside the loop
 
 
-class RecordingError(RuntimeError):
+class RecordingError(VservoError, RuntimeError):
     """A recording that cannot be written as asked, or read back as it is on disk."""
 
 

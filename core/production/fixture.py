@@ -17,8 +17,10 @@ import urllib.request
 
 import numpy as np
 
+from vservo.core.errors import VservoError
 
-class FixtureError(RuntimeError):
+
+class FixtureError(VservoError, RuntimeError):
     """The fixture did not do what was asked; the message says what and why."""
 
 

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vservo.core.cell.config import CellConfig, CellModel, ConfigError
+from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix, rotation_angle, transform
 
 if TYPE_CHECKING:
@@ -38,7 +39,7 @@ HEIGHT_TOLERANCE_M = 0.005
 ORIENTATION_TOLERANCE_RAD = np.deg2rad(1.0)
 
 
-class LocateError(RuntimeError):
+class LocateError(VservoError, RuntimeError):
     """The part could not be located; the message says why."""
 
 

@@ -43,8 +43,8 @@ import numpy as np
 from vservo.core.cell.config import RecordingRetention
 from vservo.core.errors import VservoError
 from vservo.core.perception.recording import write_atomic
-from vservo.core.production.assembly import Outcome
 from vservo.core.production.jobs import Job, JobError, job_from_json, read_job_file, validate_job_name
+from vservo.core.production.protocol.state import Outcome
 
 SCHEMA_VERSION = 2
 DEMO_JOB = "demo"

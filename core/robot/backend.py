@@ -18,11 +18,12 @@ from typing import Protocol
 import numpy as np
 
 from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.robot.commands import RobotCommand, VelocityCommand
 
 
-class RobotError(Exception):
+class RobotError(VservoError):
     """The robot refused or failed a request; the message says what and why."""
 
 

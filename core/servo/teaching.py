@@ -10,12 +10,13 @@ from __future__ import annotations
 import numpy as np
 
 from vservo.core.cell.scene import Cube
+from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 
 
-class TeachError(ValueError):
+class TeachError(VservoError, ValueError):
     """The view cannot be taught; the message says what is missing."""
 
 
