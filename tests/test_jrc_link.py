@@ -438,22 +438,25 @@ def test_an_alarm_in_the_middle_of_a_move_is_reported_and_reset(robot, cell, emu
     assert emulator.faults.injected["alarm"] == 1
 
 
-def test_a_pendant_hold_lasts_until_the_pendant_releases_it(robot, cell, emulator):
-    robot.servo(True)
-    target = transform(t=(0.0, -0.03, 0.0)) @ robot.read_pose()
-    emulator.faults.inject("hold")
-    robot.move_to(target, 0.05)
-    assert robot.wait_motion() is False
-    status = robot.status()
-    assert status.held and "pendant hold" in status.detail
-    robot.hold(False)  # the host cannot release the pendant's hold
-    with pytest.raises(JrcNotReady, match="2020 held from the programming pendant"):
+def test_a_pendant_hold_lasts_until_the_pendant_releases_it(cell, config):
+    # A hold of 40 s of JRC time, 2 s of wall time: long enough that a loaded machine still
+    # reads the status before the pendant releases it.
+    with jrc_link(cell, config, FaultPlan(pendant_hold_s=40.0)) as (robot, emulator):
+        robot.servo(True)
+        target = transform(t=(0.0, -0.03, 0.0)) @ robot.read_pose()
+        emulator.faults.inject("hold")
         robot.move_to(target, 0.05)
-    deadline = time.monotonic() + 10.0
-    while robot.status().held and time.monotonic() < deadline:
-        time.sleep(0.01)
-    robot.move_to(target, 0.05)
-    assert robot.wait_motion()
+        assert robot.wait_motion() is False
+        status = robot.status()
+        assert status.held and "pendant hold" in status.detail
+        robot.hold(False)  # the host cannot release the pendant's hold
+        with pytest.raises(JrcNotReady, match="2020 held from the programming pendant"):
+            robot.move_to(target, 0.05)
+        deadline = time.monotonic() + 10.0
+        while robot.status().held and time.monotonic() < deadline:
+            time.sleep(0.01)
+        robot.move_to(target, 0.05)
+        assert robot.wait_motion()
 
 
 @pytest.mark.parametrize(

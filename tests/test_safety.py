@@ -4,6 +4,7 @@ Each refusal names its reason and leaves the robot where it was; the e-stop and 
 watchdog hold the robot and refuse every move until they are reset.
 """
 
+import re
 import time
 from contextlib import contextmanager
 
@@ -114,6 +115,21 @@ def test_a_long_move_refused_on_its_way_moves_nothing(safe):
     robot.check_target(transform(t=(0.0, 0.04, 0.0)) @ before, SPEED)  # its first step alone would pass
     with pytest.raises(SafetyRefusal, match="move refused"):
         robot.move_linear(transform(t=(0.0, 0.45, 0.0)) @ before, SPEED)
+    assert np.array_equal(arm_pose(cell), before)
+
+
+@pytest.mark.parametrize("distance_m", [10.0, 1e9, 1e300])
+def test_a_far_target_is_refused_at_once_naming_it_whatever_the_distance(safe, distance_m):
+    """The target is checked against the workspace before a path is built: the refusal
+    names the target itself (not the first step of a path of 10^10 steps to it), so the
+    work is bounded whatever was asked; nothing moves."""
+    robot, cell = safe
+    before = arm_pose(cell)
+    far = transform(t=(0.0, distance_m, 0.0)) @ before
+    shown = re.escape(f"{np.round(far[:3, 3] * 1000, 1).tolist()}")
+    for move in (robot.move_linear, robot.move_joint):
+        with pytest.raises(OutsideWorkspace, match=f"the flange would be at {shown} mm"):
+            move(far, SPEED)
     assert np.array_equal(arm_pose(cell), before)
 
 

@@ -17,12 +17,14 @@ import urllib.request
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 
 from tests.test_real_cell import SIMULATOR_MODULES, loaded_modules
 from tests.virtual_cell_process import ROOT, VirtualCellProcess
 from vservo.core.cell.cell_file import dumps_cell
 from vservo.core.cell.config import ConfigError, load_cell, read_cell_data
+from vservo.core.robot.jrc import JrcBackend
 from vservo.core.sim.virtual_cell import with_truth
 
 
@@ -128,3 +130,29 @@ def test_a_truth_file_without_truth_is_refused(tmp_path):
     truth = {"simulation": {"truth": {"hand_eye": {"eMc": [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]}}}}
     assert with_truth(tables, truth)["simulation"]["truth"] == truth["simulation"]["truth"]
     assert "truth" not in tables["simulation"]  # the cell's own tables are not changed
+
+
+def test_a_second_program_on_the_robots_port_is_refused_naming_the_holder_and_moves_nothing(virtual_cell, tmp_path):
+    """While this test holds the virtual cell's JRC port (as a running controller does),
+    `vservo run` on the same cell file is refused at once in one line naming the port and
+    this process; the arm has not moved."""
+    config = load_cell(virtual_cell.addresses["cell_file"])
+    holder = JrcBackend(config.jrc)
+    holder.connect()
+    try:
+        before = holder.read_pose()
+        run = subprocess.run(
+            [sys.executable, "-m", "vservo.app.cli", "run", "--job", "demo", "--cell", virtual_cell.addresses["cell_file"]]
+            + ["--data", str(tmp_path / "data")],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            cwd=ROOT,
+        )
+        assert run.returncode == 2, run.stdout + run.stderr
+        lines = run.stderr.strip().splitlines()
+        assert len(lines) == 1, run.stderr
+        assert config.jrc.port in lines[0] and f"process {os.getpid()} " in lines[0], lines[0]
+        assert np.array_equal(holder.read_pose(), before)
+    finally:
+        holder.close()

@@ -45,6 +45,10 @@ Size = tuple[int, int]  # (width, height) in pixels
 
 # How long closing a live source waits for its reader's read in progress to return.
 CLOSE_WAIT_S = 2.0
+# How long a reader waits for a live source's next frame, unless told (the cell file
+# passes its [safety] watchdog_s); at most MAX_FRAME_TIMEOUT_S.
+DEFAULT_FRAME_TIMEOUT_S = 5.0
+MAX_FRAME_TIMEOUT_S = 600.0
 
 
 class CameraSourceError(VservoError, RuntimeError):
@@ -252,6 +256,11 @@ class VideoCaptureSource(BaseSource):
     buffer_frames: frames ``read_after`` still discards once a frame arrived late enough,
       for a pipeline that holds frames inside even while it is read continuously (0 for
       a plain camera or stream: see ``read_after``).
+    frame_timeout_s: the longest a live source may go without delivering a frame to a
+      waiting reader: then it is lost (``SourceLost`` naming the stall), so a camera whose
+      connection stays open but sends nothing stops a run within this time, and not at
+      the network stack's own timeouts minutes later. A stream is also opened and read
+      with OpenCV's open and read timeouts at this value.
     clock / sleep: the timestamp clock and the wait between reconnections, injectable so
       tests neither wait nor depend on the time of day. The clock must be the robot's
       (``time.monotonic`` for the JRC link) for ``read_after``; by default the wait ends
@@ -282,6 +291,7 @@ class VideoCaptureSource(BaseSource):
         loop: bool = False,
         exposure_latency_s: float = 0.0,
         buffer_frames: int = 0,
+        frame_timeout_s: float = DEFAULT_FRAME_TIMEOUT_S,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] | None = None,
         opener: Callable[[int | str], CaptureLike] | None = None,
@@ -296,6 +306,10 @@ class VideoCaptureSource(BaseSource):
             raise ValueError(f"exposure_latency_s must be finite and >= 0, got {exposure_latency_s!r}")
         if isinstance(buffer_frames, bool) or not isinstance(buffer_frames, int) or buffer_frames < 0:
             raise ValueError(f"buffer_frames must be an integer >= 0, got {buffer_frames!r}")
+        if not 0.0 < frame_timeout_s <= MAX_FRAME_TIMEOUT_S:
+            raise ValueError(
+                f"frame_timeout_s must be more than 0 and at most {MAX_FRAME_TIMEOUT_S:g} s, got {frame_timeout_s!r}"
+            )
         self.spec = spec
         self.is_file = is_video_file(spec)
         if loop and not self.is_file:
@@ -306,10 +320,11 @@ class VideoCaptureSource(BaseSource):
         self.loop = loop
         self.exposure_latency_s = float(exposure_latency_s)
         self.buffer_frames = buffer_frames
+        self.frame_timeout_s = float(frame_timeout_s)
         self._clock = clock
         self._stopping = threading.Event()
         self._sleep: Callable[[float], object] = sleep if sleep is not None else self._stopping.wait
-        self._opener: Callable[[int | str], CaptureLike] = opener if opener is not None else cv2.VideoCapture
+        self._opener: Callable[[int | str], CaptureLike] = opener if opener is not None else self._open_capture
         self._next_index = 0
         self._last_size: Size | None = None
         self._lost: str | None = None  # why the source is gone, once it is
@@ -335,6 +350,15 @@ class VideoCaptureSource(BaseSource):
         if isinstance(self.spec, int):
             return f"camera device {self.spec}"
         return f"video file {self.spec!r}" if self.is_file else f"stream {self.spec!r}"
+
+    def _open_capture(self, spec: int | str) -> CaptureLike:
+        """OpenCV's capture of ``spec``; a stream's opens and reads time out at frame_timeout_s."""
+        if isinstance(spec, int) or self.is_file:
+            return cv2.VideoCapture(spec)
+        timeout_ms = int(1000 * self.frame_timeout_s)
+        return cv2.VideoCapture(
+            spec, cv2.CAP_ANY, [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, timeout_ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, timeout_ms]
+        )
 
     def _open(self) -> tuple[CaptureLike | None, str]:
         """A fresh opened capture, or None and why not."""
@@ -447,7 +471,10 @@ class VideoCaptureSource(BaseSource):
 
     def _take(self, arrived_after_s: float) -> Frame:
         """The newest live frame not handed out before that arrived at or after
-        ``arrived_after_s``, waiting for one; SourceLost once the reader gave up."""
+        ``arrived_after_s``, waiting for one; SourceLost once the reader gave up, or when
+        no new frame came within frame_timeout_s."""
+        # The wall clock, not the injectable one: a deadline on how long this thread waits.
+        deadline = time.monotonic() + self.frame_timeout_s
         with self._arrived:
             while True:
                 self._check_open()
@@ -458,8 +485,23 @@ class VideoCaptureSource(BaseSource):
                         break
                 if self._lost is not None:
                     raise SourceLost(self._lost)
-                self._arrived.wait()
+                remaining_s = deadline - time.monotonic()
+                if remaining_s <= 0.0:
+                    raise self._stalled()
+                self._arrived.wait(remaining_s)
         return self._frame(image, arrived_s)
+
+    def _stalled(self) -> SourceLost:
+        """Give the source up after frame_timeout_s without a frame (called holding _arrived).
+
+        Its reader may be blocked in a read that returns only at the network's timeouts; it
+        owns the capture, so it is told to stop and releases the capture when that read
+        returns. A reconnection (``Rig.reconnect`` on Reset) opens a new source meanwhile.
+        """
+        self._lost = f"{self._describe()} delivered no frame for {self.frame_timeout_s:g} s: the camera stalled"
+        self._stopping.set()
+        self._arrived.notify_all()
+        return SourceLost(self._lost)
 
     def _read_continuously(self) -> None:
         """The live reader: read, stamp and keep the newest frame until closed or lost."""

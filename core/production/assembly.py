@@ -34,14 +34,14 @@ from vservo.core.perception.measurement import Measurement
 from vservo.core.production.grasp import GraspChoice, grasp_choice
 from vservo.core.production.jobs import Job, TaughtModel
 from vservo.core.production.locate import LocateError, PartLocator
-from vservo.core.production.placement_check import PlacementCheck, check_placement
+from vservo.core.production.placement_check import CheckView, PlacementCheck, check_placement
 from vservo.core.production.protocol.state import Outcome, Phase
 from vservo.core.production.retarget import desired_view_for_part, start_pose_for_part
 from vservo.core.robot.backend import RobotBackend, RobotError
 from vservo.core.robot.gripper import VacuumGripper
 from vservo.core.robot.safety import SafetyLayer, SafetyRefusal
 from vservo.core.servo.joint_limits import JointLimitedSteps, JointLimitSettings
-from vservo.core.servo.loop import Cycle, LoopLimits, Perception, run_servo
+from vservo.core.servo.loop import Cycle, LoopLimits, Perception, ServoOutcome, run_servo
 from vservo.core.servo.methods import LawSettings, build_law
 from vservo.core.servo.step_policy import StepPolicy
 
@@ -223,6 +223,19 @@ def hold_after_fault(robot: RobotBackend) -> str:
     return ""
 
 
+@dataclass(frozen=True)
+class RunSettings:
+    """What a run takes besides the job and the rig: the taught moves' speed (approach and
+    press at half), the servo's limits, and the cell's hooks."""
+
+    speed_m_s: float = 0.05
+    limits: LoopLimits = LoopLimits()
+    on_event: Callable[[AssemblyEvent], None] = lambda event: None
+    measure_placement: Callable[[], PlacementReport | None] = lambda: None
+    estopped: Callable[[], bool] = lambda: False
+    locator: PartLocator | None = None
+
+
 def run_assembly(
     job: Job,
     robot: SafetyLayer,
@@ -245,123 +258,166 @@ def run_assembly(
     located part's start pose as joint moves (SafetyLayer.move_joint); the servo's steps
     as the step policy makes them.
     """
-    started = time.monotonic()
-    timer = CellTimer(robot)
-    servo = None
+    settings = RunSettings(speed_m_s, limits, on_event, measure_placement, estopped, locator)
+    return AssemblySequence(job, robot, gripper, perception, model, policy, settings).run()
 
-    def end(
-        outcome: Outcome, reason: str, seen: PlacementCheck | None = None, gauge: PlacementReport | None = None
-    ) -> AssemblyOutcome:
-        if outcome in (Outcome.FAULT, Outcome.ESTOPPED):
-            reason += hold_after_fault(robot)
-            on_event(PhaseChange(Phase.ESTOPPED if outcome is Outcome.ESTOPPED else Phase.FAULT, reason))
+
+class AssemblySequence:
+    """One run of a job, a method per step of Fig. C-3: locate (a locating job), the start
+    pose, the servo, the pick, the place, the check view, the verdict. A step that can end
+    the run returns its AssemblyOutcome, or what the next step needs."""
+
+    def __init__(
+        self,
+        job: Job,
+        robot: SafetyLayer,
+        gripper: VacuumGripper,
+        perception: Perception,
+        model: CellModel,
+        policy: StepPolicy,
+        settings: RunSettings,
+    ) -> None:
+        self.job, self.robot, self.gripper, self.perception = job, robot, gripper, perception
+        self.model, self.policy, self.settings = model, policy, settings
+        self.started_s = time.monotonic()
+        self.timer = CellTimer(robot)
+        self.servo: ServoOutcome | None = None
+
+    def run(self) -> AssemblyOutcome:
+        seen = None
+        try:
+            start_bMe = self.job.start_bMe
+            if self.job.survey_bMe is not None:
+                located = self._locate(self.job.survey_bMe)
+                if isinstance(located, AssemblyOutcome):
+                    return located
+                start_bMe = located
+            self._to_start(start_bMe)
+            servo = self._servo()
+            if isinstance(servo, AssemblyOutcome):
+                return servo
+            bMe_pick = self._pick(servo)
+            if isinstance(bMe_pick, AssemblyOutcome):
+                return bMe_pick
+            self._place(bMe_pick)
+            if self.job.check is not None:
+                seen = self._look_at_the_placed_part(self.job.check)
+        except (RobotError, UnreachableTarget) as exc:
+            if self.settings.estopped():
+                return self._end(Outcome.ESTOPPED, "e-stop pressed")
+            return self._end(Outcome.FAULT, f"robot: {exc}")
+        return self._verdict(seen)
+
+    def _say(self, phase: Phase, detail: str) -> None:
+        self.settings.on_event(PhaseChange(phase, detail))
+
+    def _move(self, target: Matrix, speed_m_s: float | None = None) -> None:
+        self.robot.move_linear(target, self.settings.speed_m_s if speed_m_s is None else speed_m_s)
+
+    def _locate(self, survey_bMe: Matrix) -> Matrix | AssemblyOutcome:
+        """Survey the table, locate the part and check the servo's goal over it is reachable:
+        the start pose for the part where it lies."""
+        job, robot, speed_m_s = self.job, self.robot, self.settings.speed_m_s
+        if self.settings.locator is None:
+            return self._end(
+                Outcome.FAULT,
+                "the job locates its part and this cell has no network to locate it with: "
+                "commission the nn step (docs/commissioning.md)",
+            )
+        self.timer.enter(CellTimePhase.LOCATE)
+        self._say(Phase.SERVOING, "surveying the table for the part")
+        # Transfers over the table on the joint-space line: the straight one between two far
+        # tool-down poses can leave the arm's thin tool-down shell (SafetyLayer.joint_path).
+        robot.move_joint(survey_bMe, speed_m_s)
+        # A frame exposed after the move ended, from the pose the robot reports.
+        survey = self.perception.perceive(FlangeReadout(robot).measure(), robot.clock_s())
+        try:
+            located = self.settings.locator.locate(survey.corners_px, robot.read_pose(), job.part_side_m)
+        except LocateError as exc:
+            return self._end(Outcome.FAULT, f"locate: {exc}")
+        taught = job.taught_model or TaughtModel.of(self.model)
+        where = f"part located at ({1000 * located.bMo[0, 3]:.1f}, {1000 * located.bMo[1, 3]:.1f}) mm"
+        try:  # a goal out of reach would servo until stuck against a joint limit
+            goal_bMe = desired_view_for_part(job, taught, located.bMo)
+            robot.check_target(goal_bMe, speed_m_s, bMe_now=goal_bMe)
+        except (SafetyRefusal, UnreachableTarget) as exc:
+            return self._end(Outcome.FAULT, f"{where}, out of the arm's reach: the servo's goal over it is refused ({exc})")
+        self._say(Phase.SERVOING, where)
+        return start_pose_for_part(job, taught, located.bMo)
+
+    def _to_start(self, start_bMe: Matrix) -> None:
+        self.timer.enter(CellTimePhase.START)
+        self._say(Phase.SERVOING, "moving to the start pose")
+        if self.job.survey_bMe is None:
+            self._move(start_bMe)
         else:
-            on_event(PhaseChange(Phase.DONE, reason))
-        log.info("assembly %s: %s", outcome, reason)
-        return AssemblyOutcome(
-            outcome=outcome,
-            reason=reason,
-            final_error_px=servo.final_error_px if servo else float("nan"),
-            placement_error_mm=seen.error_mm if seen else None,
-            duration_s=time.monotonic() - started,
-            cell_time_s=timer.total_s(),
-            cell_time_by_phase_s=dict(timer.by_phase),
-            stages=servo.stages if servo else [],
-            iterations=servo.iterations if servo else 0,
-            gauge_placement_error_mm=gauge.error_mm if gauge else None,
-            gauge_inside=gauge.inside if gauge else None,
-        )
+            self.robot.move_joint(start_bMe, self.settings.speed_m_s)
 
-    def move(target: Matrix, speed: float = speed_m_s) -> None:
-        robot.move_linear(target, speed)
-
-    try:
-        start_bMe = job.start_bMe
-        if job.survey_bMe is not None:
-            if locator is None:
-                return end(
-                    Outcome.FAULT,
-                    "the job locates its part and this cell has no network to locate it with: "
-                    "commission the nn step (docs/commissioning.md)",
-                )
-            timer.enter(CellTimePhase.LOCATE)
-            on_event(PhaseChange(Phase.SERVOING, "surveying the table for the part"))
-            # Transfers over the table on the joint-space line: the straight one between two far
-            # tool-down poses can leave the arm's thin tool-down shell (SafetyLayer.joint_path).
-            robot.move_joint(job.survey_bMe, speed_m_s)
-            # A frame exposed after the move ended, from the pose the robot reports.
-            survey = perception.perceive(FlangeReadout(robot).measure(), robot.clock_s())
-            try:
-                located = locator.locate(survey.corners_px, robot.read_pose(), job.part_side_m)
-            except LocateError as exc:
-                return end(Outcome.FAULT, f"locate: {exc}")
-            taught = job.taught_model or TaughtModel.of(model)
-            start_bMe = start_pose_for_part(job, taught, located.bMo)
-            where = f"part located at ({1000 * located.bMo[0, 3]:.1f}, {1000 * located.bMo[1, 3]:.1f}) mm"
-            try:  # a goal out of reach would servo until stuck against a joint limit
-                goal_bMe = desired_view_for_part(job, taught, located.bMo)
-                robot.check_target(goal_bMe, speed_m_s, bMe_now=goal_bMe)
-            except (SafetyRefusal, UnreachableTarget) as exc:
-                return end(Outcome.FAULT, f"{where}, out of the arm's reach: the servo's goal over it is refused ({exc})")
-            on_event(PhaseChange(Phase.SERVOING, where))
-        timer.enter(CellTimePhase.START)
-        on_event(PhaseChange(Phase.SERVOING, "moving to the start pose"))
-        if job.survey_bMe is None:
-            move(start_bMe)
-        else:
-            robot.move_joint(start_bMe, speed_m_s)
-        timer.enter(CellTimePhase.SERVO)
-        on_event(PhaseChange(Phase.SERVOING, f"servoing with the {job.method} method"))
-        law = build_law(model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
-        servo = run_servo(
-            FlangeReadout(robot),
+    def _servo(self) -> ServoOutcome | AssemblyOutcome:
+        """Servo on the taught image until the feature error is below the job's threshold."""
+        job = self.job
+        self.timer.enter(CellTimePhase.SERVO)
+        self._say(Phase.SERVOING, f"servoing with the {job.method} method")
+        law = build_law(self.model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
+        self.servo = run_servo(
+            FlangeReadout(self.robot),
             law,
             job.desired,
-            model,
-            policy,
-            limits,
-            on_cycle=lambda cycle: on_event(ServoCycle(cycle)),
-            perception=perception,
-            robot=robot,
-            joint_limits=joint_limited_steps(robot),
+            self.model,
+            self.policy,
+            self.settings.limits,
+            on_cycle=lambda cycle: self.settings.on_event(ServoCycle(cycle)),
+            perception=self.perception,
+            robot=self.robot,
+            joint_limits=joint_limited_steps(self.robot),
         )
-        if not servo.converged:
-            if estopped():
-                return end(Outcome.ESTOPPED, "e-stop pressed")
-            return end(Outcome.FAULT, f"servo failed: {servo.failure.value if servo.failure else ''} ({servo.reason})")
+        if self.servo.converged:
+            return self.servo
+        if self.settings.estopped():
+            return self._end(Outcome.ESTOPPED, "e-stop pressed")
+        failure = self.servo.failure.value if self.servo.failure else ""
+        return self._end(Outcome.FAULT, f"servo failed: {failure} ({self.servo.reason})")
 
-        timer.enter(CellTimePhase.PICK)
-        on_event(PhaseChange(Phase.PICKING, f"servo converged, feature error {servo.final_error_px:.2f} px"))
-        # The part in the flange at the pick: where the servo's end puts it (eMc cdMo), seen from the pick.
+    def _part_in_pick(self) -> Matrix:
+        """pMo: the part in the flange at the pick, where the servo's end puts it (eMc cdMo)."""
+        return inverse(self.job.eMe_pick) @ self.model.eMc @ self.job.desired.cdMo
+
+    def _pick(self, servo: ServoOutcome) -> Matrix | AssemblyOutcome:
+        """Down onto the part at the taught transform (turned as the part's symmetry allows,
+        to turn the flange least), suction on, the grip confirmed, up: the pick pose."""
+        job, robot, speed_m_s = self.job, self.robot, self.settings.speed_m_s
+        self.timer.enter(CellTimePhase.PICK)
+        self._say(Phase.PICKING, f"servo converged, feature error {servo.final_error_px:.2f} px")
         bMe_end = robot.read_pose()
-        pMo = inverse(job.eMe_pick) @ model.eMc @ job.desired.cdMo
         pick = grasp_choice(
             bMe_end @ job.eMe_pick,
-            pMo,
+            self._part_in_pick(),
             job.part_side_m,
             job.grasp_symmetry,
             bMe_end,
             lambda bMe: _passes(robot, [bMe_end, lifted(bMe, job.approach_m), bMe], [speed_m_s, speed_m_s / 2]),
         )
-        bMe_pick = pick.bMe
-        on_event(PhaseChange(Phase.PICKING, _grasp_detail("picking", pick, job.grasp_symmetry)))
-        move(lifted(bMe_pick, job.approach_m))
-        move(bMe_pick, speed_m_s / 2)
-        gripper.set_vacuum(True)
-        if not gripper.holding():
-            gripper.set_vacuum(False)
-            return end(Outcome.FAULT, "the vacuum sensor reports no part on the cup after suction on")
-        move(lifted(bMe_pick, job.approach_m))
+        self._say(Phase.PICKING, _grasp_detail("picking", pick, job.grasp_symmetry))
+        self._move(lifted(pick.bMe, job.approach_m))
+        self._move(pick.bMe, speed_m_s / 2)
+        self.gripper.set_vacuum(True)
+        if not self.gripper.holding():
+            self.gripper.set_vacuum(False)
+            return self._end(Outcome.FAULT, "the vacuum sensor reports no part on the cup after suction on")
+        self._move(lifted(pick.bMe, job.approach_m))
+        return pick.bMe
 
-        timer.enter(CellTimePhase.PLACE)
-        on_event(PhaseChange(Phase.PLACING, "carrying the part to the metal part"))
-        # The place turned as far as the part's symmetry allows, to turn the flange least
-        # from the lifted pick and on to the check pose.
+    def _place(self, bMe_pick: Matrix) -> None:
+        """Over the metal part, down, release, up: the place turned as far as the part's
+        symmetry allows, to turn the flange least from the lifted pick and on to the check pose."""
+        job, robot, speed_m_s = self.job, self.robot, self.settings.speed_m_s
+        self.timer.enter(CellTimePhase.PLACE)
+        self._say(Phase.PLACING, "carrying the part to the metal part")
         bMe_check = None if job.check is None else job.check.check_bMe
         bMe_lifted = lifted(bMe_pick, job.approach_m)
         place = grasp_choice(
             job.bMe_place,
-            pMo,
+            self._part_in_pick(),
             job.part_side_m,
             job.grasp_symmetry,
             bMe_lifted,
@@ -371,45 +427,73 @@ def run_assembly(
             ),
             bMe_next=bMe_check,
         )
-        bMe_place = place.bMe
-        on_event(PhaseChange(Phase.PLACING, _grasp_detail("placing", place, job.grasp_symmetry)))
-        move(lifted(bMe_place, job.approach_m))
-        move(bMe_place, speed_m_s / 2)
-        gripper.set_vacuum(False)
-        move(lifted(bMe_place, job.approach_m))
-        seen = None
-        if job.check is not None:
-            timer.enter(CellTimePhase.CHECK)
-            on_event(PhaseChange(Phase.PLACING, "looking at the placed part from the check pose"))
-            move(job.check.check_bMe)
-            # A frame exposed after the move ended: the part as it lies, seen from where it was taught.
-            features = perception.perceive(FlangeReadout(robot).measure(), robot.clock_s())
-            seen = check_placement(job.check, features.corners_px, model.camera, job.part_side_m)
-    except (RobotError, UnreachableTarget) as exc:
-        if estopped():
-            return end(Outcome.ESTOPPED, "e-stop pressed")
-        return end(Outcome.FAULT, f"robot: {exc}")
+        self._say(Phase.PLACING, _grasp_detail("placing", place, job.grasp_symmetry))
+        self._move(lifted(place.bMe, job.approach_m))
+        self._move(place.bMe, speed_m_s / 2)
+        self.gripper.set_vacuum(False)
+        self._move(lifted(place.bMe, job.approach_m))
 
-    gauge = measure_placement()
-    if seen is None:  # no check view: the gauge decides where a cell has one
-        if gauge is None:
-            return end(
+    def _look_at_the_placed_part(self, check: CheckView) -> PlacementCheck:
+        self.timer.enter(CellTimePhase.CHECK)
+        self._say(Phase.PLACING, "looking at the placed part from the check pose")
+        self._move(check.check_bMe)
+        # A frame exposed after the move ended: the part as it lies, seen from where it was taught.
+        features = self.perception.perceive(FlangeReadout(self.robot).measure(), self.robot.clock_s())
+        return check_placement(check, features.corners_px, self.model.camera, self.job.part_side_m)
+
+    def _verdict(self, seen: PlacementCheck | None) -> AssemblyOutcome:
+        """Placed or missed: by the check view where the job has one, else by the cell's gauge."""
+        gauge = self.settings.measure_placement()
+        if seen is None:  # no check view: the gauge decides where a cell has one
+            if gauge is None:
+                return self._end(
+                    Outcome.PLACED,
+                    "part released in the metal part (no check view in this job, no placement gauge on this cell: "
+                    "placement unknown)",
+                )
+            if gauge.inside:
+                return self._end(
+                    Outcome.PLACED, f"part in the metal part, {gauge.error_mm:.2f} mm off centre (gauge)", gauge=gauge
+                )
+            return self._end(Outcome.MISSED, f"part outside the pocket, {gauge.error_mm:.2f} mm off centre (gauge)", gauge=gauge)
+        if not seen.found:
+            return self._end(Outcome.MISSED, "part not found at the check pose", seen, gauge)
+        tolerance = self.job.placement_tolerance_mm
+        if seen.error_mm <= tolerance:
+            return self._end(
                 Outcome.PLACED,
-                "part released in the metal part (no check view in this job, no placement gauge on this cell: placement unknown)",
+                f"part seen {seen.error_mm:.2f} mm from its taught place (tolerance {tolerance:g} mm)",
+                seen,
+                gauge,
             )
-        if gauge.inside:
-            return end(Outcome.PLACED, f"part in the metal part, {gauge.error_mm:.2f} mm off centre (gauge)", gauge=gauge)
-        return end(Outcome.MISSED, f"part outside the pocket, {gauge.error_mm:.2f} mm off centre (gauge)", gauge=gauge)
-    if not seen.found:
-        return end(Outcome.MISSED, "part not found at the check pose", seen, gauge)
-    tolerance = job.placement_tolerance_mm
-    if seen.error_mm <= tolerance:
-        return end(
-            Outcome.PLACED, f"part seen {seen.error_mm:.2f} mm from its taught place (tolerance {tolerance:g} mm)", seen, gauge
+        return self._end(
+            Outcome.MISSED,
+            f"part seen {seen.error_mm:.2f} mm from its taught place, beyond the {tolerance:g} mm tolerance",
+            seen,
+            gauge,
         )
-    return end(
-        Outcome.MISSED,
-        f"part seen {seen.error_mm:.2f} mm from its taught place, beyond the {tolerance:g} mm tolerance",
-        seen,
-        gauge,
-    )
+
+    def _end(
+        self, outcome: Outcome, reason: str, seen: PlacementCheck | None = None, gauge: PlacementReport | None = None
+    ) -> AssemblyOutcome:
+        """The run's outcome, said once; a fault or an e-stop first holds the robot."""
+        if outcome in (Outcome.FAULT, Outcome.ESTOPPED):
+            reason += hold_after_fault(self.robot)
+            self._say(Phase.ESTOPPED if outcome is Outcome.ESTOPPED else Phase.FAULT, reason)
+        else:
+            self._say(Phase.DONE, reason)
+        log.info("assembly %s: %s", outcome, reason)
+        servo = self.servo
+        return AssemblyOutcome(
+            outcome=outcome,
+            reason=reason,
+            final_error_px=servo.final_error_px if servo else float("nan"),
+            placement_error_mm=seen.error_mm if seen else None,
+            duration_s=time.monotonic() - self.started_s,
+            cell_time_s=self.timer.total_s(),
+            cell_time_by_phase_s=dict(self.timer.by_phase),
+            stages=servo.stages if servo else [],
+            iterations=servo.iterations if servo else 0,
+            gauge_placement_error_mm=gauge.error_mm if gauge else None,
+            gauge_inside=gauge.inside if gauge else None,
+        )

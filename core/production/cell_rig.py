@@ -48,7 +48,7 @@ def real_rig(config: CellConfig) -> Rig:
         raise ConfigError(f'{config.source}: the JRC takes position steps; set [motion] mode = "position_steps"')
     model = config.nominal
     intrinsics = model.camera.intrinsics
-    camera = open_camera(config.camera_source, (intrinsics.width, intrinsics.height))
+    camera = open_camera(config.camera_source, (intrinsics.width, intrinsics.height), config.safety.watchdog_s)
     jrc = JrcBackend(config.jrc)
     vacuum = config.vacuum_device
     gripper: VacuumGripper = JrcVacuum(jrc, vacuum.suction_output, vacuum.grip_input) if vacuum.device == "jrc_io" else NoVacuum()
@@ -62,7 +62,7 @@ def real_rig(config: CellConfig) -> Rig:
         # No gauge on a real cell: the assembly measures the placement by vision alone.
         measure_placement=lambda: None,
         locator=PartLocator.from_config(config),
-        reopen_camera=lambda: open_camera(config.camera_source, (intrinsics.width, intrinsics.height)),
+        reopen_camera=lambda: open_camera(config.camera_source, (intrinsics.width, intrinsics.height), config.safety.watchdog_s),
         **_fixture_hooks(config),
     )
 
@@ -75,9 +75,10 @@ def _fixture_hooks(config: CellConfig) -> dict[str, Callable[..., object]]:
     return {"present_part": fixture.present_part, "lay_board": fixture.lay_board, "place_part": fixture.place_part}
 
 
-def open_camera(source: CameraSourceConfig, size: tuple[int, int]) -> FrameSource:
+def open_camera(source: CameraSourceConfig, size: tuple[int, int], frame_timeout_s: float) -> FrameSource:
     """The camera of [camera.source] (kind "capture" or "folder"), delivering frames of ``size``
-    (width, height), the size the intrinsics were calibrated at."""
+    (width, height), the size the intrinsics were calibrated at; a live camera that sends
+    no frame for ``frame_timeout_s`` (the [safety] watchdog) is lost."""
     if source.kind == "capture":
         return VideoCaptureSource(
             source.device,
@@ -87,6 +88,7 @@ def open_camera(source: CameraSourceConfig, size: tuple[int, int]) -> FrameSourc
             loop=source.loop,
             exposure_latency_s=source.exposure_latency_s,
             buffer_frames=source.buffer_frames,
+            frame_timeout_s=frame_timeout_s,
         )
     if source.kind == "folder":
         folder = ImageFolderSource(source.path, source.pattern)

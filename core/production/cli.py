@@ -4,14 +4,22 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import threading
+from datetime import datetime, timezone
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
 from vservo.core.production.storage import default_data_dir
 from vservo.core.terminal.command_line import print_result, seed
+
+if TYPE_CHECKING:  # imported when a command runs: `vservo --help` stays quick
+    from vservo.core.production.cell_controller import CellController
+    from vservo.core.production.rig import Rig
+    from vservo.core.production.storage import RunRecord, Store
 
 BACKEND_HELP = (
     "the simulated cell's robot: sim drives the simulator directly, jrc through the JRC link to an "
@@ -23,15 +31,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
     import signal
 
     from vservo.core.production.assembly import Outcome
-    from vservo.core.production.cell_controller import CellController, CommandRefused, run_job_once
+    from vservo.core.production.cell_controller import CommandRefused, run_job_once
     from vservo.core.production.cell_rig import build_rig
     from vservo.core.production.storage import Store
 
     config = load_cell(args.cell)
     store = Store.for_controller(args.data or default_data_dir(), config.recordings)
-    controller = CellController(build_rig(config, args.seed, args.backend), store, seed=args.seed or 0)
+    controller = _controller_on(build_rig(config, args.seed, args.backend), store, seed=args.seed or 0)
     try:
-        summary = run_job_once(controller, args.job)
+        summary = run_job_once(controller, args.job, args.part_id)
     except CommandRefused as exc:
         print(f"vservo run: error: {exc}", file=sys.stderr)
         return 2
@@ -53,7 +61,6 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_controller(args: argparse.Namespace) -> int:
     import signal
 
-    from vservo.core.production.cell_controller import CellController
     from vservo.core.production.cell_rig import build_rig
     from vservo.core.production.channel import ControllerServer
     from vservo.core.production.protocol import KEY_ENVIRONMENT
@@ -73,7 +80,7 @@ def _cmd_controller(args: argparse.Namespace) -> int:
         return 2
     config = load_cell(args.cell)
     store = Store.for_controller(args.data or default_data_dir(), config.recordings)
-    controller = CellController(
+    controller = _controller_on(
         build_rig(config, args.seed, args.backend), store, seed=args.seed or 0, cycle_period_s=args.cycle_period
     )
     server = ControllerServer(controller, authkey, port=args.port)
@@ -91,6 +98,83 @@ def _cmd_controller(args: argparse.Namespace) -> int:
     controller.close()  # holds the robot if a run is under way
     store.close()
     return 0
+
+
+# What `vservo runs` exports of each run, in this order (the CSV's columns).
+RUN_FIELDS = (
+    "id",
+    "job",
+    "part_id",
+    "started_at",
+    "finished_at",
+    "outcome",
+    "reason",
+    "placement_error_mm",
+    "final_error_px",
+    "duration_s",
+    "backend",
+    "recording",
+)
+
+
+def _cmd_runs(args: argparse.Namespace) -> int:
+    """The runs of a data folder started in [--since, --until), for traceability."""
+    import csv
+
+    from vservo.core.production.storage import Store
+
+    store = Store(args.data or default_data_dir())
+    try:
+        runs = store.runs_between(args.since, args.until)
+    finally:
+        store.close()
+    rows = [_run_row(run) for run in runs if args.job is None or run.job == args.job]
+    if args.csv:
+        writer = csv.DictWriter(sys.stdout, RUN_FIELDS, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+    else:
+        print(json.dumps(rows, indent=None if args.json else 1))
+    return 0
+
+
+def _run_row(run: RunRecord) -> dict[str, Any]:
+    """One run as `vservo runs` exports it: times in ISO 8601 UTC, the outcome by name."""
+
+    def iso(t: float | None) -> str | None:
+        return None if t is None else datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="milliseconds")
+
+    row = {field: getattr(run, field) for field in RUN_FIELDS}
+    row.update(
+        started_at=iso(run.started_at),
+        finished_at=iso(run.finished_at),
+        outcome=None if run.outcome is None else run.outcome.value,
+    )
+    return row
+
+
+def _instant(text: str) -> float:
+    """--since / --until: an ISO 8601 date or date and time (local time unless it says its
+    zone), as a Unix time."""
+    try:
+        moment = datetime.fromisoformat(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected an ISO 8601 date or date and time (2026-11-28 or 2026-11-28T06:00), got {text!r}"
+        ) from None
+    return moment.timestamp()
+
+
+def _controller_on(rig: Rig, store: Store, **settings: Any) -> CellController:
+    """The cell controller on ``rig``; the rig closed if it cannot start (a robot port another
+    program holds, say), so no camera thread is left reading at the interpreter's exit."""
+    from vservo.core.production.cell_controller import CellController
+
+    try:
+        return CellController(rig, store, **settings)
+    except BaseException:
+        rig.close()
+        raise
 
 
 def _cmd_commission(args: argparse.Namespace) -> int:
@@ -206,7 +290,18 @@ def add_production_commands(commands: argparse._SubParsersAction) -> None:
     run.add_argument("--seed", type=seed, default=None, help="seed of the simulated cell and of the part's arrival")
     run.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
     run.add_argument("--json", action="store_true", help="one JSON object")
+    run.add_argument("--part-id", metavar="ID", help="the part's ID, stored with the run for traceability (`vservo runs`)")
     run.set_defaults(run=_cmd_run)
+
+    runs = commands.add_parser("runs", help="export the runs of a data folder with their figures (JSON, or CSV with --csv)")
+    runs.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
+    runs.add_argument("--since", type=_instant, default=0.0, metavar="WHEN", help="runs started at or after WHEN (ISO 8601)")
+    runs.add_argument("--until", type=_instant, default=math.inf, metavar="WHEN", help="runs started before WHEN (ISO 8601)")
+    runs.add_argument("--job", help="only the runs of this job")
+    form = runs.add_mutually_exclusive_group()
+    form.add_argument("--csv", action="store_true", help="CSV with a header line, one run a line")
+    form.add_argument("--json", action="store_true", help="one JSON array on one line")
+    runs.set_defaults(run=_cmd_runs)
 
     controller = commands.add_parser(
         "controller", help="the controller process: owns the cell, serves the app over an authenticated local channel"

@@ -25,7 +25,9 @@ from __future__ import annotations
 
 import fcntl
 import json
+import math
 import os
+import re
 import shutil
 import sqlite3
 import threading
@@ -50,6 +52,7 @@ SCHEMA_VERSION = 2
 DEMO_JOB = "demo"
 BUSY_TIMEOUT_S = 10.0  # how long a write waits for another program's lock on the database
 LOCK_FILE = "controller.lock"
+PART_ID_PATTERN = re.compile(r"[^\s\x00-\x1f\x7f]([^\x00-\x1f\x7f]{0,62}[^\s\x00-\x1f\x7f])?")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -73,12 +76,17 @@ CREATE TABLE IF NOT EXISTS runs (
     stages TEXT,
     recording TEXT,
     recording_bytes INTEGER,
-    recording_removed_at REAL
+    recording_removed_at REAL,
+    part_id TEXT
 );
 """
 # How a store of an older schema is brought to SCHEMA_VERSION: version -> its statements.
 _MIGRATIONS = {
-    2: ("ALTER TABLE runs ADD COLUMN recording_bytes INTEGER", "ALTER TABLE runs ADD COLUMN recording_removed_at REAL"),
+    2: (
+        "ALTER TABLE runs ADD COLUMN recording_bytes INTEGER",
+        "ALTER TABLE runs ADD COLUMN recording_removed_at REAL",
+        "ALTER TABLE runs ADD COLUMN part_id TEXT",
+    ),
 }
 
 
@@ -113,6 +121,7 @@ class RunRecord:
     stages: list[dict]
     recording: str | None
     recording_removed_at: float | None = None  # the retention removed its recording then
+    part_id: str | None = None  # the part's ID for traceability, when the run was given one
 
 
 def default_data_dir() -> Path:
@@ -285,10 +294,13 @@ class Store:
 
     # -- runs ------------------------------------------------------------------------
 
-    def start_run(self, job: str, backend: str) -> int:
+    def start_run(self, job: str, backend: str, part_id: str | None = None) -> int:
         with self._transaction() as db:
-            cursor = db.execute("INSERT INTO runs (job, backend, started_at) VALUES (?, ?, ?)", (job, backend, time.time()))
-            return int(cursor.lastrowid)
+            cursor = db.execute(
+                "INSERT INTO runs (job, backend, started_at, part_id) VALUES (?, ?, ?, ?)",
+                (job, backend, time.time(), None if part_id is None else validate_part_id(part_id)),
+            )
+            return int(cursor.lastrowid or 0)
 
     def run_folder(self, run_id: int) -> Path:
         return self.runs_dir / f"{run_id:06d}"
@@ -379,6 +391,14 @@ class Store:
             rows = db.execute("SELECT * FROM runs ORDER BY id DESC LIMIT ?", (limit,)).fetchall()
         return [self._run_record(row) for row in rows]
 
+    def runs_between(self, since_s: float = 0.0, until_s: float = math.inf) -> list[RunRecord]:
+        """The runs started from ``since_s`` until before ``until_s`` (Unix times), oldest first."""
+        with self._reading() as db:
+            rows = db.execute(
+                "SELECT * FROM runs WHERE started_at >= ? AND started_at < ? ORDER BY id", (since_s, min(until_s, 1e300))
+            ).fetchall()
+        return [self._run_record(row) for row in rows]
+
     def run(self, run_id: int) -> RunRecord:
         with self._reading() as db:
             row = db.execute("SELECT * FROM runs WHERE id = ?", (run_id,)).fetchone()
@@ -390,7 +410,7 @@ class Store:
         """A row as a RunRecord, its recording an absolute path (rows stored before the paths
         were relative hold absolute ones, which stay as they are)."""
         recording = row[11] if row[11] is None else str(self.root.absolute() / row[11])
-        return _run_record((*row[:11], recording, row[13]))
+        return _run_record((*row[:11], recording, row[13], row[14]))
 
 
 class _FolderLock:
@@ -445,6 +465,15 @@ def _folder_bytes(folder: Path) -> int:
     return sum(path.stat().st_size for path in folder.rglob("*") if path.is_file()) if folder.is_dir() else 0
 
 
+def validate_part_id(part_id: object) -> str:
+    """A part ID as a PLC, a scanner or an operator gives it: 1 to 64 printable characters."""
+    if not isinstance(part_id, str) or not PART_ID_PATTERN.fullmatch(part_id):
+        raise StoreError(
+            f"part ID {part_id!r}: use 1 to 64 printable characters (no spaces at either end, no control characters)"
+        )
+    return part_id
+
+
 def _check_name(image_name: str) -> str:
     """The check image's file name beside its desired image's: demo.png -> demo.check.png."""
     return image_name.removesuffix(".png") + ".check.png"
@@ -467,4 +496,6 @@ def _run_record(row: tuple) -> RunRecord:
     except json.JSONDecodeError:
         stages = [{"stage": "unreadable stage record", "iterations": 0}]
     outcome = Outcome(row[5]) if row[5] is not None else None
-    return RunRecord(row[0], row[1], row[2], row[3], row[4], outcome, row[6], row[7], row[8], row[9], stages, row[11], row[12])
+    return RunRecord(
+        row[0], row[1], row[2], row[3], row[4], outcome, row[6], row[7], row[8], row[9], stages, row[11], row[12], row[13]
+    )

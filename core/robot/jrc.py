@@ -24,10 +24,12 @@ alarms and servo off) with the code's meaning.
 from __future__ import annotations
 
 import logging
+import os
 import termios
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import serial
@@ -156,7 +158,9 @@ def reads_as(reading: list[float], sent: list[float]) -> bool:
 
 
 def open_serial(line: JrcLineConfig, port: str) -> serial.SerialBase:
-    """Open a serial port (a device or a pyserial URL) with the line settings."""
+    """Open a serial port (a device or a pyserial URL) with the line settings, exclusively:
+    a second program's bytes on the line would wreck the first one's exchanges, so a port
+    another process holds is refused, naming that process."""
     try:
         return serial.serial_for_url(
             port,
@@ -166,9 +170,37 @@ def open_serial(line: JrcLineConfig, port: str) -> serial.SerialBase:
             stopbits={1: serial.STOPBITS_ONE, 2: serial.STOPBITS_TWO}[line.stop_bits],
             rtscts=line.rtscts,
             timeout=0.005,  # a short poll: the link keeps its own deadlines
+            exclusive=True,
         )
-    except (serial.SerialException, ValueError, OSError, termios.error) as exc:
+    except serial.SerialException as exc:
+        if "exclusively lock" in str(exc):
+            raise RobotError(
+                f"the serial port {port} is in use by {_holders(port)}: stop it first (one program drives a robot)"
+            ) from None
         raise RobotError(f"cannot open the serial port {port}: {exc}") from exc
+    except (ValueError, OSError, termios.error) as exc:
+        raise RobotError(f"cannot open the serial port {port}: {exc}") from exc
+
+
+def _holders(port: str) -> str:
+    """Who holds ``port``'s exclusive lock, as 'process PID (command)', from the kernel's
+    table of file locks (Linux); 'another process' where it cannot be seen."""
+    try:
+        device = os.stat(port)
+        locks = Path("/proc/locks").read_text().splitlines()
+    except OSError:
+        return "another process"
+    wanted = f"{os.major(device.st_dev):02x}:{os.minor(device.st_dev):02x}:{device.st_ino}"
+    found = []
+    for line in locks:  # "1: FLOCK  ADVISORY  WRITE 4242 00:1a:5 0 EOF"
+        fields = line.split()
+        if len(fields) > 5 and fields[1] == "FLOCK" and fields[5] == wanted:
+            try:
+                command = Path(f"/proc/{fields[4]}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            except OSError:
+                command = "?"
+            found.append(f"process {fields[4]} ({command.strip()[:80]})")
+    return ", ".join(found) or "another process"
 
 
 @dataclass(frozen=True)

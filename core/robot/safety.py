@@ -195,21 +195,7 @@ class SafetyLayer:
             raise TooFast(
                 f"move refused: speed {speed_m_s * 1000:.1f} mm/s exceeds the maximum {limits.max_speed_m_s * 1000:.1f} mm/s"
             )
-        if bMe_target.shape != (4, 4) or not np.all(np.isfinite(bMe_target)):
-            raise OutsideWorkspace(f"move refused: the target is not a finite 4x4 pose: {bMe_target.tolist()}")
-
-        points = {"flange": bMe_target[:3, 3]}
-        points.update({name: (bMe_target @ eMx)[:3, 3] for name, eMx in self._tool_frames.items()})
-        for name, p in points.items():
-            outside = (p < limits.workspace_min_m) | (p > limits.workspace_max_m)
-            if outside.any():
-                axis = "xyz"[int(np.argmax(outside))]
-                raise OutsideWorkspace(
-                    f"move refused: the {name} would be at {np.round(p * 1000, 1).tolist()} mm, outside the "
-                    f"workspace box on {axis} ({np.round(limits.workspace_min_m * 1000, 1).tolist()} .. "
-                    f"{np.round(limits.workspace_max_m * 1000, 1).tolist()} mm)"
-                )
-
+        self._check_in_workspace(bMe_target)
         bMe_now = self.read_pose() if bMe_now is None else bMe_now
         translation, rotation = pose_error(bMe_now, bMe_target)
         if translation > limits.max_step_m:
@@ -236,6 +222,24 @@ class SafetyLayer:
                 f"its limit, closer than the margin {np.degrees(limits.joint_margin_rad):.2f} deg"
             )
         return q
+
+    def _check_in_workspace(self, bMe_target: Matrix) -> None:
+        """OutsideWorkspace unless bMe_target is a finite pose that keeps the flange and every
+        tool frame inside the workspace box."""
+        limits = self.limits
+        if bMe_target.shape != (4, 4) or not np.all(np.isfinite(bMe_target)):
+            raise OutsideWorkspace(f"move refused: the target is not a finite 4x4 pose: {bMe_target.tolist()}")
+        points = {"flange": bMe_target[:3, 3]}
+        points.update({name: (bMe_target @ eMx)[:3, 3] for name, eMx in self._tool_frames.items()})
+        for name, p in points.items():
+            outside = (p < limits.workspace_min_m) | (p > limits.workspace_max_m)
+            if outside.any():
+                axis = "xyz"[int(np.argmax(outside))]
+                raise OutsideWorkspace(
+                    f"move refused: the {name} would be at {np.round(p * 1000, 1).tolist()} mm, outside the "
+                    f"workspace box on {axis} ({np.round(limits.workspace_min_m * 1000, 1).tolist()} .. "
+                    f"{np.round(limits.workspace_max_m * 1000, 1).tolist()} mm)"
+                )
 
     def model_joints(self, bMe: Matrix) -> Matrix:
         """The joints the nominal arm model puts the flange at bMe with, on the branch of the
@@ -309,8 +313,12 @@ class SafetyLayer:
 
     def linear_path(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float) -> list[Matrix]:
         """The steps of a straight move from bMe_from to bMe_target, each step checked
-        (check_target; SafetyRefusal names the first refused), no motion."""
-        translation, rotation = pose_error(bMe_from, np.asarray(bMe_target, dtype=float))
+        (check_target; SafetyRefusal names the first refused), no motion. The target is
+        checked against the workspace first: from the robot's pose to a target in the box,
+        the path's length, and so the work of checking it, is bounded whatever was asked."""
+        bMe_target = np.asarray(bMe_target, dtype=float)
+        self._check_in_workspace(bMe_target)
+        translation, rotation = pose_error(bMe_from, bMe_target)
         # Steps of at most STEP_FILL of the limits: the next step starts where the arm
         # really stopped (repeatability), not exactly on the line.
         fill = max(translation / self.limits.max_step_m, rotation / self.limits.max_step_rad) / STEP_FILL
@@ -337,6 +345,7 @@ class SafetyLayer:
         starts (the joints of the last move sent by default).
         """
         bMe_target = np.asarray(bMe_target, dtype=float)
+        self._check_in_workspace(bMe_target)  # before any IK: a far target costs nothing
         try:
             q_from = self.arm.ik(
                 bMe_from, self._q_seed if q_seed is None else q_seed, tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE
