@@ -628,7 +628,6 @@ class TeachPanel:
             form.handles["gain"] = c(_number(gui, "Gain", new.gain, GAIN, 0.05))
             form.handles["approach"] = c(_number(gui, "Approach height (mm)", new.approach_m, APPROACH_M, 1.0, 1000.0))
             tolerance = new.placement_tolerance_mm
-            assert tolerance is not None  # a new job's settings name it
             form.handles["tolerance"] = c(_number(gui, "Placement tolerance (mm)", tolerance, PLACEMENT_TOLERANCE_MM, 0.05))
             self._add_button(view, form, buttons, APPLY)
 

@@ -24,7 +24,6 @@ from vservo.app.teach_panel import jog_step
 from vservo.core.cell.config import load_cell, read_cell_bytes
 from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg
 from vservo.core.production.cell_controller import CellController
-from vservo.core.production.channel import published
 from vservo.core.production.commissioning import Step
 from vservo.core.production.jobs import read_job_file
 from vservo.core.production.protocol import (
@@ -137,7 +136,7 @@ def recorded_run(tmp_path_factory):
     store = Store(tmp_path_factory.mktemp("data"))
     controller = CellController(simulated_rig(with_the_thesis_policy(load_cell()), seed=2), store, seed=2)
     states: list[ControllerState] = []
-    controller.state_subscribers.append(lambda state: states.append(published(state)))
+    controller.state_subscribers.append(states.append)
     controller.present_part()
     controller.start("demo")
     controller.wait()

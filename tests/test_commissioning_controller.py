@@ -79,26 +79,27 @@ def test_commission_over_the_channel_apply_and_assemble_on_the_new_model(cell_fi
         assert not client.call(Commission()).ok  # one at a time
 
         finished = states.wait_for(
-            lambda s: s.commissioning and (s.commissioning["summary"] or s.commissioning["error"]), "finished commissioning"
+            lambda s: s.commissioning and (s.commissioning.summary or s.commissioning.error), "finished commissioning"
         )
         record = finished.commissioning
-        assert record["error"] is None and finished.phase == Phase.IDLE.value
-        summary = record["summary"]
-        assert summary["good"], summary["steps"]
-        assert {step: result["verdict"] for step, result in summary["steps"].items()} == {
+        assert record.error is None and finished.phase == Phase.IDLE.value
+        summary = record.summary
+        assert summary.good, summary.steps
+        assert {step: report.verdict for step, report in summary.steps.items()} == {
             "camera": "good",
             "hand-eye": "good",
             "laser": "good",
             "nn": "good",
         }
-        assert summary["acceptance"]["max_mm"] < 0.5
-        progress = record["progress"]
+        assert summary.acceptance.max_mm < 0.5
+        progress = record.progress
         assert {"find", "tilted", "laser", "grid", "nn", "acceptance"} <= set(progress)
         views = {step: line for step, line in progress.items() if step != "nn"}
-        assert all(line["done"] == line["total"] > 0 for line in views.values()), progress
-        assert progress["nn"]["done"] > 0 and progress["nn"]["total"] == 60  # training may end before its last epoch
+        assert all(line.done == line.total > 0 for line in views.values()), progress
+        assert progress["nn"].done > 0 and progress["nn"].total == 60  # training may end before its last epoch
         # Progress was published as it went, not only at the end.
-        assert len({s.commissioning["progress"].get("tilted", {}).get("done") for s in states.seen if s.commissioning}) > 5
+        records = [s.commissioning for s in states.seen if s.commissioning]
+        assert len({record.progress["tilted"].done for record in records if "tilted" in record.progress}) > 5
         assert len(frames) > 20  # what the camera saw was shown
         assert not out.exists()  # nothing is written before Apply
 
@@ -109,12 +110,12 @@ def test_commission_over_the_channel_apply_and_assemble_on_the_new_model(cell_fi
         assert written.commissioning is not None and written.commissioning.nn_path.is_file()
         config = controller.rig.config
         assert config.source == str(out)
-        assert config.nominal.camera.intrinsics.fx == pytest.approx(summary["camera"]["fx_px"], abs=1e-3)
+        assert config.nominal.camera.intrinsics.fx == pytest.approx(summary.camera.fx_px, abs=1e-3)
         assert config.nominal.camera.intrinsics.fx != pytest.approx(nominal_fx, abs=1e-3)
         assert controller.rig.locator is not None
         assert controller.rig.extractor.camera is config.nominal.camera
         assert controller.state.cell_file == str(out)
-        assert controller.state.commissioning["applied"] == str(out)
+        assert controller.state.commissioning.applied == str(out)
         again = client.call(ApplyCommissioning())
         assert not again.ok and "nothing to apply" in again.error
 
@@ -137,8 +138,8 @@ def test_a_retake_verdict_refuses_apply(tmp_path):
         out = controller.commission(["nn"], settings=SMALL_GRID)
         assert out == tmp_path / "cell-commissioned.toml"  # the shipped file: into the data folder
         controller.wait()
-        summary = states.wait_for(lambda s: s.commissioning and s.commissioning["summary"], "summarised").commissioning["summary"]
-        assert summary["steps"]["nn"]["verdict"] == "retake" and not summary["good"]
+        summary = states.wait_for(lambda s: s.commissioning and s.commissioning.summary, "summarised").commissioning.summary
+        assert summary.steps["nn"].verdict == "retake" and not summary.good
         with pytest.raises(CommandRefused, match=r"a step says retake; commission it again: nn: retake: \d grid views"):
             controller.apply_commissioning()
         assert not out.exists()
@@ -154,7 +155,7 @@ def test_estop_stops_commissioning_with_the_robot_held(tmp_path):
     try:
         controller.commission()
         states.wait_for(
-            lambda s: s.commissioning and s.commissioning["progress"].get("tilted", {}).get("done", 0) >= 3,
+            lambda s: s.commissioning and "tilted" in s.commissioning.progress and s.commissioning.progress["tilted"].done >= 3,
             "took three tilted views",
         )
         controller.estop()
@@ -162,10 +163,10 @@ def test_estop_stops_commissioning_with_the_robot_held(tmp_path):
         assert not controller.running
         state = controller.state
         assert state.phase == Phase.ESTOPPED.value and state.detail == "commissioning stopped: e-stop pressed"
-        assert state.commissioning["error"] == "e-stop pressed" and state.commissioning["summary"] is None
+        assert state.commissioning.error == "e-stop pressed" and state.commissioning.summary is None
         assert controller.rig.robot.status().held
-        tilted = state.commissioning["progress"]["tilted"]
-        assert tilted["done"] < tilted["total"]  # it stopped part way
+        tilted = state.commissioning.progress["tilted"]
+        assert tilted.done < tilted.total  # it stopped part way
         with pytest.raises(CommandRefused, match="e-stop is active"):
             controller.commission()
         controller.reset()
@@ -182,8 +183,8 @@ def test_apply_refuses_to_reload_a_file_whose_devices_differ(cell_file, tmp_path
     try:
         out = controller.commission(["nn"])
         controller.wait()
-        summary = states.wait_for(lambda s: s.commissioning and s.commissioning["summary"], "summarised").commissioning["summary"]
-        assert summary["good"], summary["steps"]
+        summary = states.wait_for(lambda s: s.commissioning and s.commissioning.summary, "summarised").commissioning.summary
+        assert summary.good, summary.steps
         # Someone rewired the cell file the controller runs on meanwhile.
         text = cell_file.read_text()
         assert 'port = "/dev/ttyS0"' in text

@@ -35,7 +35,7 @@ from vservo.core.production.grasp import GraspChoice, grasp_choice
 from vservo.core.production.jobs import Job, TaughtModel
 from vservo.core.production.locate import LocateError, PartLocator
 from vservo.core.production.placement_check import CheckView, PlacementCheck, check_placement
-from vservo.core.production.protocol.state import Outcome, Phase
+from vservo.core.production.protocol.state import Outcome, Phase, RunOutcome
 from vservo.core.production.retarget import desired_view_for_part, start_pose_for_part
 from vservo.core.robot.backend import RobotBackend, RobotError
 from vservo.core.robot.gripper import VacuumGripper
@@ -104,6 +104,18 @@ class AssemblyOutcome:
             "stages": self.stages,
             "notes": list(self.notes),
         }
+
+    def record(self) -> RunOutcome:
+        """How the run ended, as the controller publishes it (the figures rounded as in ``summary``)."""
+        return RunOutcome(
+            self.outcome,
+            self.reason,
+            final_error_px=_rounded(self.final_error_px),
+            placement_error_mm=_rounded(self.placement_error_mm),
+            duration_s=round(self.duration_s, 3),
+            iterations=self.iterations,
+            notes=self.notes,
+        )
 
 
 def _rounded(value: float | None) -> float | None:

@@ -25,19 +25,16 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import queue
 import threading
 from multiprocessing import AuthenticationError
 from multiprocessing.connection import Connection, Listener, answer_challenge, deliver_challenge
-from typing import Any
 
 import cv2
 import numpy as np
 
 from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix
-from vservo.core.production import cell_controller
 from vservo.core.production.cell_controller import CellController, FrameView
 from vservo.core.production.protocol.client import (
     MAX_HELLO_BYTES,
@@ -50,18 +47,8 @@ from vservo.core.production.protocol.client import (
     state_message,
     welcome_message,
 )
-from vservo.core.production.protocol.codec import from_json, to_json
-from vservo.core.production.protocol.commands import Estop, command_from
-from vservo.core.production.protocol.state import (
-    CommissioningProgress,
-    ControllerState,
-    FrameMeta,
-    Phase,
-    RunFigures,
-    RunOutcome,
-    Teaching,
-    TeachStep,
-)
+from vservo.core.production.protocol.commands import CommandRefused, Estop, command_from
+from vservo.core.production.protocol.state import ControllerState, FrameMeta
 
 log = logging.getLogger("vservo.channel")
 
@@ -92,43 +79,6 @@ def frame_payload(view: FrameView) -> tuple[FrameMeta, bytes]:
         trail_px=pixels(view.trail_px),
     )
     return meta, jpeg.tobytes()
-
-
-def published(state: Any) -> ControllerState:
-    """The controller's state as the protocol types it."""
-    if isinstance(state, ControllerState):
-        return state
-    # The controller's own state of loose keys, until it publishes the protocol's.
-    phase = Phase(state.phase)
-    teaching = None
-    if phase is Phase.TEACHING:
-        untaught = [*state.teach_missing, *state.teach_optional]
-        poses = {name: state.teach_poses.get(name) for name in ("view_bMe", "pocket_bMe", "place_bMo")}
-        taught = frozenset(step for step in TeachStep if not any(entry.startswith(step.value) for entry in untaught))
-        teaching = Teaching(taught, **poses)
-    return ControllerState(
-        phase=phase,
-        detail=state.detail,
-        job=state.job,
-        run=RunFigures(
-            state.run_id,
-            state.stage,
-            state.iteration,
-            state.error_px,
-            np.array([math.nan if v is None else v for v in state.cVc], float),
-        ),
-        last_outcome=None if state.last_outcome is None else from_json(RunOutcome, to_json(state.last_outcome)),
-        bMe=state.bMe,
-        q=state.q,
-        holding_part=state.holding_part,
-        robot=state.robot,
-        backend=state.backend,
-        can_present_part=state.can_present_part,
-        teaching=teaching,
-        cell_file=state.cell_file,
-        commissioning=None if state.commissioning is None else from_json(CommissioningProgress, to_json(state.commissioning)),
-        time_s=state.time_s,
-    )
 
 
 class _Subscriber:
@@ -239,7 +189,7 @@ class ControllerServer:
         subscriber = _Subscriber(connection)
         commands: queue.Queue[dict | None] = queue.Queue()
         try:
-            subscriber.send(welcome_message(published(self.controller.state)))
+            subscriber.send(welcome_message(self.controller.state))
             with self._lock:
                 self.subscribers.append(subscriber)
             threading.Thread(target=self._push, args=(subscriber,), name="channel-push", daemon=True).start()
@@ -284,7 +234,7 @@ class ControllerServer:
         try:
             command = command_from(name, message.get("args", {}))
             return encode({**reply, "ok": True, "result": command.reply_value(command.carry_out(self.controller))})
-        except (VservoError, cell_controller.CommandRefused) as exc:
+        except VservoError as exc:
             return encode({**reply, "ok": False, "error": str(exc)})
         except Exception:
             log.exception("command %s: internal error", name)
@@ -300,7 +250,7 @@ class ControllerServer:
                 subscriber.state = subscriber.frame = None
             try:
                 if state is not None:
-                    subscriber.send(state_message(published(state)))
+                    subscriber.send(state_message(state))
                 if frame is not None:
                     meta, jpeg = frame_payload(frame)
                     subscriber.send(frame_message(meta), jpeg)
@@ -312,7 +262,7 @@ class ControllerServer:
             if self.subscribers and not self.controller.running:
                 try:
                     self.controller.look()
-                except cell_controller.CommandRefused:
+                except CommandRefused:
                     pass  # a run took the camera meanwhile
                 except Exception as exc:  # a camera that fails is shown as such, the server lives on
                     log.warning("live view: %s", exc)

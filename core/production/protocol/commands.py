@@ -356,7 +356,17 @@ class SetSettings(Command):
             self._set("placement_tolerance_mm", tolerance)
 
 
-NEW_JOB_SETTINGS = SetSettings(threshold_px=1.0, gain=1.0, approach_m=0.04, placement_tolerance_mm=1.0)  # a new job's
+@dataclass(frozen=True)
+class JobSettings:
+    """A job's run settings: the servo's threshold (px) and gain, the approach height (m), the placement tolerance (mm)."""
+
+    threshold_px: float
+    gain: float
+    approach_m: float
+    placement_tolerance_mm: float
+
+
+NEW_JOB_SETTINGS = JobSettings(threshold_px=1.0, gain=1.0, approach_m=0.04, placement_tolerance_mm=1.0)  # a new job's draft
 
 
 @dataclass(frozen=True)
