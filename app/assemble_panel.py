@@ -10,9 +10,11 @@ components of the run under way.
 from __future__ import annotations
 
 import threading
+from typing import Literal
 
 import numpy as np
 import viser
+from viser import uplot
 
 from vservo.app import live_image
 from vservo.app.banner import Button, Kind, banner_for
@@ -26,7 +28,12 @@ from vservo.core.production.protocol.state import MOVING
 TWIST_NAMES = ("vx m/s", "vy m/s", "vz m/s", "wx rad/s", "wy rad/s", "wz rad/s")
 TWIST_COLOURS = ("#d62728", "#2ca02c", "#1f77b4", "#ff7f0e", "#9467bd", "#8c564b")
 BLANK = np.zeros((480, 640, 3), np.uint8)
-PROGRESS_COLOURS = {Kind.PLACED: "green", Kind.MISSED: "orange", Kind.FAULT: "red", Kind.ESTOPPED: "red"}
+PROGRESS_COLOURS: dict[Kind, Literal["green", "orange", "red"]] = {
+    Kind.PLACED: "green",
+    Kind.MISSED: "orange",
+    Kind.FAULT: "red",
+    Kind.ESTOPPED: "red",
+}
 
 
 def plot_data(trace: RunTrace) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
@@ -66,7 +73,7 @@ class AssemblePanel:
                     blank_twist,
                     (
                         {"label": "cycle"},
-                        *({"label": name, "stroke": colour, "width": 1.5} for name, colour in zip(TWIST_NAMES, TWIST_COLOURS)),
+                        *(uplot.Series(label=name, stroke=colour, width=1.5) for name, colour in zip(TWIST_NAMES, TWIST_COLOURS)),
                     ),
                     title="camera twist cVc",
                     aspect=2.2,
@@ -121,7 +128,7 @@ class AssemblePanel:
         banner = banner_for(state)
         self.stage.content = f"**{banner.title}** · {banner.detail}"
         self.engineering.content = engineering_markdown(state)
-        self.progress.value = run_progress(state, view.trace, self._threshold_px)
+        self.progress.value = run_progress(state, view.trace, self._threshold_px)  # type: ignore[misc]  # viser's props: read-only
         # The bar takes the outcome's colour (placed green, missed amber, fault red), blue while running.
         self.progress.color = None if state.phase in MOVING else PROGRESS_COLOURS.get(banner.kind)
         self.outcome.content = outcome_markdown(state.last_outcome, state.run.run_id)

@@ -146,7 +146,7 @@ def _light_run(running: RunningApp, monitors: LightMonitors | None) -> dict[str,
     _call(running, Start("demo"))
     deadline = time.monotonic() + RUN_TIMEOUT_S
     pids = {"serve": os.getpid(), "controller": running.controller.process.pid}
-    if monitors is not None:
+    if monitors is not None and monitors.process.pid is not None:
         pids["clients"] = monitors.process.pid
     start, end, cpu = _watch_servo(running, pids)
     frames = monitors.frames() if monitors is not None else []

@@ -180,7 +180,7 @@ class CalibratePanel:
 
     def _on_change(self, progress: CalibrationProgress) -> None:
         elapsed = time.monotonic() - progress.started_s
-        self.bar.value = 100.0 * progress.fraction
+        self.bar.value = 100.0 * progress.fraction  # type: ignore[misc]  # viser's props: read-only
         if progress.error:
             self.bar.color = "red"
             self.status.content = f"**Calibration stopped** after {elapsed:.0f} s: {progress.error}"

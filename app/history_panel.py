@@ -228,7 +228,9 @@ class HistoryPanel:
             if index != replay.index:
                 cycle, overlay = replay.shown[index]
                 frame = replay.recording.frame_of(cycle)
-                live_image.show_jpeg(handles["replay_image"], live_image.encode_jpeg(live_image.draw(frame.image, overlay)))
+                if frame is not None:  # every cycle shown recorded one (replay_overlays)
+                    image = live_image.draw(frame.image, overlay)
+                    live_image.show_jpeg(handles["replay_image"], live_image.encode_jpeg(image))
                 replay.index = index
                 handles["replay_seek"].value = index
                 handles["replay_status"].content = (

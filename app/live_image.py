@@ -16,6 +16,7 @@ of the sub-pixel measurement. Viser-free.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, TypeGuard
 
 import cv2
 import numpy as np
@@ -69,7 +70,7 @@ def _fixed(point: np.ndarray) -> tuple[int, int]:
     return int(round(point[0] * (1 << SHIFT))), int(round(point[1] * (1 << SHIFT)))
 
 
-def _seen(point: np.ndarray | None) -> bool:
+def _seen(point: np.ndarray | None) -> TypeGuard[np.ndarray]:
     return point is not None and bool(np.all(np.isfinite(point)))
 
 
@@ -142,7 +143,7 @@ def render(jpeg: bytes, meta: FrameMeta) -> bytes:
     return encode_jpeg(draw(decode(jpeg), Overlay.from_meta(meta)))
 
 
-def show_jpeg(handle: object, jpeg: bytes) -> None:
+def show_jpeg(handle: Any, jpeg: bytes) -> None:
     """Put already-encoded JPEG bytes in a viser image element. Its ``image`` setter would
     encode the array again per element; viser 1.1.1 is pinned, so its props are known."""
     handle._format = "jpeg"

@@ -64,7 +64,9 @@ def tool_bodies(bMe: Matrix, mount: ToolMount) -> dict[str, Matrix]:
     return {name: bMe @ frames[name] @ transform(t=(0.0, 0.0, -behind[name])) for name in frames}
 
 
-def part_pose_from_corners(corners_px: Matrix, bMe: Matrix, eMc: Matrix, camera: CameraModel, side_m: float) -> Matrix | None:
+def part_pose_from_corners(
+    corners_px: Matrix | None, bMe: Matrix, eMc: Matrix, camera: CameraModel, side_m: float
+) -> Matrix | None:
     """bMo of the part from its four corners seen in one frame (None if not all are seen)."""
     if corners_px is None or not np.all(np.isfinite(corners_px)):
         return None
@@ -138,7 +140,7 @@ class PartTracker:
         return self.bMo
 
 
-def _wxyz(M: Matrix) -> Matrix:
+def _wxyz(M: Matrix) -> np.ndarray:
     return vtf.SO3.from_matrix(M[:3, :3]).wxyz
 
 
@@ -193,7 +195,7 @@ class CellScene:
         self._use_model(config)
         self.job: _Job | None = None
         self._path_points = 0
-        self.path = None
+        self.path: viser.LineSegmentsHandle | None = None
         # No shadows: an operator PC without a GPU (and headless Chromium) renders in software.
         server.scene.configure_default_lights(cast_shadow=False)
         # Aimed above the arm, so the whole cell sits in the view's lower half, under the
@@ -259,7 +261,8 @@ class CellScene:
         for handle in self.modelled_metal:
             handle.visible = teaching
         if placed is not None:
-            self.place_outline.points = part_outline(placed, self.job.side_m if self.job else PART_SIDE_M)
+            outline = part_outline(placed, self.job.side_m if self.job else PART_SIDE_M)
+            self.place_outline.points = outline.astype(np.float32)
         self.place_outline.visible = placed is not None
 
     def update(self, state: ControllerState, overlay: Overlay | None, path_m: Matrix) -> None:

@@ -231,7 +231,7 @@ class OperatorApp:
     def _estop_reply(self, client_id: int | None) -> Callable[[Reply], None]:
         def done(reply: Reply) -> None:
             with self._lock:
-                view = self.views.get(client_id)
+                view = None if client_id is None else self.views.get(client_id)
             if view is None:
                 return
             if reply.ok:  # red even when it worked: the robot is held, nothing to celebrate
@@ -281,7 +281,7 @@ class OperatorApp:
             except RoleRefused as exc:
                 view.refused("Take control", exc)
                 return
-            token.value = ""
+            token.value = ""  # type: ignore[misc]  # viser's props declare value read-only; its handle sets it
 
         def on_role(is_operator: bool) -> None:
             role.content = (
@@ -293,7 +293,7 @@ class OperatorApp:
             release.disabled, take.disabled = not is_operator, is_operator
 
         take.on_click(on_take)
-        release.on_click(lambda _: self.roles.release(view.client_id))
+        release.on_click(lambda _: None if self.roles.release(view.client_id) else None)
         view.on_role(on_role)
 
     def _client_address(self, client_id: int) -> str | None:
@@ -442,7 +442,7 @@ def _log_thread_exception(args: threading.ExceptHookArgs) -> None:
     log.error(
         "unhandled exception in thread %s",
         args.thread.name if args.thread else "?",
-        exc_info=(args.exc_type, args.exc_value, args.exc_traceback),
+        exc_info=args.exc_value,
     )
     print(
         f"vservo serve: unhandled exception in thread {args.thread.name if args.thread else '?'}: {args.exc_value!r}",
