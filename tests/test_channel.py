@@ -31,6 +31,7 @@ from vservo.core.production.protocol import (
     ListRuns,
     MoveTo,
     Phase,
+    PresentPart,
     Query,
     Reset,
     SaveJob,
@@ -517,3 +518,19 @@ def test_the_protocol_imports_nothing_of_the_controller_and_nothing_heavy():
     assert "vservo.core.production.protocol.client" in loaded  # the test reads what it should
     heavy = {"vservo.core.production.cell_controller", "vservo.core.production.channel", "cv2", "pinocchio", "torch", "viser"}
     assert not heavy & set(loaded)
+
+
+def test_a_run_started_over_the_channel_records_the_parts_id_and_a_bad_one_is_refused(served):
+    controller, server, key = served
+    client = ControllerClient(server.address, key)
+    try:
+        _raw_command(client, 1, "start", {"job_name": "demo", "part_id": " padded"})
+        refused = _reply(client, 1)
+        assert not refused["ok"] and refused["error"].startswith("part_id must be 1 to 64 printable characters")
+        assert client.call(PresentPart()).ok
+        run_id = client.call(Start("demo", part_id="SN-0042")).result
+        controller.wait(120.0)
+        (run,) = [run for run in client.call(ListRuns(limit=5)).result if run.id == run_id]
+        assert run.part_id == "SN-0042" and run.outcome is Outcome.PLACED
+    finally:
+        client.close()

@@ -69,6 +69,8 @@ LIST_LIMIT = Range(1, 10_000, "rows")
 MAX_TEXT = 4096  # characters of a description or a file path
 JOB_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 JOB_NAME_WORDS = "1 to 64 letters, digits, '_', '-' or '.', starting with a letter or digit"
+PART_ID = re.compile(r"[^\s\x00-\x1f\x7f]([^\x00-\x1f\x7f]{0,62}[^\s\x00-\x1f\x7f])?")  # as a PLC or a scanner gives it
+PART_ID_WORDS = "1 to 64 printable characters (no spaces at either end, no control characters)"
 PART_SIDE_M = 0.020  # the part the controller teaches: the shipped 20 mm cube (section 5.3)
 # What a vector or a pose field takes (JSON's lists, tuples, arrays); it holds tuples once checked.
 Numbers = Sequence[float] | Matrix
@@ -395,13 +397,16 @@ class CancelTeach(Command):
 
 @dataclass(frozen=True)
 class Start(Command):
-    """Start one assembly of the job; the reply carries the run's id."""
+    """Start one assembly of the job, its run recording the part's ID when given; the reply carries the run's id."""
 
     job_name: str
+    part_id: str | None = None
     result_type: ClassVar[Any] = int
 
     def __post_init__(self) -> None:
         _job_name("job_name", self.job_name)
+        if self.part_id is not None and not (isinstance(self.part_id, str) and PART_ID.fullmatch(self.part_id)):
+            raise CommandRefused(f"part_id must be {PART_ID_WORDS}, got {_shown(self.part_id)}")
 
 
 @dataclass(frozen=True)
@@ -489,7 +494,8 @@ class RunEntry:
     placement_error_mm: float | None = None
     duration_s: float | None = None
     stages: tuple[StageCount, ...] = ()
-    recording: str | None = None
+    recording: str | None = None  # its folder, None when not recorded or removed by the retention
+    part_id: str | None = None  # the part's ID, when the run was given one
 
 
 @dataclass(frozen=True, eq=False)
