@@ -69,6 +69,7 @@ from vservo.core.production.protocol import (
     SetSettings,
     SetStartPose,
     Suction,
+    Teaching,
     TeachStep,
     TestPick,
 )
@@ -190,13 +191,18 @@ def standing(state: ControllerState) -> bool:
     return state.phase in STANDING
 
 
+def draft(state: ControllerState) -> Teaching | None:
+    """The job being taught, as the state says it (None when not teaching)."""
+    return state.teaching if state.phase is Phase.TEACHING else None
+
+
 def teaching(state: ControllerState) -> bool:
-    return state.phase is Phase.TEACHING and state.teaching is not None
+    return draft(state) is not None
 
 
 def taught(step: TeachStep) -> Live:
     """Live while teaching once ``step`` is taught."""
-    return lambda state: teaching(state) and step in state.teaching.taught  # type: ignore[union-attr]
+    return lambda state: (job := draft(state)) is not None and step in job.taught
 
 
 def holding(wanted: bool) -> Live:
@@ -211,7 +217,8 @@ def offered(pose: str) -> Live:
 
 def teach_pose(state: ControllerState, name: str) -> Matrix | None:
     """One of the poses the controller offers while teaching (view_bMe, pocket_bMe, place_bMo), if known."""
-    return None if state.teaching is None else getattr(state.teaching, name)
+    job = draft(state)
+    return None if job is None else getattr(job, name)
 
 
 def view_over_part(bMo: Matrix, eMc: Matrix) -> Matrix:
@@ -423,7 +430,7 @@ APPLY = TeachButton(
 )
 SAVE = TeachButton(
     "Save job",
-    lambda state: teaching(state) and not state.teaching.missing,  # type: ignore[union-attr]
+    lambda state: (job := draft(state)) is not None and not job.missing,
     lambda form: SaveJob(form.value("name").strip(), form.value("description")),
     icon=viser.Icon.DEVICE_FLOPPY,
     color="green",
@@ -433,22 +440,24 @@ CANCEL = TeachButton("Cancel teaching", teaching, lambda form: CancelTeach(), "t
 
 def next_button(state: ControllerState) -> str:
     """The button of the operator's next step: the first whose step is not taught yet."""
-    if not teaching(state):
+    job = draft(state)
+    if job is None:
         return BEGIN.label
-    untaught = {*state.teaching.missing, *state.teaching.optional_missing}  # type: ignore[union-attr]
+    untaught = {*job.missing, *job.optional_missing}
     steps = (row for _, _, rows in STEP_FOLDERS for row in rows if row.teaches in untaught)
     return next((row.label for row in steps), SAVE.label)
 
 
 def teach_checklist(state: ControllerState) -> str:
     """What teaching still needs and the next step, or how to start it; the vacuum sensor."""
-    if state.teaching is None or not teaching(state):
+    job = draft(state)
+    if job is None:
         return (
             "Not teaching. Keep **(new job)** (or choose a stored job as a template) and press **Begin teaching**.  \n"
             "**Next: Begin teaching**"
         )
-    missing = [step.words for step in state.teaching.missing]
-    optional = [step.words for step in state.teaching.optional_missing]
+    missing = [step.words for step in job.missing]
+    optional = [step.words for step in job.optional_missing]
     also = (" Optional: " + ", ".join(optional) + ".") if optional else ""
     todo = ("Still to teach: " + ", ".join(missing) + ".") if missing else "Everything is taught: name the job and **Save**."
     sensor = "a part on the cup" if state.holding_part else "no part on the cup"

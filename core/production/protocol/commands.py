@@ -155,25 +155,25 @@ def _snake(name: str) -> str:
     return re.sub(r"(?<!^)(?=[A-Z])", "_", name).lower()
 
 
+@dataclass(frozen=True)
 class Command:
     """The base of every command; subclasses are frozen dataclasses and register by their name."""
 
     command_name: ClassVar[str]  # on the channel, and the controller's method
     result_type: ClassVar[Any] = None  # what the reply carries (None: nothing)
 
-    def __init_subclass__(cls, **kwargs: Any) -> None:
+    def __init_subclass__(cls, register: bool = True, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        if cls.__name__ in ("Query",):
-            return
-        cls.command_name = _snake(cls.__name__)
-        COMMANDS[cls.command_name] = cls
+        if register:
+            cls.command_name = _snake(cls.__name__)
+            COMMANDS[cls.command_name] = cls
 
     def _set(self, name: str, value: object) -> None:
         object.__setattr__(self, name, value)
 
     def arguments(self) -> dict[str, Any]:
         """The fields, as the controller's method takes them."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}  # type: ignore[arg-type]
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
     def carry_out(self, controller: Any) -> Any:
         """Carry the command out on the controller (in the controller process): its method of this name."""
@@ -203,7 +203,7 @@ def command_from(name: object, args: object) -> Command:
         raise CommandRefused(f"unknown command {_shown(name)}")
     if not isinstance(args, dict):
         raise CommandRefused(f"{name}: the arguments must be an object of names, got {_shown(args)}")
-    fields = dataclasses.fields(kind)  # type: ignore[arg-type]
+    fields = dataclasses.fields(kind)
     known = [f.name for f in fields]
     unknown = sorted(str(key) for key in args if key not in known)
     if unknown:
@@ -453,7 +453,8 @@ class JobStore(Protocol):
     def load_job(self, name: str) -> Any: ...
 
 
-class Query(Command):
+@dataclass(frozen=True)
+class Query(Command, register=False):
     """A command that only reads the store; any browser may send it."""
 
     def carry_out(self, controller: Any) -> Any:
