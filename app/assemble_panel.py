@@ -10,21 +10,30 @@ components of the run under way.
 from __future__ import annotations
 
 import threading
+from typing import Literal
 
 import numpy as np
 import viser
+from viser import uplot
 
 from vservo.app import live_image
 from vservo.app.banner import Button, Kind, banner_for
 from vservo.app.client_view import ClientView
 from vservo.app.context import AppContext
-from vservo.app.session import MOVING_PHASES, LiveFrame, RunTrace, SessionView
+from vservo.app.session import LiveFrame, RunTrace, SessionView
 from vservo.app.status import engineering_markdown, outcome_markdown, run_progress
+from vservo.core.production.protocol import PresentPart, Start
+from vservo.core.production.protocol.state import MOVING
 
 TWIST_NAMES = ("vx m/s", "vy m/s", "vz m/s", "wx rad/s", "wy rad/s", "wz rad/s")
 TWIST_COLOURS = ("#d62728", "#2ca02c", "#1f77b4", "#ff7f0e", "#9467bd", "#8c564b")
 BLANK = np.zeros((480, 640, 3), np.uint8)
-PROGRESS_COLOURS = {Kind.PLACED: "green", Kind.MISSED: "orange", Kind.FAULT: "red", Kind.ESTOPPED: "red"}
+PROGRESS_COLOURS: dict[Kind, Literal["green", "orange", "red"]] = {
+    Kind.PLACED: "green",
+    Kind.MISSED: "orange",
+    Kind.FAULT: "red",
+    Kind.ESTOPPED: "red",
+}
 
 
 def plot_data(trace: RunTrace) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
@@ -64,7 +73,7 @@ class AssemblePanel:
                     blank_twist,
                     (
                         {"label": "cycle"},
-                        *({"label": name, "stroke": colour, "width": 1.5} for name, colour in zip(TWIST_NAMES, TWIST_COLOURS)),
+                        *(uplot.Series(label=name, stroke=colour, width=1.5) for name, colour in zip(TWIST_NAMES, TWIST_COLOURS)),
                     ),
                     title="camera twist cVc",
                     aspect=2.2,
@@ -81,7 +90,7 @@ class AssemblePanel:
         names = self.app.job_names() or ["demo"]
         with self.tab:
             job = view.control(gui.add_dropdown("Job", names, initial_value="demo" if "demo" in names else names[0], order=11))
-            if self.app.session.state.get("can_present_part"):  # only where the cell has a part feeder
+            if self.app.session.state.can_present_part:  # only where the cell has a part feeder
                 present = view.button(
                     Button.PRESENT_PART,
                     gui.add_button(
@@ -92,11 +101,11 @@ class AssemblePanel:
                         hint="A new part arrives near where the job was taught",
                     ),
                 )
-                present.on_click(lambda _: self.app.send(view, "Present part", "present_part", "a new part is on the table"))
+                present.on_click(lambda _: self.app.send(view, "Present part", PresentPart(), "a new part is on the table"))
             start = view.button(
                 Button.START, gui.add_button("Start", icon=viser.Icon.PLAYER_PLAY, color="green", order=13, disabled=True)
             )
-        start.on_click(lambda _: self.app.send(view, "Start", "start", job=job.value))
+        start.on_click(lambda _: self.app.send(view, "Start", lambda: Start(job.value)))
         view.handles["assemble_job"] = job
 
     def remove_client(self, client_id: int) -> None:
@@ -115,15 +124,14 @@ class AssemblePanel:
 
     def refresh(self, view: SessionView) -> None:
         state = view.state
-        self._follow_job(state.get("job") or "demo")
-        phase = state.get("phase")
+        self._follow_job(state.job or "demo")
         banner = banner_for(state)
         self.stage.content = f"**{banner.title}** · {banner.detail}"
         self.engineering.content = engineering_markdown(state)
-        self.progress.value = run_progress(state, view.trace, self._threshold_px)
+        self.progress.value = run_progress(state, view.trace, self._threshold_px)  # type: ignore[misc]  # viser's props: read-only
         # The bar takes the outcome's colour (placed green, missed amber, fault red), blue while running.
-        self.progress.color = None if phase in MOVING_PHASES else PROGRESS_COLOURS.get(banner.kind)
-        self.outcome.content = outcome_markdown(state.get("last_outcome"), state.get("run_id"))
+        self.progress.color = None if state.phase in MOVING else PROGRESS_COLOURS.get(banner.kind)
+        self.outcome.content = outcome_markdown(state.last_outcome, state.run.run_id)
 
     def refresh_plots(self, view: SessionView) -> None:
         error, twist = plot_data(view.trace)
@@ -139,7 +147,7 @@ class AssemblePanel:
         def fetch() -> None:
             detail = self.app.job_detail(name)
             if detail is not None:
-                self._threshold_px = float(detail["threshold_px"])
+                self._threshold_px = detail.threshold_px
             self.app.scene.show_job(detail)
 
         self.app.in_background(fetch)

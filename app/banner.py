@@ -13,7 +13,7 @@ import html
 from dataclasses import dataclass
 from enum import Enum
 
-from vservo.core.production.assembly import Outcome, Phase
+from vservo.core.production.protocol import ControllerState, Outcome, Phase
 from vservo.core.servo.laws.base import Stage
 
 
@@ -64,49 +64,55 @@ class Banner:
         )
 
 
-def stage_words(stage: object) -> str:
+def stage_words(stage: Stage | str | None) -> str:
     """The servo stage in the operator's words (an unknown stage keeps its code)."""
+    if stage is None:
+        return ""
     try:
         return STAGE_WORDS[Stage(stage)]
-    except ValueError:
+    except (ValueError, KeyError):
         return str(stage)
 
 
-def banner_for(state: dict, controller_gone: str | None = None) -> Banner:
-    """The banner for the controller's state (a ControllerState as a dict)."""
+def banner_for(state: ControllerState, controller_gone: str | None = None) -> Banner:
+    """The banner for the controller's state."""
     if controller_gone:
         return Banner(Kind.FAULT, "CONTROLLER STOPPED", "Restart `vservo serve`.", controller_gone)
-    phase = Phase(state.get("phase") or Phase.IDLE.value)
-    job = state.get("job") or "demo"
-    detail = state.get("detail") or ""
-    if phase == Phase.IDLE:
-        return Banner(Kind.READY, "READY", "Choose a job, present a part and press Start; or teach a new job.", detail)
-    if phase == Phase.TEACHING:
-        return Banner(Kind.BUSY, "TEACHING", "Follow the steps in the Teach tab, then Save the job.", detail)
-    if phase == Phase.COMMISSIONING:
-        return Banner(Kind.BUSY, "COMMISSIONING", "The robot shows the camera the board: keep clear of the cell.", detail)
-    if phase == Phase.SERVOING:
+    job, detail = state.job or "demo", state.detail
+    if state.phase is Phase.DONE:
+        return _banner_done(state, job)
+    if state.phase is Phase.SERVOING:
         return Banner(
             Kind.BUSY,
-            f"RUNNING job {job}: {stage_words(state.get('stage') or '')}",
+            f"RUNNING job {job}: {stage_words(state.run.stage)}",
             "The robot moves: keep clear; E-STOP holds it.",
             detail,
         )
-    if phase == Phase.PICKING:
-        return Banner(Kind.BUSY, f"RUNNING job {job}: picking the part", "The robot moves: keep clear.", detail)
-    if phase == Phase.PLACING:
-        return Banner(Kind.BUSY, f"RUNNING job {job}: placing the part", "The robot moves: keep clear.", detail)
-    if phase == Phase.ESTOPPED:
-        return Banner(Kind.ESTOPPED, "E-STOPPED", "The robot is held. When the cell is safe, press Reset.", detail)
-    if phase == Phase.FAULT:
-        return Banner(Kind.FAULT, "FAULT", "Fix what failed (below), then press Reset.", detail)
-    # Done: the outcome decides (a missed part is no success, and says so).
-    outcome = (state.get("last_outcome") or {}).get("outcome")
-    reason = (state.get("last_outcome") or {}).get("reason") or detail
+    kind, title, next_step = PHASE_BANNERS[state.phase]
+    return Banner(kind, title.format(job=job), next_step, detail)
+
+
+# The banner of each phase but servoing and done: kind, title ({job}: the job's name) and what to do next.
+PHASE_BANNERS = {
+    Phase.IDLE: (Kind.READY, "READY", "Choose a job, present a part and press Start; or teach a new job."),
+    Phase.TEACHING: (Kind.BUSY, "TEACHING", "Follow the steps in the Teach tab, then Save the job."),
+    Phase.COMMISSIONING: (Kind.BUSY, "COMMISSIONING", "The robot shows the camera the board: keep clear of the cell."),
+    Phase.PICKING: (Kind.BUSY, "RUNNING job {job}: picking the part", "The robot moves: keep clear."),
+    Phase.PLACING: (Kind.BUSY, "RUNNING job {job}: placing the part", "The robot moves: keep clear."),
+    Phase.ESTOPPED: (Kind.ESTOPPED, "E-STOPPED", "The robot is held. When the cell is safe, press Reset."),
+    Phase.FAULT: (Kind.FAULT, "FAULT", "Fix what failed (below), then press Reset."),
+}
+
+
+def _banner_done(state: ControllerState, job: str) -> Banner:
+    """Done: the outcome decides (a missed part is no success, and says so)."""
+    last = state.last_outcome
+    outcome = None if last is None else last.outcome
+    reason = (last.reason if last is not None else "") or state.detail
     if outcome == Outcome.MISSED:
         return Banner(Kind.MISSED, f"MISSED: job {job}", "Take the part out of the metal part, then press Reset.", reason)
     if outcome in (Outcome.FAULT, Outcome.ESTOPPED):
-        return Banner(OUTCOME_KINDS[Outcome(outcome)], f"{Outcome(outcome).value.upper()}: job {job}", "Press Reset.", reason)
+        return Banner(OUTCOME_KINDS[outcome], f"{outcome.value.upper()}: job {job}", "Press Reset.", reason)
     return Banner(Kind.PLACED, f"PLACED: job {job}", "Press Reset, present the next part and press Start.", reason)
 
 
@@ -136,13 +142,12 @@ class Situation:
 READY_PHASES = (Phase.IDLE, Phase.DONE, Phase.FAULT)  # where a run or a commissioning may start (as the controller checks)
 
 
-def live_buttons(phase: Phase | str, situation: Situation = Situation()) -> frozenset[Button]:
+def live_buttons(phase: Phase, situation: Situation = Situation()) -> frozenset[Button]:
     """The buttons that can act in ``phase``, as the controller decides (cell_controller.py's
     ``_require``): a run, a part or a commissioning from ready, a finished run or a fault (a part
     also while teaching), never
     while something runs or the e-stop holds the robot; Reset only where there is something to
     reset; the calibration study's Run or Stop, whichever it can do."""
-    phase = Phase(phase)
     live = set()
     if phase in READY_PHASES:
         live |= {Button.START, Button.START_COMMISSIONING}

@@ -45,7 +45,7 @@ from vservo.app.light_monitor import LIGHT_COUNTS, LightMonitors, Monitors
 from vservo.app.roles import new_token
 from vservo.app.server import IMAGE_PERIOD_S, RunningApp, ServeOptions, start_app
 from vservo.core.cell.config import CellConfig, load_cell, write_thesis_policy_cell
-from vservo.core.production.assembly import Phase
+from vservo.core.production.protocol import Command, Phase, PresentPart, Reset, Start
 
 WATCH_IMAGE_TIMES = """() => {
     window.__imageTimes = [];
@@ -106,7 +106,7 @@ def _watch_servo(running: RunningApp, pids: dict[str, int]) -> tuple[float, floa
     deadline = time.monotonic() + RUN_TIMEOUT_S
     start = None
     while time.monotonic() < deadline:
-        phase = session.state.get("phase")
+        phase = session.state.phase
         if start is None and phase == Phase.SERVOING:
             start, before = time.monotonic(), {name: CpuSample.of(pid) for name, pid in pids.items()}
         if start is not None and phase != Phase.SERVOING:
@@ -120,33 +120,33 @@ def _finish_run(running: RunningApp, deadline: float) -> dict[str, Any]:
     """After the servo: its loop rate and cycles, then wait for the pick and place to end."""
     session = running.app.session
     trace = session.view().trace
-    while session.state.get("phase") in (Phase.PICKING, Phase.PLACING) and time.monotonic() < deadline:
+    while session.state.phase in (Phase.PICKING, Phase.PLACING) and time.monotonic() < deadline:
         time.sleep(0.05)
     return {
         "loop_hz": _rounded(trace.cycle_rate_hz()),
         "servo_cycles": int(len(trace.iterations)),
-        "outcome": session.state.get("detail"),
+        "outcome": session.state.detail,
     }
 
 
 # -- light monitors ----------------------------------------------------------------------------
 
 
-def _call(running: RunningApp, command: str, **args: Any) -> None:
-    reply = running.channel.call(command, **args)
+def _call(running: RunningApp, command: Command) -> None:
+    reply = running.channel.call(command)
     if not reply.ok:
-        raise RuntimeError(f"the controller refused {command!r}: {reply.error}")
+        raise RuntimeError(f"the controller refused {command.command_name!r}: {reply.error}")
 
 
 def _light_run(running: RunningApp, monitors: LightMonitors | None) -> dict[str, Any]:
     """One assembly driven through the channel, ``monitors`` (if any) watching."""
-    if running.app.session.state.get("phase") in (Phase.DONE, Phase.FAULT, Phase.ESTOPPED):
-        _call(running, "reset")
-    _call(running, "present_part")
-    _call(running, "start", job="demo")
+    if running.app.session.state.phase in (Phase.DONE, Phase.FAULT, Phase.ESTOPPED):
+        _call(running, Reset())
+    _call(running, PresentPart())
+    _call(running, Start("demo"))
     deadline = time.monotonic() + RUN_TIMEOUT_S
     pids = {"serve": os.getpid(), "controller": running.controller.process.pid}
-    if monitors is not None:
+    if monitors is not None and monitors.process.pid is not None:
         pids["clients"] = monitors.process.pid
     start, end, cpu = _watch_servo(running, pids)
     frames = monitors.frames() if monitors is not None else []
@@ -188,7 +188,7 @@ def _light(running: RunningApp, runs: int, counts: tuple[int, ...]) -> dict[str,
 def _page_run(running: RunningApp, pages: list[Any]) -> dict[str, Any]:
     operator = pages[0]
     session = running.app.session
-    if session.state.get("phase") in (Phase.DONE, Phase.FAULT, Phase.ESTOPPED):
+    if session.state.phase in (Phase.DONE, Phase.FAULT, Phase.ESTOPPED):
         operator.get_by_role("button", name="Reset (after e-stop, fault or a finished run)").click()
         wait_for_status(operator, r"Idle")
     operator.get_by_role("button", name="Present part", exact=True).click()

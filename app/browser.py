@@ -94,12 +94,15 @@ class ServeProcess:
         seed: int = 3,
         timeout_s: float = 120.0,
         cell: str | None = None,
+        python_options: tuple[str, ...] = (),
     ) -> ServeProcess:
+        """``python_options``: the interpreter's own (``-X importtime``: its imports on standard error)."""
         stderr_path = Path(data) / "serve.stderr"
         Path(data).mkdir(parents=True, exist_ok=True)
         cell_option = ["--cell", cell] if cell else []
         command = [
             sys.executable,
+            *python_options,
             "-m",
             "vservo.app.cli",
             *cell_option,
@@ -116,10 +119,12 @@ class ServeProcess:
         environment = {**os.environ, TOKEN_ENVIRONMENT: token}  # not --token: ps would show it
         with open(stderr_path, "w") as stderr:
             process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=stderr, text=True, env=environment)
+        stdout = process.stdout
+        assert stdout is not None  # piped
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if select.select([process.stdout], [], [], 0.5)[0]:
-                match = URL_LINE.search(process.stdout.readline())
+            if select.select([stdout], [], [], 0.5)[0]:
+                match = URL_LINE.search(stdout.readline())
                 if match:
                     return cls(process, match.group(1), token, stderr_path)
             if process.poll() is not None:
@@ -136,7 +141,8 @@ class ServeProcess:
         except subprocess.TimeoutExpired:
             self.process.kill()
             code = self.process.wait()
-        self.process.stdout.close()
+        if self.process.stdout is not None:
+            self.process.stdout.close()
         return code
 
     def stderr(self) -> str:
@@ -247,7 +253,9 @@ def present_part_and_start(page: Any) -> int:
     wait_for_status(page, r"a new part is on the table")
     page.get_by_role("button", name="Start", exact=True).click()
     running = wait_for_status(page, r"Servoing .*run (\d+)")
-    return int(re.search(r"run (\d+)", running).group(1))
+    number = re.search(r"run (\d+)", running)
+    assert number is not None  # the status matched it
+    return int(number.group(1))
 
 
 def cycle_of(text: str) -> int | None:

@@ -34,7 +34,7 @@ from vservo.app.calibration_run import (
 from vservo.app.client_view import ClientView
 from vservo.app.context import AppContext
 from vservo.app.session import SessionView
-from vservo.core.production.channel import Reply
+from vservo.core.production.protocol import ApplyCommissioning, Commission, Reply
 
 
 class CalibratePanel:
@@ -104,9 +104,8 @@ class CalibratePanel:
             lambda _: self.app.send(
                 view,
                 "Start commissioning",
-                "commission",
+                lambda: Commission(steps=tuple(step for step, box in steps.items() if box.value)),
                 "commissioning started",
-                steps=[step for step, box in steps.items() if box.value],
             )
         )
         apply.on_click(lambda _: self._confirm_apply(view))
@@ -122,8 +121,8 @@ class CalibratePanel:
     def refresh(self, view: SessionView) -> None:
         """The commissioning's progress and results (the study reports its own progress, _on_change)."""
         state = view.state
-        record = state.get("commissioning")
-        _set(self.commission_progress, commission_text.progress_markdown(record, state.get("cell_file", "")))
+        record = state.commissioning
+        _set(self.commission_progress, commission_text.progress_markdown(record, state.cell_file))
         _set(self.commission_results, commission_text.results_markdown(record))
         _set(self.commission_engineering, commission_text.engineering_markdown(record))
 
@@ -137,8 +136,8 @@ class CalibratePanel:
         """Apply asks first: the modal names the file it writes."""
         if not view.allowed("Apply", self.app.roles):
             return
-        record = self.app.session.state.get("commissioning")
-        if not record:
+        record = self.app.session.state.commissioning
+        if record is None:
             view.notify("Apply: refused", "nothing was commissioned", error=True)
             return
         with view.client.gui.add_modal("Apply the commissioning") as modal:
@@ -154,7 +153,7 @@ class CalibratePanel:
 
         def on_write(_: object) -> None:
             modal.close()
-            self.app.send(view, "Apply", "apply_commissioning", done=applied)
+            self.app.send(view, "Apply", ApplyCommissioning(), done=applied)
 
         write.on_click(on_write)
         cancel.on_click(lambda _: modal.close())
@@ -181,7 +180,7 @@ class CalibratePanel:
 
     def _on_change(self, progress: CalibrationProgress) -> None:
         elapsed = time.monotonic() - progress.started_s
-        self.bar.value = 100.0 * progress.fraction
+        self.bar.value = 100.0 * progress.fraction  # type: ignore[misc]  # viser's props: read-only
         if progress.error:
             self.bar.color = "red"
             self.status.content = f"**Calibration stopped** after {elapsed:.0f} s: {progress.error}"

@@ -129,10 +129,12 @@ class CalibrationRun:
     def _step(self, step: str, index: int) -> dict[str, Any]:
         command = step_command(step, self.folder, self.preset, self.cell)
         self._process = process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        stdout, stderr = process.stdout, process.stderr
+        assert stdout is not None and stderr is not None  # both piped
         # Standard output (one JSON object) is small and read at the end; standard error
         # carries the progress lines as they come.
         last_line = ""
-        for line in process.stderr:
+        for line in stderr:
             line = line.strip()
             if not line:
                 continue
@@ -142,10 +144,10 @@ class CalibrationRun:
                 self.progress.fraction = (index + fraction) / len(STEPS)
                 self.progress.line = line
                 self.on_change(self.progress)
-        output = process.stdout.read()
+        output = stdout.read()
         code = process.wait()
-        process.stdout.close()
-        process.stderr.close()
+        stdout.close()
+        stderr.close()
         if self._cancelled.is_set():
             raise CalibrationFailed("stopped by the operator")
         if code != 0:

@@ -20,7 +20,7 @@ import viser
 
 from vservo.app.banner import Button
 from vservo.app.roles import RoleRefused, Roles
-from vservo.core.production.channel import Reply
+from vservo.core.production.protocol import Reply
 
 
 class ClientView:
@@ -118,7 +118,7 @@ class ClientView:
 
         return done
 
-    def refused(self, what: str, exc: RoleRefused) -> None:
+    def refused(self, what: str, exc: Exception) -> None:
         self.notify(f"{what}: refused", str(exc), error=True)
 
 

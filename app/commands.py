@@ -7,7 +7,8 @@ the reply to the browser that asked. Commands run one at a time in the order giv
 The e-stop never queues: it is sent from its own thread the moment it is pressed, by any
 browser (the channel carries it out ahead of a long move, too).
 
-Viser-free: ``call`` is the channel's ControllerClient.call, ``Reply`` its answer.
+Viser-free: ``call`` is the channel's ControllerClient.call, ``Reply`` its answer. The
+commands are the protocol's dataclasses: a query (``Query``) and the e-stop are anyone's.
 """
 
 from __future__ import annotations
@@ -17,27 +18,25 @@ import queue
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 from vservo.app.roles import RoleRefused, Roles
-from vservo.core.production.channel import ChannelError, Reply
+from vservo.core.production.protocol import ChannelError, Command, Estop, Query, Reply
 
 log = logging.getLogger("vservo.app")
 
-# Commands any browser may send: reading, and stopping.
-READ_ONLY = frozenset({"list_jobs", "list_runs", "get_job"})
-ESTOP = "estop"
-
-Call = Callable[..., Reply]
+Call = Callable[[Command, float], Reply]  # the command and how long to wait for its reply (s)
 Done = Callable[[Reply], None]
 
 
 @dataclass(frozen=True)
 class _Request:
     client_id: int | None
-    name: str
-    args: dict[str, Any]
+    command: Command
     done: Done
+
+    @property
+    def what(self) -> str:
+        return self.command.command_name
 
 
 class CommandQueue:
@@ -49,25 +48,25 @@ class CommandQueue:
         self._worker = threading.Thread(target=self._work, name="app-commands", daemon=True)
         self._worker.start()
 
-    def submit(self, client_id: int | None, command: str, done: Done = lambda reply: None, **args: Any) -> None:
+    def submit(self, client_id: int | None, command: Command, done: Done = lambda reply: None) -> None:
         """Queue ``command`` for the controller if this browser may send it; RoleRefused otherwise."""
-        if command == ESTOP:
+        if isinstance(command, Estop):
             self.estop(client_id, done)
             return
-        if command not in READ_ONLY:
-            self.roles.require(client_id, command.replace("_", " "))
-        self._requests.put(_Request(client_id, command, args, done))
+        if not isinstance(command, Query):
+            self.roles.require(client_id, command.command_name.replace("_", " "))
+        self._requests.put(_Request(client_id, command, done))
 
     def estop(self, client_id: int | None, done: Done = lambda reply: None) -> None:
         """Stop the cell now: from any browser, never behind another command."""
         log.warning("e-stop pressed in browser %s", client_id)
-        threading.Thread(target=self._send, args=(_Request(client_id, ESTOP, {}, done),), name="app-estop", daemon=True).start()
+        threading.Thread(target=self._send, args=(_Request(client_id, Estop(), done),), name="app-estop", daemon=True).start()
 
-    def call_now(self, command: str, **args: Any) -> Reply:
+    def call_now(self, query: Query) -> Reply:
         """A read-only query answered in the caller's thread (the app's own refreshes, not a browser's)."""
-        if command not in READ_ONLY:
-            raise RoleRefused(f"{command} is not a query")
-        return self._call(command, timeout_s=self.timeout_s, **args)
+        if not isinstance(query, Query):
+            raise RoleRefused(f"{query.command_name} is not a query")
+        return self._call(query, self.timeout_s)
 
     def close(self) -> None:
         self._requests.put(None)
@@ -75,18 +74,18 @@ class CommandQueue:
 
     def _work(self) -> None:
         while (request := self._requests.get()) is not None:
-            if request.name not in READ_ONLY and not self.roles.is_operator(request.client_id):
+            if not isinstance(request.command, Query) and not self.roles.is_operator(request.client_id):
                 # Control changed hands while this waited in the queue: the new operator did not ask for it.
-                request.done(Reply(False, error=f"{request.name}: control was released before it was sent"))
+                request.done(Reply(False, error=f"{request.what}: control was released before it was sent"))
                 continue
             self._send(request)
 
     def _send(self, request: _Request) -> None:
         try:
-            reply = self._call(request.name, timeout_s=self.timeout_s, **request.args)
+            reply = self._call(request.command, self.timeout_s)
         except ChannelError as exc:
-            reply = Reply(False, error=f"{request.name}: {exc}")
+            reply = Reply(False, error=f"{request.what}: {exc}")
         try:
             request.done(reply)
         except Exception:  # a browser that left meanwhile must not stop the worker
-            log.exception("reporting the reply to %s failed", request.name)
+            log.exception("reporting the reply to %s failed", request.what)

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
 import viser
 
@@ -17,6 +17,7 @@ from vservo.app.client_view import ClientView
 from vservo.app.roles import Roles
 from vservo.app.scene3d import CellScene
 from vservo.app.session import Session
+from vservo.core.production.protocol import Command, JobDetail, Reply, RunEntry
 
 
 @dataclass(frozen=True)
@@ -39,18 +40,18 @@ class AppContext(Protocol):
     roles: Roles
     options: ServeOptions
     scene: CellScene
-    runs: list[dict]
+    runs: list[RunEntry]
 
     def send(
         self,
         view: ClientView,
         what: str,
-        command: str,
+        command: Command | Callable[[], Command],
         success: str | None = None,
-        done: Callable[[Any], None] | None = None,
-        **args: Any,
+        done: Callable[[Reply], None] | None = None,
     ) -> None:
-        """A browser's command, refused in that browser unless it holds control."""
+        """A browser's command (or how to make it from its inputs), refused in that browser
+        unless it holds control or when its fields are out of range."""
         ...
 
     def in_background(self, work: Callable[[], None]) -> None: ...
@@ -63,7 +64,7 @@ class AppContext(Protocol):
         """Enable every browser's phase-dependent buttons from what the cell does now."""
         ...
 
-    def job_detail(self, name: str | None) -> dict | None: ...
+    def job_detail(self, name: str | None) -> JobDetail | None: ...
 
     def forget_job(self, name: str) -> None:
         """The job ``name`` was saved anew: its cached detail and the shown job are stale."""

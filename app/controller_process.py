@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from vservo.core.production.channel import KEY_ENVIRONMENT, new_key
+from vservo.core.production.protocol import KEY_ENVIRONMENT, new_key
 
 START_TIMEOUT_S = 60.0  # loading the arm model and the camera takes seconds on a loaded machine
 
@@ -80,17 +80,20 @@ class ControllerProcess:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait(10.0)
-        self.process.stdout.close()
+        if self.process.stdout is not None:
+            self.process.stdout.close()
         return self.process.returncode
 
 
 def _first_line(process: subprocess.Popen, timeout_s: float) -> str:
     """The controller's first stdout line; '' if it exits or stays silent past the timeout."""
+    stdout = process.stdout
+    assert stdout is not None  # piped
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        ready, _, _ = select.select([process.stdout], [], [], 0.2)
+        ready, _, _ = select.select([stdout], [], [], 0.2)
         if ready:
-            return process.stdout.readline()
+            return stdout.readline()
         if process.poll() is not None:
             return ""
     return ""

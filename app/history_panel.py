@@ -27,6 +27,7 @@ from vservo.app.session import SessionView
 from vservo.app.stage_chart import stage_chart
 from vservo.app.status import run_heading, run_label, runs_table
 from vservo.core.perception.recording import Recording, RecordingError
+from vservo.core.production.protocol import RunEntry
 
 NO_RUN = "(no runs yet)"
 CHART_PERIOD_S = 0.25  # the replay's chart and 3D path follow at most this often
@@ -65,7 +66,7 @@ def replay_overlays(recording: Recording) -> list[tuple[dict, live_image.Overlay
 class _Replay:
     """One browser's replay: its recording, the frames shown with their overlays, and its clock."""
 
-    run: dict
+    run: RunEntry
     recording: Recording
     shown: list[tuple[dict, live_image.Overlay]]
     clock: ReplayClock
@@ -88,7 +89,7 @@ class HistoryPanel:
             with gui.add_folder("One run", order=2):
                 choice = gui.add_dropdown("Run", self._labels() or [NO_RUN])
                 timeline = gui.add_markdown("")
-                chart = gui.add_image(stage_chart({}), label="stage timeline", format="png")
+                chart = gui.add_image(stage_chart(None), label="stage timeline", format="png")
                 replay = view.button(
                     Button.REPLAY,
                     gui.add_button("Replay its recording", icon=viser.Icon.PLAYER_PLAY, disabled=True),
@@ -134,22 +135,22 @@ class HistoryPanel:
             replay.stop.set()
 
     def _labels(self) -> list[str]:
-        return [run_label(run) for run in self.app.runs if run.get("outcome")]
+        return [run_label(run) for run in self.app.runs if run.outcome]
 
-    def _selected(self, view: ClientView) -> dict | None:
+    def _selected(self, view: ClientView) -> RunEntry | None:
         label = view.handles["history_run"].value
         return next((run for run in self.app.runs if run_label(run) == label), None)
 
     def _show_timeline(self, view: ClientView) -> None:
         run = self._selected(view)
         view.handles["history_timeline"].content = run_heading(run) if run else ""
-        view.handles["history_chart"].image = stage_chart(run or {})
+        view.handles["history_chart"].image = stage_chart(run)
 
     def lists_changed(self, views: list[ClientView]) -> None:
         self.table.content = runs_table(self.app.runs)
         labels = self._labels() or [NO_RUN]
-        finished = [run for run in self.app.runs if run.get("outcome")]
-        newest = finished[0]["id"] if finished else None  # the controller lists runs newest first
+        finished = [run for run in self.app.runs if run.outcome]
+        newest = finished[0].id if finished else None  # the controller lists runs newest first
         with self._lock:
             new_run, self._newest = newest != self._newest, newest
         for view in views:
@@ -167,20 +168,20 @@ class HistoryPanel:
 
     def _start_replay(self, view: ClientView, speed: float) -> None:
         run = self._selected(view)
-        if run is None or not run.get("recording"):
+        if run is None or not run.recording:
             view.notify("Replay", "this run has no recording", error=True)
             return
         try:
-            recording = Recording.open(run["recording"])
+            recording = Recording.open(run.recording)
             shown = replay_overlays(recording)
         except RecordingError as exc:
             view.notify("Replay", str(exc), error=True)
             return
         if not shown:
-            view.notify("Replay", f"run {run['id']} recorded no frames", error=True)
+            view.notify("Replay", f"run {run.id} recorded no frames", error=True)
             return
         replay = _Replay(
-            run, recording, shown, ReplayClock(ReplayTimeline.from_cycles([cycle for cycle, _ in shown], run.get("duration_s")))
+            run, recording, shown, ReplayClock(ReplayTimeline.from_cycles([cycle for cycle, _ in shown], run.duration_s))
         )
         with self._lock:
             previous = self._replays.get(view.client_id)
@@ -227,11 +228,13 @@ class HistoryPanel:
             if index != replay.index:
                 cycle, overlay = replay.shown[index]
                 frame = replay.recording.frame_of(cycle)
-                live_image.show_jpeg(handles["replay_image"], live_image.encode_jpeg(live_image.draw(frame.image, overlay)))
+                if frame is not None:  # every cycle shown recorded one (replay_overlays)
+                    image = live_image.draw(frame.image, overlay)
+                    live_image.show_jpeg(handles["replay_image"], live_image.encode_jpeg(image))
                 replay.index = index
                 handles["replay_seek"].value = index
                 handles["replay_status"].content = (
-                    f"run {replay.run['id']}: {timeline.times_s[index]:.1f} s of {timeline.duration_s:.1f} s, "
+                    f"run {replay.run.id}: {timeline.times_s[index]:.1f} s of {timeline.duration_s:.1f} s, "
                     f"frame {index + 1} of {len(replay.shown)}, {_stage_text(cycle)}"
                 )
                 if time.monotonic() - charted_at >= CHART_PERIOD_S or index == len(replay.shown) - 1:

@@ -34,6 +34,7 @@ import msgspec.msgpack
 import numpy as np
 import websockets.asyncio.client
 import zstandard
+from websockets.typing import Origin, Subprotocol
 
 HEADER_BYTES = 16
 READY_TIMEOUT_S = 60.0
@@ -126,7 +127,7 @@ class LightMonitor:
         """Read the server until ``stop`` is set (or the server closes the connection)."""
         decompressor = zstandard.ZstdDecompressor()
         async with websockets.asyncio.client.connect(
-            self.url, subprotocols=[f"viser-v{version('viser')}"], origin=self.origin, max_size=None
+            self.url, subprotocols=[Subprotocol(f"viser-v{version('viser')}")], origin=Origin(self.origin), max_size=None
         ) as connection:
             self.connected.set()
             stopping = asyncio.ensure_future(stop.wait())
@@ -179,7 +180,7 @@ async def _serve_monitors(url: str, count: int, connection: Any) -> None:
         )
     )
     while await asyncio.to_thread(connection.recv) == "frames":
-        connection.send(failure() or [list(monitor.camera().times) for monitor in monitors])
+        connection.send(failure() or [list(camera.times) if (camera := m.camera()) else [] for m in monitors])
     stop.set()
     await asyncio.gather(*tasks, return_exceptions=True)
 

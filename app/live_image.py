@@ -7,7 +7,8 @@ Drawn with OpenCV on the decoded JPEG (grey camera image, colour overlays):
 - corner trajectories so far in this run: one thin line per corner;
 - laser spot: a yellow cross; its target (the taught spot): a yellow ring, joined to the spot.
 
-Pixels arrive as the channel sends them: lists, with -1 (or None) for a feature not seen.
+Pixels arrive as the channel's FrameMeta carries them, NaN for a feature not seen (a
+recording's, replayed, as lists with -1 or None).
 Drawing uses fixed-point coordinates (OpenCV's ``shift``) so a marker sits within 1/16 px
 of the sub-pixel measurement. Viser-free.
 """
@@ -15,9 +16,12 @@ of the sub-pixel measurement. Viser-free.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, TypeGuard
 
 import cv2
 import numpy as np
+
+from vservo.core.production.protocol import FrameMeta
 
 SHIFT = 4  # fixed-point bits of the drawn coordinates
 SEEN_BGR = (60, 220, 60)
@@ -50,15 +54,15 @@ class Overlay:
     trail_px: np.ndarray | None = None  # (T, 4, 2)
 
     @classmethod
-    def from_meta(cls, meta: dict) -> Overlay:
-        """From a channel frame message's meta (vservo.core.production.channel.frame_message)."""
-        trail = meta.get("trail_px")
+    def from_meta(cls, meta: FrameMeta) -> Overlay:
+        """From what the controller saw in a frame (its shapes checked: a bad one is not drawn)."""
+        trail = meta.trail_px
         return cls(
-            corners_px=pixel_array(meta.get("corners_px"), (4, 2)),
-            laser_spot_px=pixel_array(meta.get("laser_spot_px"), (2,)),
-            desired_corners_px=pixel_array(meta.get("desired_corners_px"), (4, 2)),
-            desired_laser_px=pixel_array(meta.get("desired_laser_px"), (2,)),
-            trail_px=None if not trail else pixel_array(trail, (len(trail), 4, 2)),
+            corners_px=pixel_array(meta.corners_px, (4, 2)),
+            laser_spot_px=pixel_array(meta.laser_spot_px, (2,)),
+            desired_corners_px=pixel_array(meta.desired_corners_px, (4, 2)),
+            desired_laser_px=pixel_array(meta.desired_laser_px, (2,)),
+            trail_px=None if trail is None or len(trail) == 0 else pixel_array(trail, (len(trail), 4, 2)),
         )
 
 
@@ -66,7 +70,7 @@ def _fixed(point: np.ndarray) -> tuple[int, int]:
     return int(round(point[0] * (1 << SHIFT))), int(round(point[1] * (1 << SHIFT)))
 
 
-def _seen(point: np.ndarray | None) -> bool:
+def _seen(point: np.ndarray | None) -> TypeGuard[np.ndarray]:
     return point is not None and bool(np.all(np.isfinite(point)))
 
 
@@ -134,12 +138,12 @@ def encode_jpeg(image: np.ndarray, quality: int = JPEG_QUALITY) -> bytes:
     return jpeg.tobytes()
 
 
-def render(jpeg: bytes, meta: dict) -> bytes:
+def render(jpeg: bytes, meta: FrameMeta) -> bytes:
     """The channel's frame with its overlay, as JPEG: one call per frame for all browsers."""
     return encode_jpeg(draw(decode(jpeg), Overlay.from_meta(meta)))
 
 
-def show_jpeg(handle: object, jpeg: bytes) -> None:
+def show_jpeg(handle: Any, jpeg: bytes) -> None:
     """Put already-encoded JPEG bytes in a viser image element. Its ``image`` setter would
     encode the array again per element; viser 1.1.1 is pinned, so its props are known."""
     handle._format = "jpeg"

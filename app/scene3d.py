@@ -33,7 +33,8 @@ from vservo.core.cell.scene import Cube, MetalPart
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
 from vservo.core.geometry.spatial import Matrix, inverse, rot_x, transform
-from vservo.core.production.assembly import Phase
+from vservo.core.production.protocol import ControllerState, JobDetail, Phase
+from vservo.core.production.protocol.commands import PART_SIDE_M
 from vservo.robot_models.loader import load_arm
 
 log = logging.getLogger("vservo.app")
@@ -63,7 +64,9 @@ def tool_bodies(bMe: Matrix, mount: ToolMount) -> dict[str, Matrix]:
     return {name: bMe @ frames[name] @ transform(t=(0.0, 0.0, -behind[name])) for name in frames}
 
 
-def part_pose_from_corners(corners_px: Matrix, bMe: Matrix, eMc: Matrix, camera: CameraModel, side_m: float) -> Matrix | None:
+def part_pose_from_corners(
+    corners_px: Matrix | None, bMe: Matrix, eMc: Matrix, camera: CameraModel, side_m: float
+) -> Matrix | None:
     """bMo of the part from its four corners seen in one frame (None if not all are seen)."""
     if corners_px is None or not np.all(np.isfinite(corners_px)):
         return None
@@ -111,11 +114,11 @@ class PartTracker:
         self.bMo: Matrix | None = None
         self._vMo: Matrix | None = None  # the part in the cup frame while it is held
 
-    def update(self, state: dict, overlay: Overlay | None, side_m: float, bMp: Matrix | None = None) -> Matrix | None:
+    def update(self, state: ControllerState, overlay: Overlay | None, side_m: float, bMp: Matrix | None = None) -> Matrix | None:
         """bMp: the shown job's pocket frame, where a placed part sits."""
-        bMe = np.asarray(state["bMe"], float)
+        bMe = state.bMe
         bMv = bMe @ self.mount.eMv
-        if state.get("holding_part"):
+        if state.holding_part:
             if self._vMo is None:
                 # Grasped: the part hangs from the cup as it was last seen, or centred under it.
                 self._vMo = (
@@ -125,19 +128,19 @@ class PartTracker:
                 )
             self.bMo = bMv @ self._vMo
             return self.bMo
-        if self._vMo is not None and bMp is not None and state.get("phase") in (Phase.PLACING, Phase.DONE):
+        if self._vMo is not None and bMp is not None and state.phase in (Phase.PLACING, Phase.DONE):
             # Released in the pocket: the part's bottom face on the pocket's floor, as it hung from the cup.
             self.bMo = bMv @ self._vMo
             self.bMo[:3, 3] += bMp[:3, 3] - (self.bMo @ transform(t=(side_m / 2, side_m / 2, -side_m)))[:3, 3]
         self._vMo = None
-        if overlay is not None and state.get("phase") != Phase.DONE:
+        if overlay is not None and state.phase != Phase.DONE:
             seen = part_pose_from_corners(overlay.corners_px, bMe, self.mount.eMc, self.camera, side_m)
             if seen is not None:
                 self.bMo = seen
         return self.bMo
 
 
-def _wxyz(M: Matrix) -> Matrix:
+def _wxyz(M: Matrix) -> np.ndarray:
     return vtf.SO3.from_matrix(M[:3, :3]).wxyz
 
 
@@ -188,11 +191,11 @@ class CellScene:
         self.place_outline = scene.add_line_segments(
             "/cell/teach/place_outline", np.zeros((12, 2, 3)), OUTLINE_RGB, thickness=0.003, visible=False
         )
-        self._teaching_shown: tuple[bool, list | None] | None = None  # None: not shown yet
+        self._teaching_shown: tuple[bool, bytes | None] | None = None  # None: not shown yet
         self._use_model(config)
         self.job: _Job | None = None
         self._path_points = 0
-        self.path = None
+        self.path: viser.LineSegmentsHandle | None = None
         # No shadows: an operator PC without a GPU (and headless Chromium) renders in software.
         server.scene.configure_default_lights(cast_shadow=False)
         # Aimed above the arm, so the whole cell sits in the view's lower half, under the
@@ -227,8 +230,8 @@ class CellScene:
             return
         self._use_model(config)
 
-    def show_job(self, job: dict | None) -> None:
-        """The metal part where ``job`` (its dict, vservo.core.production.jobs.Job.as_dict) places the part; None hides it."""
+    def show_job(self, job: JobDetail | None) -> None:
+        """The metal part where ``job`` places the part; None hides it."""
         for handle in self.metal:
             handle.remove()
         self.metal = []
@@ -236,7 +239,7 @@ class CellScene:
         if job is None:
             self.job = None
             return
-        self.job = _Job(job["name"], float(job["part_side_m"]), np.asarray(job["bMe_place"], float))
+        self.job = _Job(job.name, job.part_side_m, job.bMe_place)
         bMp = placed_part_frame(self.job.bMe_place, self.mount.eMv, self.job.side_m)
         for index, box in enumerate(MetalPart(bMp).boxes):
             self.metal.append(
@@ -245,27 +248,29 @@ class CellScene:
                 )
             )
 
-    def _show_teaching(self, state: dict) -> None:
+    def _show_teaching(self, state: ControllerState) -> None:
         """While teaching: the cell file's metal part instead of a job's, and the taught place's part outline."""
-        teaching = state.get("phase") == Phase.TEACHING
-        placed = (state.get("teach_poses") or {}).get("place_bMo") if teaching else None
-        if (teaching, placed) == self._teaching_shown:
+        teaching = state.phase == Phase.TEACHING
+        placed = state.teaching.place_bMo if teaching and state.teaching is not None else None
+        shown = (teaching, None if placed is None else placed.tobytes())
+        if shown == self._teaching_shown:
             return  # every update would otherwise resend them to every browser
-        self._teaching_shown = (teaching, placed)
+        self._teaching_shown = shown
         for handle in self.metal:
             handle.visible = not (teaching and self.modelled_metal)
         for handle in self.modelled_metal:
             handle.visible = teaching
         if placed is not None:
-            self.place_outline.points = part_outline(np.asarray(placed, float), self.job.side_m if self.job else 0.020)
+            outline = part_outline(placed, self.job.side_m if self.job else PART_SIDE_M)
+            self.place_outline.points = outline.astype(np.float32)
         self.place_outline.visible = placed is not None
 
-    def update(self, state: dict, overlay: Overlay | None, path_m: Matrix) -> None:
-        if not state.get("q"):
+    def update(self, state: ControllerState, overlay: Overlay | None, path_m: Matrix) -> None:
+        if not state.q.size:
             return  # no readout of the robot yet: no camera or beam at a made-up pose
-        self._follow_the_controllers_model(state.get("cell_file"))
-        self.robot.display(np.asarray(state["q"], float))
-        bMe = np.asarray(state["bMe"], float)
+        self._follow_the_controllers_model(state.cell_file)
+        self.robot.display(state.q)
+        bMe = state.bMe
         bMc = bMe @ self.mount.eMc
         self.frustum.wxyz, self.frustum.position, self.frustum.visible = _wxyz(bMc), bMc[:3, 3], True
         bodies = tool_bodies(bMe, self.mount)
@@ -274,7 +279,7 @@ class CellScene:
         brackets = np.array([[bMe[:3, 3], bMx[:3, 3]] for bMx in bodies.values()])
         self.server.scene.add_line_segments("/cell/tools/brackets", brackets, BRACKET_RGB, thickness=0.004)
         self._show_teaching(state)
-        side = self.job.side_m if self.job else 0.020
+        side = self.job.side_m if self.job else PART_SIDE_M
         bMp = placed_part_frame(self.job.bMe_place, self.mount.eMv, side) if self.job else None
         bMo = self.tracker.update(state, overlay, side, bMp)
         if bMo is not None:

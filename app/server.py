@@ -32,7 +32,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import viser
 
 from vservo.app import live_image
@@ -51,7 +50,20 @@ from vservo.app.status import status_markdown
 from vservo.app.teach_panel import TeachPanel
 from vservo.app.web_guard import OriginPolicy, origin_checked_server
 from vservo.core.cell.config import CellConfig
-from vservo.core.production.channel import ChannelError, ControllerClient
+from vservo.core.errors import VservoError
+from vservo.core.production.protocol import (
+    ChannelError,
+    Command,
+    ControllerClient,
+    GetJob,
+    JobDetail,
+    JobEntry,
+    ListJobs,
+    ListRuns,
+    Reply,
+    Reset,
+    RunEntry,
+)
 
 log = logging.getLogger("vservo.app")
 
@@ -86,9 +98,9 @@ class OperatorApp:
         self._lock = threading.Lock()
         self._building = threading.Lock()
         self.views: dict[int, ClientView] = {}
-        self.jobs: list[dict] = []
-        self.runs: list[dict] = []
-        self._job_details: dict[str, dict] = {}
+        self.jobs: list[JobEntry] = []
+        self.runs: list[RunEntry] = []
+        self._job_details: dict[str, JobDetail | None] = {}
         self._stop = threading.Event()
 
         server.gui.configure_theme(
@@ -143,15 +155,16 @@ class OperatorApp:
         self,
         view: ClientView,
         what: str,
-        command: str,
+        command: Command | Callable[[], Command],
         success: str | None = None,
-        done: Callable[[Any], None] | None = None,
-        **args: Any,
+        done: Callable[[Reply], None] | None = None,
     ) -> None:
-        """A browser's command: refused at once (in that browser) unless it holds control."""
+        """A browser's command: refused at once (in that browser) unless it holds control, or
+        when ``command`` (made here from the browser's inputs, if a function) refuses a field."""
         try:
-            self.commands.submit(view.client_id, command, done or view.report(what, success), **args)
-        except RoleRefused as exc:
+            made = command if isinstance(command, Command) else command()
+            self.commands.submit(view.client_id, made, done or view.report(what, success))
+        except (RoleRefused, VservoError) as exc:
             view.refused(what, exc)
 
     def in_background(self, work: Callable[[], None]) -> None:
@@ -165,26 +178,26 @@ class OperatorApp:
 
     def refresh_lists(self) -> None:
         """Jobs and runs from the controller; every browser's lists follow."""
-        jobs = self.commands.call_now("list_jobs")
-        runs = self.commands.call_now("list_runs", limit=50)
+        jobs = self.commands.call_now(ListJobs())
+        runs = self.commands.call_now(ListRuns(limit=50))
         with self._lock:
             if jobs.ok:
-                self.jobs = jobs.result
+                self.jobs = list(jobs.result)
             if runs.ok:
-                self.runs = runs.result
+                self.runs = list(runs.result)
             views = list(self.views.values())
         for panel in self.panels:
             panel.lists_changed(views)
         self.refresh_buttons()
 
-    def job_detail(self, name: str | None) -> dict | None:
+    def job_detail(self, name: str | None) -> JobDetail | None:
         """A job's stored content (poses, settings), fetched once per name and save."""
         if not name:
             return None
         with self._lock:
             if name in self._job_details:
                 return self._job_details[name]
-        reply = self.commands.call_now("get_job", name=name)
+        reply = self.commands.call_now(GetJob(name))
         detail = reply.result if reply.ok else None
         with self._lock:
             self._job_details[name] = detail
@@ -197,30 +210,28 @@ class OperatorApp:
 
     def job_names(self) -> list[str]:
         with self._lock:
-            return [job["name"] for job in self.jobs if not job.get("problem")]
+            return [job.name for job in self.jobs if not job.problem]
 
     def refresh_buttons(self) -> None:
         """Every browser's phase-dependent buttons from what the cell does now (app/banner.py)."""
         state = self.session.state
-        commissioning = state.get("commissioning") or {}
-        summary = commissioning.get("summary")
         with self._lock:
-            has_runs = any(run.get("recording") and run.get("outcome") for run in self.runs)
+            has_runs = any(run.recording and run.outcome for run in self.runs)
             views = list(self.views.values())
         situation = Situation(
-            can_present_part=bool(state.get("can_present_part")),
-            commissioning_to_apply=bool(summary and summary["good"] and not commissioning.get("applied")),
+            can_present_part=state.can_present_part,
+            commissioning_to_apply=state.commissioning is not None and state.commissioning.to_apply,
             calibrating=self.calibrate.calibrating,
             has_runs=has_runs,
         )
-        live = live_buttons(state.get("phase") or "idle", situation)
+        live = live_buttons(state.phase, situation)
         for view in views:
             view.set_live(live)
 
-    def _estop_reply(self, client_id: int | None) -> Callable[[Any], None]:
-        def done(reply: Any) -> None:
+    def _estop_reply(self, client_id: int | None) -> Callable[[Reply], None]:
+        def done(reply: Reply) -> None:
             with self._lock:
-                view = self.views.get(client_id)
+                view = None if client_id is None else self.views.get(client_id)
             if view is None:
                 return
             if reply.ok:  # red even when it worked: the robot is held, nothing to celebrate
@@ -256,7 +267,7 @@ class OperatorApp:
             Button.RESET,
             gui.add_button("Reset (after e-stop, fault or a finished run)", icon=viser.Icon.REFRESH, order=2, disabled=True),
         )
-        reset.on_click(lambda _: self.send(view, "Reset", "reset", "ready"))
+        reset.on_click(lambda _: self.send(view, "Reset", Reset(), "ready"))
         folder = gui.add_folder("Control", order=3)
         with folder:
             role = gui.add_markdown("")
@@ -270,7 +281,7 @@ class OperatorApp:
             except RoleRefused as exc:
                 view.refused("Take control", exc)
                 return
-            token.value = ""
+            token.value = ""  # type: ignore[misc]  # viser's props declare value read-only; its handle sets it
 
         def on_role(is_operator: bool) -> None:
             role.content = (
@@ -282,7 +293,7 @@ class OperatorApp:
             release.disabled, take.disabled = not is_operator, is_operator
 
         take.on_click(on_take)
-        release.on_click(lambda _: self.roles.release(view.client_id))
+        release.on_click(lambda _: None if self.roles.release(view.client_id) else None)
         view.on_role(on_role)
 
     def _client_address(self, client_id: int) -> str | None:
@@ -354,7 +365,7 @@ class OperatorApp:
     def _refresh_scene(self, view: SessionView) -> None:
         overlay = live_image.Overlay.from_meta(view.frame.meta) if view.frame is not None else None
         self.scene.update(view.state, overlay, view.trace.path_m)
-        self.teach.follow_flange(np.asarray(view.state["bMe"], float))
+        self.teach.follow_flange(view.state.bMe)
 
     def close(self) -> None:
         self._stop.set()
@@ -431,7 +442,7 @@ def _log_thread_exception(args: threading.ExceptHookArgs) -> None:
     log.error(
         "unhandled exception in thread %s",
         args.thread.name if args.thread else "?",
-        exc_info=(args.exc_type, args.exc_value, args.exc_traceback),
+        exc_info=args.exc_value,
     )
     print(
         f"vservo serve: unhandled exception in thread {args.thread.name if args.thread else '?'}: {args.exc_value!r}",

@@ -1,7 +1,8 @@
 """The app's picture of the cell, built from what the controller publishes over the channel.
 
-The controller sends its state (ControllerState as a dict) on every change and every
-servo cycle, and camera frames (JPEG plus what the vision saw in them). The session keeps
+The controller sends its state (a ControllerState, decoded by the channel's client) on
+every change and every servo cycle, and camera frames (JPEG plus what the vision saw in
+them, a FrameMeta). The session keeps
 the newest of each, and for the run under way the history the screens plot: feature
 error and camera twist per servo cycle, and the flange's path. Every browser is drawn
 from the same session, so a monitor sees exactly what the operator sees.
@@ -18,9 +19,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vservo.core.geometry.spatial import Matrix
-from vservo.core.production.assembly import Phase
+from vservo.core.production.protocol import ControllerState, FrameMeta, Phase
+from vservo.core.production.protocol.state import MOVING
 
-MOVING_PHASES = (Phase.SERVOING, Phase.PICKING, Phase.PLACING)
 TRACE_LENGTH = 5000  # servo cycles kept per run (a run takes a few hundred)
 PATH_STEP_M = 0.0005  # a new path point once the flange moved this far
 
@@ -29,7 +30,7 @@ PATH_STEP_M = 0.0005  # a new path point once the flange moved this far
 class LiveFrame:
     """A camera frame as the controller sent it: what was seen (pixels) and the JPEG."""
 
-    meta: dict
+    meta: FrameMeta
     jpeg: bytes
     number: int  # frames received by the session so far, this one included
 
@@ -57,7 +58,7 @@ class RunTrace:
 class SessionView:
     """An immutable snapshot for the display: newest state and frame, the run's trace, counters."""
 
-    state: dict
+    state: ControllerState
     frame: LiveFrame | None
     trace: RunTrace
     state_number: int  # states received so far
@@ -69,7 +70,7 @@ class Session:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
-        self._state: dict = {"phase": Phase.IDLE.value, "bMe": np.eye(4).tolist(), "time_s": float("-inf")}
+        self._state = ControllerState(time_s=float("-inf"))
         self._frame: LiveFrame | None = None
         self._frames = 0
         self._states = 0
@@ -82,42 +83,39 @@ class Session:
 
     # -- written by the channel's reader -----------------------------------------------
 
-    def on_state(self, state: dict) -> None:
+    def on_state(self, state: ControllerState) -> None:
         with self._changed:
-            if float(state.get("time_s") or 0.0) < float(self._state.get("time_s") or 0.0):
+            if state.time_s < self._state.time_s:
                 return  # older than what is shown (the welcome's state arriving after a newer one)
-            self._state = dict(state)
+            self._state = state
             self._states += 1
-            phase, run_id = state.get("phase"), state.get("run_id")
-            if phase in MOVING_PHASES and run_id is not None and run_id != self._run_id:
+            phase, run_id = state.phase, state.run.run_id
+            if phase in MOVING and run_id is not None and run_id != self._run_id:
                 self._run_id, self._rows, self._path = run_id, [], []
             elif phase == Phase.TEACHING and self._run_id is not None:
                 self._run_id, self._rows, self._path = None, [], []  # a new job: the last run's charts go
-            if run_id == self._run_id and phase in MOVING_PHASES:
+            if run_id == self._run_id and phase in MOVING:
                 self._add_cycle(state)
                 self._add_path_point(state)
-            if state.get("last_outcome") and run_id != self._ended_run:
+            if state.last_outcome is not None and run_id != self._ended_run:
                 # The run's outcome is on record now (the phase may have changed before: an e-stop).
                 self._ended_run = run_id
                 self._runs_ended += 1
             self._changed.notify_all()
 
-    def _add_cycle(self, state: dict) -> None:
-        iteration = int(state.get("iteration") or 0)
+    def _add_cycle(self, state: ControllerState) -> None:
+        iteration = state.run.iteration
         if iteration <= 0 or (self._rows and iteration <= self._rows[-1][0]):
             return  # a phase change, not a new servo cycle
-        error = state.get("error_px")
-        twist = [np.nan if v is None else float(v) for v in state.get("cVc") or [np.nan] * 6]
-        self._rows = (
-            self._rows + [(iteration, float(state.get("time_s") or 0.0), np.nan if error is None else float(error), twist)]
-        )[-TRACE_LENGTH:]
+        error = np.nan if state.run.error_px is None else state.run.error_px
+        self._rows = (self._rows + [(iteration, state.time_s, error, list(state.run.cVc))])[-TRACE_LENGTH:]
 
-    def _add_path_point(self, state: dict) -> None:
-        point = np.asarray(state.get("bMe"), float)[:3, 3]
+    def _add_path_point(self, state: ControllerState) -> None:
+        point = state.bMe[:3, 3]
         if not self._path or np.linalg.norm(point - self._path[-1]) >= PATH_STEP_M:
             self._path = (self._path + [point])[-TRACE_LENGTH:]
 
-    def on_frame(self, meta: dict, jpeg: bytes) -> None:
+    def on_frame(self, meta: FrameMeta, jpeg: bytes) -> None:
         with self._changed:
             self._frames += 1
             self._frame = LiveFrame(meta, jpeg, self._frames)
@@ -131,7 +129,7 @@ class Session:
     # -- read by the display -----------------------------------------------------------
 
     @property
-    def state(self) -> dict:
+    def state(self) -> ControllerState:
         with self._lock:
             return self._state
 

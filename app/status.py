@@ -1,7 +1,7 @@
 """What the screens say about the cell, as text: status line, run progress, outcome, history.
 
-Plain functions from the controller's state (a dict) and the stored runs to markdown and
-numbers, so that every browser says the same and the wording is tested without a browser.
+Plain functions from the controller's state (a ControllerState) and the stored runs
+(RunEntry) to markdown and numbers, so that every browser says the same and the wording is tested without a browser.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 from vservo.app.banner import stage_words
 from vservo.app.session import RunTrace
 from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
-from vservo.core.production.assembly import Outcome, Phase
+from vservo.core.production.protocol import ControllerState, Outcome, Phase, RunEntry, RunOutcome
 
 PHASE_WORDS = {
     Phase.IDLE: "Idle",
@@ -28,7 +28,7 @@ PHASE_WORDS = {
     Phase.FAULT: "FAULT",
     Phase.ESTOPPED: "E-STOPPED",
 }
-OUTCOME_WORDS = {
+OUTCOME_WORDS: dict[Outcome | None, str] = {
     Outcome.PLACED: "placed",
     Outcome.MISSED: "MISSED",
     Outcome.FAULT: "FAULT",
@@ -38,32 +38,31 @@ OUTCOME_WORDS = {
 }
 
 
-def _number(value: object, digits: int = 2, unit: str = "") -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+def _number(value: float | None, digits: int = 2, unit: str = "") -> str:
+    if value is None or not math.isfinite(value):
         return "-"
     return f"{float(value):.{digits}f}{unit}"
 
 
-def status_markdown(state: dict, operator_present: bool, controller_gone: str | None = None) -> str:
+def status_markdown(state: ControllerState, operator_present: bool, controller_gone: str | None = None) -> str:
     """The line every browser shows under the e-stop."""
     if controller_gone:
         return f"**CONTROLLER STOPPED**: {controller_gone}. Restart `vservo serve`."
-    phase = PHASE_WORDS.get(state.get("phase"), str(state.get("phase")))
-    parts = [f"**{phase}**"]
-    if state.get("job"):
-        parts.append(f"job `{state['job']}`")
-    if state.get("run_id") is not None and state.get("phase") not in (Phase.IDLE, Phase.TEACHING):
-        parts.append(f"run {state['run_id']}")
-        if state.get("stage"):
-            parts.append(stage_words(state["stage"]))
-        parts.append(f"cycle {state.get('iteration', 0)}")
-        parts.append(f"error {_number(state.get('error_px'), 1, ' px')}")
+    parts = [f"**{PHASE_WORDS[state.phase]}**"]
+    if state.job:
+        parts.append(f"job `{state.job}`")
+    run = state.run
+    if run.run_id is not None and state.phase not in (Phase.IDLE, Phase.TEACHING):
+        parts.append(f"run {run.run_id}")
+        if run.stage:
+            parts.append(stage_words(run.stage))
+        parts.append(f"cycle {run.iteration}")
+        parts.append(f"error {_number(run.error_px, 1, ' px')}")
     control = "an operator holds control" if operator_present else "no operator"
-    robot = f"{state.get('robot', '')} on {state.get('backend', '')}".strip()
-    detail = state.get("detail") or ""
+    robot = f"{state.robot} on {state.backend}".strip()
     # Until the controller has read the robot (its first command) the pose is unknown: never a made-up one.
-    flange = flange_text(state["bMe"]) if state.get("q") else "flange pose not known yet"
-    return f"{' · '.join(parts)}  \n{detail}  \n<small>{robot} · {flange} · {control}</small>"
+    flange = flange_text(state.bMe) if state.q.size else "flange pose not known yet"
+    return f"{' · '.join(parts)}  \n{state.detail}  \n<small>{robot} · {flange} · {control}</small>"
 
 
 # The laws' equations per stage (section 4.4; docs/thesis-notes.md), for the engineering fold.
@@ -77,15 +76,15 @@ STAGE_EQUATIONS = {
 }
 
 
-def engineering_markdown(state: dict) -> str:
+def engineering_markdown(state: ControllerState) -> str:
     """The servo's own terms: stage code and its equations, cycle, ||f_id - f|| and the twist cVc."""
-    stage = state.get("stage")
-    if not stage:
+    run = state.run
+    if not run.stage:
         return "No servo stage under way."
-    twist = ", ".join(_number(v, 4) for v in state.get("cVc") or [])
+    twist = ", ".join(_number(v, 4) for v in run.cVc)
     return (
-        f"stage `{stage}` ({STAGE_EQUATIONS.get(str(stage), 'no equation on record')}) · cycle "
-        f"{state.get('iteration', 0)} · ||f_id - f|| = {_number(state.get('error_px'), 2, ' px')}  \n"
+        f"stage `{run.stage}` ({STAGE_EQUATIONS.get(str(run.stage), 'no equation on record')}) · cycle "
+        f"{run.iteration} · ||f_id - f|| = {_number(run.error_px, 2, ' px')}  \n"
         f"cVc = [{twist}] (m/s, rad/s)"
     )
 
@@ -101,10 +100,10 @@ def flange_text(bMe: object) -> str:
     return f"flange X {x:.2f} Y {y:.2f} Z {z:.2f} mm, phi {phi:.2f} theta {theta:.2f} psi {psi:.2f} deg"
 
 
-def run_progress(state: dict, trace: RunTrace, threshold_px: float) -> float:
+def run_progress(state: ControllerState, trace: RunTrace, threshold_px: float) -> float:
     """0..100 through the run: the servo's share follows the smallest feature error so far on a
     log scale from its first value down to the threshold; pick and place are fixed steps."""
-    phase = state.get("phase")
+    phase = state.phase
     if phase == Phase.DONE:
         return 100.0
     if phase == Phase.PLACING:
@@ -122,42 +121,38 @@ def run_progress(state: dict, trace: RunTrace, threshold_px: float) -> float:
     return float(10.0 + 60.0 * share)
 
 
-def outcome_markdown(outcome: dict | None, run_id: int | None) -> str:
+def outcome_markdown(outcome: RunOutcome | None, run_id: int | None) -> str:
     """The last run's end, as the operator reads it."""
-    if not outcome:
+    if outcome is None:
         return "No run finished yet in this session."
-    word = OUTCOME_WORDS.get(outcome.get("outcome"), str(outcome.get("outcome")))
     return (
-        f"**Run {run_id}: {word}**: {outcome.get('reason', '')}  \n"
-        f"final feature error {_number(outcome.get('final_error_px'), 2, ' px')} · "
-        f"placement error {_number(outcome.get('placement_error_mm'), 2, ' mm')} · "
-        f"{_number(outcome.get('duration_s'), 1, ' s')} · {outcome.get('iterations', 0)} servo cycles"
+        f"**Run {run_id}: {OUTCOME_WORDS[outcome.outcome]}**: {outcome.reason}  \n"
+        f"final feature error {_number(outcome.final_error_px, 2, ' px')} · "
+        f"placement error {_number(outcome.placement_error_mm, 2, ' mm')} · "
+        f"{_number(outcome.duration_s, 1, ' s')} · {outcome.iterations} servo cycles"
     )
 
 
-def runs_table(runs: Sequence[dict], limit: int = 15) -> str:
+def runs_table(runs: Sequence[RunEntry], limit: int = 15) -> str:
     """Past runs, newest first, as a markdown table."""
     if not runs:
         return "No runs yet."
     lines = ["| run | job | outcome | duration | final error | placement | started |", "|---|---|---|---|---|---|---|"]
     for run in runs[:limit]:
-        started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(run["started_at"]))
+        started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(run.started_at))
         lines.append(
-            f"| {run['id']} | {run['job']} | {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))} | "
-            f"{_number(run.get('duration_s'), 1, ' s')} | {_number(run.get('final_error_px'), 2, ' px')} | "
-            f"{_number(run.get('placement_error_mm'), 2, ' mm')} | {started} |"
+            f"| {run.id} | {run.job} | {OUTCOME_WORDS[run.outcome]} | "
+            f"{_number(run.duration_s, 1, ' s')} | {_number(run.final_error_px, 2, ' px')} | "
+            f"{_number(run.placement_error_mm, 2, ' mm')} | {started} |"
         )
     return "\n".join(lines)
 
 
-def run_label(run: dict) -> str:
+def run_label(run: RunEntry) -> str:
     """A run as a dropdown entry."""
-    return f"#{run['id']} {run['job']} {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))}"
+    return f"#{run.id} {run.job} {OUTCOME_WORDS[run.outcome]}"
 
 
-def run_heading(run: dict) -> str:
+def run_heading(run: RunEntry) -> str:
     """One run in a line: its number, job, outcome and why (its stages are app/stage_chart.py's chart)."""
-    return (
-        f"**Run {run['id']}** ({run['job']}): {OUTCOME_WORDS.get(run.get('outcome'), run.get('outcome'))}, "
-        f"{run.get('reason') or ''}"
-    )
+    return f"**Run {run.id}** ({run.job}): {OUTCOME_WORDS[run.outcome]}, {run.reason or ''}"

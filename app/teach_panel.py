@@ -13,12 +13,17 @@ place check; the check view; the start pose; threshold, gain, approach height an
 tolerance; name and save. A button is enabled only while it can act: the operator's,
 and the teaching ones while teaching. Shared: the vacuum sensor and what is still missing.
 Viser gives the Python side no keyboard events: there are no jog keys (docs/operator-guide.md).
+
+The buttons are a table (``TeachButton``): the label, when it is live (a predicate on the
+controller's typed state), the command it sends (made from the browser's inputs) and what
+it says on success; the step it teaches, for the checklist's next step.
 """
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,6 +36,7 @@ from vservo.app.live_image import Overlay
 from vservo.app.scene3d import part_pose_from_corners
 from vservo.app.session import SessionView
 from vservo.core.cell.kinematics import ToolMount
+from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.spatial import (
     Matrix,
@@ -43,9 +49,42 @@ from vservo.core.geometry.spatial import (
     rot_x,
     transform,
 )
-from vservo.core.production.assembly import Phase
-from vservo.core.production.cell_controller import PART_SIDE_M, TeachDraft
 from vservo.core.production.demo_job import DESIRED_cMo
+from vservo.core.production.protocol import (
+    BeginTeach,
+    CancelTeach,
+    CaptureCheckView,
+    CaptureDesired,
+    Command,
+    ControllerState,
+    JobDetail,
+    Jog,
+    MoveTo,
+    Phase,
+    PresentPart,
+    Reply,
+    SaveJob,
+    SetPickPose,
+    SetPlacePose,
+    SetSettings,
+    SetStartPose,
+    Suction,
+    Teaching,
+    TeachStep,
+    TestPick,
+)
+from vservo.core.production.protocol.commands import (
+    APPROACH_M,
+    GAIN,
+    NEW_JOB_SETTINGS,
+    PART_CENTRE_MM,
+    PART_SIDE_M,
+    PART_TURN_DEG,
+    PLACEMENT_TOLERANCE_MM,
+    THRESHOLD_PX,
+    Range,
+)
+from vservo.core.production.protocol.state import STANDING
 
 NEW_JOB = "(new job)"
 # Jog step: translation (m) and rotation (deg) per press.
@@ -76,7 +115,7 @@ ABOVE_POCKET_M = 0.030
 NEXT_COLOR = "orange"  # the next step's button: the theme's buttons are blue already
 
 
-class PoseEntryError(ValueError):
+class PoseEntryError(VservoError, ValueError):
     """A typed pose that is not six numbers."""
 
 
@@ -144,61 +183,42 @@ def gizmo_pose(position: Any, wxyz: Any) -> Matrix:
     return transform(vtf.SO3(np.asarray(wxyz, float)).as_matrix(), np.asarray(position, float))
 
 
-Live = Callable[[dict], bool]  # whether a button can act in the controller's state
-
-TEACHING = Phase.TEACHING.value
-STANDING = {Phase.IDLE.value, Phase.TEACHING.value, Phase.DONE.value, Phase.FAULT.value}  # no run moves the arm
+Live = Callable[[ControllerState], bool]  # whether a button can act in the controller's state
 
 
-def teach_pose(state: dict, name: str) -> Matrix | None:
-    """One of the poses the controller offers while teaching (ControllerState.teach_poses), if known."""
-    pose = (state.get("teach_poses") or {}).get(name)
-    return None if pose is None else np.asarray(pose, float)
+def standing(state: ControllerState) -> bool:
+    """No run moves the arm: a jog, a move or a part presented can act."""
+    return state.phase in STANDING
 
 
-def teaching(state: dict) -> bool:
-    return state.get("phase") == TEACHING
+def draft(state: ControllerState) -> Teaching | None:
+    """The job being taught, as the state says it (None when not teaching)."""
+    return state.teaching if state.phase is Phase.TEACHING else None
 
 
-def standing(state: dict) -> bool:
-    return state.get("phase") in STANDING
+def teaching(state: ControllerState) -> bool:
+    return draft(state) is not None
 
 
-# The steps that teach a job, in the operator's order: what the state's teach_missing (or
-# teach_optional) calls it and the button that does it.
-TEACH_STEPS = (
-    ("the desired image", "Capture desired image"),
-    ("the pick pose", "Set pick pose here"),
-    ("the place pose", "Set place pose here"),
-    ("the check view", "Capture check view"),
-    ("the start pose", "Set start pose here"),
-)
+def taught(step: TeachStep) -> Live:
+    """Live while teaching once ``step`` is taught."""
+    return lambda state: (job := draft(state)) is not None and step in job.taught
 
 
-def next_button(state: dict) -> str:
-    """The button of the operator's next step."""
-    if not teaching(state):
-        return "Begin teaching"
-    untaught = [*(state.get("teach_missing") or []), *(state.get("teach_optional") or [])]
-    for words, button in TEACH_STEPS:
-        if any(entry.startswith(words) for entry in untaught):
-            return button
-    return "Save job"
+def holding(wanted: bool) -> Live:
+    """Live while teaching with the vacuum sensor reporting a part on the cup (or none)."""
+    return lambda state: teaching(state) and state.holding_part == wanted
 
 
-def teach_checklist(state: dict) -> str:
-    """What teaching still needs and the next step, or how to start it; the vacuum sensor."""
-    if not teaching(state):
-        return (
-            "Not teaching. Keep **(new job)** (or choose a stored job as a template) and press **Begin teaching**.  \n"
-            "**Next: Begin teaching**"
-        )
-    missing = state.get("teach_missing") or []
-    optional = state.get("teach_optional") or []
-    also = (" Optional: " + ", ".join(optional) + ".") if optional else ""
-    todo = ("Still to teach: " + ", ".join(missing) + ".") if missing else "Everything is taught: name the job and **Save**."
-    sensor = "a part on the cup" if state.get("holding_part") else "no part on the cup"
-    return f"{todo}{also}  \n**Next: {next_button(state)}** · vacuum sensor: {sensor}"
+def offered(pose: str) -> Live:
+    """Live while teaching once the controller offers the pose ``pose`` (a Teaching field)."""
+    return lambda state: teaching(state) and teach_pose(state, pose) is not None
+
+
+def teach_pose(state: ControllerState, name: str) -> Matrix | None:
+    """One of the poses the controller offers while teaching (view_bMe, pocket_bMe, place_bMo), if known."""
+    job = draft(state)
+    return None if job is None else getattr(job, name)
 
 
 def view_over_part(bMo: Matrix, eMc: Matrix) -> Matrix:
@@ -212,15 +232,248 @@ def above_pocket(bMe_pocket: Matrix) -> Matrix:
     return transform(t=(0.0, 0.0, ABOVE_POCKET_M)) @ bMe_pocket
 
 
-def seen_markdown(state: dict, overlay: Overlay | None, mount: ToolMount, camera: CameraModel) -> str:
+class TemplateError(VservoError, LookupError):
+    """The chosen template job cannot be read, or lacks the pose asked for."""
+
+
+class TeachForm:
+    """One browser's Teach tab: its inputs, as the table's commands read them."""
+
+    def __init__(self, app: AppContext) -> None:
+        self.app = app
+        self.handles: dict[str, Any] = {}  # the inputs by name, added as the tab is built
+
+    def value(self, name: str) -> Any:
+        return self.handles[name].value
+
+    @property
+    def state(self) -> ControllerState:
+        return self.app.session.state
+
+    @property
+    def template(self) -> str | None:
+        """The template job chosen, None for a new job."""
+        return None if self.value("template") == NEW_JOB else self.value("template")
+
+    def pose(self, name: str) -> Matrix:
+        """A pose the controller offers while teaching (the button is live only once it does)."""
+        pose = teach_pose(self.state, name)
+        if pose is None:
+            raise TemplateError(f"the controller offers no {name} now")
+        return pose
+
+    def template_pose(self, where: str, pose_of: Callable[[JobDetail], Matrix | None]) -> Matrix:
+        """A pose of the template job (read from the controller: call it off viser's threads)."""
+        detail = self.app.job_detail(self.template)
+        if detail is None:
+            raise TemplateError(f"job {self.template!r} cannot be read")
+        pose = pose_of(detail)
+        if pose is None:
+            raise TemplateError(f"job {self.template!r} has no {where}")
+        return pose
+
+    def typed_pose(self) -> Matrix:
+        """The flange pose of the move-to entry: typed for the flange or the cup."""
+        bMx = parse_pose_mm_deg(self.value("target"))
+        return bMx if self.value("tool") == "flange" else bMx @ inverse(self.app.scene.mount.eMv)
+
+
+@dataclass(frozen=True)
+class TeachButton:
+    """One of the Teach tab's buttons: its label, when it is live, the command it sends (made
+    from the browser's inputs), what it says on success; the step it teaches, if any."""
+
+    label: str
+    live: Live
+    command: Callable[[TeachForm], Command]
+    success: str | None = None
+    hint: str | None = None
+    icon: Any = None
+    teaches: TeachStep | None = None
+    from_template: bool = False  # reads the template job first (off viser's threads), live only with one chosen
+    color: Any = None
+
+
+def _go_to_template(where: str, pose_of: Callable[[JobDetail], Matrix | None]) -> TeachButton:
+    return TeachButton(
+        f"Go to the template's {where}",
+        teaching,
+        lambda form: MoveTo(form.template_pose(where, pose_of)),
+        "arrived",
+        from_template=True,
+    )
+
+
+BEGIN = TeachButton(
+    "Begin teaching",
+    lambda state: standing(state) and not teaching(state),
+    lambda form: BeginTeach(form.template),
+    icon=viser.Icon.SCHOOL,
+)
+PRESENT = TeachButton(
+    "Present part here",
+    standing,
+    lambda form: PresentPart((form.value("part_x"), form.value("part_y")), form.value("part_turn")),
+    "a new part is on the table",
+    hint="A new part on the table, its top face's centre at X, Y, turned",
+    icon=viser.Icon.BOX,
+)
+MOVE_THERE = TeachButton("Move there", standing, lambda form: MoveTo(form.typed_pose()), "arrived", icon=viser.Icon.ARROW_RIGHT)
+# The steps' folders, in the operator's order: the title, its place on the page, its buttons.
+STEP_FOLDERS: tuple[tuple[str, int, tuple[TeachButton, ...]], ...] = (
+    (
+        "2. Desired view",
+        7,
+        (
+            _go_to_template("desired view", lambda job: job.taught_bMe),
+            TeachButton(
+                "Capture desired image",
+                teaching,
+                lambda form: CaptureDesired(),
+                "desired image captured",
+                icon=viser.Icon.CAMERA,
+                teaches=TeachStep.DESIRED_IMAGE,
+            ),
+        ),
+    ),
+    (
+        "3. Pick",
+        8,
+        (
+            TeachButton("Suction on", holding(False), lambda form: Suction(True)),
+            TeachButton("Suction off", holding(True), lambda form: Suction(False)),
+            TeachButton(
+                "Test pick",
+                holding(False),
+                lambda form: TestPick(),
+                hint="Suction on, lift 5 mm, report the grip, put the part back down and release",
+            ),
+            TeachButton(
+                "Set pick pose here",
+                taught(TeachStep.DESIRED_IMAGE),
+                lambda form: SetPickPose(),
+                "pick pose set",
+                teaches=TeachStep.PICK_POSE,
+            ),
+        ),
+    ),
+    (
+        "4. Place",
+        9,
+        (
+            TeachButton(
+                "Go above the pocket",
+                offered("pocket_bMe"),
+                lambda form: MoveTo(above_pocket(form.pose("pocket_bMe"))),
+                "arrived",
+                hint="The carried part 30 mm over where it sits in the metal part's pocket",
+            ),
+            _go_to_template("place pose", lambda job: job.bMe_place),
+            TeachButton(
+                "Set place pose here",
+                holding(True),
+                lambda form: SetPlacePose(),
+                "place pose set",
+                hint="The part on the cup, in the metal part",
+                teaches=TeachStep.PLACE_POSE,
+            ),
+        ),
+    ),
+    (
+        "5. Check view",
+        10,
+        (
+            TeachButton(
+                "Go over the placed part",
+                offered("place_bMo"),
+                lambda form: MoveTo(view_over_part(form.pose("place_bMo"), form.app.scene.mount.eMc)),
+                "arrived",
+                hint="The camera over the part where the taught place sets it down, as over the part of the desired view",
+            ),
+            _go_to_template("check view", lambda job: job.check_bMe),
+            TeachButton(
+                "Capture check view",
+                teaching,
+                lambda form: CaptureCheckView(),
+                "check view captured",
+                hint="The part placed in the metal part, the camera over it seeing its four corners",
+                icon=viser.Icon.CAMERA,
+                teaches=TeachStep.CHECK_VIEW,
+            ),
+        ),
+    ),
+    (
+        "6. Start pose",
+        11,
+        (
+            TeachButton(
+                "Go to the desired view",
+                offered("view_bMe"),
+                lambda form: MoveTo(form.pose("view_bMe")),
+                "arrived",
+                hint="Where the desired image was captured",
+            ),
+            _go_to_template("start pose", lambda job: job.start_bMe),
+            TeachButton(
+                "Set start pose here", teaching, lambda form: SetStartPose(), "start pose set", teaches=TeachStep.START_POSE
+            ),
+        ),
+    ),
+)
+APPLY = TeachButton(
+    "Apply settings",
+    teaching,
+    lambda form: SetSettings(
+        form.value("threshold"), form.value("gain"), form.value("approach") / 1000.0, form.value("tolerance")
+    ),
+    "settings applied",
+)
+SAVE = TeachButton(
+    "Save job",
+    lambda state: (job := draft(state)) is not None and not job.missing,
+    lambda form: SaveJob(form.value("name").strip(), form.value("description")),
+    icon=viser.Icon.DEVICE_FLOPPY,
+    color="green",
+)
+CANCEL = TeachButton("Cancel teaching", teaching, lambda form: CancelTeach(), "teaching cancelled")
+
+
+def next_button(state: ControllerState) -> str:
+    """The button of the operator's next step: the first whose step is not taught yet."""
+    job = draft(state)
+    if job is None:
+        return BEGIN.label
+    untaught = {*job.missing, *job.optional_missing}
+    steps = (row for _, _, rows in STEP_FOLDERS for row in rows if row.teaches in untaught)
+    return next((row.label for row in steps), SAVE.label)
+
+
+def teach_checklist(state: ControllerState) -> str:
+    """What teaching still needs and the next step, or how to start it; the vacuum sensor."""
+    job = draft(state)
+    if job is None:
+        return (
+            "Not teaching. Keep **(new job)** (or choose a stored job as a template) and press **Begin teaching**.  \n"
+            "**Next: Begin teaching**"
+        )
+    missing = [step.words for step in job.missing]
+    optional = [step.words for step in job.optional_missing]
+    also = (" Optional: " + ", ".join(optional) + ".") if optional else ""
+    todo = ("Still to teach: " + ", ".join(missing) + ".") if missing else "Everything is taught: name the job and **Save**."
+    sensor = "a part on the cup" if state.holding_part else "no part on the cup"
+    return f"{todo}{also}  \n**Next: {next_button(state)}** · vacuum sensor: {sensor}"
+
+
+def seen_markdown(state: ControllerState, overlay: Overlay | None, mount: ToolMount, camera: CameraModel) -> str:
     """Where the camera sees the part, a flange pose that views it for the desired image and
     the cup pose that picks it, for the move-to entry; once the pick is taught, the cup pose
     that sets the part in the cell file's pocket; which way the part moves in the image for
     each base-frame jog."""
-    bMe, eMc = np.asarray(state["bMe"], float), mount.eMc
+    bMe, eMc = state.bMe, mount.eMc
     directions = " · ".join(f"{b}: {image_direction(bMe, eMc, b)}" for b in TRANSLATIONS)
     lines = [f"Jog in the base frame, in the image: {directions}"]
-    bMo = None if overlay is None else part_pose_from_corners(overlay.corners_px, bMe, eMc, camera, PART_SIDE_M)
+    corners = None if overlay is None else overlay.corners_px
+    bMo = None if corners is None else part_pose_from_corners(corners, bMe, eMc, camera, PART_SIDE_M)
     if bMo is None:
         lines.append("Part seen: not all four corners are in view.")
     else:
@@ -239,6 +492,11 @@ def seen_markdown(state: dict, overlay: Overlay | None, mount: ToolMount, camera
     return "  \n".join(lines)
 
 
+def _number(gui: Any, label: str, value: float, bounds: Range, step: float, scale: float = 1.0) -> Any:
+    """A number input offering exactly what its command takes (``scale``: the page's unit per the command's)."""
+    return gui.add_number(label, value * scale, min=bounds.low * scale, max=bounds.high * scale, step=step)
+
+
 class TeachPanel:
     def __init__(self, app: AppContext, tab: viser.GuiTabHandle) -> None:
         self.app, self.tab = app, tab
@@ -246,271 +504,163 @@ class TeachPanel:
             self.missing = app.server.gui.add_markdown("", order=3)
             self.seen = app.server.gui.add_markdown("", order=4)
         self._gizmos: dict[int, dict] = {}  # client id -> {"handle", "dragging"}
-        self._live: dict[int, tuple[ClientView, list[tuple[Any, Live]]]] = {}  # per browser: its buttons
-        self._next: dict[int, dict[str, Any]] = {}  # per browser: the step buttons by label
+        # Per browser: its form, and its buttons with when each is live (and whether it needs a template).
+        self._live: dict[int, tuple[ClientView, TeachForm, list[tuple[Any, Live, bool]]]] = {}
         self._lock = threading.Lock()
 
     def add_client(self, view: ClientView) -> None:
-        gui, app = view.client.gui, self.app
-        c = view.control
-        live: list[tuple[Any, Live]] = []
-
-        def button(label: str, when: Live, **options: Any) -> viser.GuiButtonHandle:
-            handle = gui.add_button(label, **options)
-            handle.disabled = True
-            live.append((handle, when))
-            return handle
-
+        form = TeachForm(self.app)
+        buttons: list[tuple[Any, Live, bool]] = []
         with self.tab:
-            template = c(gui.add_dropdown("Template", [NEW_JOB, *app.job_names()], initial_value=NEW_JOB, order=1))
-            begin = button("Begin teaching", lambda s: s.get("phase") in STANDING - {TEACHING}, icon=viser.Icon.SCHOOL, order=2)
-            from_template: Live = lambda s: teaching(s) and template.value != NEW_JOB  # noqa: E731
-            present = None
-            if app.session.state.get("can_present_part"):  # only where the cell can put a part down
-                with gui.add_folder("1. Present the part", order=5):
-                    part_x = c(gui.add_number("Part X (mm)", -390.0, step=0.5))
-                    part_y = c(gui.add_number("Part Y (mm)", 0.0, step=0.5))
-                    part_turn = c(gui.add_number("Part turn (deg)", 0.0, step=0.5))
-                    present = button(
-                        "Present part here",
-                        standing,
-                        icon=viser.Icon.BOX,
-                        hint="A new part on the table, its top face's centre at X, Y, turned",
-                    )
-            with gui.add_folder("Move the arm", order=6):
-                frame = c(gui.add_dropdown("Frame", ("base", "tool"), initial_value="base"))
-                step = c(gui.add_dropdown("Step", tuple(STEPS), initial_value="1 mm / 1 deg"))
-                move = c(gui.add_button_group("Move", TRANSLATIONS))
-                turn = c(gui.add_button_group("Turn", ROTATIONS))
-                tool = c(gui.add_dropdown("Move to: tool", TOOLS, initial_value="flange"))
-                target = c(gui.add_text("Pose X Y Z phi theta psi (mm, deg)", ""))
-                move_there = button("Move there", standing, icon=viser.Icon.ARROW_RIGHT)
-                gizmo = c(gui.add_checkbox("3D gizmo on the flange (moves on release)", False))
-                with gui.add_folder("Hold to jog", expand_by_default=False):
-                    speed = c(gui.add_dropdown("Speed", tuple(SPEEDS), initial_value=tuple(SPEEDS)[0]))
-                    holds = {name: button(f"Hold {name}", standing) for name in (*TRANSLATIONS, *ROTATIONS)}
-            with gui.add_folder("2. Desired view", order=7):
-                go_view = button("Go to the template's desired view", from_template)
-                capture = button("Capture desired image", teaching, icon=viser.Icon.CAMERA)
-            with gui.add_folder("3. Pick", order=8):
-                suction_on = button("Suction on", lambda s: teaching(s) and not s.get("holding_part"))
-                suction_off = button("Suction off", lambda s: teaching(s) and bool(s.get("holding_part")))
-                test_pick = button(
-                    "Test pick",
-                    lambda s: teaching(s) and not s.get("holding_part"),
-                    hint="Suction on, lift 5 mm, report the grip, put the part back down and release",
-                )
-                pick = button(
-                    "Set pick pose here", lambda s: teaching(s) and "the desired image" not in (s.get("teach_missing") or [])
-                )
-            with gui.add_folder("4. Place", order=9):
-                go_pocket = button(
-                    "Go above the pocket",
-                    lambda s: teaching(s) and teach_pose(s, "pocket_bMe") is not None,
-                    hint="The carried part 30 mm over where it sits in the metal part's pocket",
-                )
-                go_place = button("Go to the template's place pose", from_template)
-                place = button(
-                    "Set place pose here",
-                    lambda s: teaching(s) and bool(s.get("holding_part")),
-                    hint="The part on the cup, in the metal part",
-                )
-            with gui.add_folder("5. Check view", order=10):
-                go_over = button(
-                    "Go over the placed part",
-                    lambda s: teaching(s) and teach_pose(s, "place_bMo") is not None,
-                    hint="The camera over the part where the taught place sets it down, as over the part of the desired view",
-                )
-                go_check = button("Go to the template's check view", from_template)
-                check = button(
-                    "Capture check view",
-                    teaching,
-                    icon=viser.Icon.CAMERA,
-                    hint="The part placed in the metal part, the camera over it seeing its four corners",
-                )
-            with gui.add_folder("6. Start pose", order=11):
-                go_desired = button(
-                    "Go to the desired view",
-                    lambda s: teaching(s) and teach_pose(s, "view_bMe") is not None,
-                    hint="Where the desired image was captured",
-                )
-                go_start = button("Go to the template's start pose", from_template)
-                start = button("Set start pose here", teaching)
-            with gui.add_folder("Settings", order=12):
-                # A new job's settings, as the controller drafts it.
-                threshold = c(gui.add_number("Threshold (px)", TeachDraft.threshold_px, min=0.1, max=50.0, step=0.1))
-                gain = c(gui.add_number("Gain", TeachDraft.gain, min=0.05, max=5.0, step=0.05))
-                approach = c(gui.add_number("Approach height (mm)", 1000.0 * TeachDraft.approach_m, min=5.0, max=200.0, step=1.0))
-                tolerance = c(
-                    gui.add_number("Placement tolerance (mm)", TeachDraft.placement_tolerance_mm, min=0.05, max=20.0, step=0.05)
-                )
-                apply = button("Apply settings", teaching)
-            with gui.add_folder("Save", order=13):
-                name = c(gui.add_text("Job name", ""))
-                description = c(gui.add_text("Description", ""))
-                save = button(
-                    "Save job", lambda s: teaching(s) and not s.get("teach_missing"), icon=viser.Icon.DEVICE_FLOPPY, color="green"
-                )
-                cancel = button("Cancel teaching", teaching)
-        view.handles["teach_template"] = template
-        send = app.send
-        jogging = threading.Event()  # hold-to-jog: a jog of this browser's is under way
-
-        def template_name() -> str | None:
-            return None if template.value == NEW_JOB else template.value
-
-        def on_begin(_: Any) -> None:
-            def began(reply: Any) -> None:
-                view.report("Begin teaching")(reply)
-                detail = app.job_detail(template_name()) if reply.ok else None
-                if detail is not None:  # the template's settings, to keep or change
-                    threshold.value, gain.value = float(detail["threshold_px"]), float(detail["gain"])
-                    approach.value = 1000.0 * float(detail["approach_m"])
-                    tolerance.value = float(detail.get("placement_tolerance_mm", 1.0))  # absent in version 1
-
-            send(view, "Begin teaching", "begin_teach", done=began, template=template_name())
-
-        def go_to(where: str, pose_of: Callable[[dict], Any]) -> Callable[[Any], None]:
-            def fetch_and_move() -> None:
-                detail = app.job_detail(template_name())
-                if detail is None:
-                    view.notify("Go to", f"job {template_name()!r} cannot be read", error=True)
-                    return
-                pose = pose_of(detail)
-                if pose is None:
-                    view.notify("Go to", f"job {template_name()!r} has no {where}", error=True)
-                    return
-                send(view, f"Go to the template's {where}", "move_to", "arrived", bMe=pose)
-
-            return lambda _: app.in_background(fetch_and_move)
-
-        def on_jog(event: Any) -> None:
-            translation, rotation = jog_step(event.target.value, step.value)
-            send(view, f"Jog {event.target.value}", "jog", translation_m=translation, rotation_rad=rotation, frame=frame.value)
-
-        def on_hold(name: str) -> Callable[[Any], None]:
-            def hold(_: Any) -> None:
-                # One short jog per repeat of the held button, at the chosen speed; a repeat
-                # while the last jog still moves is dropped, so letting go stops within one.
-                if jogging.is_set():
-                    return
-                jogging.set()
-                translation, rotation = hold_step(name, speed.value)
-
-                def done(reply: Any) -> None:
-                    jogging.clear()
-                    view.report(f"Jog {name}")(reply)
-
-                send(view, f"Jog {name}", "jog", done=done, translation_m=translation, rotation_rad=rotation, frame=frame.value)
-
-            return hold
-
-        def on_move_there(_: Any) -> None:
-            try:
-                bMx = parse_pose_mm_deg(target.value)
-            except PoseEntryError as exc:
-                view.notify("Move there: refused", str(exc), error=True)
-                return
-            bMe = bMx if tool.value == "flange" else bMx @ inverse(app.scene.mount.eMv)
-            send(view, f"Move the {tool.value} there", "move_to", "arrived", bMe=bMe.tolist())
-
-        def on_present(_: Any) -> None:
-            send(
-                view,
-                "Present part here",
-                "present_part",
-                "a new part is on the table",
-                centre_mm=[part_x.value, part_y.value],
-                turn_deg=part_turn.value,
-            )
-
-        def on_save(_: Any) -> None:
-            def saved(reply: Any) -> None:
-                view.report("Save job", f"job {name.value!r} saved")(reply)
-                if reply.ok:
-                    app.forget_job(reply.result)
-                    app.refresh_lists()
-
-            send(view, "Save job", "save_job", done=saved, name=name.value.strip(), description=description.value)
-
-        begin.on_click(on_begin)
-        go_view.on_click(go_to("desired view", lambda d: d["taught_bMe"]))
-        go_place.on_click(go_to("place pose", lambda d: d["bMe_place"]))
-        go_pocket.on_click(
-            lambda _: send(
-                view,
-                "Go above the pocket",
-                "move_to",
-                "arrived",
-                bMe=above_pocket(teach_pose(app.session.state, "pocket_bMe")).tolist(),
-            )
-        )
-        go_desired.on_click(
-            lambda _: send(
-                view, "Go to the desired view", "move_to", "arrived", bMe=teach_pose(app.session.state, "view_bMe").tolist()
-            )
-        )
-        go_over.on_click(
-            lambda _: send(
-                view,
-                "Go over the placed part",
-                "move_to",
-                "arrived",
-                bMe=view_over_part(teach_pose(app.session.state, "place_bMo"), app.scene.mount.eMc).tolist(),
-            )
-        )
-        go_check.on_click(go_to("check view", lambda d: (d.get("check") or {}).get("check_bMe")))
-        go_start.on_click(go_to("start pose", lambda d: d["start_bMe"]))
-        move.on_click(on_jog)
-        turn.on_click(on_jog)
-        for name_, handle in holds.items():
-            handle.on_hold(on_hold(name_), callback_hz=HOLD_HZ)
-        move_there.on_click(on_move_there)
-        if present is not None:
-            present.on_click(on_present)
-        gizmo.on_update(lambda _: self._show_gizmo(view, gizmo.value))
-        capture.on_click(lambda _: send(view, "Capture desired image", "capture_desired", "desired image captured"))
-        suction_on.on_click(lambda _: send(view, "Suction on", "suction", on=True))
-        suction_off.on_click(lambda _: send(view, "Suction off", "suction", on=False))
-        test_pick.on_click(lambda _: send(view, "Test pick", "test_pick"))
-        start.on_click(lambda _: send(view, "Set start pose", "set_start_pose", "start pose set"))
-        pick.on_click(lambda _: send(view, "Set pick pose", "set_pick_pose", "pick pose set"))
-        place.on_click(lambda _: send(view, "Set place pose", "set_place_pose", "place pose set"))
-        check.on_click(lambda _: send(view, "Capture check view", "capture_check_view", "check view captured"))
-        apply.on_click(
-            lambda _: send(
-                view,
-                "Apply settings",
-                "set_settings",
-                "settings applied",
-                threshold_px=threshold.value,
-                gain=gain.value,
-                approach_m=approach.value / 1000.0,
-                placement_tolerance_mm=tolerance.value,
-            )
-        )
-        save.on_click(on_save)
-        cancel.on_click(lambda _: send(view, "Cancel teaching", "cancel_teach", "teaching cancelled"))
-        template.on_update(lambda _: self._enable(view.client_id))
-
+            self._add_top(view, form, buttons)
+            if self.app.session.state.can_present_part:  # only where the cell can put a part down
+                self._add_present(view, form, buttons)
+            self._add_move(view, form, buttons)
+            for title, order, rows in STEP_FOLDERS:
+                with view.client.gui.add_folder(title, order=order):
+                    for row in rows:
+                        self._add_button(view, form, buttons, row)
+            self._add_settings(view, form, buttons)
+            self._add_save(view, form, buttons)
+        view.handles["teach_template"] = form.handles["template"]
+        form.handles["template"].on_update(lambda _: self._enable(view.client_id))
         with self._lock:
-            self._live[view.client_id] = (view, live)
-            self._next[view.client_id] = {handle.label: handle for handle, _ in live}
+            self._live[view.client_id] = (view, form, buttons)
 
         def on_role(is_operator: bool) -> None:
             if not is_operator:  # a monitor has no gizmo
-                gizmo.value = False
+                form.handles["gizmo"].value = False
                 self._show_gizmo(view, False)
             self._enable(view.client_id)
 
         view.on_role(on_role)
         self._enable(view.client_id)
 
+    # -- building one browser's tab -------------------------------------------------------------
+
+    def _add_button(
+        self,
+        view: ClientView,
+        form: TeachForm,
+        buttons: list[tuple[Any, Live, bool]],
+        row: TeachButton,
+        done: Callable[[Reply], None] | None = None,
+        order: float | None = None,
+    ) -> Any:
+        """The row's button, disabled until the state makes it live; a click sends its command."""
+        handle = view.client.gui.add_button(row.label, icon=row.icon, hint=row.hint, color=row.color, disabled=True, order=order)
+        buttons.append((handle, row.live, row.from_template))
+
+        def send() -> None:
+            self.app.send(view, row.label, lambda: row.command(form), row.success, done)
+
+        handle.on_click(lambda _: self.app.in_background(send) if row.from_template else send())
+        return handle
+
+    def _add_top(self, view: ClientView, form: TeachForm, buttons: list[tuple[Any, Live, bool]]) -> None:
+        gui = view.client.gui
+        names = [NEW_JOB, *self.app.job_names()]
+        form.handles["template"] = view.control(gui.add_dropdown("Template", names, initial_value=NEW_JOB, order=1))
+
+        def began(reply: Reply) -> None:
+            view.report(BEGIN.label)(reply)
+            detail = self.app.job_detail(form.template) if reply.ok else None
+            if detail is not None:  # the template's settings, to keep or change
+                form.handles["threshold"].value, form.handles["gain"].value = detail.threshold_px, detail.gain
+                form.handles["approach"].value = 1000.0 * detail.approach_m
+                form.handles["tolerance"].value = detail.placement_tolerance_mm
+
+        self._add_button(view, form, buttons, BEGIN, began, order=2)
+
+    def _add_present(self, view: ClientView, form: TeachForm, buttons: list[tuple[Any, Live, bool]]) -> None:
+        gui, c = view.client.gui, view.control
+        with gui.add_folder("1. Present the part", order=5):
+            form.handles["part_x"] = c(_number(gui, "Part X (mm)", -390.0, PART_CENTRE_MM, 0.5))
+            form.handles["part_y"] = c(_number(gui, "Part Y (mm)", 0.0, PART_CENTRE_MM, 0.5))
+            form.handles["part_turn"] = c(_number(gui, "Part turn (deg)", 0.0, PART_TURN_DEG, 0.5))
+            self._add_button(view, form, buttons, PRESENT)
+
+    def _add_move(self, view: ClientView, form: TeachForm, buttons: list[tuple[Any, Live, bool]]) -> None:
+        """Jog by steps, a typed pose to move to, the gizmo, hold to jog."""
+        gui, c = view.client.gui, view.control
+        with gui.add_folder("Move the arm", order=6):
+            frame = c(gui.add_dropdown("Frame", ("base", "tool"), initial_value="base"))
+            step = c(gui.add_dropdown("Step", tuple(STEPS), initial_value="1 mm / 1 deg"))
+            move = c(gui.add_button_group("Move", TRANSLATIONS))
+            turn = c(gui.add_button_group("Turn", ROTATIONS))
+            form.handles["tool"] = c(gui.add_dropdown("Move to: tool", TOOLS, initial_value="flange"))
+            form.handles["target"] = c(gui.add_text("Pose X Y Z phi theta psi (mm, deg)", ""))
+            self._add_button(view, form, buttons, MOVE_THERE)
+            gizmo = form.handles["gizmo"] = c(gui.add_checkbox("3D gizmo on the flange (moves on release)", False))
+            with gui.add_folder("Hold to jog", expand_by_default=False):
+                speed = c(gui.add_dropdown("Speed", tuple(SPEEDS), initial_value=tuple(SPEEDS)[0]))
+                holds = {name: gui.add_button(f"Hold {name}", disabled=True) for name in (*TRANSLATIONS, *ROTATIONS)}
+        buttons.extend((handle, standing, False) for handle in holds.values())
+
+        def on_jog(event: Any) -> None:
+            translation, rotation = jog_step(event.target.value, step.value)
+            self.app.send(view, f"Jog {event.target.value}", lambda: Jog(translation, rotation, frame.value))
+
+        move.on_click(on_jog)
+        turn.on_click(on_jog)
+        jogging = threading.Event()  # hold-to-jog: a jog of this browser's is under way
+        for name, handle in holds.items():
+            handle.on_hold(self._on_hold(view, name, lambda: (speed.value, frame.value), jogging), callback_hz=HOLD_HZ)
+        gizmo.on_update(lambda _: self._show_gizmo(view, gizmo.value))
+
+    def _on_hold(
+        self, view: ClientView, name: str, choices: Callable[[], tuple[str, str]], jogging: threading.Event
+    ) -> Callable[[Any], None]:
+        """One short jog per repeat of the held button, at the chosen speed; a repeat while the
+        last jog still moves is dropped, so letting go stops within one."""
+
+        def hold(_: Any) -> None:
+            if jogging.is_set():
+                return
+            jogging.set()
+            speed, frame = choices()
+            translation, rotation = hold_step(name, speed)
+
+            def done(reply: Reply) -> None:
+                jogging.clear()
+                view.report(f"Jog {name}")(reply)
+
+            self.app.send(view, f"Jog {name}", lambda: Jog(translation, rotation, frame), done=done)
+
+        return hold
+
+    def _add_settings(self, view: ClientView, form: TeachForm, buttons: list[tuple[Any, Live, bool]]) -> None:
+        """A new job's settings, as the controller drafts it, in the ranges its command takes."""
+        gui, c, new = view.client.gui, view.control, NEW_JOB_SETTINGS
+        with gui.add_folder("Settings", order=12):
+            form.handles["threshold"] = c(_number(gui, "Threshold (px)", new.threshold_px, THRESHOLD_PX, 0.1))
+            form.handles["gain"] = c(_number(gui, "Gain", new.gain, GAIN, 0.05))
+            form.handles["approach"] = c(_number(gui, "Approach height (mm)", new.approach_m, APPROACH_M, 1.0, 1000.0))
+            tolerance = new.placement_tolerance_mm
+            form.handles["tolerance"] = c(_number(gui, "Placement tolerance (mm)", tolerance, PLACEMENT_TOLERANCE_MM, 0.05))
+            self._add_button(view, form, buttons, APPLY)
+
+    def _add_save(self, view: ClientView, form: TeachForm, buttons: list[tuple[Any, Live, bool]]) -> None:
+        gui, c = view.client.gui, view.control
+        with gui.add_folder("Save", order=13):
+            form.handles["name"] = c(gui.add_text("Job name", ""))
+            form.handles["description"] = c(gui.add_text("Description", ""))
+
+            def saved(reply: Reply) -> None:
+                view.report(SAVE.label, f"job {form.value('name')!r} saved")(reply)
+                if reply.ok:
+                    self.app.forget_job(reply.result)
+                    self.app.refresh_lists()
+
+            self._add_button(view, form, buttons, SAVE, saved)
+            self._add_button(view, form, buttons, CANCEL)
+
+    # -- shared ---------------------------------------------------------------------------
+
     def remove_client(self, client_id: int) -> None:
         with self._lock:
             self._gizmos.pop(client_id, None)
             self._live.pop(client_id, None)
-            self._next.pop(client_id, None)
 
     def lists_changed(self, views: list[ClientView]) -> None:
         names = [NEW_JOB, *self.app.job_names()]
@@ -536,20 +686,21 @@ class TeachPanel:
 
     def _enable(self, client_id: int) -> None:
         """Each button enabled only while it can act: the operator's browser, and the state
-        allows it; the next step's button in orange."""
+        allows it (a template's, with one chosen); the next step's button in orange."""
         state = self.app.session.state
         with self._lock:
-            view, live = self._live.get(client_id, (None, []))
-            buttons = self._next.get(client_id, {})
-        if view is None:
+            entry = self._live.get(client_id)
+        if entry is None:
             return
+        view, form, buttons = entry
         upcoming = next_button(state)
-        for handle, when in live:
+        chosen = form.template is not None
+        for handle, live, from_template in buttons:
             try:
-                disabled = not (view.is_operator and when(state))
+                disabled = not (view.is_operator and live(state) and (chosen or not from_template))
                 if handle.disabled != disabled:
                     handle.disabled = disabled
-                color = NEXT_COLOR if handle is buttons.get(upcoming) else ("green" if handle.label == "Save job" else None)
+                color = NEXT_COLOR if handle.label == upcoming else ("green" if handle.label == SAVE.label else None)
                 if handle.color != color:
                     handle.color = color
             except RuntimeError:  # viser removed it: its browser left
@@ -565,7 +716,7 @@ class TeachPanel:
             current["handle"].remove()
         if not show or not view.is_operator:
             return
-        bMe = np.asarray(self.app.session.state["bMe"], float)
+        bMe = self.app.session.state.bMe
         handle = view.client.scene.add_transform_controls(
             "/teach/flange_gizmo", scale=0.12, depth_test=False, wxyz=vtf.SO3.from_matrix(bMe[:3, :3]).wxyz, position=bMe[:3, 3]
         )
@@ -574,9 +725,8 @@ class TeachPanel:
         def on_update(event: Any) -> None:
             entry["dragging"] = event.phase != "end"
             if event.phase == "end":
-                self.app.send(
-                    view, "Move to the gizmo", "move_to", bMe=gizmo_pose(event.target.position, event.target.wxyz).tolist()
-                )
+                bMe_target = gizmo_pose(event.target.position, event.target.wxyz)
+                self.app.send(view, "Move to the gizmo", lambda: MoveTo(bMe_target))
 
         handle.on_update(on_update)
         with self._lock:

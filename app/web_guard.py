@@ -63,7 +63,7 @@ class OriginPolicy:
     @classmethod
     def allowing(cls, origins: tuple[str, ...] | list[str]) -> OriginPolicy:
         allowed = frozenset(normalise_origin(origin) for origin in origins)
-        return cls(allowed, this_pcs_names() | {urlsplit(origin).hostname for origin in allowed})
+        return cls(allowed, this_pcs_names() | {name for origin in allowed if (name := urlsplit(origin).hostname)})
 
     def names_this_pc(self, host: str) -> bool:
         """Whether a ``Host`` header (``name[:port]``) names this PC rather than a rebound foreign name."""
@@ -131,8 +131,9 @@ def _serve_checked_by(policy: OriginPolicy) -> Iterator[None]:
 
         return original(*args, process_request=checked, **kwargs)
 
-    websockets.asyncio.server.serve = serve
+    # websockets' serve is a class; viser calls it by the module's name, so the module's name is what is wrapped.
+    setattr(websockets.asyncio.server, "serve", serve)
     try:
         yield
     finally:
-        websockets.asyncio.server.serve = original
+        setattr(websockets.asyncio.server, "serve", original)

@@ -22,7 +22,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from enum import Enum, StrEnum
+from enum import StrEnum
 
 import numpy as np
 
@@ -35,6 +35,7 @@ from vservo.core.production.grasp import GraspChoice, grasp_choice
 from vservo.core.production.jobs import Job, TaughtModel
 from vservo.core.production.locate import LocateError, PartLocator
 from vservo.core.production.placement_check import CheckView, PlacementCheck, check_placement
+from vservo.core.production.protocol.state import Outcome, Phase, RunOutcome
 from vservo.core.production.retarget import desired_view_for_part, start_pose_for_part
 from vservo.core.robot.backend import RobotBackend, RobotError
 from vservo.core.robot.gripper import VacuumGripper
@@ -45,38 +46,6 @@ from vservo.core.servo.methods import LawSettings, build_law
 from vservo.core.servo.step_policy import StepPolicy
 
 log = logging.getLogger("vservo.assembly")
-
-
-class Phase(str, Enum):
-    """The states of the cell's sequence (the controller process adds idle, teaching and commissioning)."""
-
-    IDLE = "idle"
-    TEACHING = "teaching"
-    COMMISSIONING = "commissioning"
-    SERVOING = "servoing"
-    PICKING = "picking"
-    PLACING = "placing"
-    DONE = "done"
-    FAULT = "fault"
-    ESTOPPED = "e-stopped"
-
-
-class Outcome(StrEnum):
-    """How a run ended, as the store, the recording and ``vservo run --json`` say it.
-
-    E-stopped is spelled as the phase is; runs stored before the two were one spelling
-    said "estopped", and still read back (``Outcome("estopped")``).
-    """
-
-    PLACED = "placed"
-    MISSED = "missed"
-    FAULT = "fault"
-    ESTOPPED = Phase.ESTOPPED.value
-    INTERRUPTED = "interrupted"  # the controller process died during the run (found so at its next start)
-
-    @classmethod
-    def _missing_(cls, value: object) -> Outcome | None:
-        return cls.ESTOPPED if value == "estopped" else None
 
 
 @dataclass(frozen=True)
@@ -135,6 +104,18 @@ class AssemblyOutcome:
             "stages": self.stages,
             "notes": list(self.notes),
         }
+
+    def record(self) -> RunOutcome:
+        """How the run ended, as the controller publishes it (the figures rounded as in ``summary``)."""
+        return RunOutcome(
+            self.outcome,
+            self.reason,
+            final_error_px=_rounded(self.final_error_px),
+            placement_error_mm=_rounded(self.placement_error_mm),
+            duration_s=round(self.duration_s, 3),
+            iterations=self.iterations,
+            notes=self.notes,
+        )
 
 
 def _rounded(value: float | None) -> float | None:

@@ -30,8 +30,9 @@ from vservo.core.production.assembly import (
     hold_after_fault,
     run_assembly,
 )
-from vservo.core.production.controller_state import CommandRefused, EStopLatch, FrameView, Publisher
+from vservo.core.production.controller_state import EStopLatch, FrameView, Publisher
 from vservo.core.production.jobs import Job, JobError
+from vservo.core.production.protocol import CommandRefused, RunFigures
 from vservo.core.production.retarget import retarget, retarget_note
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store, StoreError
@@ -55,10 +56,6 @@ def retargeted_job(store: Store, model: CellModel, job_name: str) -> tuple[Job, 
     if note:
         log.info("job %r: %s", job.name, note)
     return job, note
-
-
-def _finite_list(values: Matrix) -> list:
-    return [None if not np.isfinite(v) else float(v) for v in np.asarray(values, dtype=float).ravel()]
 
 
 def _closed_quietly(recorder: RunRecorder) -> None:
@@ -108,9 +105,7 @@ class AssemblyRun:
             outcome = replace(outcome, notes=(*outcome.notes, self.note))
         outcome = self._stored(self._recording_closed(outcome))
         phase = Phase.ESTOPPED if self.estop.is_set() else Phase.FAULT if outcome.outcome is Outcome.FAULT else Phase.DONE
-        self.publisher.update(
-            phase=phase.value, detail=outcome.reason, last_outcome=outcome.summary(), **self.publisher.robot_readout()
-        )
+        self.publisher.update(phase=phase, detail=outcome.reason, last_outcome=outcome.record(), **self.publisher.robot_readout())
         return outcome
 
     def _open_recording(self) -> None:
@@ -150,7 +145,7 @@ class AssemblyRun:
     def _on_event(self, event: AssemblyEvent) -> None:
         if isinstance(event, PhaseChange):
             if event.phase not in (Phase.DONE, Phase.FAULT, Phase.ESTOPPED):
-                self.publisher.update(phase=event.phase.value, detail=event.detail, **self.publisher.robot_readout())
+                self.publisher.update(phase=event.phase, detail=event.detail, **self.publisher.robot_readout())
             return
         self._cycle_done(event.cycle)
 
@@ -167,11 +162,9 @@ class AssemblyRun:
                 self._recorder = None
         self._trail = (self._trail + [cycle.features.corners_px])[-TRAIL_LENGTH:]
         note = cycle.output.note  # without one, the detail said last stands
+        error_px = float(cycle.output.error_px) if np.isfinite(cycle.output.error_px) else None
         self.publisher.update(
-            stage=cycle.output.stage,
-            iteration=cycle.iteration + 1,
-            error_px=float(cycle.output.error_px) if np.isfinite(cycle.output.error_px) else None,
-            cVc=_finite_list(cycle.output.cVc),
+            run=RunFigures(self.run_id, cycle.output.stage, cycle.iteration + 1, error_px, cycle.output.cVc),
             **({"detail": note} if note else {}),
             **self.publisher.robot_readout(cycle.measurement.bMe),
         )

@@ -57,16 +57,18 @@ from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, exp_twist
 from vservo.core.perception.camera_source import CameraSourceError, Frame
 from vservo.core.perception.features import DesiredImage, ImageFeatures
-from vservo.core.production.assembly import AssemblyOutcome, Phase
+from vservo.core.production.assembly import AssemblyOutcome
 from vservo.core.production.assembly_run import AssemblyRun, retargeted_job
 from vservo.core.production.commissioning_session import CommissioningSession, commissioned_path, is_shipped_cell
-from vservo.core.production.controller_state import CommandRefused, ControllerState, EStopLatch, FrameView, TeachDraft
+from vservo.core.production.controller_state import EStopLatch, FrameView, TeachDraft
 from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job
 from vservo.core.production.placement_check import CheckView
+from vservo.core.production.protocol import CommandRefused, ControllerState, Phase, RunFigures
+from vservo.core.production.protocol.commands import PART_SIDE_M
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store, validate_part_id
-from vservo.core.production.teaching_session import PART_SIDE_M, TeachingSession
+from vservo.core.production.teaching_session import TeachingSession
 from vservo.core.robot.backend import MotionStopped, RobotError, apply_increment
 from vservo.core.robot.safety import SafetyLayer
 
@@ -178,7 +180,7 @@ class CellController:
         if status.held:  # an earlier session's e-stop or fault: motion only after an explicit reset
             self._state = replace(
                 self._state,
-                phase=Phase.FAULT.value,
+                phase=Phase.FAULT,
                 detail=f"the robot is {status.describe()} since before this controller started: Reset releases it",
             )
 
@@ -216,7 +218,7 @@ class CellController:
         except RobotError as exc:  # the link is down: the state says so, the last readout stands
             log.warning("robot readout failed: %s", exc)
             return {}
-        return {"bMe": bMe.tolist(), "q": self._joints_shown(bMe).tolist(), "holding_part": holding}
+        return {"bMe": bMe, "q": self._joints_shown(bMe), "holding_part": holding}
 
     def _joints_shown(self, bMe: Matrix) -> Matrix:
         if self.rig.cell is not None:  # the simulated cell's plant: its true joints
@@ -260,9 +262,9 @@ class CellController:
             raise CommandRefused("e-stop is active: reset it first")
         if self.running:
             raise CommandRefused(f"{self._work} is under way")
-        if Phase(self._state.phase) not in phases:
+        if self._state.phase not in phases:
             allowed = " or ".join(p.value for p in phases)
-            raise CommandRefused(f"not possible while {self._state.phase} (only when {allowed})")
+            raise CommandRefused(f"not possible while {self._state.phase.value} (only when {allowed})")
 
     def _enable_motion(self) -> None:
         status = self.rig.robot.status()
@@ -406,16 +408,7 @@ class CellController:
             self._enable_motion()
             run_id = self.store.start_run(job.name, self.rig.robot.name, part_id)
             self._desired = job.desired
-            self.update(
-                phase=Phase.SERVOING.value,
-                detail="starting",
-                job=job.name,
-                run_id=run_id,
-                stage=None,
-                iteration=0,
-                error_px=None,
-                last_outcome=None,
-            )
+            self.update(phase=Phase.SERVOING, detail="starting", job=job.name, run=RunFigures(run_id), last_outcome=None)
             run = AssemblyRun(
                 job,
                 run_id,
@@ -498,7 +491,7 @@ class CellController:
                 answered.set()
                 if "late" in answer:  # the state says not confirmed: the answer replaces it unless newer words did
                     self.update_with(
-                        lambda state: {"phase": Phase.ESTOPPED.value, "detail": detail} if state.detail == pending else None
+                        lambda state: {"phase": Phase.ESTOPPED, "detail": detail} if state.detail == pending else None
                     )
 
         threading.Thread(target=send_hold, name="estop-hold", daemon=True).start()
@@ -510,9 +503,9 @@ class CellController:
             detail, held = str(answer.get("detail", pending)), answer.get("held") is True
             self.update_with(
                 lambda state: (
-                    {"phase": Phase.ESTOPPED.value}
-                    if held and state is not pressed and state.phase == Phase.ESTOPPED.value
-                    else {"phase": Phase.ESTOPPED.value, "detail": detail}
+                    {"phase": Phase.ESTOPPED}
+                    if held and state is not pressed and state.phase is Phase.ESTOPPED
+                    else {"phase": Phase.ESTOPPED, "detail": detail}
                 )
             )
 
@@ -522,8 +515,8 @@ class CellController:
         if self.running:
             raise CommandRefused("the run is still stopping; try again")
         with self._lock:
-            if Phase(self._state.phase) not in (Phase.ESTOPPED, Phase.FAULT, Phase.DONE):
-                raise CommandRefused(f"nothing to reset while {self._state.phase}")
+            if self._state.phase not in (Phase.ESTOPPED, Phase.FAULT, Phase.DONE):
+                raise CommandRefused(f"nothing to reset while {self._state.phase.value}")
             try:
                 self.rig.reconnect()
             except RobotError as exc:
@@ -537,7 +530,7 @@ class CellController:
             except RobotError as exc:
                 raise CommandRefused(f"reset failed: {exc}") from exc
             self._estop.release()
-            self.update(phase=Phase.IDLE.value, detail="reset: ready", **self.robot_readout())
+            self.update(phase=Phase.IDLE, detail="reset: ready", **self.robot_readout())
 
     def close(self) -> None:
         """Stop: hold the robot if a run is under way, then release the devices."""
@@ -551,7 +544,7 @@ def run_job_once(controller: CellController, job_name: str, part_id: str | None 
     """One headless assembly (``vservo run``): a new part where the cell can present one,
     start, wait. The command is the operator's explicit go: a hold left by an earlier
     session's fault is released first, as its Reset would."""
-    if controller.state.phase == Phase.FAULT.value:
+    if controller.state.phase is Phase.FAULT:
         controller.reset()
     if controller.rig.present_part is not None:
         controller.present_part()

@@ -62,7 +62,8 @@ def _cmd_controller(args: argparse.Namespace) -> int:
     import signal
 
     from vservo.core.production.cell_rig import build_rig
-    from vservo.core.production.channel import KEY_ENVIRONMENT, ControllerServer
+    from vservo.core.production.channel import ControllerServer
+    from vservo.core.production.protocol import KEY_ENVIRONMENT
     from vservo.core.production.storage import Store
 
     key = os.environ.get(KEY_ENVIRONMENT, "")

@@ -26,7 +26,6 @@ import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +55,7 @@ from vservo.core.geometry.camera import CameraModel
 from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import Matrix, exp_twist, inverse, rot_x, rot_z, transform
 from vservo.core.perception.vision.spot import detect_laser_spot
+from vservo.core.production.protocol.state import CommissionStep
 from vservo.core.production.rig import Rig
 from vservo.core.robot.safety import SafetyRefusal, SafetyStopActive
 
@@ -66,11 +66,7 @@ bRc_DOWN = rot_x(np.pi)
 SPOT_RADIUS_PX = 12.0
 
 
-class Step(StrEnum):
-    CAMERA = "camera"
-    HAND_EYE = "hand-eye"
-    LASER = "laser"
-    NN = "nn"
+Step = CommissionStep  # the steps as the channel names them (core/production/protocol/state.py)
 
 
 ALL_STEPS = tuple(Step)

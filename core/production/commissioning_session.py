@@ -20,16 +20,12 @@ from typing import TYPE_CHECKING, Any
 
 from vservo.core.cell.config import DEFAULT_CELL, CellConfig, ConfigError, load_cell, read_cell_data
 from vservo.core.perception.camera_source import BaseSource, Frame, FrameSource, Size
-from vservo.core.production.assembly import Phase, hold_after_fault
-from vservo.core.production.controller_state import (
-    CommandRefused,
-    ControllerState,
-    EStopLatch,
-    FrameView,
-    Publisher,
-    commissioning_record,
-)
+from vservo.core.production.assembly import hold_after_fault
+from vservo.core.production.controller_state import EStopLatch, FrameView, Publisher
 from vservo.core.production.locate import PartLocator
+from vservo.core.production.protocol import CommandRefused, CommissioningProgress, CommissionSummary, ControllerState, Phase
+from vservo.core.production.protocol.codec import from_json
+from vservo.core.production.protocol.state import ProcedureProgress
 from vservo.core.production.rig import Rig, extractor_for
 
 if TYPE_CHECKING:
@@ -47,6 +43,13 @@ DEVICES: dict[str, Callable[[CellConfig], object]] = {
     "[fixture] url": lambda c: c.fixture_url,
     "arm": lambda c: c.arm,
 }
+
+
+def _record(state: ControllerState) -> CommissioningProgress:
+    """The state's commissioning (``begin`` publishes it before the commissioning's thread starts)."""
+    if state.commissioning is None:
+        raise CommandRefused("nothing was commissioned in this session")
+    return state.commissioning
 
 
 @dataclass(frozen=True)
@@ -150,28 +153,20 @@ class CommissioningSession:
         """Publish the commissioning as started (motion is enabled; its thread starts next)."""
         self._commissioned = None
         self.publisher.update(
-            phase=Phase.COMMISSIONING.value,
+            phase=Phase.COMMISSIONING,
             detail=f"commissioning {', '.join(plan.steps)}",
-            commissioning={
-                "steps": [str(step) for step in plan.steps],
-                "out": str(plan.out_path),
-                "step": None,
-                "progress": {},
-                "summary": None,
-                "error": None,
-                "applied": None,
-            },
+            commissioning=CommissioningProgress(tuple(plan.steps), str(plan.out_path)),
         )
 
     def _on_progress(self, progress: Progress) -> None:
-        line = {"done": progress.done, "total": progress.total, "note": progress.note}
+        line = ProcedureProgress(progress.done, progress.total, progress.note)
         readout = self.publisher.robot_readout()
 
         def changes(state: ControllerState) -> dict[str, Any]:
-            record = commissioning_record(state)
+            record = _record(state)
             return {
                 "detail": f"commissioning: {progress.step} {progress.done}/{progress.total}",
-                "commissioning": {**record, "step": progress.step, "progress": {**record["progress"], progress.step: line}},
+                "commissioning": replace(record, step=progress.step, progress={**record.progress, progress.step: line}),
                 **readout,
             }
 
@@ -200,17 +195,13 @@ class CommissioningSession:
             if not retakes
             else f"commissioned: {', '.join(retakes)} say{'s' if len(retakes) == 1 else ''} retake"
         )
-        self._publish_end(Phase.IDLE, detail, summary=commission_summary(result))
+        summary = from_json(CommissionSummary, commission_summary(result), "commission_summary")
+        self._publish_end(Phase.IDLE, detail, summary=summary)
 
-    def _publish_end(self, phase: Phase, detail: str, **record: object) -> None:
+    def _publish_end(self, phase: Phase, detail: str, **record: Any) -> None:
         readout = self.publisher.robot_readout()
         self.publisher.update_with(
-            lambda state: {
-                "phase": phase.value,
-                "detail": detail,
-                "commissioning": {**commissioning_record(state), **record},
-                **readout,
-            }
+            lambda state: {"phase": phase, "detail": detail, "commissioning": replace(_record(state), **record), **readout}
         )
 
     def apply(self) -> Path:
@@ -250,7 +241,7 @@ class CommissioningSession:
             lambda state: {
                 "cell_file": config.source,
                 "detail": f"the controller's model is now {config.source}",
-                "commissioning": {**commissioning_record(state), "applied": config.source},
+                "commissioning": replace(_record(state), applied=config.source),
             }
         )
         return done.out_path

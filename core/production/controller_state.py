@@ -1,33 +1,27 @@
-"""The values the cell controller publishes and refuses with, shared by its parts.
+"""What the cell controller's parts share: the teach draft, the frames shown, how they publish.
 
 The controller (cell_controller.py) owns three parts, each in its own module: teaching
 (teaching_session.py), an assembly run (assembly_run.py) and commissioning
-(commissioning_session.py). They change what the controller publishes only through a
-``Publisher``, which the controller implements under its state rule (its module docstring),
-and they read the e-stop through an ``EStopLatch``.
+(commissioning_session.py). They change what the controller publishes (the protocol's
+ControllerState, core/production/protocol/state.py) only through a ``Publisher``, which
+the controller implements under its state rule (its module docstring), and they read the
+e-stop through an ``EStopLatch``. What they refuse with is the protocol's CommandRefused.
 """
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from typing import Any, Protocol
 
-import numpy as np
-
-from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.camera_source import Frame
 from vservo.core.perception.features import DesiredImage
-from vservo.core.production.assembly import Phase
-from vservo.core.production.jobs import Job, TaughtModel
+from vservo.core.production.jobs import TaughtModel
 from vservo.core.production.placement_check import CheckView
-from vservo.core.servo.laws.base import Stage
-
-
-class CommandRefused(VservoError):
-    """A command that cannot be carried out now; the message says why."""
+from vservo.core.production.protocol import ControllerState, TeachStep
+from vservo.core.production.protocol.commands import NEW_JOB_SETTINGS
 
 
 @dataclass(frozen=True)
@@ -40,63 +34,30 @@ class TeachDraft:
     start_bMe: Matrix | None = None
     eMe_pick: Matrix | None = None
     bMe_place: Matrix | None = None
-    threshold_px: float = Job.threshold_px
-    gain: float = 1.0
-    approach_m: float = 0.04
+    threshold_px: float = NEW_JOB_SETTINGS.threshold_px
+    gain: float = NEW_JOB_SETTINGS.gain
+    approach_m: float = NEW_JOB_SETTINGS.approach_m
     check: CheckView | None = None
-    placement_tolerance_mm: float = 1.0
+    placement_tolerance_mm: float = NEW_JOB_SETTINGS.placement_tolerance_mm
     taught_model: TaughtModel | None = None  # what the desired image was seen through
     seen_bMo: Matrix | None = None  # the part as the desired image saw it (planar PnP, nominal camera)
 
-    def missing(self) -> list[str]:
-        """What the job cannot be saved without."""
-        names = {
-            "desired": "the desired image",
-            "start_bMe": "the start pose",
-            "eMe_pick": "the pick pose",
-            "bMe_place": "the place pose",
+    @property
+    def taught(self) -> frozenset[TeachStep]:
+        """The steps this draft has taught."""
+        captured = {
+            TeachStep.DESIRED_IMAGE: self.desired,
+            TeachStep.START_POSE: self.start_bMe,
+            TeachStep.PICK_POSE: self.eMe_pick,
+            TeachStep.PLACE_POSE: self.bMe_place,
+            TeachStep.CHECK_VIEW: self.check,
         }
-        return [text for key, text in names.items() if getattr(self, key) is None]
+        return frozenset(step for step, value in captured.items() if value is not None)
 
-    def optional_missing(self) -> list[str]:
-        """What the job can be saved without, at a cost the operator should know."""
-        return ["the check view (without it, runs report placement unknown)"] if self.check is None else []
-
-
-@dataclass(frozen=True)
-class ControllerState:
-    """What every screen shows; published on every change and every servo cycle."""
-
-    phase: str = Phase.IDLE.value
-    detail: str = ""
-    job: str | None = None
-    run_id: int | None = None
-    stage: Stage | None = None
-    iteration: int = 0
-    error_px: float | None = None
-    cVc: list[float] = field(default_factory=lambda: [0.0] * 6)
-    bMe: list[list[float]] = field(default_factory=lambda: np.eye(4).tolist())
-    q: list[float] = field(default_factory=list)
-    holding_part: bool = False
-    robot: str = ""
-    backend: str = ""
-    can_present_part: bool = False  # the cell can put a new part on the table (simulated, or a test fixture)
-    teach_missing: list[str] = field(default_factory=list)
-    teach_optional: list[str] = field(default_factory=list)
-    # While teaching, the poses the Teach tab offers to go to, each once known: "view_bMe"
-    # the desired view; from the cell file's [metal_part], "pocket_bMe" the flange pose that
-    # sets the picked part down centred in its pocket, "place_bMo" where the taught place sets it.
-    teach_poses: dict[str, list[list[float]]] = field(default_factory=dict)
-    last_outcome: dict | None = None
-    cell_file: str = ""  # the cell file whose model the controller runs on
-    # The commissioning of this session: its steps, the file Apply writes, per step of the
-    # procedure the views (or epochs) done of total and the last note, then the summary
-    # (commission_summary), or the error that stopped it; "applied" once written and reloaded.
-    commissioning: dict | None = None
-    time_s: float = 0.0
-
-    def as_dict(self) -> dict:
-        return asdict(self)
+    @property
+    def missing(self) -> tuple[TeachStep, ...]:
+        """What the job cannot be saved without."""
+        return tuple(step for step in TeachStep if step.required and step not in self.taught)
 
 
 @dataclass(frozen=True)
@@ -143,8 +104,3 @@ class EStopLatch:
 
     def is_set(self) -> bool:
         return self._pressed.is_set()
-
-
-def commissioning_record(state: ControllerState) -> dict[str, Any]:
-    """The state's commissioning record (empty before any commissioning)."""
-    return state.commissioning or {}

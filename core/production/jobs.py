@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,12 +39,12 @@ from vservo.core.perception.features import DesiredImage
 from vservo.core.perception.recording import write_atomic
 from vservo.core.production.grasp import SYMMETRIES
 from vservo.core.production.placement_check import CheckView
+from vservo.core.production.protocol.commands import JOB_NAME, JOB_NAME_WORDS
 from vservo.core.servo.methods import METHODS
 
 JOB_FORMAT = "vservo-job"
 JOB_VERSION = 3
 READABLE_VERSIONS = (1, 2, JOB_VERSION)
-NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
 class JobError(VservoError, ValueError):
@@ -183,8 +182,8 @@ class Job:
 
 
 def validate_job_name(name: object) -> str:
-    if not isinstance(name, str) or not NAME_PATTERN.match(name):
-        raise JobError(f"job name {name!r}: use 1 to 64 letters, digits, '_', '-' or '.', starting with a letter or digit")
+    if not isinstance(name, str) or not JOB_NAME.match(name):
+        raise JobError(f"job name {name!r}: use {JOB_NAME_WORDS}")
     return name
 
 

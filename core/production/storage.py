@@ -27,7 +27,6 @@ import fcntl
 import json
 import math
 import os
-import re
 import shutil
 import sqlite3
 import threading
@@ -45,14 +44,14 @@ import numpy as np
 from vservo.core.cell.config import RecordingRetention
 from vservo.core.errors import VservoError
 from vservo.core.perception.recording import write_atomic
-from vservo.core.production.assembly import Outcome
 from vservo.core.production.jobs import Job, JobError, job_from_json, read_job_file, validate_job_name
+from vservo.core.production.protocol.commands import PART_ID, PART_ID_WORDS
+from vservo.core.production.protocol.state import Outcome
 
 SCHEMA_VERSION = 2
 DEMO_JOB = "demo"
 BUSY_TIMEOUT_S = 10.0  # how long a write waits for another program's lock on the database
 LOCK_FILE = "controller.lock"
-PART_ID_PATTERN = re.compile(r"[^\s\x00-\x1f\x7f]([^\x00-\x1f\x7f]{0,62}[^\s\x00-\x1f\x7f])?")
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -467,10 +466,8 @@ def _folder_bytes(folder: Path) -> int:
 
 def validate_part_id(part_id: object) -> str:
     """A part ID as a PLC, a scanner or an operator gives it: 1 to 64 printable characters."""
-    if not isinstance(part_id, str) or not PART_ID_PATTERN.fullmatch(part_id):
-        raise StoreError(
-            f"part ID {part_id!r}: use 1 to 64 printable characters (no spaces at either end, no control characters)"
-        )
+    if not isinstance(part_id, str) or not PART_ID.fullmatch(part_id):
+        raise StoreError(f"part ID {part_id!r}: use {PART_ID_WORDS}")
     return part_id
 
 

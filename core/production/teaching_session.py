@@ -20,11 +20,12 @@ from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.camera_source import Frame
 from vservo.core.perception.features import DesiredImage, ImageFeatures
-from vservo.core.production.assembly import Phase
-from vservo.core.production.controller_state import CommandRefused, Publisher, TeachDraft
+from vservo.core.production.controller_state import Publisher, TeachDraft
 from vservo.core.production.jobs import Job, JobError, TaughtModel
 from vservo.core.production.placement_check import CheckView
 from vservo.core.production.pocket import PocketFit, flange_in_pocket, part_on_flange, pocket_fit
+from vservo.core.production.protocol import CommandRefused, Phase, Teaching
+from vservo.core.production.protocol.commands import PART_SIDE_M
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.backend import RobotError
@@ -32,7 +33,6 @@ from vservo.core.servo.teaching import TeachError, desired_from_features
 
 log = logging.getLogger("vservo.controller")
 
-PART_SIDE_M = 0.020  # the shipped part, a 20 mm cube (section 5.3)
 # A test pick lifts the part this far: enough for the vacuum sensor to feel its weight,
 # little enough that a part that falls lands where it lay.
 TEST_PICK_LIFT_M = 0.005
@@ -80,22 +80,12 @@ class TeachingSession:
         self._check_image = None
         # The job shown is the template taught from; a new job has none until it is saved.
         self.publisher.update(
-            phase=Phase.TEACHING.value,
-            detail="jog to the desired view and capture it",
-            job=template or None,
-            teach_missing=draft.missing(),
-            teach_optional=draft.optional_missing(),
-            teach_poses=self._teach_poses(),
+            phase=Phase.TEACHING, detail="jog to the desired view and capture it", job=template or None, teaching=self._teaching()
         )
 
     def _set_draft(self, detail: str, **changes: Any) -> None:
-        self._draft = draft = replace(self.draft, **changes)
-        self.publisher.update(
-            detail=detail,
-            teach_missing=draft.missing(),
-            teach_optional=draft.optional_missing(),
-            teach_poses=self._teach_poses(),
-        )
+        self._draft = replace(self.draft, **changes)
+        self.publisher.update(detail=detail, teaching=self._teaching())
 
     def _part_held(self, draft: TeachDraft) -> Matrix | None:
         """eMo: the desired image's part as the taught pick holds it (None until both are taught)."""
@@ -114,18 +104,21 @@ class TeachingSession:
         pocket, bMo = self.rig.config.metal_part, self._placed(self.draft)
         return None if pocket is None or bMo is None else pocket_fit(bMo, pocket, PART_SIDE_M)
 
-    def _teach_poses(self) -> dict[str, list[list[float]]]:
-        """The state's teach_poses for the draft."""
+    def _teaching(self) -> Teaching:
+        """What the state says of the draft: the steps taught, and the poses the Teach tab may
+        go to once known: the desired view; from the cell file's [metal_part], the flange pose
+        that sets the picked part centred in its pocket and where the taught place sets it."""
         draft, pocket = self.draft, self.rig.config.metal_part
-        poses = {} if draft.taught_bMe is None else {"view_bMe": draft.taught_bMe.tolist()}
         eMo = self._part_held(draft)
         if pocket is None or eMo is None or draft.seen_bMo is None:
-            return poses
-        poses["pocket_bMe"] = flange_in_pocket(eMo, pocket, PART_SIDE_M, draft.seen_bMo).tolist()
+            return Teaching(draft.taught, view_bMe=draft.taught_bMe)
         fit = self._pocket_fit()
-        if fit is not None:
-            poses["place_bMo"] = fit.bMo.tolist()
-        return poses
+        return Teaching(
+            draft.taught,
+            view_bMe=draft.taught_bMe,
+            pocket_bMe=flange_in_pocket(eMo, pocket, PART_SIDE_M, draft.seen_bMo),
+            place_bMo=None if fit is None else fit.bMo,
+        )
 
     def _place_words(self) -> str:
         """The place check (said as soon as the place is taught): how far off the pocket's
@@ -291,9 +284,9 @@ class TeachingSession:
     def save(self, name: str, description: str, part_side_m: float) -> Job:
         """Store the draft as job ``name``; the draft ends."""
         draft = self.draft
-        if draft.missing():
-            raise CommandRefused(f"cannot save yet: teach {', '.join(draft.missing())}")
-        assert draft.desired is not None and draft.taught_bMe is not None  # missing() checked them
+        if draft.missing:
+            raise CommandRefused(f"cannot save yet: teach {', '.join(step.value for step in draft.missing)}")
+        assert draft.desired is not None and draft.taught_bMe is not None  # missing checked them
         assert draft.start_bMe is not None and draft.eMe_pick is not None and draft.bMe_place is not None
         try:
             job = Job(
@@ -316,9 +309,9 @@ class TeachingSession:
             raise CommandRefused(str(exc)) from exc
         self.store.save_job(job, self._desired_image, self._check_image if draft.check is not None else None)
         self._draft = None
-        self.publisher.update(phase=Phase.IDLE.value, detail=f"job {name!r} saved", job=name, teach_missing=[], teach_optional=[])
+        self.publisher.update(phase=Phase.IDLE, detail=f"job {name!r} saved", job=name, teaching=None)
         return job
 
     def cancel(self) -> None:
         self._draft = None
-        self.publisher.update(phase=Phase.IDLE.value, detail="teaching cancelled", teach_missing=[], teach_optional=[])
+        self.publisher.update(phase=Phase.IDLE, detail="teaching cancelled", teaching=None)

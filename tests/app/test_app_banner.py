@@ -12,37 +12,32 @@ from vservo.app.session import Session
 from vservo.app.status import flange_text, status_markdown
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg, transform
-from vservo.core.production.assembly import Outcome, Phase
+from vservo.core.production.protocol import ControllerState, Outcome, Phase, RunFigures, RunOutcome
+from vservo.core.servo.laws.base import Stage
 
 
-def _done(outcome: Outcome, reason: str) -> dict:
-    return {"phase": Phase.DONE.value, "job": "bracket", "last_outcome": {"outcome": outcome.value, "reason": reason}}
+def _done(outcome: Outcome, reason: str) -> ControllerState:
+    return ControllerState(Phase.DONE, job="bracket", last_outcome=RunOutcome(outcome, reason))
+
+
+def _servoing(stage: str) -> ControllerState:
+    return ControllerState(Phase.SERVOING, job="bracket", run=RunFigures(1, Stage(stage)))
 
 
 @pytest.mark.parametrize(
     ("state", "kind", "title", "next_words"),
     [
-        ({"phase": "idle"}, Kind.READY, "READY", "press Start"),
-        ({"phase": "teaching", "job": None}, Kind.BUSY, "TEACHING", "Teach tab"),
-        ({"phase": "commissioning"}, Kind.BUSY, "COMMISSIONING", "keep clear"),
-        (
-            {"phase": "servoing", "job": "bracket", "stage": "1A"},
-            Kind.BUSY,
-            "RUNNING job bracket: turning to face the part",
-            "keep clear",
-        ),
-        (
-            {"phase": "servoing", "job": "bracket", "stage": "2"},
-            Kind.BUSY,
-            "RUNNING job bracket: approaching with the laser",
-            "keep clear",
-        ),
-        ({"phase": "servoing", "job": "bracket", "stage": "3"}, Kind.BUSY, "RUNNING job bracket: final alignment", "keep clear"),
-        ({"phase": "picking", "job": "bracket"}, Kind.BUSY, "RUNNING job bracket: picking the part", "keep clear"),
+        (ControllerState(Phase.IDLE), Kind.READY, "READY", "press Start"),
+        (ControllerState(Phase.TEACHING, job=None), Kind.BUSY, "TEACHING", "Teach tab"),
+        (ControllerState(Phase.COMMISSIONING), Kind.BUSY, "COMMISSIONING", "keep clear"),
+        (_servoing("1A"), Kind.BUSY, "RUNNING job bracket: turning to face the part", "keep clear"),
+        (_servoing("2"), Kind.BUSY, "RUNNING job bracket: approaching with the laser", "keep clear"),
+        (_servoing("3"), Kind.BUSY, "RUNNING job bracket: final alignment", "keep clear"),
+        (ControllerState(Phase.PICKING, job="bracket"), Kind.BUSY, "RUNNING job bracket: picking the part", "keep clear"),
         (_done(Outcome.PLACED, "0.2 mm off"), Kind.PLACED, "PLACED: job bracket", "present the next part"),
         (_done(Outcome.MISSED, "2.2 mm off"), Kind.MISSED, "MISSED: job bracket", "Take the part out"),
-        ({"phase": "fault", "detail": "the vacuum sensor reports no part"}, Kind.FAULT, "FAULT", "press Reset"),
-        ({"phase": "e-stopped", "detail": "e-stop pressed"}, Kind.ESTOPPED, "E-STOPPED", "press Reset"),
+        (ControllerState(Phase.FAULT, "the vacuum sensor reports no part"), Kind.FAULT, "FAULT", "press Reset"),
+        (ControllerState(Phase.ESTOPPED, "e-stop pressed"), Kind.ESTOPPED, "E-STOPPED", "press Reset"),
     ],
 )
 def test_every_phase_has_its_banner_with_what_to_do_next(state, kind, title, next_words):
@@ -53,12 +48,12 @@ def test_every_phase_has_its_banner_with_what_to_do_next(state, kind, title, nex
 
 
 def test_the_banner_says_what_failed_and_how_a_run_ended():
-    fault = banner_for({"phase": "fault", "detail": "the vacuum sensor reports no part on the cup"})
+    fault = banner_for(ControllerState(Phase.FAULT, "the vacuum sensor reports no part on the cup"))
     assert fault.detail == "the vacuum sensor reports no part on the cup" and "press Reset" in fault.next_step
     missed = banner_for(_done(Outcome.MISSED, "part seen 2.2 mm from its taught place"))
     assert missed.detail == "part seen 2.2 mm from its taught place"
-    assert banner_for({"phase": "idle"}, controller_gone="exit code 1").kind == Kind.FAULT
-    assert "&lt;b&gt;" in banner_for({"phase": "fault", "detail": "<b>"}).html()  # the controller's words are text
+    assert banner_for(ControllerState(Phase.IDLE), controller_gone="exit code 1").kind == Kind.FAULT
+    assert "&lt;b&gt;" in banner_for(ControllerState(Phase.FAULT, "<b>")).html()  # the controller's words are text
 
 
 def test_colours_tell_the_outcomes_apart():
@@ -105,9 +100,7 @@ def test_the_apps_own_facts_decide_the_rest():
 
 
 def test_no_flange_pose_is_shown_before_the_robot_was_read():
-    text = status_markdown(
-        {"phase": "idle", "bMe": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "q": []}, operator_present=False
-    )
+    text = status_markdown(ControllerState(Phase.IDLE, bMe=np.eye(4), q=np.zeros(0)), operator_present=False)
     assert "flange pose not known yet" in text and "X 0.00" not in text
 
 
@@ -127,11 +120,11 @@ def test_a_released_part_is_shown_in_the_pocket_not_beside_it():
     side = 0.020
     bMe = matrix_from_pose(pose_from_mm_deg([-400.0, 100.0, 60.0, 180.0, 0.0, 30.0]))
     bMp = transform(t=(-0.395, 0.104, 0.0))  # the pocket, a few mm off where the cup let go
-    tracker.update({"bMe": bMe.tolist(), "holding_part": True, "phase": "placing"}, None, side, bMp)
-    released = tracker.update({"bMe": bMe.tolist(), "holding_part": False, "phase": "placing"}, None, side, bMp)
+    tracker.update(ControllerState(Phase.PLACING, bMe=bMe, holding_part=True), None, side, bMp)
+    released = tracker.update(ControllerState(Phase.PLACING, bMe=bMe, holding_part=False), None, side, bMp)
     bottom_centre = (released @ transform(t=(side / 2, side / 2, -side)))[:3, 3]
     assert bottom_centre == pytest.approx(bMp[:3, 3], abs=1e-9)
-    done = tracker.update({"bMe": bMe.tolist(), "holding_part": False, "phase": "done"}, None, side, bMp)
+    done = tracker.update(ControllerState(Phase.DONE, bMe=bMe, holding_part=False), None, side, bMp)
     assert np.allclose(done, released)
 
 
@@ -139,16 +132,13 @@ def test_a_new_teach_clears_the_last_runs_charts_and_path():
     session = Session()
     for k in range(1, 4):
         session.on_state(
-            {
-                "phase": "servoing",
-                "run_id": 1,
-                "iteration": k,
-                "error_px": 10.0 / k,
-                "time_s": float(k),
-                "cVc": [0.0] * 6,
-                "bMe": transform(t=(0.01 * k, 0.0, 0.0)).tolist(),
-            }
+            ControllerState(
+                Phase.SERVOING,
+                run=RunFigures(1, None, k, 10.0 / k, np.zeros(6)),
+                time_s=float(k),
+                bMe=transform(t=(0.01 * k, 0.0, 0.0)),
+            )
         )
     assert len(session.view().trace.errors_px) == 3 and len(session.view().trace.path_m) == 3
-    session.on_state({"phase": "teaching", "run_id": 1, "time_s": 5.0, "bMe": np.eye(4).tolist()})
+    session.on_state(ControllerState(Phase.TEACHING, run=RunFigures(1), time_s=5.0))
     assert len(session.view().trace.errors_px) == 0 and len(session.view().trace.path_m) == 0

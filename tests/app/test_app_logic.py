@@ -4,6 +4,7 @@ built from the controller's real state stream, the live image's overlays, the st
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -22,11 +23,25 @@ from vservo.app.status import flange_text, outcome_markdown, run_heading, run_pr
 from vservo.app.teach_panel import jog_step
 from vservo.core.cell.config import load_cell, read_cell_bytes
 from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg
-from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController
-from vservo.core.production.channel import Reply
 from vservo.core.production.commissioning import Step
 from vservo.core.production.jobs import read_job_file
+from vservo.core.production.protocol import (
+    CommissioningProgress,
+    ControllerState,
+    Estop,
+    FrameMeta,
+    Jog,
+    ListJobs,
+    Outcome,
+    Phase,
+    Reply,
+    RunEntry,
+    SaveJob,
+    Start,
+)
+from vservo.core.production.protocol.codec import from_json
+from vservo.core.production.protocol.commands import StageCount
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import DEMO_JOB, Store, shipped_job_path
 
@@ -57,11 +72,11 @@ def test_an_empty_token_is_refused_and_new_tokens_differ():
 
 
 def test_commands_from_a_monitor_are_refused_before_they_reach_the_controller():
-    sent: list[tuple[str, dict]] = []
+    sent: list = []
     done = threading.Event()
 
-    def call(command: str, timeout_s: float = 0.0, **args):
-        sent.append((command, args))
+    def call(command, timeout_s: float = 0.0):
+        sent.append(command)
         done.set()
         return Reply(True, result="ok")
 
@@ -69,17 +84,17 @@ def test_commands_from_a_monitor_are_refused_before_they_reach_the_controller():
     queue = CommandQueue(call, roles)
     try:
         with pytest.raises(RoleRefused, match="start: this browser is a read-only monitor"):
-            queue.submit(7, "start", job="demo")
-        assert queue.call_now("list_jobs").ok  # a query is anyone's
+            queue.submit(7, Start("demo"))
+        assert queue.call_now(ListJobs()).ok  # a query is anyone's
         queue.estop(7)  # so is the e-stop
         assert done.wait(5.0)
         roles.take(7, "t")
         replies: list[Reply] = []
         finished = threading.Event()
-        queue.submit(7, "save_job", lambda reply: (replies.append(reply), finished.set()), name="job-1")
+        queue.submit(7, SaveJob("job-1"), lambda reply: (replies.append(reply), finished.set()))
         assert finished.wait(5.0)
         assert replies[0].ok
-        assert sent == [("list_jobs", {}), ("estop", {}), ("save_job", {"name": "job-1"})]
+        assert sent == [ListJobs(), Estop(), SaveJob("job-1")]
     finally:
         queue.close()
 
@@ -88,10 +103,10 @@ def test_a_queued_command_is_dropped_when_control_changes_hands_before_it_is_sen
     release, under_way = threading.Event(), threading.Event()
     sent: list[str] = []
 
-    def slow_call(command: str, timeout_s: float = 0.0, **args):
+    def slow_call(command, timeout_s: float = 0.0):
         under_way.set()
         release.wait(5.0)
-        sent.append(command)
+        sent.append(command.command_name)
         return Reply(True)
 
     roles = Roles("t")
@@ -100,9 +115,9 @@ def test_a_queued_command_is_dropped_when_control_changes_hands_before_it_is_sen
     replies: list[Reply] = []
     finished = threading.Event()
     try:
-        queue.submit(1, "jog", translation_m=[0, 0, 0.001])
+        queue.submit(1, Jog(translation_m=(0, 0, 0.001)))
         assert under_way.wait(5.0)
-        queue.submit(1, "start", lambda reply: (replies.append(reply), finished.set()), job="demo")  # waiting
+        queue.submit(1, Start("demo"), lambda reply: (replies.append(reply), finished.set()))  # waiting
         roles.take(2, "t")
         release.set()
         assert finished.wait(5.0)
@@ -120,8 +135,8 @@ def recorded_run(tmp_path_factory):
     thesis's step policy, for a long trace of small steps."""
     store = Store(tmp_path_factory.mktemp("data"))
     controller = CellController(simulated_rig(with_the_thesis_policy(load_cell()), seed=2), store, seed=2)
-    states: list[dict] = []
-    controller.state_subscribers.append(lambda state: states.append(state.as_dict()))
+    states: list[ControllerState] = []
+    controller.state_subscribers.append(states.append)
     controller.present_part()
     controller.start("demo")
     controller.wait()
@@ -138,9 +153,9 @@ def test_the_session_traces_the_run_from_the_state_stream(recorded_run):
     for state in states:
         session.on_state(state)
     view = session.view()
-    assert view.state["phase"] == "done" and view.runs_ended == 1
+    assert view.state.phase is Phase.DONE and view.runs_ended == 1
     trace = view.trace
-    assert trace.run_id == states[-1]["run_id"]
+    assert trace.run_id == states[-1].run.run_id
     assert len(trace.iterations) == outcome.iterations  # one row per servo cycle, none for phase changes
     assert np.all(np.diff(trace.iterations) == 1)
     assert trace.errors_px[-1] == pytest.approx(outcome.final_error_px, abs=1e-9)
@@ -156,16 +171,17 @@ def test_the_session_ignores_an_older_state_and_starts_a_new_trace_per_run(recor
     session = Session()
     for state in states:
         session.on_state(state)
-    session.on_state({**states[0], "time_s": states[0]["time_s"] - 1.0})  # late welcome
-    assert session.state["phase"] == "done"
-    running = next(s for s in states if s["phase"] == "servoing" and s["iteration"] > 0)
-    session.on_state({**running, "run_id": running["run_id"] + 1, "iteration": 1, "time_s": states[-1]["time_s"] + 1})
+    session.on_state(replace(states[0], time_s=states[0].time_s - 1.0))  # late welcome
+    assert session.state.phase is Phase.DONE
+    running = next(s for s in states if s.phase is Phase.SERVOING and s.run.iteration > 0)
+    next_run = replace(running.run, run_id=running.run.run_id + 1, iteration=1)
+    session.on_state(replace(running, run=next_run, time_s=states[-1].time_s + 1))
     assert list(session.view().trace.iterations) == [1]
 
 
 def test_wait_for_news_wakes_on_a_frame():
     session = Session()
-    threading.Timer(0.05, lambda: session.on_frame({"index": 1}, b"jpeg")).start()
+    threading.Timer(0.05, lambda: session.on_frame(FrameMeta(index=1), b"jpeg")).start()
     assert session.wait_for_news(0, 0, 5.0)
     assert session.view().frame.number == 1
 
@@ -173,14 +189,14 @@ def test_wait_for_news_wakes_on_a_frame():
 # -- the live image's overlays -------------------------------------------------------------------
 
 
-def _frame_meta() -> dict:
-    return {
-        "corners_px": [[100.25, 100.5], [200.0, 100.0], [200.0, 200.0], [-1.0, -1.0]],
-        "laser_spot_px": [320.0, 240.0],
-        "desired_corners_px": [[400, 300], [500, 300], [500, 400], [400, 400]],
-        "desired_laser_px": [450.0, 350.0],
-        "trail_px": [[[50, 50], [60, 50], [60, 60], [50, 60]], [[90, 95], [190, 95], [190, 195], [95, 190]]],
-    }
+def _frame_meta() -> FrameMeta:
+    return FrameMeta(
+        corners_px=np.array([[100.25, 100.5], [200.0, 100.0], [200.0, 200.0], [np.nan, np.nan]]),
+        laser_spot_px=np.array([320.0, 240.0]),
+        desired_corners_px=np.array([[400, 300], [500, 300], [500, 400], [400, 400]], float),
+        desired_laser_px=np.array([450.0, 350.0]),
+        trail_px=np.array([[[50, 50], [60, 50], [60, 60], [50, 60]], [[90, 95], [190, 95], [190, 195], [95, 190]]], float),
+    )
 
 
 def test_overlays_are_drawn_where_the_features_are():
@@ -203,13 +219,13 @@ def test_overlays_are_drawn_where_the_features_are():
     assert close(colour_near(450, 350, 10), live_image.SPOT_BGR)  # the laser's target ring
     assert close(colour_near(400, 300, 6), live_image.DESIRED_BGR)  # a desired corner's square
     assert np.abs(drawn[240, 320].astype(int) - live_image.SPOT_BGR).max() < 60  # the spot's cross
-    unseen = drawn[250:270, 250:270]  # nothing drawn for the unseen corner (-1, -1) or elsewhere
+    unseen = drawn[250:270, 250:270]  # nothing drawn for the unseen corner (NaN) or elsewhere
     assert np.abs(unseen.astype(int) - 40).max() < 12
 
 
 def test_overlay_reads_missing_features_as_nan():
     overlay = live_image.Overlay.from_meta(
-        {"corners_px": [[1, 2], [None, None], [-1, -1], [3, 4]], "laser_spot_px": None, "trail_px": []}
+        FrameMeta(corners_px=np.array([[1, 2], [np.nan, np.nan], [-1, -1], [3, 4]], float), trail_px=np.zeros((0, 4, 2)))
     )
     assert np.isnan(overlay.corners_px[1:3]).all() and overlay.corners_px[3].tolist() == [3, 4]
     assert overlay.laser_spot_px is None and overlay.trail_px is None
@@ -226,9 +242,9 @@ def test_a_bad_jpeg_is_named():
 @pytest.mark.slow
 def test_status_progress_and_outcome_texts(recorded_run):
     states, outcome = recorded_run
-    servoing = next(s for s in states if s["phase"] == "servoing" and s["iteration"] > 5)
+    servoing = next(s for s in states if s.phase is Phase.SERVOING and s.run.iteration > 5)
     text = status_markdown(servoing, operator_present=True)
-    assert "**Servoing**" in text and f"cycle {servoing['iteration']}" in text and "an operator holds control" in text
+    assert "**Servoing**" in text and f"cycle {servoing.run.iteration}" in text and "an operator holds control" in text
     assert "flange X" in text
     assert "CONTROLLER STOPPED" in status_markdown(servoing, False, controller_gone="exit code 1")
     session = Session()
@@ -237,24 +253,24 @@ def test_status_progress_and_outcome_texts(recorded_run):
         session.on_state(state)
         progress.append(run_progress(state, session.view().trace, 3.0))
     assert progress[-1] == 100.0
-    run = [p for p, s in zip(progress, states) if s["phase"] in ("servoing", "picking", "placing")]
+    run = [p for p, s in zip(progress, states) if s.phase in (Phase.SERVOING, Phase.PICKING, Phase.PLACING)]
     assert np.all(np.diff(run) >= -1e-9), "the run's progress never goes back"
-    summary = outcome.summary()
-    assert "Run 7: placed" in outcome_markdown(summary, 7) and "placement error" in outcome_markdown(summary, 7)
+    last = states[-1].last_outcome
+    assert last is not None and last.iterations == outcome.iterations
+    assert "Run 7: placed" in outcome_markdown(last, 7) and "placement error" in outcome_markdown(last, 7)
 
 
 def test_history_texts():
-    run = {
-        "id": 3,
-        "job": "demo",
-        "outcome": Outcome.ESTOPPED,
-        "reason": "e-stop pressed",
-        "duration_s": 2.5,
-        "final_error_px": None,
-        "placement_error_mm": None,
-        "started_at": 0.0,
-        "stages": [{"stage": "1A", "iterations": 30}, {"stage": "3", "iterations": 10}],
-    }
+    run = RunEntry(
+        id=3,
+        job="demo",
+        backend="sim",
+        started_at=0.0,
+        outcome=Outcome.ESTOPPED,
+        reason="e-stop pressed",
+        duration_s=2.5,
+        stages=(StageCount("1A", 30), StageCount("3", 10)),
+    )
     table = runs_table([run])
     assert "| 3 | demo | E-STOPPED | 2.5 s | - | - |" in table
     assert run_heading(run) == "**Run 3** (demo): E-STOPPED, e-stop pressed"
@@ -290,8 +306,8 @@ def test_calibration_progress_and_table():
     assert "axxb" not in plain and "eq." not in plain
 
 
-def commissioning_record(nn_verdict: str = "good") -> dict:
-    """A finished commissioning as the controller publishes it (figures of the shipped cell's)."""
+def commissioning_record(nn_verdict: str = "good") -> CommissioningProgress:
+    """A finished commissioning as the controller publishes it (figures of the shipped cell's), as the app reads it."""
     nn_why = (
         "validation error 0.298 mm mean over 166 corners"
         if nn_verdict == "good"
@@ -325,7 +341,7 @@ def commissioning_record(nn_verdict: str = "good") -> dict:
         "views": {"taken": 90, "used": 62},
         "cell_time_s": 98.3,
     }
-    return {
+    record = {
         "steps": ["camera", "nn"],
         "out": "/cells/line3-commissioned.toml",
         "step": "acceptance",
@@ -337,13 +353,14 @@ def commissioning_record(nn_verdict: str = "good") -> dict:
         "error": None,
         "applied": None,
     }
+    return from_json(CommissioningProgress, record)
 
 
 def test_commissioning_texts():
     assert tuple(commission_text.STEP_WORDS) == tuple(Step)  # the tab offers every step, by its name
     assert "Not commissioned in this session" in commission_text.progress_markdown(None, "static/cell.toml")
     record = commissioning_record()
-    running = {**record, "summary": None}
+    running = replace(record, summary=None)
     text = commission_text.progress_markdown(running, "/cells/line3.toml")
     assert text.startswith("The controller runs on `/cells/line3.toml`.")
     assert "**Commissioning** camera, nn; the new cell file will be `/cells/line3-commissioned.toml`." in text
@@ -371,9 +388,9 @@ def test_commissioning_texts():
     assert "**Commissioned**, but nn says retake: commission again." in commission_text.progress_markdown(retake, "x")
     assert "- network (nn): **retake**: 6 grid views, validation error 14.948 mm mean" in commission_text.results_markdown(retake)
 
-    stopped = {**running, "error": "e-stop pressed"}
+    stopped = replace(running, error="e-stop pressed")
     assert "**Commissioning stopped**: e-stop pressed" in commission_text.progress_markdown(stopped, "x")
-    applied = {**record, "applied": "/cells/line3-commissioned.toml"}
+    applied = replace(record, applied="/cells/line3-commissioned.toml")
     text = commission_text.progress_markdown(applied, "/cells/line3-commissioned.toml")
     assert text.startswith("**Applied**: the controller's model is now `/cells/line3-commissioned.toml`.")
 
@@ -395,15 +412,15 @@ def test_the_part_is_placed_from_its_corners_and_carried_by_the_cup():
 
     tracker = PartTracker(mount, camera)
     overlay = live_image.Overlay(corners_px=features.corners_px)
-    state = {"bMe": bMe.tolist(), "holding_part": False}
+    state = ControllerState(bMe=bMe, holding_part=False)
     assert np.allclose(tracker.update(state, overlay, 0.020), bMo)
-    tracker.update({"bMe": bMe.tolist(), "holding_part": True}, None, 0.020)  # grasped here
+    tracker.update(ControllerState(bMe=bMe, holding_part=True), None, 0.020)  # grasped here
     lifted = bMe.copy()
     lifted[2, 3] += 0.1
-    carried = tracker.update({"bMe": lifted.tolist(), "holding_part": True}, None, 0.020)
+    carried = tracker.update(ControllerState(bMe=lifted, holding_part=True), None, 0.020)
     assert np.allclose(carried[:3, 3], bMo[:3, 3] + [0, 0, 0.1]) and np.allclose(carried[:3, :3], bMo[:3, :3])
     hidden = live_image.Overlay(corners_px=np.full((4, 2), np.nan))
-    assert np.allclose(tracker.update({"bMe": bMe.tolist(), "holding_part": False}, hidden, 0.020), carried)
+    assert np.allclose(tracker.update(ControllerState(bMe=bMe, holding_part=False), hidden, 0.020), carried)
 
     start, end = laser_ray(bMe, mount.eMl, float(bMo[2, 3]))
     assert end[2] == pytest.approx(bMo[2, 3]) and np.linalg.norm(end - start) > 0.05
@@ -429,17 +446,17 @@ def test_after_an_apply_the_3d_view_draws_the_tools_where_the_commissioned_file_
     try:
         scene = CellScene(server, shipped)
         bMe = matrix_from_pose(pose_from_mm_deg([-300.0, 50.0, 250.0, 180.0, 0.0, 30.0]))
-        state = {"q": shipped.home_q.tolist(), "bMe": bMe.tolist(), "phase": "idle", "cell_file": shipped.source}
+        state = ControllerState(q=shipped.home_q, bMe=bMe, cell_file=shipped.source)
         scene.update(state, None, np.zeros((0, 3)))
         assert np.allclose(scene.frustum.position, (bMe @ shipped.nominal.mount.eMc)[:3, 3])
         fov_shipped = scene.frustum.fov
 
-        scene.update({**state, "cell_file": str(commissioned)}, None, np.zeros((0, 3)))
+        scene.update(replace(state, cell_file=str(commissioned)), None, np.zeros((0, 3)))
         assert np.allclose(scene.frustum.position, (bMe @ eMc)[:3, 3])
         assert scene.frustum.fov < fov_shipped  # a longer lens sees less
         assert scene.tracker.mount.eMc is scene.mount.eMc  # the part is placed through the new camera too
 
-        scene.update({**state, "cell_file": str(tmp_path / "gone.toml")}, None, np.zeros((0, 3)))
+        scene.update(replace(state, cell_file=str(tmp_path / "gone.toml")), None, np.zeros((0, 3)))
         assert np.allclose(scene.frustum.position, (bMe @ eMc)[:3, 3])
     finally:
         server.stop()

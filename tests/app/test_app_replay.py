@@ -7,6 +7,12 @@ import pytest
 
 from vservo.app.replay import ReplayClock, ReplayTimeline
 from vservo.app.stage_chart import STAGE_BGR, stage_chart
+from vservo.core.production.protocol import RunEntry
+from vservo.core.production.protocol.commands import StageCount
+
+
+def run_with_stages(*stages: tuple[str, int]) -> RunEntry:
+    return RunEntry(id=1, job="demo", backend="sim", started_at=0.0, stages=tuple(StageCount(*s) for s in stages))
 
 
 def _cycles(times_s):
@@ -58,8 +64,8 @@ def test_play_pause_seek_and_speed():
 
 
 def test_the_stage_chart_draws_each_stage_in_its_colour_and_share():
-    image = stage_chart({"stages": [{"stage": "1A", "iterations": 30}, {"stage": "3", "iterations": 10}]})
+    image = stage_chart(run_with_stages(("1A", 30), ("3", 10)))
     rows = [np.all(image == STAGE_BGR[stage], axis=2) for stage in ("1A", "3")]
     widths = [int(row.sum(axis=1).max()) for row in rows]
     assert widths[0] == pytest.approx(3 * widths[1], rel=0.05)
-    assert stage_chart({"stages": []}).shape[1] == image.shape[1]
+    assert stage_chart(run_with_stages()).shape[1] == image.shape[1]

@@ -26,6 +26,7 @@ from vservo.app.context import ServeOptions
 from vservo.app.light_monitor import LightMonitor, LightMonitors, MonitorError
 from vservo.app.server import start_app
 from vservo.core.cell.config import load_cell
+from vservo.core.production.protocol import PresentPart, Start
 
 FRAMES = 10
 DEADLINE_S = 180.0  # an assembly's servo sends a frame every few hundredths of a second
@@ -53,8 +54,8 @@ def _assemble(running) -> None:
     is done": right after the start the state shown may still be the last run's "done".)"""
     session = running.app.session
     ended = session.view().runs_ended
-    for command, args in (("present_part", {}), ("start", {"job": "demo"})):
-        reply = running.channel.call(command, **args)
+    for command in (PresentPart(), Start("demo")):
+        reply = running.channel.call(command)
         assert reply.ok, reply.error
     wait_until(lambda: session.view().runs_ended > ended, "the assembly's end", DEADLINE_S, poll_s=0.05)
 

@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 from vservo.app.teach_panel import (
+    SAVE,
+    STEP_FOLDERS,
     PoseEntryError,
     cup_on_part,
     image_direction,
@@ -18,6 +20,7 @@ from vservo.app.teach_panel import (
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import inverse
 from vservo.core.production.jobs import read_job_file
+from vservo.core.production.protocol import ControllerState, Phase, Teaching, TeachStep
 
 
 def test_a_typed_pose_reads_back_as_typed_and_bad_text_is_named():
@@ -45,17 +48,36 @@ def test_image_directions_follow_the_camera_looking_down():
 
 
 def test_the_next_step_follows_the_operators_order():
-    state = {
-        "phase": "teaching",
-        "teach_missing": ["the desired image", "the start pose", "the pick pose", "the place pose"],
-        "teach_optional": ["the check view (without it, runs report placement unknown)"],
-    }
-    assert next_button({"phase": "idle"}) == "Begin teaching"
-    assert next_button(state) == "Capture desired image"
-    state["teach_missing"] = ["the start pose"]
+    def teaching(*taught: TeachStep) -> ControllerState:
+        return ControllerState(Phase.TEACHING, teaching=Teaching(frozenset(taught)))
+
+    assert next_button(ControllerState(Phase.IDLE)) == "Begin teaching"
+    assert next_button(teaching()) == "Capture desired image"
+    state = teaching(TeachStep.DESIRED_IMAGE, TeachStep.PICK_POSE, TeachStep.PLACE_POSE)
     assert next_button(state) == "Capture check view"
-    state["teach_optional"] = []
-    assert next_button(state) == "Set start pose here"
-    state["teach_missing"] = []
-    assert next_button(state) == "Save job"
-    assert "**Next: Save job**" in teach_checklist(state) and "no part on the cup" in teach_checklist(state)
+    assert "Still to teach: the start pose. Optional: the check view (without it" in teach_checklist(state)
+    assert next_button(teaching(*(set(TeachStep) - {TeachStep.START_POSE}))) == "Set start pose here"
+    done = teaching(*TeachStep)
+    assert next_button(done) == "Save job"
+    assert "**Next: Save job**" in teach_checklist(done) and "no part on the cup" in teach_checklist(done)
+
+
+def test_the_checklist_names_what_is_missing_in_the_drafts_order():
+    text = teach_checklist(ControllerState(Phase.TEACHING, teaching=Teaching()))
+    assert text.startswith(
+        "Still to teach: the desired image, the start pose, the pick pose, the place pose. "
+        "Optional: the check view (without it, runs report placement unknown)."
+    )
+
+
+def test_every_step_of_the_draft_has_its_button_in_the_table():
+    taught_by = [row.teaches for _, _, rows in STEP_FOLDERS for row in rows if row.teaches]
+    assert sorted(taught_by, key=list(TeachStep).index) == list(TeachStep)  # each step once
+
+
+def test_a_button_is_live_from_the_typed_state_never_from_its_words():
+    pick = next(row for _, _, rows in STEP_FOLDERS for row in rows if row.teaches is TeachStep.PICK_POSE)
+    before = ControllerState(Phase.TEACHING, detail="desired image captured", teaching=Teaching())
+    after = ControllerState(Phase.TEACHING, detail="reworded", teaching=Teaching(frozenset({TeachStep.DESIRED_IMAGE})))
+    assert not pick.live(before) and pick.live(after)
+    assert not SAVE.live(after) and SAVE.live(ControllerState(Phase.TEACHING, teaching=Teaching(frozenset(TeachStep))))

@@ -16,6 +16,7 @@ from vservo.app.cli import main
 from vservo.core.cell.config import CellConfig, load_cell
 from vservo.core.production.assembly import AssemblyOutcome, FlangeReadout, Outcome, Phase, joint_limited_steps
 from vservo.core.production.cell_controller import CellController, CommandRefused
+from vservo.core.production.protocol import TeachStep
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.safety import SafetyLayer
@@ -102,7 +103,7 @@ def test_estop_stops_the_arm_within_one_cycle_and_refuses_moves_until_reset(thes
     servoing = threading.Event()
 
     def watch(state):
-        if state.phase == Phase.SERVOING.value and state.iteration >= 20:
+        if state.phase == Phase.SERVOING.value and state.run.iteration >= 20:
             servoing.set()
 
     controller.state_subscribers.append(watch)
@@ -211,7 +212,7 @@ def test_capture_without_the_part_in_view_is_refused(controller):
     controller.jog([0.0, 0.15, 0.0])  # look at the bare table
     with pytest.raises(CommandRefused, match="four corners"):
         controller.capture_desired()
-    assert controller.state.teach_missing[0] == "the desired image"
+    assert controller.state.teaching.missing[0] is TeachStep.DESIRED_IMAGE
 
 
 def test_vservo_run_prints_one_json_object(tmp_path, capsys):

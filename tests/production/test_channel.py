@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import inspect
 import json
+import logging
 import socket
 import threading
 
@@ -14,16 +16,34 @@ from tests.jrc_fixtures import with_the_thesis_policy
 from vservo.core.cell.config import load_cell
 from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController
-from vservo.core.production.channel import (
-    APP_GONE,
-    HANDSHAKE_DEADLINE_S,
+from vservo.core.production.channel import APP_GONE, HANDSHAKE_DEADLINE_S, ControllerServer
+from vservo.core.production.protocol import (
+    COMMANDS,
+    KEY_ENVIRONMENT,
+    BeginTeach,
     ChannelError,
+    CommandRefused,
     ControllerClient,
-    ControllerServer,
+    Estop,
+    GetJob,
+    Jog,
+    ListJobs,
+    ListRuns,
+    MoveTo,
+    Phase,
+    PresentPart,
+    Query,
+    Reset,
+    SaveJob,
+    SetSettings,
+    SetStartPose,
+    Start,
+    Suction,
     new_key,
 )
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
+from vservo.core.robot.backend import RobotError
 from vservo.core.robot.safety import SafetyLayer
 from vservo.core.sim.backend import SimulatedBackend
 
@@ -58,26 +78,28 @@ def test_commands_state_and_frames_flow(served):
 
     client = ControllerClient(server.address, key, on_frame=on_frame)
     try:
-        assert client.state["phase"] == "idle"
+        assert client.state.phase is Phase.IDLE
         assert got_frame.wait(10.0)  # the live view starts with a subscriber
         meta, jpeg = frames[-1]
         image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
         assert image.shape == (480, 640)
-        assert len(meta["corners_px"]) == 4
+        assert meta.corners_px.shape == (4, 2)
 
         z = controller.rig.robot.read_pose()[2, 3]
-        assert client.call("jog", translation_m=[0, 0, 0.01]).ok
+        assert client.call(Jog(translation_m=(0, 0, 0.01))).ok
         assert controller.rig.robot.read_pose()[2, 3] == pytest.approx(z + 0.01, abs=1e-6)
-        refused = client.call("jog", translation_m=[0, float("nan"), 0])
-        assert not refused.ok and "finite" in refused.error
-        unknown = client.call("fly")
-        assert not unknown.ok and "unknown command 'fly'" in unknown.error
-        assert [job["name"] for job in client.call("list_jobs").result] == ["demo"]
+        _raw_command(client, 900, "jog", {"translation_m": [0, float("nan"), 0]})
+        refused = _reply(client, 900)
+        assert not refused["ok"] and "translation_m must be 3 numbers, each from -0.02 to 0.02 m" in refused["error"]
+        _raw_command(client, 901, "fly", {})
+        unknown = _reply(client, 901)
+        assert not unknown["ok"] and "unknown command 'fly'" in unknown["error"]
+        assert [job.name for job in client.call(ListJobs()).result] == ["demo"]
 
-        assert client.call("estop").ok
+        assert client.call(Estop()).ok
         assert controller.rig.robot.status().held
-        assert "e-stop" in client.call("jog", translation_m=[0, 0, 0.01]).error
-        assert client.call("reset").ok
+        assert "e-stop" in client.call(Jog(translation_m=(0, 0, 0.01))).error
+        assert client.call(Reset()).ok
     finally:
         client.close()
 
@@ -88,7 +110,7 @@ def test_the_app_going_away_leaves_the_controller_serving(served):
     client.close()
     again = ControllerClient(server.address, key)
     try:
-        assert again.call("list_runs").ok
+        assert again.call(ListRuns()).ok
     finally:
         again.close()
 
@@ -98,8 +120,6 @@ def test_the_controller_runs_as_its_own_process(tmp_path):
     import os
     import subprocess
     import sys
-
-    from vservo.core.production.channel import KEY_ENVIRONMENT
 
     key = new_key()
     env = {**os.environ, KEY_ENVIRONMENT: key.hex()}
@@ -112,7 +132,7 @@ def test_the_controller_runs_as_its_own_process(tmp_path):
     try:
         address = json.loads(process.stdout.readline())["controller"]
         client = ControllerClient((address["host"], address["port"]), key)
-        assert client.call("list_jobs").result[0]["name"] == "demo"
+        assert client.call(ListJobs()).result[0].name == "demo"
         client.close()
     finally:
         process.terminate()
@@ -214,7 +234,7 @@ def _jog_in_background(client: ControllerClient) -> tuple[threading.Thread, list
 
     def jog() -> None:
         try:
-            replies.append(client.call("jog", translation_m=[0, 0, 0.01]))
+            replies.append(client.call(Jog(translation_m=(0, 0, 0.01))))
         except ChannelError as exc:  # the app closed its end meanwhile
             replies.append(exc)
 
@@ -229,7 +249,7 @@ def test_estop_is_carried_out_while_a_long_move_of_the_same_app_runs(slow_served
     try:
         jog, replies = _jog_in_background(client)
         assert controller.rig.robot.robot.moving.wait(10.0)
-        assert client.call("estop", timeout_s=10.0).ok  # the move was never let finish: estop did not queue behind it
+        assert client.call(Estop(), timeout_s=10.0).ok  # the move was never let finish: estop did not queue behind it
         assert controller.rig.robot.status().held
         jog.join(10.0)
         assert replies and not replies[0].ok and "the move was stopped" in replies[0].error
@@ -264,7 +284,7 @@ def test_the_last_app_leaving_during_a_run_holds_the_robot_and_the_run_says_why(
     try:
         watcher = ControllerClient(server.address, key)
         operator = ControllerClient(server.address, key)
-        run_id = operator.call("start", job="demo").result
+        run_id = operator.call(Start("demo")).result
         operator.close()  # another app is still connected: the run goes on
         assert controller.running
         watcher.close()  # the last one: the robot is held
@@ -288,14 +308,14 @@ def test_the_last_app_leaving_while_idle_changes_nothing(served):
 
 
 def _raw_command(client: ControllerClient, request: int, name, args) -> None:
-    """A command as a buggy or hostile app could send it (ControllerClient.call always sends an object)."""
-    client.connection.send_bytes(json.dumps({"type": "command", "id": request, "name": name, "args": args}).encode())
+    """A command as a buggy or hostile app could send it, past the checks of the command's dataclass."""
+    with client._send_lock:
+        client.connection.send_bytes(json.dumps({"type": "command", "id": request, "name": name, "args": args}).encode())
 
 
-def _reply(client: ControllerClient, request: int):
-    with client._reply_ready:
-        assert client._reply_ready.wait_for(lambda: request in client._replies, 10.0), f"no reply to {request}"
-        return client._replies.pop(request)
+def _reply(client: ControllerClient, request: int) -> dict:
+    """The reply message, as it came."""
+    return client._wait_reply(request, f"request {request}", 10.0)
 
 
 def test_commands_with_bad_arguments_get_an_error_and_the_connection_keeps_working(served):
@@ -316,10 +336,12 @@ def test_commands_with_bad_arguments_get_an_error_and_the_connection_keeps_worki
         for request, (name, args) in enumerate(bad, start=1000):
             _raw_command(client, request, name, args)
             reply = _reply(client, request)
-            assert not reply.ok and reply.error, (name, args)
-        assert "limit must be a whole number" in client.call("list_runs", limit=10**30).error
-        assert [job["name"] for job in client.call("list_jobs").result] == ["demo"]
-        assert client.call("list_runs", limit=5).ok
+            assert not reply["ok"] and reply["error"], (name, args)
+            assert "\n" not in reply["error"] and "internal error" not in reply["error"], reply["error"]
+        _raw_command(client, 2000, "list_runs", {"limit": 10**30})
+        assert "limit must be a whole number" in _reply(client, 2000)["error"]
+        assert [job.name for job in client.call(ListJobs()).result] == ["demo"]
+        assert client.call(ListRuns(limit=5)).ok
     finally:
         client.close()
 
@@ -327,7 +349,7 @@ def test_commands_with_bad_arguments_get_an_error_and_the_connection_keeps_worki
 def _connect_and_list(address, key, results: list, index: int) -> None:
     client = ControllerClient(address, key)
     try:
-        results[index] = client.call("list_jobs", timeout_s=60.0).ok
+        results[index] = client.call(ListJobs(), timeout_s=60.0).ok
     finally:
         client.close()
 
@@ -363,3 +385,152 @@ def test_300_apps_connecting_at_once_all_get_through(served):
     for app in apps:
         app.join(120.0)
     assert sum(results) == len(results)
+
+
+# -- the protocol's commands, and errors, on the controller's side --------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "args", "error"),
+    [
+        (
+            "set_settings",
+            {"threshold_px": 3.0, "gain": 1.0, "approach_m": 1e9},
+            "approach_m must be from 0.005 to 0.2 m, got 1e+09",
+        ),
+        (
+            "set_settings",
+            {"threshold_px": 1e12, "gain": 1.0, "approach_m": 0.04},
+            "threshold_px must be from 0.1 to 50 px, got 1e+12",
+        ),
+        (
+            "move_to",
+            {"bMe_target": [[1.0, 0.0, 0.0, 1e300], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.3], [0.0, 0.0, 0.0, 1.0]]},
+            "bMe_target: its translation must be from -5 to 5 m each, got [1e+300, 0, 0.3]",
+        ),
+        (
+            "move_to",
+            {"bMe_target": [[1e300] * 4] * 4},
+            "bMe_target: its translation must be from -5 to 5 m each, got [1e+300, 1e+300, 1e+300]",
+        ),
+    ],
+)
+def test_a_number_out_of_the_pages_range_sent_straight_over_the_channel_is_refused_naming_it(served, name, args, error):
+    """Past the app's own checks (a raw message): the controller's dataclass refuses it, in one line."""
+    controller, server, key = served
+    client = ControllerClient(server.address, key)
+    try:
+        assert client.call(Jog()).ok  # a first readout: the flange pose below is the robot's
+        assert controller.state.phase == "idle"
+        bMe = controller.rig.robot.read_pose()
+        if name == "set_settings":
+            assert client.call(BeginTeach()).ok  # where settings are taken
+        _raw_command(client, 1, name, args)
+        reply = _reply(client, 1)
+        assert not reply["ok"] and reply["error"] == error
+        np.testing.assert_array_equal(controller.rig.robot.read_pose(), bMe)  # nothing moved
+        assert client.call(Jog()).ok  # and the connection goes on
+    finally:
+        client.close()
+
+
+def test_the_same_check_refuses_it_in_the_app_before_it_is_sent():
+    with pytest.raises(CommandRefused) as refused:
+        SetSettings(threshold_px=3.0, gain=1.0, approach_m=1e9)
+    assert str(refused.value) == "approach_m must be from 0.005 to 0.2 m, got 1e+09"
+    with pytest.raises(CommandRefused, match=r"^threshold_px must be from 0\.1 to 50 px, got 1e\+12$"):
+        SetSettings(threshold_px=1e12, gain=1.0, approach_m=0.04)
+    with pytest.raises(CommandRefused, match=r"^bMe_target: its translation must be from -5 to 5 m each"):
+        MoveTo(np.full((4, 4), 1e300))
+    rotated = np.eye(4)
+    rotated[:3, :3] *= 2.0  # no rotation: a scaling
+    with pytest.raises(CommandRefused, match=r"^bMe_target must be a rigid pose"):
+        MoveTo(rotated)
+
+
+def test_a_bug_in_a_command_reaches_the_app_as_an_internal_error_and_its_traceback_is_in_the_log(served, monkeypatch, caplog):
+    controller, server, key = served
+
+    def deliberate_bug() -> None:
+        raise KeyError("a deliberate bug")
+
+    monkeypatch.setattr(controller, "set_start_pose", deliberate_bug)
+    client = ControllerClient(server.address, key)
+    try:
+        with caplog.at_level(logging.ERROR, logger="vservo.channel"):
+            reply = client.call(SetStartPose())
+        assert not reply.ok
+        assert reply.error == "set_start_pose: internal error (its traceback is in the controller's log)"
+        (record,) = [r for r in caplog.records if r.name == "vservo.channel" and r.exc_info]
+        assert record.exc_info[0] is KeyError
+        assert "Traceback (most recent call last)" in caplog.text and "KeyError: 'a deliberate bug'" in caplog.text
+        assert "deliberate_bug" in caplog.text  # the frame that raised it
+        assert client.call(ListJobs()).ok  # the connection goes on
+    finally:
+        client.close()
+
+
+def test_an_error_vservo_raises_on_purpose_is_a_refusal_with_its_message_and_no_traceback(served, monkeypatch, caplog):
+    controller, server, key = served
+
+    def lost_link() -> None:
+        raise RobotError("the JRC does not answer")
+
+    monkeypatch.setattr(controller, "set_start_pose", lost_link)
+    client = ControllerClient(server.address, key)
+    try:
+        with caplog.at_level(logging.DEBUG, logger="vservo.channel"):
+            reply = client.call(SetStartPose())
+        assert not reply.ok and reply.error == "the JRC does not answer"
+        assert not [r for r in caplog.records if r.exc_info]
+    finally:
+        client.close()
+
+
+def test_every_command_is_a_controller_method_that_takes_its_fields():
+    """One spelling: the command's name on the channel is the controller's method, its fields the method's arguments."""
+    samples = {
+        MoveTo: MoveTo(np.eye(4)),
+        Suction: Suction(True),
+        SetSettings: SetSettings(3.0, 1.0, 0.04),
+        SaveJob: SaveJob("bolt"),
+        Start: Start("demo"),
+        GetJob: GetJob("demo"),
+    }
+    for kind in COMMANDS.values():
+        command = samples.get(kind) or kind()
+        if isinstance(command, Query):
+            continue  # answered from the store
+        method = getattr(CellController, command.command_name)
+        inspect.signature(method).bind(None, **command.arguments())
+
+
+def test_the_protocol_imports_nothing_of_the_controller_and_nothing_heavy():
+    import subprocess
+    import sys
+
+    loaded = subprocess.run(
+        [sys.executable, "-c", "import sys, vservo.core.production.protocol; print(' '.join(sys.modules))"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
+    assert "vservo.core.production.protocol.client" in loaded  # the test reads what it should
+    heavy = {"vservo.core.production.cell_controller", "vservo.core.production.channel", "cv2", "pinocchio", "torch", "viser"}
+    assert not heavy & set(loaded)
+
+
+def test_a_run_started_over_the_channel_records_the_parts_id_and_a_bad_one_is_refused(served):
+    controller, server, key = served
+    client = ControllerClient(server.address, key)
+    try:
+        _raw_command(client, 1, "start", {"job_name": "demo", "part_id": " padded"})
+        refused = _reply(client, 1)
+        assert not refused["ok"] and refused["error"].startswith("part_id must be 1 to 64 printable characters")
+        assert client.call(PresentPart()).ok
+        run_id = client.call(Start("demo", part_id="SN-0042")).result
+        controller.wait(120.0)
+        (run,) = [run for run in client.call(ListRuns(limit=5)).result if run.id == run_id]
+        assert run.part_id == "SN-0042" and run.outcome is Outcome.PLACED
+    finally:
+        client.close()

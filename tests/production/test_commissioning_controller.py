@@ -14,8 +14,9 @@ import pytest
 from vservo.core.cell.config import load_cell
 from vservo.core.production.assembly import Outcome, Phase
 from vservo.core.production.cell_controller import CellController, CommandRefused, commissioned_path
-from vservo.core.production.channel import ControllerClient, ControllerServer, new_key
+from vservo.core.production.channel import ControllerServer
 from vservo.core.production.commissioning import CommissionSettings
+from vservo.core.production.protocol import ApplyCommissioning, Commission, ControllerClient, Jog, new_key
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import DEMO_JOB, Store
 
@@ -69,53 +70,54 @@ def test_commission_over_the_channel_apply_and_assemble_on_the_new_model(cell_fi
     client = ControllerClient(server.address, key)
     try:
         nominal_fx = controller.rig.config.nominal.camera.intrinsics.fx
-        reply = client.call("commission", steps=["camera", "hand-eye", "laser", "nn"])
+        reply = client.call(Commission(steps=("camera", "hand-eye", "laser", "nn")))
         assert reply.ok, reply.error
         out = Path(reply.result)
         assert out == cell_file.with_name("line3-commissioned.toml")  # beside the running file
         assert controller.state.phase == Phase.COMMISSIONING.value
-        refused = client.call("jog", translation_m=[0, 0, 0.01])
+        refused = client.call(Jog(translation_m=(0, 0, 0.01)))
         assert not refused.ok and "commissioning is under way" in refused.error
-        assert not client.call("commission").ok  # one at a time
+        assert not client.call(Commission()).ok  # one at a time
 
         finished = states.wait_for(
-            lambda s: s.commissioning and (s.commissioning["summary"] or s.commissioning["error"]), "finished commissioning"
+            lambda s: s.commissioning and (s.commissioning.summary or s.commissioning.error), "finished commissioning"
         )
         record = finished.commissioning
-        assert record["error"] is None and finished.phase == Phase.IDLE.value
-        summary = record["summary"]
-        assert summary["good"], summary["steps"]
-        assert {step: result["verdict"] for step, result in summary["steps"].items()} == {
+        assert record.error is None and finished.phase == Phase.IDLE.value
+        summary = record.summary
+        assert summary.good, summary.steps
+        assert {step: report.verdict for step, report in summary.steps.items()} == {
             "camera": "good",
             "hand-eye": "good",
             "laser": "good",
             "nn": "good",
         }
-        assert summary["acceptance"]["max_mm"] < 0.5
-        progress = record["progress"]
+        assert summary.acceptance.max_mm < 0.5
+        progress = record.progress
         assert {"find", "tilted", "laser", "grid", "nn", "acceptance"} <= set(progress)
         views = {step: line for step, line in progress.items() if step != "nn"}
-        assert all(line["done"] == line["total"] > 0 for line in views.values()), progress
-        assert progress["nn"]["done"] > 0 and progress["nn"]["total"] == 60  # training may end before its last epoch
+        assert all(line.done == line.total > 0 for line in views.values()), progress
+        assert progress["nn"].done > 0 and progress["nn"].total == 60  # training may end before its last epoch
         # Progress was published as it went, not only at the end.
-        assert len({s.commissioning["progress"].get("tilted", {}).get("done") for s in states.seen if s.commissioning}) > 5
+        records = [s.commissioning for s in states.seen if s.commissioning]
+        assert len({record.progress["tilted"].done for record in records if "tilted" in record.progress}) > 5
         assert len(frames) > 20  # what the camera saw was shown
         assert not out.exists()  # nothing is written before Apply
 
-        applied = client.call("apply_commissioning", timeout_s=60.0)
+        applied = client.call(ApplyCommissioning(), timeout_s=60.0)
         assert applied.ok, applied.error
         assert Path(applied.result) == out
         written = load_cell(out)
         assert written.commissioning is not None and written.commissioning.nn_path.is_file()
         config = controller.rig.config
         assert config.source == str(out)
-        assert config.nominal.camera.intrinsics.fx == pytest.approx(summary["camera"]["fx_px"], abs=1e-3)
+        assert config.nominal.camera.intrinsics.fx == pytest.approx(summary.camera.fx_px, abs=1e-3)
         assert config.nominal.camera.intrinsics.fx != pytest.approx(nominal_fx, abs=1e-3)
         assert controller.rig.locator is not None
         assert controller.rig.extractor.camera is config.nominal.camera
         assert controller.state.cell_file == str(out)
-        assert controller.state.commissioning["applied"] == str(out)
-        again = client.call("apply_commissioning")
+        assert controller.state.commissioning.applied == str(out)
+        again = client.call(ApplyCommissioning())
         assert not again.ok and "nothing to apply" in again.error
 
         # The demo job, taught before, assembles on the commissioned model.
@@ -137,8 +139,8 @@ def test_a_retake_verdict_refuses_apply(tmp_path):
         out = controller.commission(["nn"], settings=SMALL_GRID)
         assert out == tmp_path / "cell-commissioned.toml"  # the shipped file: into the data folder
         controller.wait()
-        summary = states.wait_for(lambda s: s.commissioning and s.commissioning["summary"], "summarised").commissioning["summary"]
-        assert summary["steps"]["nn"]["verdict"] == "retake" and not summary["good"]
+        summary = states.wait_for(lambda s: s.commissioning and s.commissioning.summary, "summarised").commissioning.summary
+        assert summary.steps["nn"].verdict == "retake" and not summary.good
         with pytest.raises(CommandRefused, match=r"a step says retake; commission it again: nn: retake: \d grid views"):
             controller.apply_commissioning()
         assert not out.exists()
@@ -154,7 +156,7 @@ def test_estop_stops_commissioning_with_the_robot_held(tmp_path):
     try:
         controller.commission()
         states.wait_for(
-            lambda s: s.commissioning and s.commissioning["progress"].get("tilted", {}).get("done", 0) >= 3,
+            lambda s: s.commissioning and "tilted" in s.commissioning.progress and s.commissioning.progress["tilted"].done >= 3,
             "took three tilted views",
         )
         controller.estop()
@@ -162,10 +164,10 @@ def test_estop_stops_commissioning_with_the_robot_held(tmp_path):
         assert not controller.running
         state = controller.state
         assert state.phase == Phase.ESTOPPED.value and state.detail == "commissioning stopped: e-stop pressed"
-        assert state.commissioning["error"] == "e-stop pressed" and state.commissioning["summary"] is None
+        assert state.commissioning.error == "e-stop pressed" and state.commissioning.summary is None
         assert controller.rig.robot.status().held
-        tilted = state.commissioning["progress"]["tilted"]
-        assert tilted["done"] < tilted["total"]  # it stopped part way
+        tilted = state.commissioning.progress["tilted"]
+        assert tilted.done < tilted.total  # it stopped part way
         with pytest.raises(CommandRefused, match="e-stop is active"):
             controller.commission()
         controller.reset()
@@ -182,8 +184,8 @@ def test_apply_refuses_to_reload_a_file_whose_devices_differ(cell_file, tmp_path
     try:
         out = controller.commission(["nn"])
         controller.wait()
-        summary = states.wait_for(lambda s: s.commissioning and s.commissioning["summary"], "summarised").commissioning["summary"]
-        assert summary["good"], summary["steps"]
+        summary = states.wait_for(lambda s: s.commissioning and s.commissioning.summary, "summarised").commissioning.summary
+        assert summary.good, summary.steps
         # Someone rewired the cell file the controller runs on meanwhile.
         text = cell_file.read_text()
         assert 'port = "/dev/ttyS0"' in text

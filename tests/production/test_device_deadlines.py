@@ -103,7 +103,7 @@ def test_a_stalled_camera_faults_the_run_within_the_deadline_and_reset_works_at_
     try:
         controller.present_part()
         controller.start("demo")
-        wait_until(lambda: controller.state.iteration >= 2, "two servo cycles", timeout_s=120)
+        wait_until(lambda: controller.state.run.iteration >= 2, "two servo cycles", timeout_s=120)
         relay.stall()
         stalled_at = time.monotonic()
         controller.wait(60)

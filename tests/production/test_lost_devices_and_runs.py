@@ -90,7 +90,7 @@ def test_a_recording_whose_folder_goes_away_mid_run_stops_and_the_run_ends_on_re
     controller = CellController(simulated_rig(with_the_thesis_policy(load_cell()), seed=3), store, seed=3, cycle_period_s=0.01)
     controller.present_part()
     run_id = controller.start("demo")
-    wait_until(lambda: controller.state.iteration >= 5, "5 cycles", 60, poll_s=0.01)
+    wait_until(lambda: controller.state.run.iteration >= 5, "5 cycles", 60, poll_s=0.01)
     folder = store.run_folder(run_id)
     while folder.exists():  # the disk unmounted, the folder removed by hand (the recorder may
         shutil.rmtree(folder, ignore_errors=True)  # write a frame into it meanwhile: remove again)
@@ -198,7 +198,7 @@ def test_the_estop_behind_a_silent_link_answers_within_a_second_and_says_the_hol
         controller = CellController(build_rig(load_cell(cell.addresses["cell_file"])), store)
         controller.present_part()
         controller.start("demo")
-        wait_until(lambda: controller.state.iteration >= 3, "3 cycles", 60, poll_s=0.01)
+        wait_until(lambda: controller.state.run.iteration >= 3, "3 cycles", 60, poll_s=0.01)
         os.kill(cell.process.pid, signal.SIGSTOP)
         time.sleep(0.5)  # the run's next request is under way on the silent line
         pressed = time.monotonic()

@@ -15,6 +15,7 @@ from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController, CommandRefused
 from vservo.core.production.jobs import job_from_dict
 from vservo.core.production.placement_check import CheckView, check_placement
+from vservo.core.production.protocol import TeachStep
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
 
@@ -162,7 +163,7 @@ def test_teaching_captures_the_check_view_over_the_placed_part(tmp_path):
         demo = controller.store.load_job("demo")
         cell = controller.rig.cell
         controller.begin_teach("demo")
-        assert controller.state.teach_optional == ["the check view (without it, runs report placement unknown)"]
+        assert controller.state.teaching.optional_missing == (TeachStep.CHECK_VIEW,)
         controller.move_to(demo.check.check_bMe)
         with pytest.raises(CommandRefused, match="four top-face corners"):
             controller.capture_check_view()  # the part is still on the table
@@ -170,7 +171,7 @@ def test_teaching_captures_the_check_view_over_the_placed_part(tmp_path):
         cell.place_cube(placed_in_pocket(controller))
         check = controller.capture_check_view()
         np.testing.assert_allclose(check.corners_px, demo.check.corners_px, atol=0.05)
-        assert controller.state.teach_optional == []
+        assert controller.state.teaching.optional_missing == ()
         cell.place_cube(bMo_table)
         controller.move_to(demo.taught_bMe)
         controller.capture_desired()

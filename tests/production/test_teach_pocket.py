@@ -64,8 +64,8 @@ def teach_up_to_the_pick(controller: CellController) -> None:
 
 def test_the_pocket_pose_offered_sets_the_part_in_the_pocket_and_the_place_step_says_so(controller):
     teach_up_to_the_pick(controller)
-    assert "place_bMo" not in controller.state.teach_poses
-    pocket_bMe = np.asarray(controller.state.teach_poses["pocket_bMe"])
+    assert controller.state.teaching.place_bMo is None
+    pocket_bMe = controller.state.teaching.pocket_bMe
     controller.move_to(above_pocket(pocket_bMe))
     controller.move_to(pocket_bMe)
     controller.set_place_pose()
@@ -78,9 +78,9 @@ def test_the_pocket_pose_offered_sets_the_part_in_the_pocket_and_the_place_step_
 
 def test_a_place_that_turns_the_part_from_the_pocket_is_warned_at_the_place_step(controller):
     teach_up_to_the_pick(controller)
-    controller.move_to(np.asarray(controller.state.teach_poses["pocket_bMe"]))
+    controller.move_to(controller.state.teaching.pocket_bMe)
     controller.jog([0.0, 0.0, 0.0], [0.0, 0.0, np.deg2rad(6.0)])  # the wrist turned 6 deg about the vertical
     controller.set_place_pose()
     detail = controller.state.detail
     assert "WARNING" in detail and "turned +6.0 deg from how it must sit in the pocket" in detail, detail
-    assert "place_bMo" in controller.state.teach_poses  # drawn as an outline over the pocket
+    assert controller.state.teaching.place_bMo is not None  # drawn as an outline over the pocket
