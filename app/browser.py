@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from vservo.app.roles import TOKEN_ENVIRONMENT
+from vservo.core.errors import VservoError
 
 CHROMIUM = Path(os.environ.get("VSERVO_CHROMIUM", "/usr/bin/chromium"))
 CHROMIUM_FLAGS = (
@@ -51,7 +52,7 @@ COUNT_IMAGE_UPDATES = """() => {
 }"""
 
 
-class ChromiumMissing(RuntimeError):
+class ChromiumMissing(VservoError, RuntimeError):
     """No Chromium where the browser tests and the UI bench need it."""
 
 

@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from vservo.core.errors import VservoError
+
 STEPS = ("collect", "train", "evaluate", "track")
 QUICK = "quick (coarse grid, about a minute)"
 THESIS = "thesis defaults (about 3 to 6 minutes)"
@@ -39,7 +41,7 @@ PRESETS: dict[str, dict[str, tuple[str, ...]]] = {
 _BAR = re.compile(r"\[[#.]+\] (\d+)/(\d+)")
 
 
-class CalibrationFailed(RuntimeError):
+class CalibrationFailed(VservoError, RuntimeError):
     """A step ended with an error; the message is the step's own last line."""
 
 

@@ -18,12 +18,13 @@ import sys
 import time
 from pathlib import Path
 
+from vservo.core.errors import VservoError
 from vservo.core.production.protocol import KEY_ENVIRONMENT, new_key
 
 START_TIMEOUT_S = 60.0  # loading the arm model and the camera takes seconds on a loaded machine
 
 
-class ControllerStartError(RuntimeError):
+class ControllerStartError(VservoError, RuntimeError):
     """The controller process did not come up; the message carries its last words."""
 
 

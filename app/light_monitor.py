@@ -36,6 +36,8 @@ import websockets.asyncio.client
 import zstandard
 from websockets.typing import Origin, Subprotocol
 
+from vservo.core.errors import VservoError
+
 HEADER_BYTES = 16
 READY_TIMEOUT_S = 60.0
 LIGHT_COUNTS = (1, 5, 20)  # light clients ``vservo bench ui`` connects by default
@@ -49,7 +51,7 @@ class Monitors(StrEnum):
     BOTH = "both"
 
 
-class MonitorError(RuntimeError):
+class MonitorError(VservoError, RuntimeError):
     """A light monitor could not connect or read what the server sent."""
 
 

@@ -30,6 +30,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from vservo.core.errors import VservoError
+
 log = logging.getLogger("vservo.app.roles")
 
 TOKEN_ENVIRONMENT = "VSERVO_OPERATOR_TOKEN"
@@ -38,7 +40,7 @@ MAX_TOKEN_FAILURES = 5
 FAILURE_WINDOW_S = 60.0
 
 
-class RoleRefused(PermissionError):
+class RoleRefused(VservoError, PermissionError):
     """A browser asked for something only the operator may do; the message says what to do."""
 
 
@@ -54,7 +56,7 @@ class TokenSource(enum.Enum):
     COMMAND_LINE = "--token"
 
 
-class TokenError(ValueError):
+class TokenError(VservoError, ValueError):
     """An operator token that cannot be used; the message says where it came from and why."""
 
 

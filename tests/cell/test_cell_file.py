@@ -14,7 +14,7 @@ from vservo.core.cell.cell_file import dumps_cell, update_cell
 from vservo.core.cell.config import load_cell, read_cell_data
 from vservo.core.production.commissioned_file import write_commissioned_cell
 
-SHIPPED = Path(__file__).resolve().parents[1] / "static" / "cell.toml"
+SHIPPED = Path(__file__).resolve().parents[2] / "static" / "cell.toml"
 # The values a commissioning changes in the shipped cell (commissioned_file.commissioned_tables).
 MEASURED_KEYS = ("principal_point_px", "distortion", "eMc", "cMl", "pose")
 
