@@ -13,12 +13,11 @@ import cv2
 
 from vservo.core.calibration.cli import add_calibrate_command, add_calibration_bench
 from vservo.core.cell.cli import add_info_command
-from vservo.core.cell.config import ROBOT_BACKENDS, ConfigError, load_cell
-from vservo.core.cell.kinematics import KinematicsError
+from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
+from vservo.core.errors import VservoError
 from vservo.core.perception.cli import add_detect_command
 from vservo.core.production.cli import BACKEND_HELP, add_production_commands
-from vservo.core.production.storage import StoreError, default_data_dir
-from vservo.core.robot.backend import RobotError
+from vservo.core.production.storage import default_data_dir
 from vservo.core.sim.cli import add_jrc_emulator_command, add_virtual_cell_command
 from vservo.core.study.cli import (
     add_jrc_bench,
@@ -226,7 +225,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     cv2.setNumThreads(1)
     try:
         return args.run(args)
-    except (ConfigError, KinematicsError, RobotError, ValueError, OSError, StoreError) as exc:
+    except (VservoError, ValueError, OSError) as exc:  # vservo's own errors, bad values, files: one line
         print(f"vservo {args.command}: error: {exc}", file=sys.stderr)
         return 2
 
