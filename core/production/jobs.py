@@ -39,7 +39,15 @@ from vservo.core.perception.features import DesiredImage
 from vservo.core.perception.recording import write_atomic
 from vservo.core.production.grasp import SYMMETRIES
 from vservo.core.production.placement_check import CheckView
-from vservo.core.production.protocol.commands import JOB_NAME, JOB_NAME_WORDS
+from vservo.core.production.protocol.commands import (
+    APPROACH_M,
+    GAIN,
+    JOB_NAME,
+    JOB_NAME_WORDS,
+    PLACEMENT_TOLERANCE_MM,
+    POSE_TRANSLATION_M,
+    THRESHOLD_PX,
+)
 from vservo.core.servo.methods import METHODS
 
 JOB_FORMAT = "vservo-job"
@@ -140,6 +148,16 @@ class Job:
 
     def __post_init__(self) -> None:
         validate_job_name(self.name)
+        # The ranges the page and the channel's commands take: a job file is held to them too,
+        # so no file can hang a run (an approach of 10^9 m) or pass anything (a threshold of 10^12 px).
+        for field_name, allowed in RANGES.items():
+            value = getattr(self, field_name)
+            if not allowed.low <= value <= allowed.high:  # NaN fails too
+                raise JobError(f"job {self.name!r}: {field_name} must be {allowed.words()}, got {value:g}")
+        for pose_name in ("taught_bMe", "start_bMe", "eMe_pick", "bMe_place", "survey_bMe"):
+            _check_translation(self.name, pose_name, getattr(self, pose_name))
+        if self.check is not None:
+            _check_translation(self.name, "check.check_bMe", self.check.check_bMe)
         if self.grasp_symmetry not in SYMMETRIES:
             raise JobError(
                 f"job {self.name!r}: grasp_symmetry {self.grasp_symmetry!r} is not one of {', '.join(map(str, SYMMETRIES))}"
@@ -179,6 +197,24 @@ class Job:
             "survey_bMe": None if self.survey_bMe is None else self.survey_bMe.tolist(),
             "grasp_symmetry": self.grasp_symmetry,
         }
+
+
+# Each setting's range, the page's (the protocol's commands check the same).
+RANGES = {
+    "threshold_px": THRESHOLD_PX,
+    "gain": GAIN,
+    "approach_m": APPROACH_M,
+    "placement_tolerance_mm": PLACEMENT_TOLERANCE_MM,
+}
+
+
+def _check_translation(job: str, name: str, bMx: Matrix | None) -> None:
+    """A pose's translation within the protocol's POSE_TRANSLATION_M on every axis."""
+    if bMx is None:
+        return
+    t = np.asarray(bMx, dtype=float)[:3, 3]
+    if not np.all((POSE_TRANSLATION_M.low <= t) & (t <= POSE_TRANSLATION_M.high)):
+        raise JobError(f"job {job!r}: {name}'s translation must be {POSE_TRANSLATION_M.words()} each, got {t.tolist()}")
 
 
 def validate_job_name(name: object) -> str:
@@ -255,7 +291,7 @@ def job_from_dict(data: Any, source: str) -> Job:
         name = validate_job_name(f.get("name"))
     except JobError as exc:
         raise JobError(f"{source}: {exc}") from None
-    return Job(
+    fields: dict[str, Any] = dict(
         name=name,
         description=description,
         part_side_m=f.number("part_side_m"),
@@ -278,6 +314,10 @@ def job_from_dict(data: Any, source: str) -> Job:
         **(_check_fields(f, source) if version >= 2 else {}),
         **(_model_fields(f, source) if version >= 3 else {}),
     )
+    try:
+        return Job(**fields)
+    except JobError as exc:  # a value out of its range: the file named too
+        raise JobError(f"{source}: {exc}") from None
 
 
 def _grasp_symmetry(f: _Fields) -> int:

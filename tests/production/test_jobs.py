@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import sqlite3
+import subprocess
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -183,3 +185,35 @@ def test_a_store_from_a_newer_vservo_is_refused(tmp_path):
         db.execute("UPDATE meta SET value = '7' WHERE key = 'schema'")
     with pytest.raises(StoreError, match="schema version 7"):
         Store(tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "words"),
+    [
+        ("approach_m", 1e9, "approach_m must be from 0.005 to 0.2 m, got 1e+09"),
+        ("threshold_px", 1e12, "threshold_px must be from 0.1 to 50 px, got 1e+12"),
+        ("start_bMe", [[1, 0, 0, 1e300], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "start_bMe's translation must be from -5"),
+    ],
+)
+def test_vservo_run_refuses_a_stored_job_with_a_value_out_of_range_in_one_line(tmp_path, demo, key, value, words):
+    """A job row edited past the page's ranges (an approach of 10^9 m hung a run for good, a
+    start pose of 10^300 ended in an OverflowError traceback, a threshold of 10^12 px was
+    reported placed) is refused by `vservo run` in one line naming the key and the range."""
+    store = Store(tmp_path)
+    store.save_job(replace(demo, name="edited"))
+    store.close()
+    db = sqlite3.connect(tmp_path / "vservo.sqlite")
+    body = json.loads(db.execute("SELECT body FROM jobs WHERE name = 'edited'").fetchone()[0])
+    db.execute("UPDATE jobs SET body = ? WHERE name = 'edited'", (json.dumps({**body, key: value}),))
+    db.commit()
+    db.close()
+    run = subprocess.run(
+        [sys.executable, "-m", "vservo.app.cli", "run", "--job", "edited", "--data", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        stdin=subprocess.DEVNULL,
+    )
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode == 2 and len(lines) == 1 and words in lines[0], run.stderr
+    assert Store(tmp_path).list_runs() == []  # refused before the run began
