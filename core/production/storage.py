@@ -45,7 +45,7 @@ from vservo.core.cell.config import RecordingRetention
 from vservo.core.errors import VservoError
 from vservo.core.perception.recording import write_atomic
 from vservo.core.production.jobs import Job, JobError, job_from_json, read_job_file, validate_job_name
-from vservo.core.production.protocol.commands import PART_ID, PART_ID_WORDS
+from vservo.core.production.protocol.commands import PART_ID, PART_ID_WORDS, JobEntry
 from vservo.core.production.protocol.state import Outcome
 
 SCHEMA_VERSION = 2
@@ -91,16 +91,6 @@ _MIGRATIONS = {
 
 class StoreError(VservoError, RuntimeError):
     """The data folder cannot be used; the message names the file and the cause."""
-
-
-@dataclass(frozen=True)
-class JobEntry:
-    """A job as listed: its name, when it was saved, and why it cannot be loaded, if so."""
-
-    name: str
-    saved_at: float
-    problem: str | None = None
-    shipped: bool = False
 
 
 @dataclass(frozen=True)

@@ -520,7 +520,7 @@ class ListJobs(Query):
     result_type: ClassVar[Any] = tuple[JobEntry, ...]
 
     def answer(self, store: JobStore) -> tuple[JobEntry, ...]:
-        return tuple(from_json(JobEntry, to_json(entry)) for entry in store.list_jobs())
+        return tuple(store.list_jobs())
 
 
 @dataclass(frozen=True)
