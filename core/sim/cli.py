@@ -80,9 +80,10 @@ def add_jrc_emulator_command(commands: argparse._SubParsersAction) -> None:
 def _cmd_virtual_cell(args: argparse.Namespace) -> int:
     import signal
 
-    from vservo.core.sim.virtual_cell import Addresses, Released, VirtualCell, VirtualCellSettings, load_virtual_cell_tables
+    from vservo.core.cell.config import read_cell_data_with_truth
+    from vservo.core.sim.virtual_cell import Addresses, Released, VirtualCell, VirtualCellSettings
 
-    tables, source = load_virtual_cell_tables(args.cell, args.truth)
+    tables, source = read_cell_data_with_truth(args.cell, args.truth)
     settings = VirtualCellSettings(time_scale=args.time_scale, fps=args.fps, exposure_latency_s=args.latency)
 
     def print_released(released: Released) -> None:
