@@ -343,7 +343,8 @@ def run_assembly(
             robot.move_joint(start_bMe, speed_m_s)
         timer.enter(CellTimePhase.SERVO)
         on_event(PhaseChange(Phase.SERVOING, f"servoing with the {job.method} method"))
-        law = build_law(model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
+        settings = LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px, laser_law=job.laser_law)
+        law = build_law(model, settings)
         servo = run_servo(
             FlangeReadout(robot),
             law,

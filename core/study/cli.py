@@ -12,6 +12,7 @@ import numpy as np
 
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import Matrix
+from vservo.core.servo.methods import LaserLaw
 from vservo.core.sim import Arm
 from vservo.core.terminal.command_line import BenchCommand, fraction, positive, print_result, seed
 
@@ -63,6 +64,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         record_to=args.record,
         arm=Arm(args.arm),
         truth=args.truth,
+        laser_law=LaserLaw(args.law),
     )
     summary = result.summary()
     if args.json:
@@ -90,7 +92,7 @@ def _cmd_montecarlo(args: argparse.Namespace) -> int:
     progress = Progress(args.n, f"montecarlo {args.method}")
     summary = run_montecarlo(
         config,
-        RunSettings(method=args.method, arm=Arm(args.arm)),
+        RunSettings(method=args.method, arm=Arm(args.arm), laser_law=LaserLaw(args.law)),
         args.n,
         args.seed,
         args.processes,
@@ -178,7 +180,16 @@ def _reading(args: argparse.Namespace) -> Any:
 
 
 def _add_truth_options(command: argparse.ArgumentParser) -> None:
+    """--law, --robust and --truth: which laser law, and how the true cell differs from the model."""
     from vservo.core.study.tasks import Table53Reading
+
+    command.add_argument(
+        "--law",
+        choices=tuple(law.value for law in LaserLaw),
+        default=LaserLaw.THESIS.value,
+        help="the laser method's law: thesis (section 4.4, the study's reproduction; default) or robust "
+        "(robust to calibration error, docs/thesis-notes.md)",
+    )
 
     command.add_argument(
         "--robust",

@@ -8,6 +8,7 @@ from pathlib import Path
 from vservo.core.cell.config import CellConfig, ConfigError, parse_cell, read_cell_data_with_truth
 from vservo.core.cell.kinematics import ArmKinematics
 from vservo.core.geometry.spatial import Matrix, matrix_from_pose
+from vservo.core.servo.methods import LaserLaw
 from vservo.core.sim import Arm
 from vservo.core.study.run import RunResult, RunSettings, run_task
 from vservo.core.study.tasks import ServoTask, Table53Reading, find_placement, robustness_cell, servo_task
@@ -29,6 +30,7 @@ def simulate(
     record_to: str | None = None,
     arm: Arm = Arm.UPJ,
     truth: str | Path | None = None,
+    laser_law: LaserLaw = LaserLaw.THESIS,
 ) -> RunResult:
     """Run a task (default task 2) or a scene given by its poses; see ``vservo simulate --help``."""
     config = study_cell(cell_path, robust, truth)
@@ -43,6 +45,7 @@ def simulate(
         features=features,
         record_to=record_to,
         arm=arm,
+        laser_law=laser_law,
     )
     return run_task(config, task, settings, seed)
 
