@@ -315,6 +315,23 @@ def test_the_report_says_what_its_own_results_say(reproduced):
     assert f"after {robust['iterations']} iterations" in report and f"{robust['path_length_m']:.3f} m against" in report
 
 
+def test_the_report_shows_task_2_under_both_readings_with_both_laws(reproduced):
+    """The section beyond the reproduction: task 2 under each reading of Table 5-3 with the
+    thesis's law and the robust one, as results.json has them (no Monte Carlo at n = 0)."""
+    out, results = reproduced
+    report = (out / "report.md").read_text()
+    section = report.split("## Calibration errors beyond the reproduction")[1].split("## Where")[0]
+    task_2 = results["calibration_errors"]["task 2"]
+    assert task_2["reproduction"]["thesis"] == results["robustness"]  # the robustness test itself
+    assert task_2["other"]["thesis"]["failure"] == "features_lost"  # the other reading: stage 3 diverges
+    assert all(task_2[reading]["robust"]["converged"] for reading in ("reproduction", "other"))
+    row = next(line for line in section.splitlines() if line.startswith("| task 2, Table 5-3 read the other way"))
+    other = task_2["other"]["robust"]
+    assert f"converged in {other['iterations']} iterations, path {other['path_length_m']:.3f} m" in row
+    assert "the robust law converges on task 2 under both readings of Table 5-3." in section
+    assert "Monte Carlo" not in section.split("|---|---|---|")[1]
+
+
 def _assert_same(fresh, committed, where="results"):
     """The fresh run's values are the committed ones: exact for everything but floats, which
     the summaries round to 6 decimals (a last-digit flip is allowed, a real change is not)."""
