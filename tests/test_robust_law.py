@@ -25,6 +25,7 @@ from vservo.core.servo.loop import LoopLimits, RetreatTest
 from vservo.core.servo.methods import LaserLaw, LawSettings, build_law
 from vservo.core.sim import Arm
 from vservo.core.study.montecarlo import run_sample
+from vservo.core.study.replay import replay
 from vservo.core.study.run import RunSettings
 from vservo.core.study.simulate import simulate, study_cell
 from vservo.core.study.tasks import Table53Reading
@@ -136,3 +137,11 @@ def test_a_study_cell_takes_a_truth_file_or_table_5_3_but_not_both():
         study_cell(None, Table53Reading.OTHER, TABLE_5_5)
     result = run("montecarlo", "--n", "1", "--robust", "--truth", TABLE_5_5)
     assert result.returncode != 0 and len(result.stderr.strip().splitlines()) == 1 and "not both" in result.stderr
+
+
+def test_a_recorded_run_of_the_robust_law_replays_with_it(tmp_path):
+    recorded = simulate(task_number=2, arm=Arm.NONE, laser_law=LaserLaw.ROBUST, record_to=str(tmp_path / "run"))
+    assert recorded.outcome.converged and Stage.APPROACH_2 not in recorded.trace.stages
+    again = replay(tmp_path / "run")
+    assert again["cycles"] == recorded.outcome.iterations
+    assert again["stage_mismatches"] == 0 and again["twist_difference_max"] == 0.0
