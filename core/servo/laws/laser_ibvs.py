@@ -155,10 +155,14 @@ class LaserIbvs:
         # pattern's shape, which only a translation changes: a beam out of the camera's x-z
         # plane (a real laser mount) can leave more than f0 of it, and 1.A would turn forever.
         turning_px = float(np.linalg.norm(J @ w)) / self.k_rotation_1a
-        if turning_px <= self.f0_turn_px:
+        if not self._turning_helps(turning_px, stage_error):
             why = f"turned as far as turning helps (||f_id - f|| = {stage_error:.2f} px)"
             return self._aligned(features, desired, error_px, why)
         return ControlOutput(self._with_compensation(w), Stage.ALIGN_1A, error_px, stage_error)
+
+    def _turning_helps(self, turning_px: float, stage_error: float) -> bool:
+        """Whether stage 1.A's turn still moves the corners by more than f0_turn_px."""
+        return turning_px > self.f0_turn_px
 
     def _aligned(self, features: ImageFeatures, desired: DesiredImage, error_px: float, why: str) -> ControlOutput:
         """Stage 1.A is done (eq. 4-27, or turning no longer helps): on to stage 2."""

@@ -90,6 +90,12 @@ class RobustLaserIbvs(LaserIbvs):
             return self._stage_3(features, desired, error_px, note="1B -> 3: aimed at the beam, its spot still not seen")
         return output
 
+    def _turning_helps(self, turning_px: float, stage_error: float) -> bool:
+        """Whether the turn still removes at least half of ||f_id - f||: the rest is the
+        pattern's shape, or a spot hopping across the part's edge (the beam grazing it,
+        the imaginary features jumping with it from one cycle to the next)."""
+        return turning_px > max(self.f0_turn_px, 0.5 * stage_error)
+
     def _aligned(self, features: ImageFeatures, desired: DesiredImage, error_px: float, why: str) -> ControlOutput:
         """Stage 1.A is done: 2.5D takes the camera the rest of the way (no stage 2)."""
         return self._stage_3(features, desired, error_px, note=f"1A -> 3: {why}")
