@@ -1,14 +1,16 @@
 """The switching IBVS with laser, robust to calibration error: beyond the thesis.
 
 The thesis's law (core/servo/laws/laser_ibvs.py, section 4.4) is robust to calibration
-error on its own task 2 (section 5.2.2); on random scenes the camera sees, and with
-the model off by Table 5-3's or Table 5-5's amounts, three parts of it break
+error on its own task 2 (section 5.2.2); on random scenes the camera sees, with the model
+off by Table 5-3's or Table 5-5's amounts, it breaks in four places
 (docs/thesis-notes.md, "The robust law"):
 
 - the laser spot is seen but the wrong model cannot triangulate it (the viewing ray
   through the spot meets the model's beam behind the laser), so stage 1 takes it for
   unseen and aims at where the model believes the beam runs, which can be beside the
   part, where no spot ever appears;
+- stage 1.A turns back and forth when the beam grazes the part's edge: the spot hops
+  between the top face and the table, and the imaginary features (Fig. 4-5) with it;
 - stage 2 balances its translation (eq. 4-42) against its rotation (eq. 4-48) with the
   spot 12 .. 15 px from its place, or regulates a spot held while the part hides it;
 - stage 3's constant interaction matrix at the desired features (eqs. 4-50, 4-51),
@@ -18,20 +20,25 @@ the model off by Table 5-3's or Table 5-5's amounts, three parts of it break
   which a 20 mm face shows only in its perspective) takes the wrong sign, and the
   camera turns away until the corners leave the image.
 
-This law keeps stage 1 (1.A, 1.B, 1.C: eqs. 4-22 .. 4-38, with the reading of
-docs/thesis-notes.md section 5) and changes what follows:
+This law keeps the turns of stage 1 (1.A: eqs. 4-22 .. 4-29 with the reading of
+docs/thesis-notes.md section 5; 1.B: eqs. 4-30 .. 4-36; 1.C: eqs. 4-37, 4-38) and
+changes what they aim at and what follows:
 
-- a spot seen is a spot: stage 1 turns by its pixel, which the model does not need to
-  triangulate (the imaginary features of Fig. 4-5 are pixels);
-- once stage 1 has aligned (eq. 4-27, or turning no longer helps), or has aimed at the
-  beam and still sees no spot, the law finishes with 2.5D visual servoing (Malis,
-  Chaumette & Boudet 1999; core/servo/laws/hybrid.py, the thesis's second method):
-  the rotation from the homography of the taught corners to the current ones, the
-  translation on the reference point's image and log(Z / Z*), with Z = (Z / Z*) Z* and
-  Z* the laser depth taught at the desired pose. Wrong intrinsics turn the estimated
-  rotation into a conjugate of the true one (the same angle), so the rotation and
-  translation stay decoupled and converge; the pixel error still decides the end,
-  at the same final threshold;
+- stage 1.B, while a corner is out of view, turns the visible region's centroid onto the
+  image centre: the spot (or the model's beam) lies far off the centre at a close start,
+  and a part 200 px wide centred there cannot be wholly in view;
+- a spot seen is a spot: stage 1.A turns by its pixel, which the model does not need to
+  triangulate (the imaginary features are pixels); it is skipped when the aligned
+  pattern would leave the image, and hands over once its turn removes less of
+  ||f_id - f|| than it leaves;
+- then, or as soon as every corner is seen without a spot, the law finishes with 2.5D
+  visual servoing (Malis, Chaumette & Boudet 1999; core/servo/laws/hybrid.py, the
+  thesis's second method), labelled stage 3: the rotation from the homography of the
+  taught corners to the current ones, the translation on the reference point's image
+  and log(Z / Z*), with Z = (Z / Z*) Z* and Z* the laser depth taught at the desired
+  pose. Wrong intrinsics turn the estimated rotation into a conjugate of the true one
+  (the same angle), so the rotation and translation stay decoupled and converge; the
+  pixel error still decides the end, at the same final threshold. There is no stage 2;
 - the loop's retreat test reads the camera's distance to the part instead of the
   image area (``distance_m``, from the viewing rays' spread), so turning the part from
   the image's edge to its centre or looking at it tilted is not a retreat.
@@ -48,7 +55,7 @@ from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.servo.laws.base import ControlOutput, Stage
 from vservo.core.servo.laws.hybrid import Hybrid25D
-from vservo.core.servo.laws.laser_ibvs import LaserIbvs
+from vservo.core.servo.laws.laser_ibvs import LaserIbvs, imaginary_features
 
 
 def view_spread_rad(camera: CameraModel, corners_px: Matrix) -> float:
@@ -83,18 +90,23 @@ class RobustLaserIbvs(LaserIbvs):
         return features.spot_seen
 
     def _stage_1(self, features: ImageFeatures, desired: DesiredImage, error_px: float) -> ControlOutput:
-        output = super()._stage_1(features, desired, error_px)
-        aimed = output.stage is Stage.CENTRE_1B and output.stage_error <= self.f0_px
-        if aimed and not features.spot_seen and features.all_corners_visible:
-            # The model's beam is not the cell's: it lands beside the part, out of sight.
-            return self._stage_3(features, desired, error_px, note="1B -> 3: aimed at the beam, its spot still not seen")
-        return output
+        """Stage 1 with the robust targets: 1.B onto the image centre (eqs. 4-30 .. 4-36), then
+        1.A on the imaginary features (eqs. 4-26 .. 4-29) when they fit in the image, else 3."""
+        if not features.all_corners_visible:
+            centre = np.array([self.camera.intrinsics.u0, self.camera.intrinsics.v0])
+            return self._stage_1b(features, error_px, centre, note="centring the part")
+        if not features.spot_seen:
+            return self._stage_3(features, desired, error_px, note="1 -> 3: every corner seen, no spot")
+        if not self.camera.in_view(imaginary_features(desired, features)).all():
+            return self._stage_3(features, desired, error_px, note="1 -> 3: the aligned pattern would leave the image")
+        return super()._stage_1(features, desired, error_px)
 
     def _turning_helps(self, turning_px: float, stage_error: float) -> bool:
-        """Whether the turn still removes at least half of ||f_id - f||: the rest is the
-        pattern's shape, or a spot hopping across the part's edge (the beam grazing it,
-        the imaginary features jumping with it from one cycle to the next)."""
-        return turning_px > max(self.f0_turn_px, 0.5 * stage_error)
+        """Whether the turn still removes more of ||f_id - f|| than it leaves: linearised, the
+        part a turn cannot remove is sqrt(||e||^2 - turning^2), so more than 1/sqrt(2) of it.
+        What a turn cannot remove is the pattern's shape, or a spot hopping across the part's
+        edge (the beam grazing it, the imaginary features jumping with it every cycle)."""
+        return turning_px > max(self.f0_turn_px, stage_error / np.sqrt(2.0))
 
     def _aligned(self, features: ImageFeatures, desired: DesiredImage, error_px: float, why: str) -> ControlOutput:
         """Stage 1.A is done: 2.5D takes the camera the rest of the way (no stage 2)."""
