@@ -91,15 +91,20 @@ class RobustLaserIbvs(LaserIbvs):
 
     def _stage_1(self, features: ImageFeatures, desired: DesiredImage, error_px: float) -> ControlOutput:
         """Stage 1 with the robust targets: 1.B onto the image centre (eqs. 4-30 .. 4-36), then
-        1.A on the imaginary features (eqs. 4-26 .. 4-29) when they fit in the image, else 3."""
+        1.A on the imaginary features (eqs. 4-26 .. 4-29) when there is a spot and they fit in
+        the image, else 3 once the part is centred."""
+        centre = np.array([self.camera.intrinsics.u0, self.camera.intrinsics.v0])
         if not features.all_corners_visible:
-            centre = np.array([self.camera.intrinsics.u0, self.camera.intrinsics.v0])
             return self._stage_1b(features, error_px, centre, note="centring the part")
-        if not features.spot_seen:
-            return self._stage_3(features, desired, error_px, note="1 -> 3: every corner seen, no spot")
-        if not self.camera.in_view(imaginary_features(desired, features)).all():
+        if features.spot_seen and self.camera.in_view(imaginary_features(desired, features)).all():
+            return super()._stage_1(features, desired, error_px)
+        if features.spot_seen:  # the aligned pattern would leave the image: a close start
             return self._stage_3(features, desired, error_px, note="1 -> 3: the aligned pattern would leave the image")
-        return super()._stage_1(features, desired, error_px)
+        # No spot to turn by: 2.5D, which needs none, from a part centred in the view (from
+        # the image's edge its first turn can take the part out).
+        if np.linalg.norm(features.region.centroid_px - centre) > self.f0_px:
+            return self._stage_1b(features, error_px, centre, note="every corner seen, no spot: centring the part")
+        return self._stage_3(features, desired, error_px, note="1 -> 3: every corner seen, no spot")
 
     def _turning_helps(self, turning_px: float, stage_error: float) -> bool:
         """Whether the turn still removes more of ||f_id - f|| than it leaves: linearised, the
