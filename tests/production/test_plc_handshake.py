@@ -1,0 +1,102 @@
+"""The PLC handshake in one process: the simulated cell's controller with its Modbus TCP
+server, and a pymodbus client playing the PLC (tests/plc_fixtures.py). Starts go through
+the controller's own start, refusals answer not OK, a fault waits for the PLC's reset."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.cell.test_config import default_data
+from tests.controller_fixtures import simulated_controller
+from tests.plc_fixtures import ModbusPlc
+from tests.polling import wait_until
+from vservo.core.cell.config import parse_cell
+from vservo.core.production.plc.handshake import PlcOutputs, job_number
+from vservo.core.production.plc.modbus import ModbusLines, decode_part_id
+from vservo.core.production.plc.service import PlcService
+from vservo.core.production.protocol.state import Outcome, Phase
+
+MODBUS_PLC = {
+    "transport": "modbus",
+    "port": 0,
+    "poll_period_s": 0.01,
+    "part_id_register": 100,
+    "part_id_registers": 4,
+    "inputs": {"start": 0, "part_present": 1, "reset": 2, "job_bits": [8, 9, 10]},
+    "outputs": {"ready": 0, "busy": 1, "done": 2, "ok": 3, "not_ok": 4, "fault": 5},
+    "jobs": {"1": "demo", "2": "no-such-job"},
+}
+
+
+def plc_cell(plc: dict):
+    data = default_data()
+    data["line"] = {"plc": plc}
+    return parse_cell(data, "plc test cell")
+
+
+@pytest.fixture
+def plc_controller(tmp_path):
+    """(the controller of the simulated cell with its PLC service, the PLC on a pymodbus client)."""
+    config = plc_cell(MODBUS_PLC)
+    with simulated_controller(config, tmp_path / "data") as controller:
+        service = PlcService(controller, config.plc, ModbusLines(config.plc))
+        plc = ModbusPlc(config.plc, *service.lines.address)
+        try:
+            yield controller, service, plc
+        finally:
+            plc.close()
+            service.close()
+
+
+def test_job_bits_and_part_ids_decode_as_the_plc_writes_them():
+    assert job_number([True, False, True]) == 5 and job_number([]) == 0
+    assert decode_part_id([0x4142, 0x2D31, 0, 0]) == "AB-1"
+    assert decode_part_id([0, 0x2020]) is None
+
+
+def test_a_cycle_places_the_part_and_done_ok_holds_until_start_drops(plc_controller):
+    controller, service, plc = plc_controller
+    assert plc.wait_for(lambda o: o.ready, "ready") == PlcOutputs(ready=True)
+    controller.present_part()  # the conveyor brings the part
+    plc.write_part_id("P-0042")
+    plc.start(job=1)
+    outputs = plc.wait_for(lambda o: o.done, "done")
+    assert outputs == PlcOutputs(done=True, ok=True)
+    assert controller.store.runs_between()[-1].part_id == "P-0042"
+    assert plc.outputs() == outputs  # held while start is high
+    plc.set(start=False)
+    assert plc.wait_for(lambda o: o.ready, "ready again") == PlcOutputs(ready=True)
+    assert service.handshake.starts == 1
+
+
+def test_a_part_missing_or_an_unknown_job_answers_not_ok_and_starts_nothing(plc_controller):
+    controller, service, plc = plc_controller
+    missing = plc.cycle(job=1, part_present=False)
+    assert missing.result == PlcOutputs(done=True, not_ok=True) and not missing.saw_busy
+    assert "no part present" in controller.state.detail
+    unknown = plc.cycle(job=5)
+    assert unknown.result == PlcOutputs(done=True, not_ok=True)
+    assert "job number 5 is not in [line.plc.jobs]" in controller.state.detail
+    not_stored = plc.cycle(job=2)  # in the table, not in the store: the controller refuses it
+    assert not_stored.result == PlcOutputs(done=True, not_ok=True)
+    assert "no-such-job" in controller.state.detail
+    assert service.handshake.starts == 0 and service.handshake.refusals == 3
+    assert controller.store.runs_between() == []
+
+
+def test_an_estop_latches_fault_and_no_start_is_taken_until_the_plc_resets(plc_controller):
+    controller, service, plc = plc_controller
+    plc.wait_for(lambda o: o.ready, "ready")
+    controller.estop("e-stop pressed on the page")
+    assert plc.wait_for(lambda o: o.fault, "fault") == PlcOutputs(not_ok=True, fault=True)
+    plc.select_job(1)
+    plc.set(part_present=True, start=True)  # ignored: not ready
+    wait_until(lambda: service.polls > 5, "polls")
+    plc.set(start=False)
+    assert controller.state.phase == Phase.ESTOPPED and service.handshake.starts == 0
+    plc.reset()
+    assert plc.wait_for(lambda o: o.ready, "ready after reset") == PlcOutputs(ready=True)
+    assert controller.state.phase == Phase.IDLE
+    controller.present_part()
+    assert plc.cycle(job=1).result == PlcOutputs(done=True, ok=True)
+    assert controller.last_outcome.outcome is Outcome.PLACED
