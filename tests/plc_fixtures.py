@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 import time
 import urllib.request
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 from pymodbus.client import ModbusTcpClient
 
@@ -110,7 +110,7 @@ class ModbusPlc(Plc):
         assert not reply.isError(), reply
 
     def outputs(self) -> PlcOutputs:
-        addresses = [getattr(self.config.outputs, f.name) for f in fields(PlcOutputs)]
+        addresses = self.config.outputs.addresses()
         reply = self.client.read_discrete_inputs(0, count=max(addresses) + 1)
         assert not reply.isError(), reply
         return PlcOutputs(*(bool(reply.bits[a]) for a in addresses))
@@ -136,7 +136,25 @@ class PanelPlc(Plc):
     def outputs(self) -> PlcOutputs:
         with urllib.request.urlopen(self.url, timeout=10) as reply:
             lines = json.load(reply)["outputs"]
-        return PlcOutputs(*(bool(lines[str(getattr(self.config.outputs, f.name))]) for f in fields(PlcOutputs)))
+        return PlcOutputs(*(bool(lines[str(a)]) for a in self.config.outputs.addresses()))
+
+    def close(self) -> None:
+        pass
+
+
+class EmulatorPlc(Plc):
+    """The PLC wired to an in-process JRC emulator's I/O panel."""
+
+    def __init__(self, config: PlcConfig, emulator) -> None:
+        super().__init__(config)
+        self.emulator = emulator
+
+    def write(self, signals: dict[int, bool]) -> None:
+        self.emulator.set_inputs(signals)
+
+    def outputs(self) -> PlcOutputs:
+        lines = self.emulator.io_panel()["outputs"]
+        return PlcOutputs(*(lines[a] for a in self.config.outputs.addresses()))
 
     def close(self) -> None:
         pass

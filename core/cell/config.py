@@ -273,6 +273,10 @@ class PlcInputMap:
     reset: int
     job_bits: tuple[int, ...]
 
+    def addresses(self) -> tuple[int, ...]:
+        """Every input's address: start, part_present, reset, then the job bits."""
+        return (self.start, self.part_present, self.reset, *self.job_bits)
+
 
 @dataclass(frozen=True)
 class PlcOutputMap:
@@ -285,6 +289,10 @@ class PlcOutputMap:
     ok: int
     not_ok: int
     fault: int
+
+    def addresses(self) -> tuple[int, ...]:
+        """Every output's address, in the order of the fields."""
+        return (self.ready, self.busy, self.done, self.ok, self.not_ok, self.fault)
 
 
 @dataclass(frozen=True)
@@ -816,6 +824,13 @@ def _check_devices(config: CellConfig) -> None:
         _check_plc_on_jrc(config.plc, config)
 
 
+def _plc_input_signals(plc: PlcConfig) -> dict[str, int]:
+    """The PLC's input signals by their keys' names: start, ..., job_bits[0], ..."""
+    inputs = plc.inputs
+    named = {"start": inputs.start, "part_present": inputs.part_present, "reset": inputs.reset}
+    return {**named, **{f"job_bits[{i}]": bit for i, bit in enumerate(inputs.job_bits)}}
+
+
 def _check_plc_on_jrc(plc: PlcConfig, config: CellConfig) -> None:
     """The handshake on the JRC's I/O needs the JRC, and lines of its own beside the cup's."""
     if config.robot_backend != "jrc":
@@ -823,13 +838,16 @@ def _check_plc_on_jrc(plc: PlcConfig, config: CellConfig) -> None:
             f'{config.source}: line.plc.transport = "jrc_io": the PLC on the JRC\'s I/O needs robot.backend = "jrc", '
             f"not {config.robot_backend!r}"
         )
+    outputs = vars(plc.outputs)
+    for name, address in _plc_input_signals(plc).items():
+        if address in outputs.values():
+            raise ConfigError(f"{config.source}: line.plc.inputs.{name} = {address}: it is also a [line.plc.outputs] address")
     if config.vacuum_device.device == "jrc_io":
         suction, grip = config.vacuum_device.jrc_io()
         for name, address in vars(plc.outputs).items():
             if address == suction:
                 raise ConfigError(f"{config.source}: line.plc.outputs.{name} = {address}: it is vacuum.suction_output")
-        inputs = {"start": plc.inputs.start, "part_present": plc.inputs.part_present, "reset": plc.inputs.reset}
-        for name, address in {**inputs, **{f"job_bits[{i}]": b for i, b in enumerate(plc.inputs.job_bits)}}.items():
+        for name, address in _plc_input_signals(plc).items():
             if address == grip:
                 raise ConfigError(f"{config.source}: line.plc.inputs.{name} = {address}: it is vacuum.grip_input")
 

@@ -8,7 +8,7 @@ import pytest
 
 from tests.cell.test_config import default_data
 from tests.controller_fixtures import simulated_controller
-from tests.plc_fixtures import ModbusPlc
+from tests.plc_fixtures import EmulatorPlc, ModbusPlc
 from tests.polling import wait_until
 from vservo.core.cell.config import parse_cell
 from vservo.core.production.plc.handshake import PlcOutputs, job_number
@@ -100,3 +100,40 @@ def test_an_estop_latches_fault_and_no_start_is_taken_until_the_plc_resets(plc_c
     controller.present_part()
     assert plc.cycle(job=1).result == PlcOutputs(done=True, ok=True)
     assert controller.last_outcome.outcome is Outcome.PLACED
+
+
+JRC_PLC = {
+    "transport": "jrc_io",
+    "poll_period_s": 0.01,
+    "inputs": {"start": 30, "part_present": 31, "reset": 32, "job_bits": [40, 41]},
+    "outputs": {"ready": 27020, "busy": 27021, "done": 27022, "ok": 27023, "not_ok": 27024, "fault": 27025},
+    "jobs": {"1": "demo"},
+}
+
+
+def test_on_the_jrcs_io_lines_a_cycle_a_part_missing_and_a_fault_reset(tmp_path):
+    """The same handshake on the JRC's I/O: the controller reads the PLC's signals with IOREAD
+    and writes its own as network inputs over the JRC link to the emulator, whose I/O panel
+    the PLC program drives."""
+    data = default_data()
+    data["robot"]["backend"] = "jrc"
+    data["line"] = {"plc": JRC_PLC}
+    config = parse_cell(data, "plc test cell")
+    with simulated_controller(config, tmp_path / "data") as controller:
+        service = PlcService.start(controller)
+        plc = EmulatorPlc(config.plc, controller.rig.emulator)
+        try:
+            controller.present_part()
+            placed = plc.cycle(job=1)
+            assert placed.result == PlcOutputs(done=True, ok=True) and placed.saw_busy
+            missing = plc.cycle(job=1, part_present=False)
+            assert missing.result == PlcOutputs(done=True, not_ok=True)
+            plc.wait_for(lambda o: o.ready, "ready")
+            controller.estop("e-stop pressed on the page")
+            assert plc.wait_for(lambda o: o.fault, "fault") == PlcOutputs(not_ok=True, fault=True)
+            plc.reset()
+            assert plc.wait_for(lambda o: o.ready, "ready after reset") == PlcOutputs(ready=True)
+            assert service.handshake.starts == 1 and service.handshake.refusals == 1
+        finally:
+            service.close()
+        assert plc.outputs() == PlcOutputs()  # a stopped service leaves every output low

@@ -15,7 +15,7 @@ the handshake leaves the link to the run while busy (Handshake.listening).
 
 from __future__ import annotations
 
-from dataclasses import astuple, fields
+from dataclasses import astuple
 
 from vservo.core.cell.config import PlcConfig
 from vservo.core.production.plc.handshake import PlcInputs, PlcOutputs, job_number
@@ -27,9 +27,8 @@ class JrcLines:
 
     def __init__(self, config: PlcConfig, jrc: JrcBackend) -> None:
         self.config, self.jrc = config, jrc
-        inputs = config.inputs
-        self._input_bytes = sorted({io_byte(a)[0] for a in (inputs.start, inputs.part_present, inputs.reset, *inputs.job_bits)})
-        self._outputs = [getattr(config.outputs, f.name) for f in fields(PlcOutputs)]
+        self._input_bytes = sorted({io_byte(a)[0] for a in config.inputs.addresses()})
+        self._outputs = config.outputs.addresses()
         self._written: PlcOutputs | None = None  # what the lines carry, once written
 
     def read(self) -> PlcInputs:

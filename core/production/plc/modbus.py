@@ -19,7 +19,7 @@ import logging
 import threading
 from collections.abc import Sequence
 from concurrent.futures import Future
-from dataclasses import astuple, fields
+from dataclasses import astuple
 from typing import Any
 
 from pymodbus.server import ModbusTcpServer
@@ -55,8 +55,8 @@ class ModbusLines:
 
     def __init__(self, config: PlcConfig) -> None:
         self.config = config
-        self._inputs = [config.inputs.start, config.inputs.part_present, config.inputs.reset, *config.inputs.job_bits]
-        self._outputs = [getattr(config.outputs, f.name) for f in fields(PlcOutputs)]
+        self._inputs = config.inputs.addresses()
+        self._outputs = config.outputs.addresses()
         self._discrete = [False] * (max(self._outputs) + 1)
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name="plc-modbus", daemon=True)
