@@ -4,8 +4,8 @@ One file describes a cell. Its nominal sections (robot, camera, hand_eye, laser,
 vacuum, motion) are what control laws and calibrations may use; ``[camera.source]``
 and the ``[vacuum]`` device keys say which devices the controller drives (the
 simulator's, or a real camera and the vacuum on the JRC's I/O); ``[jrc]`` holds the
-serial line to a JRC, ``[safety]`` the limits on every move and ``[recordings]`` how many
-runs' recordings the data folder keeps; ``[simulation]``
+serial line to a JRC, ``[safety]`` the limits on every move, ``[recordings]`` how many
+runs' recordings the data folder keeps and ``[line.plc]`` the PLC handshake; ``[simulation]``
 describes the plant the simulator plays: its seed and noise, ``[simulation.scene]``
 (where the table, cube, metal part and the checkerboard, when laid, really are) and ``[simulation.truth.*]`` tables
 that override nominal values with what the cell really is (the robustness test of
