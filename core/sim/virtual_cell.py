@@ -179,7 +179,8 @@ class VirtualCell:
     ) -> None:
         self.tables, self.source, self.settings, self.on_released = tables, source, settings, on_released
         self.addresses = addresses
-        self.config: CellConfig = parse_cell(tables, source)
+        # Its robot is a JRC whatever the file's [robot] backend says (the controller's file says "jrc").
+        self.config: CellConfig = parse_cell({**tables, "robot": {**tables.get("robot", {}), "backend": "jrc"}}, source)
         self.cell = SimulatedCell(self.config, seed)
         if board_laid:
             self.cell.lay_board(True)

@@ -35,7 +35,7 @@ def plc_cell(plc: dict):
 
 
 @pytest.fixture
-def plc_controller(tmp_path):
+def plc_controller(tmp_path, no_leaked_threads):
     """(the controller of the simulated cell with its PLC service, the PLC on a pymodbus client)."""
     config = plc_cell(MODBUS_PLC)
     with simulated_controller(config, tmp_path / "data") as controller:
@@ -111,7 +111,7 @@ JRC_PLC = {
 }
 
 
-def test_on_the_jrcs_io_lines_a_cycle_a_part_missing_and_a_fault_reset(tmp_path):
+def test_on_the_jrcs_io_lines_a_cycle_a_part_missing_and_a_fault_reset(tmp_path, no_leaked_threads):
     """The same handshake on the JRC's I/O: the controller reads the PLC's signals with IOREAD
     and writes its own as network inputs over the JRC link to the emulator, whose I/O panel
     the PLC program drives."""

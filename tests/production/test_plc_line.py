@@ -85,7 +85,6 @@ class Line:
 @contextmanager
 def line(transport: str, folder: Path, thesis_policy: bool = False) -> Iterator[Line]:
     data = default_data()
-    data["robot"]["backend"] = "jrc"  # the virtual cell's robot is its JRC
     data["line"] = {"plc": LINES[transport]}
     if thesis_policy:  # hundreds of servo cycles: a run long enough to press E-STOP in
         data["motion"]["policy"] = "thesis"

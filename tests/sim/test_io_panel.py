@@ -18,7 +18,7 @@ from vservo.core.sim.virtual_cell import VirtualCell
 @pytest.fixture
 def panel_cell():
     data = default_data()
-    data["robot"]["backend"] = "jrc"
+    assert data["robot"]["backend"] == "sim"  # the virtual cell's robot is its JRC whatever the file says
     data["line"] = {"plc": JRC_IO}
     with VirtualCell(data, "panel cell", seed=3) as virtual:
         jrc = JrcBackend(virtual.emulator.line, virtual.jrc_port)
