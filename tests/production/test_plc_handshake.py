@@ -137,3 +137,23 @@ def test_on_the_jrcs_io_lines_a_cycle_a_part_missing_and_a_fault_reset(tmp_path,
         finally:
             service.close()
         assert plc.outputs() == PlcOutputs()  # a stopped service leaves every output low
+
+
+def test_while_the_page_teaches_ready_is_low_and_a_start_is_not_taken(plc_controller):
+    """One cell, two clients: while the page's operator teaches, the PLC's start finds Ready
+    low and starts nothing, even once teaching ends with start still high (no new edge)."""
+    controller, service, plc = plc_controller
+    plc.wait_for(lambda o: o.ready, "ready")
+    controller.begin_teach()
+    plc.wait_for(lambda o: not o.ready, "ready to fall while teaching")
+    plc.select_job(1)
+    plc.set(part_present=True, start=True)
+    wait_until(lambda: service.polls > 5, "polls")
+    controller.cancel_teach()
+    assert plc.wait_for(lambda o: o.ready, "ready after teaching") == PlcOutputs(ready=True)
+    assert controller.state.phase == Phase.IDLE and service.handshake.starts == 0
+    plc.set(start=False)
+    polls = service.polls
+    wait_until(lambda: service.polls >= polls + 2, "start low for a poll")  # a PLC holds a level one poll at least
+    controller.present_part()
+    assert plc.cycle(job=1).result == PlcOutputs(done=True, ok=True)

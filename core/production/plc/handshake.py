@@ -157,6 +157,10 @@ class Handshake:
             except VservoError as exc:
                 self._refuse(f"job {job!r}: {exc}")
                 return
+            except Exception:  # a bug: the PLC still gets its answer, the traceback goes to the log
+                log.exception("PLC start of job %r: internal error", job)
+                self._refuse(f"job {job!r}: internal error (its traceback is in the controller's log)")
+                return
             self.starts += 1
             self.state = HandshakeState.BUSY
             log.info("PLC start: job %d (%s), part %s", inputs.job_number, job, inputs.part_id or "without an ID")
