@@ -4,6 +4,8 @@ the controller's own start, refusals answer not OK, a fault waits for the PLC's 
 
 from __future__ import annotations
 
+import socket
+
 import pytest
 
 from tests.cell.test_config import default_data
@@ -12,7 +14,7 @@ from tests.plc_fixtures import EmulatorPlc, ModbusPlc
 from tests.polling import wait_until
 from vservo.core.cell.config import parse_cell
 from vservo.core.production.plc.handshake import PlcOutputs, job_number
-from vservo.core.production.plc.modbus import ModbusLines, decode_part_id
+from vservo.core.production.plc.modbus import ModbusLines, ModbusServerError, decode_part_id
 from vservo.core.production.plc.service import PlcService
 from vservo.core.production.protocol.state import Outcome, Phase
 
@@ -157,3 +159,16 @@ def test_while_the_page_teaches_ready_is_low_and_a_start_is_not_taken(plc_contro
     wait_until(lambda: service.polls >= polls + 2, "start low for a poll")  # a PLC holds a level one poll at least
     controller.present_part()
     assert plc.cycle(job=1).result == PlcOutputs(done=True, ok=True)
+
+
+def test_a_modbus_port_already_taken_is_one_line_naming_it_and_leaves_no_thread(no_leaked_threads):
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    try:
+        port = taken.getsockname()[1]
+        config = plc_cell({**MODBUS_PLC, "port": port}).plc
+        with pytest.raises(ModbusServerError, match=rf"line.plc: the Modbus TCP server cannot listen on 127.0.0.1:{port}"):
+            ModbusLines(config)
+    finally:
+        taken.close()
