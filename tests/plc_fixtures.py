@@ -153,7 +153,7 @@ class EmulatorPlc(Plc):
         self.emulator.set_inputs(signals)
 
     def outputs(self) -> PlcOutputs:
-        lines = self.emulator.io_panel()["outputs"]
+        lines = self.emulator.io_panel().outputs
         return PlcOutputs(*(lines[a] for a in self.config.outputs.addresses()))
 
     def close(self) -> None:

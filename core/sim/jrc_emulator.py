@@ -201,6 +201,15 @@ class FaultInjector:
         self._armed = None
 
 
+@dataclass(frozen=True)
+class IoPanel:
+    """The lines a PLC on the JRC's I/O is wired to, by byte.bit address: the JRC's inputs its
+    signals drive, and the outputs the ladder copies from the network inputs the host wrote."""
+
+    inputs: dict[int, bool]
+    outputs: dict[int, bool]
+
+
 @dataclass
 class Motion:
     """One linear move under way, in joint space, in JRC (plant) time."""
@@ -504,19 +513,18 @@ class JrcEmulator:
                 value = self.panel.get(byte, 0)
                 self.panel[byte] = value | 1 << bit if on else value & ~(1 << bit)
 
-    def io_panel(self) -> dict[str, dict[int, bool]]:
-        """The PLC's lines: the inputs it drives, and the outputs the ladder copies from the
-        network inputs the host wrote, by byte.bit address."""
+    def io_panel(self) -> IoPanel:
+        """The PLC's lines now."""
 
         def bit_of(values: dict[int, int], address: int) -> bool:
             byte, bit = io_byte(address)
             return bool(values.get(byte, 0) >> bit & 1)
 
         with self.lock:
-            return {
-                "inputs": {a: bit_of(self.panel, a) for a in self.plc_inputs},
-                "outputs": {a: bit_of(self.network_inputs, a) for a in self.plc_outputs},
-            }
+            return IoPanel(
+                inputs={a: bit_of(self.panel, a) for a in self.plc_inputs},
+                outputs={a: bit_of(self.network_inputs, a) for a in self.plc_outputs},
+            )
 
     def _io_value(self, byte: int) -> int:
         value = self.network_inputs.get(byte, 0) | self.panel.get(byte, 0)

@@ -381,7 +381,10 @@ def _post_board(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
 
 def _io_panel(virtual: VirtualCell) -> dict[str, Any]:
     panel = virtual.emulator.io_panel()
-    return {side: {str(address): on for address, on in lines.items()} for side, lines in panel.items()}
+    return {
+        "inputs": {str(address): on for address, on in panel.inputs.items()},
+        "outputs": {str(address): on for address, on in panel.outputs.items()},
+    }
 
 
 def _post_io(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
