@@ -28,6 +28,7 @@ def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
         args.time_scale,
         pace=args.pace,
         vacuum=config.vacuum_device,
+        plc=config.plc,
     )
     line = config.jrc
     if args.tcp_port is not None:
