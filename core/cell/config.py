@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from vservo.core.cell.kinematics import ToolMount
+from vservo.core.cell.line import LineConfig, parse_line
 from vservo.core.cell.scene import Cube, LaidBoard, MetalPart, Scene
 from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
@@ -334,6 +335,7 @@ class CellConfig:
     # a place pose against its pocket; the simulator's own is [simulation.scene].
     metal_part: MetalPart | None = None
     recordings: RecordingRetention = RecordingRetention()
+    line: LineConfig = LineConfig()  # [line]: the OPC UA server and the metrics endpoint (core/cell/line.py)
 
     def plant(self) -> SimulationConfig:
         """The [simulation] table, for code that simulates this cell; ConfigError when the file has none."""
@@ -912,6 +914,7 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     commissioning = _commissioning(root.table("commissioning"), base_dir)
     metal_part = _metal_part(root.table("metal_part"))
     recordings = _recordings(root.table("recordings"))
+    line = parse_line(root.table("line"), base_dir)
     root.finish()
     camera_source = _camera_source(_Table(wiring.get("camera", {}), "camera", source).table("source"), base_dir)
     vacuum_device = _vacuum_device(_Table(wiring.get("vacuum", {}), "vacuum", source))
@@ -932,6 +935,7 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
         commissioning,
         metal_part,
         recordings,
+        line,
     )
     _check_devices(config)
     return config

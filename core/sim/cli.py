@@ -12,6 +12,7 @@ from pathlib import Path
 
 from vservo.core.cell.config import HostTransport, load_cell
 from vservo.core.terminal.command_line import fraction, positive, seed
+from vservo.core.terminal.logs import add_log_options, announce, configure_logging
 
 
 def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
@@ -100,6 +101,7 @@ def _cmd_virtual_cell(args: argparse.Namespace) -> int:
         raise ValueError("--jrc-link names a pseudo-terminal: it needs --robot-link serial")
     if args.jrc_tcp_port and not over_ethernet:
         raise ValueError("--jrc-tcp-port is the Ethernet server's port: it needs --robot-link ethernet")
+    configure_logging(args, "virtual-cell")
     tables, source = load_virtual_cell_tables(args.cell, args.truth)
     settings = VirtualCellSettings(
         time_scale=args.time_scale, fps=args.fps, exposure_latency_s=args.latency, robot_link=HostTransport(args.robot_link)
@@ -135,12 +137,10 @@ def _cmd_virtual_cell(args: argparse.Namespace) -> int:
             ),
             flush=True,
         )
-        print(
+        announce(
             f"virtual cell from {source}: JRC on {virtual.jrc_port} (time scale {args.time_scale:g}), camera "
             f"{virtual.camera.url}, fixture {virtual.fixture.url}; run the product with --cell {cell_file}; "
-            "Ctrl-C or SIGTERM stops it",
-            file=sys.stderr,
-            flush=True,
+            "Ctrl-C or SIGTERM stops it"
         )
         stopped.wait()
     return 0
@@ -217,4 +217,5 @@ def add_virtual_cell_command(commands: argparse._SubParsersAction) -> None:
     virtual.add_argument(
         "--fixture-port", type=int, default=0, metavar="PORT", help="the fixture's TCP port (default: any free one)"
     )
+    add_log_options(virtual)
     virtual.set_defaults(run=_cmd_virtual_cell)
