@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 
 from vservo.core.calibration.cli import add_calibrate_command, add_calibration_bench
-from vservo.core.cell.cli import add_info_command
+from vservo.core.cell.cli import add_info_command, add_password_hash_command
 from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
 from vservo.core.errors import VservoError
 from vservo.core.perception.cli import add_detect_command
@@ -186,6 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--cell", metavar="FILE", help="cell configuration (TOML); default: the shipped cell")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=Parser)
     add_info_command(commands)
+    add_password_hash_command(commands)
     add_detect_command(commands)
     add_jrc_emulator_command(commands)
     add_virtual_cell_command(commands)

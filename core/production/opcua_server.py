@@ -276,7 +276,7 @@ class CellOpcUaServer:
             policies = [ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt]
         else:
             policies = [ua.SecurityPolicyType.NoSecurity]
-        server.set_security_policy(policies, permission_ruleset=_Permissions())  # type: ignore[arg-type]
+        server.set_security_policy(policies, permission_ruleset=_Permissions())
         namespace = await server.register_namespace(NAMESPACE)
         cell = await server.nodes.objects.add_object(ua.NodeId("Cell", namespace), ua.QualifiedName("Cell", namespace))
         await self._variables(cell, namespace, "Cell", _CELL)
@@ -354,9 +354,9 @@ class CellOpcUaServer:
     async def _show_last_stored_run(self) -> None:
         """Cell.LastRun from the store as the server starts: the plant reads the last result across a restart."""
         runs = await asyncio.get_running_loop().run_in_executor(None, lambda: self.controller.store.list_runs(1))
-        if not runs or runs[0].outcome is None:
+        run = runs[0] if runs else None
+        if run is None or run.outcome is None:
             return
-        run = runs[0]
         await self._write(
             {
                 "Cell.LastRun.RunId": run.id,
