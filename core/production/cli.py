@@ -104,6 +104,11 @@ def _cmd_controller(args: argparse.Namespace) -> int:
         raise
     print(json.dumps({"controller": address}), flush=True)
     stop.wait()
+    # The stop is under way: a second signal (the app's SIGTERM after a service manager's SIGINT
+    # to both) must not cut it short, nor kill the process as the interpreter restores the
+    # default handlers on its way out.
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, signal.SIG_IGN)
     for service in line_services:
         service.close()
     server.close()
