@@ -235,6 +235,8 @@ def test_the_mes_starts_runs_over_opc_ua_and_reads_their_results_and_the_metrics
         assert seen == sorted(seen) and seen[0] < max(seen[1:-1]), (counter, seen)
     assert any(sample[("vservo_phase", (("phase", "servoing"),))] == 1 for sample in during)
     assert after[("vservo_phase", (("phase", "idle"),))] == 1
+    # the JRC link's recoveries (the pseudo-terminal loses nothing: listed, at 0)
+    assert after[("vservo_link_retries_total", (("kind", "enq_retries"),))] == 0
 
     assert controller.stop() == 0
     exported = subprocess.run(
