@@ -36,6 +36,7 @@ from prometheus_client.registry import Collector
 from vservo.core.cell.line import MetricsConfig
 from vservo.core.production.cell_controller import CellController, FrameView
 from vservo.core.production.protocol import ControllerState, Outcome, Phase
+from vservo.core.robot.backend import RobotError
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.robot.serial_link import SerialLink
 
@@ -59,7 +60,7 @@ class _LinkRetries(Collector):
             if isinstance(link, SerialLink):
                 try:
                     counters = link.station.counters
-                except Exception:  # not connected now: the next scrape reads it again
+                except RobotError:  # not connected now (a lost port): the next scrape reads it again
                     counters = None
                 if counters is not None:
                     for kind in ("enq_retries", "text_resends", "naks_received", "naks_sent", "contentions"):

@@ -10,7 +10,6 @@ import asyncio
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -20,17 +19,12 @@ import pytest
 from asyncua import Client, ua
 
 from tests.virtual_cell_process import ROOT
+from vservo.app.browser import free_port
 from vservo.core.cell.config import write_thesis_policy_cell
 from vservo.core.production.opcua_server import NAMESPACE
 from vservo.core.production.storage import Store
 
 USER, PASSWORD = "mes", "line-4-secret"
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 async def start_a_run(endpoint: str, timeout_s: float = 120.0) -> int:

@@ -6,7 +6,6 @@ without a user. A real asyncua server in a controller of the simulated cell, a r
 from __future__ import annotations
 
 import asyncio
-import socket
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -19,16 +18,11 @@ from asyncua.ua.uaerrors import BadIdentityTokenRejected, UaError
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from tests.controller_fixtures import simulated_controller
+from vservo.app.browser import free_port
 from vservo.core.cell.config import parse_cell
 from vservo.core.production.opcua_server import NAMESPACE, CellOpcUaServer
 
 USER, PASSWORD = "mes", "line-4-secret"
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def certificate(folder: Path, name: str, uri: str, use: ExtendedKeyUsageOID) -> tuple[Path, Path]:
