@@ -211,12 +211,12 @@ class CellOpcUaServer:
 
     def start(self) -> str:
         """Start serving; the endpoint's URL (with the port bound, for port 0)."""
+        self.controller.state_subscribers.append(self._on_state)  # first: no change is missed while it starts
         self._thread.start()
         if not self._started.wait(START_TIMEOUT_S):
             raise OpcUaError(f"the OPC UA server did not start within {START_TIMEOUT_S:g} s")
         if self._failure is not None:
             raise OpcUaError(f"the OPC UA server could not start on {self.config.endpoint}: {self._failure}")
-        self.controller.state_subscribers.append(self._on_state)
         return self.endpoint
 
     def _run(self) -> None:
@@ -232,14 +232,17 @@ class CellOpcUaServer:
     def _on_state(self, state: ControllerState) -> None:
         """A subscriber: never blocks, only wakes the publisher."""
         loop, changed = self._loop, self._changed
-        if loop is not None and changed is not None and not loop.is_closed():
-            loop.call_soon_threadsafe(changed.set)
+        if loop is not None and changed is not None:
+            try:
+                loop.call_soon_threadsafe(changed.set)
+            except RuntimeError:
+                pass  # the server has stopped: the controller's thread must not fail for it
 
     def close(self) -> None:
         if self._on_state in self.controller.state_subscribers:
             self.controller.state_subscribers.remove(self._on_state)
         loop, stop = self._loop, self._stop
-        if loop is not None and stop is not None and not loop.is_closed():
+        if loop is not None and stop is not None:
             try:
                 loop.call_soon_threadsafe(stop.set)
             except RuntimeError:
@@ -327,7 +330,10 @@ class CellOpcUaServer:
                 await asyncio.wait({changed, stop}, return_when=asyncio.FIRST_COMPLETED)
                 changed.cancel()
                 self._changed.clear()
-                await self._publish(self.controller.state)
+                try:
+                    await self._publish(self.controller.state)
+                except Exception:  # a store that cannot be read now: the next change tries again
+                    log.exception("OPC UA: the cell's state could not be published")
                 await asyncio.sleep(PUBLISH_PERIOD_S)
         finally:
             stop.cancel()

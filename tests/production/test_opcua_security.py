@@ -6,6 +6,7 @@ without a user. A real asyncua server in a controller of the simulated cell, a r
 from __future__ import annotations
 
 import asyncio
+import socket
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -20,7 +21,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from tests.controller_fixtures import simulated_controller
 from vservo.app.browser import free_port
 from vservo.core.cell.config import parse_cell
-from vservo.core.production.opcua_server import NAMESPACE, CellOpcUaServer
+from vservo.core.production.opcua_server import NAMESPACE, CellOpcUaServer, OpcUaError
 
 USER, PASSWORD = "mes", "line-4-secret"
 
@@ -77,3 +78,23 @@ def test_with_its_certificate_the_server_offers_only_encrypted_sessions(tmp_path
             asyncio.run(sessions(endpoint, client_cert, client_key))
         finally:
             server.close()
+
+
+@pytest.mark.usefixtures("no_leaked_threads")
+def test_a_port_in_use_is_refused_in_one_line(tmp_path):
+    tables = tomllib.loads(resources.files("vservo.static").joinpath("cell.toml").read_text())
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        tables["line"] = {"opcua": {"enabled": True, "port": taken.getsockname()[1]}}
+        config = parse_cell(tables, "cell.toml", tmp_path)
+        with simulated_controller(config, tmp_path / "data") as controller:
+            server = CellOpcUaServer(controller, config.line.opcua)
+            try:
+                with pytest.raises(
+                    OpcUaError, match=r"could not start on opc.tcp://127.0.0.1:\d+/vservo/: .*address already in use"
+                ):
+                    server.start()
+            finally:
+                server.close()
+            assert not controller.state_subscribers  # the server's subscriber went with it
