@@ -37,6 +37,11 @@ def verify(unit_text: str, folder: Path) -> subprocess.CompletedProcess:
     return subprocess.run([systemd_analyze(), "verify", str(unit)], capture_output=True, text=True, timeout=120)
 
 
+def service_environment() -> list[str]:
+    """The unit's Environment= lines (configparser keeps only the last of a repeated key)."""
+    return [line.split("=", 1)[1] for line in UNIT.read_text().splitlines() if line.startswith("Environment=")]
+
+
 def service_section() -> configparser.SectionProxy:
     parser = configparser.ConfigParser(strict=False, interpolation=None)
     parser.optionxform = str  # systemd's keys are case-sensitive
@@ -69,12 +74,13 @@ def test_the_unit_restarts_on_failure_and_its_stop_holds_the_robot():
 
 def test_the_unit_starts_a_command_line_vservo_takes():
     service = service_section()
-    command = shlex.split(service["ExecStart"].replace("${VSERVO_PUBLIC_ORIGIN}", "https://vservo-cell.local"))
+    environment = dict(line.split("=", 1) for line in service_environment())
+    command = shlex.split(re.sub(r"\$\{(\w+)\}", lambda name: environment[name.group(1)], service["ExecStart"]))
     assert command[0] == INSTALLED_AT
     args = build_parser().parse_args(command[1:])
     assert args.command == "serve" and args.host == "127.0.0.1"  # the page only through the reverse proxy
     assert (args.log_format, args.log_level) == ("json", "info")
-    assert args.cell == "/etc/vservo/cell.toml"
+    assert args.cell == "/var/lib/vservo/cell.toml"  # in the service's own folder: commissioning writes beside it
 
 
 RULE_KEY = re.compile(r'^[A-Z_]+(\{[A-Za-z_]+\})?(==|!=|=|\+=|-=|:=)"[^"]*"$')
