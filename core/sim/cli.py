@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import threading
 from pathlib import Path
@@ -21,6 +20,7 @@ def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
     from vservo.core.sim.jrc_emulator import FaultPlan, JrcEmulator
     from vservo.core.sim.plant import SimulatedCell
 
+    configure_logging(args, "jrc-emulator")
     config = load_cell(args.cell)
     emulator = JrcEmulator(
         SimulatedCell(config),
@@ -42,21 +42,17 @@ def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
         where = str(emulator.device)
         link = f"{line.baud} baud, {line.data_bits} data bits, {line.parity} parity, {line.stop_bits} stop bit(s)"
     print(where, flush=True)
-    print(
+    announce(
         f"JRC emulator on {where}: {link}; time scale {args.time_scale:g}, faults {args.fault_rate:.0%}; "
-        "Ctrl-C or SIGTERM stops it",
-        file=sys.stderr,
-        flush=True,
+        "Ctrl-C or SIGTERM stops it"
     )
     stopped = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stopped.set())
     stopped.wait()
     emulator.stop()
-    print(
-        f"served {emulator.exchanges} exchanges, {len(emulator.executed)} moves; "
-        f"faults injected {dict(emulator.faults.injected)}",
-        file=sys.stderr,
+    announce(
+        f"served {emulator.exchanges} exchanges, {len(emulator.executed)} moves; faults injected {dict(emulator.faults.injected)}"
     )
     return 0
 
@@ -88,6 +84,7 @@ def add_jrc_emulator_command(commands: argparse._SubParsersAction) -> None:
         help="the simulated robot runs this many times faster than real time (default 1)",
     )
     emulator.add_argument("--pace", action="store_true", help="send and receive bytes at the baud rate")
+    add_log_options(emulator)
     emulator.set_defaults(run=_cmd_jrc_emulator)
 
 
