@@ -16,6 +16,7 @@ import select
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from vservo.core.errors import VservoError
@@ -36,7 +37,14 @@ class ControllerProcess:
 
     @classmethod
     def start(
-        cls, *, backend: str, data: Path, seed: int | None, cycle_period_s: float, cell: str | None = None
+        cls,
+        *,
+        backend: str,
+        data: Path,
+        seed: int | None,
+        cycle_period_s: float,
+        cell: str | None = None,
+        log_options: Sequence[str] = (),
     ) -> ControllerProcess:
         key = new_key()
         command = [
@@ -53,6 +61,7 @@ class ControllerProcess:
             "--cycle-period",
             str(cycle_period_s),
             *(["--seed", str(seed)] if seed is not None else []),
+            *log_options,
         ]
         # Its log goes to our standard error, as the operator's terminal shows the app's.
         process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env={**os.environ, KEY_ENVIRONMENT: key.hex()})

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from vservo.core.cell.kinematics import ToolMount
+from vservo.core.cell.line import LineConfig, parse_line
 from vservo.core.cell.scene import Cube, LaidBoard, MetalPart, Scene
 from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
@@ -398,6 +399,7 @@ class CellConfig:
     metal_part: MetalPart | None = None
     recordings: RecordingRetention = RecordingRetention()
     plc: PlcConfig | None = None  # [line.plc]: the PLC handshake, None without one
+    line: LineConfig = LineConfig()  # [line]: the OPC UA server and the metrics endpoint (core/cell/line.py)
 
     def plant(self) -> SimulationConfig:
         """The [simulation] table, for code that simulates this cell; ConfigError when the file has none."""
@@ -687,13 +689,6 @@ MAX_JOB_BITS = 16
 PLC_POLL_PERIOD_S = (0.005, 5.0)
 MAX_PART_ID_REGISTERS = 32  # 64 characters, the store's longest part ID
 _MODBUS_ONLY_KEYS = ("host", "port", "part_id_register", "part_id_registers")
-
-
-def _line(t: _Table) -> PlcConfig | None:
-    """[line]: how the production line talks to the cell; [line.plc], the PLC handshake, or None."""
-    plc = _plc(t.table("plc")) if "plc" in t._data else None
-    t.finish()
-    return plc
 
 
 def _plc(t: _Table) -> PlcConfig:
@@ -1113,7 +1108,9 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     commissioning = _commissioning(root.table("commissioning"), base_dir)
     metal_part = _metal_part(root.table("metal_part"))
     recordings = _recordings(root.table("recordings"))
-    plc = _line(root.table("line"))
+    line_table = root.table("line")
+    plc = _plc(line_table.table("plc")) if "plc" in line_table._data else None
+    line = parse_line(line_table, base_dir)
     root.finish()
     camera_source = _camera_source(_Table(wiring.get("camera", {}), "camera", source).table("source"), base_dir)
     vacuum_device = _vacuum_device(_Table(wiring.get("vacuum", {}), "vacuum", source))
@@ -1135,6 +1132,7 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
         metal_part,
         recordings,
         plc,
+        line,
     )
     _check_devices(config)
     return config

@@ -115,6 +115,7 @@ class AssemblyOutcome:
             duration_s=round(self.duration_s, 3),
             iterations=self.iterations,
             notes=self.notes,
+            cell_time_s=_rounded(self.cell_time_s),
         )
 
 

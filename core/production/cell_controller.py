@@ -408,7 +408,9 @@ class CellController:
             self._enable_motion()
             run_id = self.store.start_run(job.name, self.rig.robot.name, part_id)
             self._desired = job.desired
-            self.update(phase=Phase.SERVOING, detail="starting", job=job.name, run=RunFigures(run_id), last_outcome=None)
+            self.update(
+                phase=Phase.SERVOING, detail="starting", job=job.name, run=RunFigures(run_id, part_id=part_id), last_outcome=None
+            )
             run = AssemblyRun(
                 job,
                 run_id,
@@ -419,6 +421,7 @@ class CellController:
                 publisher=self,
                 estop=self._estop,
                 cycle_period_s=self.cycle_period_s,
+                part_id=part_id,
             )
             self._start_work("an assembly run", self._assemble, (run,), "assembly")
             return run_id
