@@ -29,6 +29,7 @@ controller.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import math
 import threading
@@ -395,7 +396,8 @@ class CellOpcUaServer:
         except CommandRefused as exc:
             return await self._refused("Start", exc, ua.StatusCodes.BadInvalidArgument)
         log.info("OPC UA: Start(%r, part %r)", command.job_name, command.part_id)
-        return await self._carry_out("Start", lambda: command.carry_out(self.controller))
+        start = functools.partial(self.controller.start, command.job_name, part_id=command.part_id, by_line=True)
+        return await self._carry_out("Start", start)
 
     async def _hold(self, parent: ua.NodeId) -> ua.CallMethodResult:
         """Cell.Hold(): the page's E-STOP: the robot held now, every move refused until Reset."""

@@ -49,7 +49,7 @@ class ControllerCell:
         return self.controller.running
 
     def start(self, job: str, part_id: str | None) -> None:
-        self.controller.start(job, part_id=part_id)
+        self.controller.start(job, part_id=part_id, by_line=True)
 
     def outcome(self) -> Outcome | None:
         outcome = self.controller.last_outcome
