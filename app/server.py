@@ -74,6 +74,11 @@ PLOT_PERIOD_S = 0.25
 BANNER_HEIGHT_PX = 96
 SAFETY_WIDTH_PX = 440
 SAFETY_HEIGHT_PX = 310  # the E-STOP and five lines of status: never cut off
+SAFETY_TOP_PX = 10  # under the banner: the page's panels start below it already
+# Viser stacks notifications at the 3D view's top left, where the E-STOP floats: they start
+# under its panel instead, clipped at the window's bottom (the newest shows first).
+NOTICES_TOP_PX = SAFETY_TOP_PX + SAFETY_HEIGHT_PX + 10
+ESTOP_Z_INDEX = 1100  # over the banner (1000), notifications (400) and dialogs (Mantine's modal, 200)
 # The banner sits fixed over the top of the window; viser's root (#root > div) gives it room.
 BANNER_STYLE = f"""<style>
 #root > div {{ padding-top: {BANNER_HEIGHT_PX}px; box-sizing: border-box; }}
@@ -121,15 +126,9 @@ class OperatorApp:
             estop = server.gui.add_button(
                 "E-STOP", color="red", icon=viser.Icon.HAND_STOP, hint="Hold the robot now. Every browser may stop the cell."
             )
-            # Large: viser has no button size. Viser sets its icons half their width right of
-            # their box, which at this size runs the hand into the label's "E".
-            button = f"button[id='{estop._impl.uuid}']"
-            server.gui.add_html(
-                f"<style>{button} {{height: 84px !important; font-size: 1.8em; font-weight: 800; "
-                f"letter-spacing: 0.12em}} {button} svg {{left: 0 !important}}</style>"
-            )
+            server.gui.add_html(_estop_style(estop._impl.uuid))
             self.status = server.gui.add_markdown("")
-        self.safety.float(x=15, y=BANNER_HEIGHT_PX + 10, width=SAFETY_WIDTH_PX, height=SAFETY_HEIGHT_PX)
+        self.safety.float(x=15, y=SAFETY_TOP_PX, width=SAFETY_WIDTH_PX, height=SAFETY_HEIGHT_PX)
         estop.on_click(lambda event: self.commands.estop(event.client_id, self._estop_reply(event.client_id)))
         self.tabs = server.gui.add_tab_group(order=10)
         self.scene = CellScene(server, config)
@@ -372,6 +371,19 @@ class OperatorApp:
         self._display_thread.join(5.0)
         self.calibrate.close()
         self.commands.close()
+
+
+def _estop_style(uuid: str) -> str:
+    """The E-STOP's style: large (viser has no button size; it sets its icons half their width
+    right of their box, which at this size runs the hand into the label's "E"), and nothing over
+    it: notifications start under its panel, which stays on top of any other element or dialog."""
+    button = f"button[id='{uuid}']"
+    return (
+        f"<style>{button} {{height: 84px !important; font-size: 1.8em; font-weight: 800; letter-spacing: 0.12em}} "
+        f"{button} svg {{left: 0 !important}} "
+        f".mantine-Paper-root:has({button}) {{z-index: {ESTOP_Z_INDEX} !important}} "
+        f".mantine-Notifications-root {{top: {NOTICES_TOP_PX}px !important; bottom: 0; overflow: hidden}}</style>"
+    )
 
 
 @dataclass
