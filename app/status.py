@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from vservo.app.banner import stage_words
+from vservo.app.banner import CONTROLLER_GONE_WORDS, stage_words
 from vservo.app.session import RunTrace
 from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
 from vservo.core.production.protocol import ControllerState, Outcome, Phase, RunEntry, RunOutcome
@@ -47,7 +47,7 @@ def _number(value: float | None, digits: int = 2, unit: str = "") -> str:
 def status_markdown(state: ControllerState, operator_present: bool, controller_gone: str | None = None) -> str:
     """The line every browser shows under the e-stop."""
     if controller_gone:
-        return f"**CONTROLLER STOPPED**: {controller_gone}. Restart `vservo serve`."
+        return f"**CONTROLLER STOPPED**: {controller_gone}. {CONTROLLER_GONE_WORDS}"
     parts = [f"**{PHASE_WORDS[state.phase]}**"]
     if state.job:
         parts.append(f"job `{state.job}`")
