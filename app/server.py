@@ -419,6 +419,8 @@ class RunningApp:
                 break
             self.app.session.on_controller_gone("the channel to the controller process closed")  # the pages at once
             code = self.controller.exit_code(EXIT_WAIT_S)
+            if stop.is_set():  # Ctrl-C at the terminal stops the controller and this app together
+                break
             why = (
                 "the channel to the controller process closed (the process still ran: it is stopped)"
                 if code is None
