@@ -61,8 +61,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_controller(args: argparse.Namespace) -> int:
     import signal
 
+    from vservo.core.errors import VservoError
     from vservo.core.production.cell_rig import build_rig
     from vservo.core.production.channel import ControllerServer
+    from vservo.core.production.plc.service import PlcService
     from vservo.core.production.protocol import KEY_ENVIRONMENT
     from vservo.core.production.storage import Store
 
@@ -84,16 +86,23 @@ def _cmd_controller(args: argparse.Namespace) -> int:
         build_rig(config, args.seed, args.backend), store, seed=args.seed or 0, cycle_period_s=args.cycle_period
     )
     server = ControllerServer(controller, authkey, port=args.port)
+    try:
+        plc = PlcService.start(controller)  # the PLC handshake of [line.plc], if the cell file has one
+    except VservoError:
+        server.close()
+        controller.close()
+        store.close()
+        raise
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
     if args.exit_with_parent:
         threading.Thread(target=_stop_when_orphaned, args=(os.getppid(), stop), name="parent-watch", daemon=True).start()
-    print(
-        json.dumps({"controller": {"host": server.address[0], "port": server.address[1], "backend": controller.rig.robot.name}}),
-        flush=True,
-    )
+    announced = {"controller": {"host": server.address[0], "port": server.address[1], "backend": controller.rig.robot.name}}
+    print(json.dumps(announced if plc is None else {**announced, "plc": plc.where()}), flush=True)
     stop.wait()
+    if plc is not None:
+        plc.close()
     server.close()
     controller.close()  # holds the robot if a run is under way
     store.close()
