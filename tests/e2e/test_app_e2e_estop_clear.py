@@ -19,6 +19,7 @@ from vservo.app.browser import ServeProcess, dismiss_notifications, open_pages, 
 TOKEN = "e2e-estop-clear-token"
 SIZES = [(1024, 640), (1280, 720), (1920, 1080)]
 REFUSALS = 10
+SHOWN_AT_ONCE = 10  # viser's Notifications limit
 FAR_POSE = "3000 0 300 0 180 0"  # mm, deg: outside the workspace, refused before anything moves
 
 # For each point of a 5x5 grid over the E-STOP's box: whether the element on top there is the
@@ -54,10 +55,13 @@ def _refuse_ten_times(page, button: str) -> None:
     for _ in range(REFUSALS):
         page.get_by_role("button", name=button, exact=True).click()
         time.sleep(0.1)
-    deadline = time.monotonic() + 30
-    while _refused_notices(page) < min(before + REFUSALS, 10) and time.monotonic() < deadline:
+    # viser shows at most 10 notifications at once (the rest wait their turn), one of them maybe
+    # another (headless Chromium's software WebGL notice); a refusal's stays 12 s.
+    shown = min(before + REFUSALS, SHOWN_AT_ONCE - 1)
+    deadline = time.monotonic() + 10
+    while _refused_notices(page) < shown and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert _refused_notices(page) >= min(before + REFUSALS, 10), "the refusals never showed"
+    assert _refused_notices(page) >= shown, f"{_refused_notices(page)} refusals shown, {shown} expected"
 
 
 def test_ten_refusals_in_two_seconds_leave_the_whole_estop_clickable_on_operator_and_monitor_pages(app, chromium):
