@@ -81,6 +81,13 @@ class ControllerProcess:
     def alive(self) -> bool:
         return self.process.poll() is None
 
+    def exit_code(self, timeout_s: float) -> int | None:
+        """Its exit code once it has exited, waiting up to ``timeout_s``; None while it runs."""
+        try:
+            return self.process.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            return None
+
     def stop(self, timeout_s: float = 30.0) -> int | None:
         """SIGTERM (the controller holds the robot and exits), SIGKILL if it does not within the timeout."""
         if self.alive:

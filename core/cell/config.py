@@ -500,6 +500,16 @@ def _positive(v: float) -> bool:
     return v > 0.0
 
 
+def _above_zero(high: float, unit: str) -> dict[str, Any]:
+    """``check`` and ``why`` of a number more than 0 and at most ``high``: the product's range for it."""
+    return {"check": lambda v: 0.0 < v <= high, "why": f"must be positive and at most {high:g} {unit}"}
+
+
+def _from_zero(high: float, unit: str) -> dict[str, Any]:
+    """``check`` and ``why`` of a number from 0 to ``high``."""
+    return {"check": lambda v: 0.0 <= v <= high, "why": f"must be >= 0 and at most {high:g} {unit}"}
+
+
 def _non_negative(v: float) -> bool:
     return v >= 0.0
 
@@ -510,7 +520,7 @@ def _camera(t: _Table) -> CameraModel:
     A data sheet gives the focal length in mm and the pixel pitch; a calibration measures
     the focal lengths in pixels, ``focal_length_px = [fx, fy]``, which then replaces them.
     """
-    focal = t.number("focal_length_mm", 6.0, check=_positive, why="must be positive")
+    focal = t.number("focal_length_mm", 6.0, **_above_zero(1000, "mm"))
     pixel = t.vector("pixel_size_mm", 2, [0.0074, 0.0074])
     if np.any(pixel <= 0):
         raise t.fail("pixel_size_mm", pixel.tolist(), "both sizes must be positive")
@@ -565,19 +575,15 @@ def _camera_source(t: _Table, base_dir: Path | None) -> CameraSourceConfig:
             or (isinstance(device, int) and device < 0)
         ):
             raise t.fail("device", device, "must be a device index >= 0, or a video file, stream URL or pipeline")
-        attempts = t.integer("reconnect_attempts", 3)
-        if attempts < 0:
-            raise t.fail("reconnect_attempts", attempts, "must be >= 0")
-        buffered = t.integer("buffer_frames", 0)
-        if buffered < 0:
-            raise t.fail("buffer_frames", buffered, "must be >= 0")
+        attempts = _integer_from_zero(t, "reconnect_attempts", 3, 1000)
+        buffered = _integer_from_zero(t, "buffer_frames", 0, 1000)
         source = CameraSourceConfig(
             kind,
             device=device,
             reconnect_attempts=attempts,
-            reconnect_delay_s=t.number("reconnect_delay_s", 0.5, check=_non_negative, why="must be >= 0"),
+            reconnect_delay_s=t.number("reconnect_delay_s", 0.5, **_from_zero(60, "s")),
             loop=t.flag("loop", False),
-            exposure_latency_s=t.number("exposure_latency_s", 0.0, check=_non_negative, why="must be >= 0"),
+            exposure_latency_s=t.number("exposure_latency_s", 0.0, **_from_zero(10, "s")),
             buffer_frames=buffered,
         )
     elif kind == "folder":
@@ -608,7 +614,7 @@ def _board(t: _Table) -> BoardConfig | None:
     """[board]: square side, inner corners and rough pose; None when the table is absent."""
     if not t._data:
         return None
-    square = t.number("square_mm", None, check=_positive, why="must be positive") / 1000.0
+    square = t.number("square_mm", None, **_above_zero(1000, "mm")) / 1000.0
     corners = t.vector("inner_corners", 2, None)
     if np.any(corners < 3) or np.any(corners != np.round(corners)) or corners[0] == corners[1]:
         raise t.fail(
@@ -856,8 +862,10 @@ _SHEET_LEVEL_RAD = math.radians(0.01)
 def _scene(t: _Table, board: BoardConfig | None) -> tuple[Scene, LaidBoard | None]:
     """The scene as the plant starts (no board laid), and the board where it lies when laid:
     ``board_pose``, or the [board] pose by default; it must lie flat on the table."""
-    table_height = t.number("table_height_mm", 0.0) / 1000.0
-    cube = Cube(t.pose("object_pose", None), t.number("cube_side_mm", 20.0, check=_positive, why="must be positive") / 1000.0)
+    table_height = (
+        t.number("table_height_mm", 0.0, check=lambda v: abs(v) <= 2000.0, why="must be from -2000 to 2000 mm") / 1000.0
+    )
+    cube = Cube(t.pose("object_pose", None), t.number("cube_side_mm", 20.0, **_above_zero(1000, "mm")) / 1000.0)
     part = MetalPart(t.pose("metal_part_pose", None))
     laid = None
     if "board_pose" in t._data and board is None:
@@ -884,14 +892,16 @@ def _motion(t: _Table, safety: SafetyConfig) -> MotionConfig:
     policy = StepPolicyKind(t.choice("policy", tuple(StepPolicyKind), StepPolicyKind.THESIS))
     motion = MotionConfig(
         mode=t.choice("mode", ("position_steps", "velocity"), "position_steps"),
-        divide_factor=t.number("divide_factor", 50.0, check=lambda v: v >= 1.0, why="must be at least 1"),
-        sampling_period_s=t.number("sampling_period_s", 2.0, check=_positive, why="must be positive"),
-        speed_m_s=t.number("speed_mm_s", 50.0, check=_positive, why="must be positive") / 1000.0,
-        dt_s=t.number("dt_s", 0.05, check=_positive, why="must be positive"),
+        divide_factor=t.number(
+            "divide_factor", 50.0, check=lambda v: 1.0 <= v <= 10000.0, why="must be at least 1 and at most 10000"
+        ),
+        sampling_period_s=t.number("sampling_period_s", 2.0, **_above_zero(60, "s")),
+        speed_m_s=t.number("speed_mm_s", 50.0, **_above_zero(5000, "mm/s")) / 1000.0,
+        dt_s=t.number("dt_s", 0.05, **_above_zero(10, "s")),
         policy=policy,
         fast=_fast_steps(t.table("fast"), safety if policy is StepPolicyKind.FAST else None),
         # A taught move faster than [safety] allows is refused when it is sent, as a jog's is.
-        move_speed_m_s=t.number("move_speed_mm_s", 50.0, check=_positive, why="must be positive") / 1000.0,
+        move_speed_m_s=t.number("move_speed_mm_s", 50.0, **_above_zero(5000, "mm/s")) / 1000.0,
     )
     t.finish()
     return motion
@@ -926,6 +936,13 @@ def _within(t: _Table, key: str, default: float, limit: float, safety_key: str) 
 BAUD_RATES = (150, 300, 600, 1200, 2400, 4800, 9600, 19200)
 
 
+def _integer_from_zero(t: _Table, key: str, default: int, high: int) -> int:
+    value = t.integer(key, default)
+    if not 0 <= value <= high:
+        raise t.fail(key, value, f"must be a whole number >= 0 and at most {high}")
+    return value
+
+
 def _integer_in(t: _Table, key: str, default: int, options: Sequence[int]) -> int:
     value = t.integer(key, default)
     if value not in options:
@@ -956,8 +973,8 @@ def _jrc(t: _Table) -> JrcLineConfig:
 def _line_timers(t: _Table) -> tuple[float, float, float]:
     """timer_a_s, timer_b_s and time_scale, which both transports have."""
     return (
-        t.number("timer_a_s", 3.0, check=_positive, why="must be positive"),
-        t.number("timer_b_s", 20.0, check=_positive, why="must be positive"),
+        t.number("timer_a_s", 3.0, **_above_zero(60, "s")),
+        t.number("timer_b_s", 20.0, **_above_zero(600, "s")),
         t.number("time_scale", 1.0, check=lambda v: 1.0 <= v <= 1000.0, why="must be 1 (a real JRC) to 1000"),
     )
 
@@ -965,9 +982,7 @@ def _line_timers(t: _Table) -> tuple[float, float, float]:
 def _serial_line(t: _Table) -> JrcLineConfig:
     retries = {}
     for key, default in (("retry_1", 10), ("retry_2", 3)):
-        retries[key] = t.integer(key, default)
-        if retries[key] < 0:
-            raise t.fail(key, retries[key], "must be >= 0")
+        retries[key] = _integer_from_zero(t, key, default, 255)
     timer_a_s, timer_b_s, time_scale = _line_timers(t)
     return JrcLineConfig(
         port=t.text("port", "/dev/ttyS0"),
@@ -980,7 +995,7 @@ def _serial_line(t: _Table) -> JrcLineConfig:
         timer_b_s=timer_b_s,
         retry_1=retries["retry_1"],
         retry_2=retries["retry_2"],
-        jwait_slice_s=t.number("jwait_slice_s", 0.5, check=_positive, why="must be positive"),
+        jwait_slice_s=t.number("jwait_slice_s", 0.5, **_above_zero(60, "s")),
         time_scale=time_scale,
     )
 
@@ -1008,7 +1023,7 @@ def _ethernet_line(t: _Table) -> JrcLineConfig:
         transport=HostTransport.ETHERNET,
         host=t.text("host"),
         tcp_port=tcp_port,
-        status_poll_s=t.number("status_poll_s", 0.05, check=_positive, why="must be positive"),
+        status_poll_s=t.number("status_poll_s", 0.05, **_above_zero(10, "s")),
     )
 
 
@@ -1020,10 +1035,10 @@ def _safety(t: _Table) -> SafetyConfig:
     safety = SafetyConfig(
         workspace_min_m=low / 1000.0,
         workspace_max_m=high / 1000.0,
-        max_step_m=t.number("max_step_mm", 50.0, check=_positive, why="must be positive") / 1000.0,
-        max_step_rad=math.radians(t.number("max_step_deg", 15.0, check=_positive, why="must be positive")),
-        max_speed_m_s=t.number("max_speed_mm_s", 250.0, check=_positive, why="must be positive") / 1000.0,
-        joint_margin_rad=math.radians(t.number("joint_margin_deg", 0.0, check=_non_negative, why="must be >= 0")),
+        max_step_m=t.number("max_step_mm", 50.0, **_above_zero(1000, "mm")) / 1000.0,
+        max_step_rad=math.radians(t.number("max_step_deg", 15.0, **_above_zero(180, "deg"))),
+        max_speed_m_s=t.number("max_speed_mm_s", 250.0, **_above_zero(5000, "mm/s")) / 1000.0,
+        joint_margin_rad=math.radians(t.number("joint_margin_deg", 0.0, **_from_zero(90, "deg"))),
         watchdog_s=t.number(
             "watchdog_s",
             5.0,
@@ -1053,17 +1068,15 @@ def _simulation(t: _Table, truth: CellModel, board: BoardConfig | None) -> Simul
     t.table("truth")  # parsed by _truth_tables; marked as known here
     scene, laid_board = _scene(t.table("scene"), board)
     simulation = SimulationConfig(
-        seed=t.integer("seed", 0),
+        seed=_integer_from_zero(t, "seed", 0, 2**32 - 1),
         truth=truth,
         scene=scene,
         board=laid_board,
-        pixel_noise_px=t.number("pixel_noise_px", 0.0, check=_non_negative, why="must be >= 0"),
-        repeatability_m=t.number("repeatability_mm", 0.0, check=_non_negative, why="must be >= 0") / 1000.0,
-        repeatability_rad=math.radians(t.number("repeatability_deg", 0.0, check=_non_negative, why="must be >= 0")),
-        joint_placement_error_m=t.number("joint_placement_error_mm", 0.0, check=_non_negative, why="must be >= 0") / 1000.0,
-        joint_placement_error_rad=math.radians(
-            t.number("joint_placement_error_deg", 0.0, check=_non_negative, why="must be >= 0")
-        ),
+        pixel_noise_px=t.number("pixel_noise_px", 0.0, **_from_zero(100, "px")),
+        repeatability_m=t.number("repeatability_mm", 0.0, **_from_zero(100, "mm")) / 1000.0,
+        repeatability_rad=math.radians(t.number("repeatability_deg", 0.0, **_from_zero(90, "deg"))),
+        joint_placement_error_m=t.number("joint_placement_error_mm", 0.0, **_from_zero(100, "mm")) / 1000.0,
+        joint_placement_error_rad=math.radians(t.number("joint_placement_error_deg", 0.0, **_from_zero(90, "deg"))),
     )
     t.finish()
     return simulation

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
 from vservo.core.production.storage import default_data_dir
-from vservo.core.terminal.command_line import print_result, seed
+from vservo.core.terminal.command_line import CYCLE_PERIOD, TCP_PORT, print_result, seed
 from vservo.core.terminal.logs import add_log_options, announce, configure_logging
 
 if TYPE_CHECKING:  # imported when a command runs: `vservo --help` stays quick
@@ -352,13 +352,13 @@ def add_production_commands(commands: argparse._SubParsersAction) -> None:
     controller = commands.add_parser(
         "controller", help="the controller process: owns the cell, serves the app over an authenticated local channel"
     )
-    controller.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (default: any free one)")
+    controller.add_argument("--port", type=TCP_PORT, default=0, help="TCP port on 127.0.0.1 (default: any free one)")
     controller.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
     controller.add_argument("--seed", type=seed, default=None, help="seed of the simulated cell")
     controller.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
     controller.add_argument(
         "--cycle-period",
-        type=float,
+        type=CYCLE_PERIOD,
         default=0.05,
         metavar="S",
         help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)",

@@ -10,7 +10,7 @@ import threading
 from pathlib import Path
 
 from vservo.core.cell.config import HostTransport, load_cell
-from vservo.core.terminal.command_line import fraction, positive, seed
+from vservo.core.terminal.command_line import TCP_PORT, fraction, positive, seed
 from vservo.core.terminal.logs import add_log_options, announce, configure_logging
 
 
@@ -72,7 +72,7 @@ def add_jrc_emulator_command(commands: argparse._SubParsersAction) -> None:
     port.add_argument("--port", metavar="DEV", help="serve on this serial port instead of a new pseudo-terminal")
     port.add_argument(
         "--tcp-port",
-        type=int,
+        type=TCP_PORT,
         metavar="PORT",
         help="serve the Ethernet server's framing on this TCP port of 127.0.0.1 (0: any free one)",
     )
@@ -205,16 +205,16 @@ def add_virtual_cell_command(commands: argparse._SubParsersAction) -> None:
     )
     virtual.add_argument(
         "--jrc-tcp-port",
-        type=int,
+        type=TCP_PORT,
         default=0,
         metavar="PORT",
         help="with --robot-link ethernet, the JRC's TCP port (default: any free one)",
     )
     virtual.add_argument(
-        "--camera-port", type=int, default=0, metavar="PORT", help="the camera stream's TCP port (default: any free one)"
+        "--camera-port", type=TCP_PORT, default=0, metavar="PORT", help="the camera stream's TCP port (default: any free one)"
     )
     virtual.add_argument(
-        "--fixture-port", type=int, default=0, metavar="PORT", help="the fixture's TCP port (default: any free one)"
+        "--fixture-port", type=TCP_PORT, default=0, metavar="PORT", help="the fixture's TCP port (default: any free one)"
     )
     add_log_options(virtual)
     virtual.set_defaults(run=_cmd_virtual_cell)

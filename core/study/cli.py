@@ -14,7 +14,7 @@ from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.servo.methods import LaserLaw
 from vservo.core.sim import Arm
-from vservo.core.terminal.command_line import BenchCommand, fraction, positive, print_result, seed
+from vservo.core.terminal.command_line import BenchCommand, bounded, fraction, positive, print_result, seed
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -256,7 +256,7 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
     reproduce.add_argument("--out", required=True, metavar="DIR", help="folder for the results (created)")
     reproduce.add_argument(
         "--montecarlo",
-        type=int,
+        type=bounded(int, 0, 100_000),
         default=500,
         metavar="N",
         help="random initial poses per method for the Monte Carlo table (default 500, 0 skips it)",
