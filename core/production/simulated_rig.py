@@ -68,7 +68,11 @@ def simulated_rig(
         if not isinstance(policy, PositionStepPolicy):
             raise ValueError(f'{config.source}: the JRC takes position steps; set [motion] mode = "position_steps"')
         emulator = JrcEmulator(cell, config.jrc, time_scale=jrc_time_scale, vacuum=vacuum)
-        jrc = JrcBackend(emulator.start_for(replace(config.jrc, time_scale=jrc_time_scale)))
+        # The cell clock is the emulator's count of what the real JRC would take (each
+        # motion's duration, each exchange's bytes at the line's rate), not the wall clock.
+        jrc = JrcBackend(
+            emulator.start_for(replace(config.jrc, time_scale=jrc_time_scale)), controller_clock=emulator.cell_time_s
+        )
         robot = SafetyLayer.from_config(jrc, config)
         if vacuum.device == "jrc_io":
             gripper = JrcVacuum(jrc, *vacuum.jrc_io())

@@ -190,7 +190,6 @@ class BscStation:
     yields: bool
     faults: LinkFaults | None = None
     counters: LinkCounters = field(default_factory=LinkCounters)
-    bid_at_s: float = 0.0  # when the other end's last bid (ENQ) arrived (time.monotonic)
 
     # -- sending ---------------------------------------------------------------------
 
@@ -286,7 +285,6 @@ class BscStation:
         """Wait for the other end's ENQ until the deadline; other bytes are skipped."""
         while (b := self.channel.read_byte(deadline)) is not None:
             if b == ENQ:
-                self.bid_at_s = time.monotonic()
                 return True
             self.counters.junk_bytes += 1
         return False
