@@ -211,9 +211,10 @@ class CellController:
             subscriber(view)
 
     def robot_readout(self, bMe: Matrix | None = None) -> dict[str, Any]:
-        """Flange pose (read from the robot unless given), joints and vacuum sensor for the state."""
+        """Flange pose (unless given, where the robot stands: read only when not known,
+        SafetyLayer.pose), joints and vacuum sensor for the state."""
         try:
-            bMe = self.rig.robot.read_pose() if bMe is None else bMe
+            bMe = self.rig.robot.pose() if bMe is None else bMe
             holding = self.rig.gripper.holding()
         except RobotError as exc:  # the link is down: the state says so, the last readout stands
             log.warning("robot readout failed: %s", exc)

@@ -130,7 +130,7 @@ def carry_out(robot: RobotBackend, command: RobotCommand, bMe: Matrix) -> float:
     started_s = robot.clock_s()
     if isinstance(command, VelocityCommand):
         robot.move_timed(command.target(bMe), command.dt_s)
-        _wait_for_the_end(robot)
+        wait_for_the_end(robot)
         return robot.clock_s()
     move_and_wait(robot, command.bMe_target, command.speed_m_s)
     ended_s = robot.clock_s()
@@ -141,10 +141,11 @@ def carry_out(robot: RobotBackend, command: RobotCommand, bMe: Matrix) -> float:
 def move_and_wait(robot: RobotBackend, bMe_target: Matrix, speed_m_s: float) -> None:
     """One linear move to bMe_target, waited for; raises MotionStopped if it stops short."""
     robot.move_to(bMe_target, speed_m_s)
-    _wait_for_the_end(robot)
+    wait_for_the_end(robot)
 
 
-def _wait_for_the_end(robot: RobotBackend) -> None:
+def wait_for_the_end(robot: RobotBackend) -> None:
+    """Wait for the motion under way to end; raises MotionStopped if it stops short."""
     if not robot.wait_motion():
         raise MotionStopped(f"the robot stopped before the end of its move: {robot.status().describe()}")
 
@@ -169,4 +170,5 @@ __all__ = [
     "apply_increment",
     "carry_out",
     "move_and_wait",
+    "wait_for_the_end",
 ]
