@@ -78,6 +78,12 @@ def encode_blocks(message: Message) -> list[bytes]:
     return blocks
 
 
+def message_bytes(message: Message) -> int:
+    """The bytes one message's exchange puts on the line, both ends together, without
+    repeats: the sender's ENQ, the receiver's ACK0, each block and its ACK, the EOT."""
+    return 1 + len(ACK0) + sum(len(block) + len(ACK1) for block in encode_blocks(message)) + 1
+
+
 class Port(Protocol):
     """What the link needs of a serial port (pyserial's Serial has it): ``read`` returns
     what arrives within the port's short timeout, possibly nothing."""

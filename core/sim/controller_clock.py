@@ -40,12 +40,14 @@ class Ended(StrEnum):
 @dataclass(frozen=True)
 class CountedExchange:
     """One exchange as the clock counted it: the command's name, its request's and its
-    reply's time on the line, the motion it set going (s, or 0), and the clock after it."""
+    reply's time on the line, the motion it set going (s, or 0), what its answer said of
+    the motion under way, and the clock after it."""
 
     name: str
     request_s: float
     reply_s: float
     motion_s: float
+    ended: Ended
     ends_s: float
 
 
@@ -78,7 +80,7 @@ class ControllerClock:
             self.now_s += request_s + reply_s
         if motion_s > 0.0:  # it moves once the command has crossed; the answer crosses meanwhile
             self._motion_start_s, self._motion_s = self.now_s - reply_s, motion_s
-        self.exchanges.append(CountedExchange(name, request_s, reply_s, motion_s, self.now_s))
+        self.exchanges.append(CountedExchange(name, request_s, reply_s, motion_s, ended, self.now_s))
 
     def cut(self, ran_s: float) -> None:
         """The motion under way was stopped after ``ran_s`` of its run (hold, servo off, alarm)."""

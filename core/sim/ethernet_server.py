@@ -70,8 +70,9 @@ class EthernetServer:
     """Serves ``answer`` (host command text in, Answer out) on ``host``:``port`` (0: any free one).
 
     ``faults`` is the emulator's FaultInjector (its ``draw`` and ``injected``);
-    ``connections`` counts the sessions started; ``crossed(request_bytes, reply_bytes)``
-    hears of each command answered, once its answer is sent (the emulator's cell clock).
+    ``connections`` counts the sessions started; ``count(name, answer, request_bytes,
+    reply_bytes)`` hears of each command answered, before its answer goes out (the
+    emulator's cell clock).
     """
 
     def __init__(
@@ -82,10 +83,10 @@ class EthernetServer:
         stop: threading.Event,
         host: str = "127.0.0.1",
         port: int = 0,
-        crossed: Callable[[int, int], None] = lambda request_bytes, reply_bytes: None,
+        count: Callable[[str, Answer, int, int], None] = lambda name, answer, request_bytes, reply_bytes: None,
     ) -> None:
         self.answer, self.line, self.faults, self._stop = answer, line, faults, stop
-        self.crossed = crossed
+        self.count = count
         self.listener = socket.create_server((host, port))
         self.address: tuple[str, int] = self.listener.getsockname()[:2]
         self.connections = 0
@@ -145,15 +146,15 @@ class EthernetServer:
             self.faults.injected[fault] += 1
             self._until_closed(connection)
         answer = self.answer(f"{name} {operands}" if operands else name)
+        reply = framed(name, answer)
+        self.count(name, answer, request_bytes, len(accepted) + len(reply))
         if fault == "drop":
             self.faults.injected[fault] += 1
             return False  # carried out, and the connection closed before its answer
         if fault == "delay":
             self.faults.injected[fault] += 1
             time.sleep(self.faults.rng.uniform(0.3, 1.5) * self.line.timer_a_s)
-        reply = framed(name, answer)
         connection.sendall(reply)
-        self.crossed(request_bytes, len(accepted) + len(reply))
         return True
 
     # -- reading -----------------------------------------------------------------------

@@ -56,7 +56,7 @@ from vservo.core.cell.config import HostTransport, JrcLineConfig, VacuumDeviceCo
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, pose_error
 from vservo.core.robot.backend import apply_increment
-from vservo.core.robot.bsc import BscStation, ByteChannel, LinkError, Message, Port
+from vservo.core.robot.bsc import BscStation, ByteChannel, LinkError, Message, Port, message_bytes
 from vservo.core.robot.ethernet_link import ETHERNET_BIT_RATE
 from vservo.core.robot.host_link import Answer, ReplyKind
 from vservo.core.robot.jrc import (
@@ -244,7 +244,6 @@ class JrcEmulator:
         self.executed: list[str] = []
         self.exchanges = 0
         self.clock = ControllerClock()
-        self._answered: tuple[str, Answer, float] | None = None  # the last answer, its motion's duration: to clock
         self._motion_taken_s = 0.0  # the duration of the motion the command being answered set going
         self.servo_on = False
         self.command_hold = False
@@ -279,7 +278,7 @@ class JrcEmulator:
         """Serve the Ethernet server's framing on a TCP port (0: any free one), and return
         the (host, port) the host connects to."""
         self.faults.serve_over(ETHERNET_FAULT_KINDS)
-        self.ethernet = EthernetServer(self.answer, self.line, self.faults, self._stop, host, port, self._crossed)
+        self.ethernet = EthernetServer(self.answer, self.line, self.faults, self._stop, host, port, self.count)
         self.address = self.ethernet.address
         self._run(self.ethernet.serve, "jrc-emulator-tcp")
         return self.address
@@ -330,9 +329,7 @@ class JrcEmulator:
 
     def _serve(self, station: BscStation) -> None:
         ignoring = 0
-        channel = station.channel
         while not self._stop.is_set():
-            before = channel.bytes_in + channel.bytes_out
             if not station.wait_for_bid(time.monotonic() + IDLE_POLL_S):
                 continue
             if ignoring:
@@ -346,39 +343,38 @@ class JrcEmulator:
             except LinkError as exc:
                 log.info("host message lost: %s", exc)
                 continue
-            received = channel.bytes_in + channel.bytes_out
             reply = self.handle(request)
             try:
                 station.send(reply)
             except LinkError as exc:
                 log.info("reply lost: %s", exc)
-            self._crossed(received - before, channel.bytes_in + channel.bytes_out - received)
 
     # -- the JRC -----------------------------------------------------------------------
 
     def handle(self, request: Message) -> Message:
-        """One host command in a BSC message in, its reply message out."""
+        """One host command in a BSC message in, its reply message out, counted on the cell clock."""
         if request.header != HOST_COMMAND:
             return reply_message(Answer.status(1010))
-        return reply_message(self.answer(request.text.rstrip("\r")))
+        text = request.text.rstrip("\r")
+        answer = self.answer(text)
+        reply = reply_message(answer)
+        self.count(text.partition(" ")[0], answer, message_bytes(request), message_bytes(reply))
+        return reply
 
     def answer(self, text: str) -> Answer:
         """One host command (its text, no line end) in, its answer out, whatever the link."""
         with self.lock:
             self.exchanges += 1
             self._motion_taken_s = 0.0
-            answer = self._answer(text)
-            self._answered = (text.partition(" ")[0], answer, self._motion_taken_s)
-            return answer
+            return self._answer(text)
 
-    def _crossed(self, request_bytes: int, reply_bytes: int) -> None:
-        """The last exchange's bytes each way, once its reply has crossed the link: the
-        cell clock counts it (core/sim/controller_clock.py)."""
+    def count(self, name: str, answer: Answer, request_bytes: int, reply_bytes: int) -> None:
+        """The exchange just answered (command ``name``, its ``answer``), its bytes each way,
+        on the cell clock (core/sim/controller_clock.py): before the answer goes out, so a
+        host that has the answer reads a clock that counts it."""
         with self.lock:
-            if self._answered is None:  # a message that was no command (refused before answer)
-                return
-            (name, answer, motion_s), self._answered = self._answered, None
-            self.clock.count(name, self._wire_s(request_bytes), self._wire_s(reply_bytes), motion_s, _ended(name, answer))
+            ended = _ended(name, answer)
+            self.clock.count(name, self._wire_s(request_bytes), self._wire_s(reply_bytes), self._motion_taken_s, ended)
 
     def _wire_s(self, n_bytes: int) -> float:
         """How long n_bytes take on the link served: the serial line at its baud rate, or Ethernet."""
