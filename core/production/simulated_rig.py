@@ -25,7 +25,7 @@ from vservo.core.robot.gripper import NoVacuum, VacuumGripper
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.robot.jrc_vacuum import JrcVacuum
 from vservo.core.robot.safety import SafetyLayer
-from vservo.core.servo.step_policy import DividedPositionStep, PositionStepPolicy, step_policy_from_config
+from vservo.core.servo.step_policy import PositionStepPolicy, step_policy_from_config
 from vservo.core.sim.backend import SimulatedBackend
 from vservo.core.sim.camera import SimulatedCamera
 from vservo.core.sim.jrc_emulator import JrcEmulator
@@ -34,8 +34,8 @@ from vservo.core.sim.part_feeder import present_part as feed_part
 from vservo.core.sim.plant import SimulatedCell
 from vservo.core.sim.vacuum import SimulatedVacuum
 
-# The emulated JRC moves this many times faster than a real one, and the host's sampling
-# period shrinks as much: a 2 s step of the thesis's cell takes 50 ms on screen.
+# The emulated JRC moves this many times faster than a real one, and the host waits out
+# its sampling period as much faster: a 2 s step of the thesis's cell takes 50 ms on screen.
 JRC_TIME_SCALE = 40.0
 
 
@@ -76,8 +76,6 @@ def simulated_rig(
         robot = SafetyLayer.from_config(jrc, config)
         if vacuum.device == "jrc_io":
             gripper = JrcVacuum(jrc, *vacuum.jrc_io())
-        if isinstance(policy, DividedPositionStep):  # the period in the emulator's time
-            policy = replace(policy, sampling_period_s=policy.sampling_period_s / jrc_time_scale)
     # The emulator's thread moves the plant: the table changes between its commands.
     lock = emulator.lock if emulator is not None else nullcontext()
 

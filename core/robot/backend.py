@@ -109,7 +109,8 @@ class RobotBackend(Protocol):
         ...
 
     def dwell(self, seconds: float) -> None:
-        """Let time pass with the robot standing still (the rest of a sampling period)."""
+        """Let ``seconds`` of the cell clock pass with the robot standing still (the rest of
+        a sampling period; an emulated controller's time_scale times faster on the wall)."""
         ...
 
 
@@ -122,19 +123,20 @@ def carry_out(robot: RobotBackend, command: RobotCommand, bMe: Matrix) -> float:
 
     A velocity step moves for its control period. A position step (the JRC style,
     section 5.3) moves to its target, waits for the end of the motion, then for the rest
-    of the sampling period, so the next target is sent one period after this one.
+    of the sampling period, so the next target is sent one period after this one (on the
+    cell clock: the period is the real cell's, and so is the dwell).
     Returns the robot's clock when the motion ended (before that rest): a frame exposed
     since then shows where the robot stopped.
     Raises MotionStopped when the robot stops short (hold, alarm, servo off).
     """
-    started_s = robot.clock_s()
     if isinstance(command, VelocityCommand):
         robot.move_timed(command.target(bMe), command.dt_s)
         wait_for_the_end(robot)
         return robot.clock_s()
+    started_s = robot.cell_clock_s()
     move_and_wait(robot, command.bMe_target, command.speed_m_s)
     ended_s = robot.clock_s()
-    robot.dwell(command.period_s - (ended_s - started_s))
+    robot.dwell(command.period_s - (robot.cell_clock_s() - started_s))
     return ended_s
 
 

@@ -195,8 +195,9 @@ class JrcBackend:
     ``time_scale`` times faster on a host whose delays the wall clock counts too, so its
     test cell gives its own clock (``controller_clock``: the emulator's count of each
     motion's duration and each exchange's bytes at the line's rate,
-    core/sim/controller_clock.py), to which the host adds its dwells, ``time_scale``
-    times; the same exchanges then read the same time on every run.
+    core/sim/controller_clock.py), to which the host adds its dwells (``dwell`` takes
+    controller time, and waits it out ``time_scale`` times faster); the same exchanges then
+    read the same time on every run.
     """
 
     name = "jrc"
@@ -212,7 +213,7 @@ class JrcBackend:
         self.link = link if link is not None else host_link(line, port)
         self.port = self.link.where
         self.controller_clock = controller_clock
-        self._dwelt_s = 0.0  # the host's dwells, in the controller's time
+        self._dwelt_s = 0.0  # the host's dwells (controller time)
         self._lock = threading.RLock()
         self._holds_waiting = 0  # holds from other threads (e-stop, watchdog) go before the next motion wait
         self._posture = 0  # the RPOSC "type": the arm configuration, sent back with MOVL
@@ -442,8 +443,8 @@ class JrcBackend:
 
     def dwell(self, seconds: float) -> None:
         if seconds > 0.0:
-            time.sleep(seconds)
-            self._dwelt_s += self.line.time_scale * seconds
+            time.sleep(seconds / self.line.time_scale)
+            self._dwelt_s += seconds
 
     # -- helpers ---------------------------------------------------------------------
 
