@@ -6,7 +6,9 @@ checks, in order: a latched stop (e-stop or watchdog), the requested speed, that
 target is a finite pose, that the flange and every tool frame (camera, laser, vacuum
 cup) stay inside the workspace box, the size of the step from where the robot is, and
 that the NOMINAL arm's IK finds joints within their limits less a margin. A refused move
-raises a SafetyRefusal subclass naming the limit and the values, and nothing moves.
+raises a SafetyRefusal subclass naming the limit and the values, and nothing moves. A
+taught move of any length (move_linear) passes the same checks at points of its straight
+line no further apart than one step may be, and then goes out as one linear move.
 
 The e-stop holds the robot at once and refuses every move, servo power on and hold
 release until it is reset. The watchdog does the same when, during a servo, the camera
