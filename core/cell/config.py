@@ -18,6 +18,7 @@ converted to SI once, here. Every error names the file, the key and the bad valu
 
 from __future__ import annotations
 
+import copy
 import math
 import tomllib
 from collections.abc import Callable, Sequence
@@ -976,6 +977,34 @@ def write_thesis_policy_cell(folder: Path) -> Path:
     path = Path(folder) / "thesis-policy-cell.toml"
     path.write_text(thesis)
     return path
+
+
+def with_truth(cell_tables: dict[str, Any], truth_file: dict[str, Any] | None) -> dict[str, Any]:
+    """The cell's tables with the truth file's [simulation.truth.*] in place of its own,
+    and its [simulation.scene] board_pose (where the board truly lies), if it has one."""
+    tables = copy.deepcopy(cell_tables)
+    if truth_file is not None:
+        simulation = truth_file.get("simulation", {})
+        truth = simulation.get("truth")
+        if not isinstance(truth, dict) or not truth:
+            raise ConfigError("the truth file has no [simulation.truth.*] tables: it says nothing about the true cell")
+        tables.setdefault("simulation", {})["truth"] = copy.deepcopy(truth)
+        board_pose = simulation.get("scene", {}).get("board_pose")
+        if board_pose is not None:
+            tables["simulation"].setdefault("scene", {})["board_pose"] = copy.deepcopy(board_pose)
+    return tables
+
+
+def read_cell_data_with_truth(cell: str | Path | None, truth: str | Path | None) -> tuple[dict[str, Any], str]:
+    """The ``cell`` file's tables (the shipped cell by default) with the ``truth`` file's truth
+    laid over them (``--truth`` of ``vservo virtual-cell``, ``simulate`` and ``montecarlo``)."""
+    tables, source = read_cell_data(cell)
+    if truth is None:
+        return with_truth(tables, None), source
+    try:
+        return with_truth(tables, read_cell_data(truth)[0]), f"{source} with the truth of {truth}"
+    except ConfigError as exc:
+        raise ConfigError(f"--truth {truth}: {exc}") from None
 
 
 def load_cell(path: str | Path | None = None) -> CellConfig:

@@ -374,7 +374,8 @@ class AssemblySequence:
         job = self.job
         self.timer.enter(CellTimePhase.SERVO)
         self._say(Phase.SERVOING, f"servoing with the {job.method} method")
-        law = build_law(self.model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
+        settings = LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px, laser_law=job.laser_law)
+        law = build_law(self.model, settings)
         self.servo = run_servo(
             FlangeReadout(self.robot),
             law,

@@ -93,14 +93,15 @@ def add_jrc_emulator_command(commands: argparse._SubParsersAction) -> None:
 def _cmd_virtual_cell(args: argparse.Namespace) -> int:
     import signal
 
-    from vservo.core.sim.virtual_cell import Addresses, Released, VirtualCell, VirtualCellSettings, load_virtual_cell_tables
+    from vservo.core.cell.config import read_cell_data_with_truth
+    from vservo.core.sim.virtual_cell import Addresses, Released, VirtualCell, VirtualCellSettings
 
     over_ethernet = HostTransport(args.robot_link) is HostTransport.ETHERNET
     if args.jrc_link and over_ethernet:
         raise ValueError("--jrc-link names a pseudo-terminal: it needs --robot-link serial")
     if args.jrc_tcp_port and not over_ethernet:
         raise ValueError("--jrc-tcp-port is the Ethernet server's port: it needs --robot-link ethernet")
-    tables, source = load_virtual_cell_tables(args.cell, args.truth)
+    tables, source = read_cell_data_with_truth(args.cell, args.truth)
     settings = VirtualCellSettings(
         time_scale=args.time_scale, fps=args.fps, exposure_latency_s=args.latency, robot_link=HostTransport(args.robot_link)
     )

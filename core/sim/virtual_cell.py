@@ -44,7 +44,6 @@ from vservo.core.cell.config import (
     HostTransport,
     VacuumDeviceConfig,
     parse_cell,
-    read_cell_data,
 )
 from vservo.core.perception.recording import write_atomic
 from vservo.core.sim.camera_stream import CameraStream
@@ -106,22 +105,6 @@ class Released:
 
     def as_dict(self) -> dict[str, Any]:
         return {"event": "released", "inside": self.inside, "placement_error_mm": round(self.placement_error_mm, 4)}
-
-
-def with_truth(cell_tables: dict[str, Any], truth_file: dict[str, Any] | None) -> dict[str, Any]:
-    """The cell's tables with the truth file's [simulation.truth.*] in place of its own,
-    and its [simulation.scene] board_pose (where the board truly lies), if it has one."""
-    tables = copy.deepcopy(cell_tables)
-    if truth_file is not None:
-        simulation = truth_file.get("simulation", {})
-        truth = simulation.get("truth")
-        if not isinstance(truth, dict) or not truth:
-            raise ConfigError("the truth file has no [simulation.truth.*] tables: it says nothing about the true cell")
-        tables.setdefault("simulation", {})["truth"] = copy.deepcopy(truth)
-        board_pose = simulation.get("scene", {}).get("board_pose")
-        if board_pose is not None:
-            tables["simulation"].setdefault("scene", {})["board_pose"] = copy.deepcopy(board_pose)
-    return tables
 
 
 def jrc_table(cell_jrc: dict[str, Any], link: dict[str, Any], time_scale: float) -> dict[str, Any]:
@@ -435,14 +418,3 @@ def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
             log.debug("fixture: " + format, *args)
 
     return FixtureHandler
-
-
-def load_virtual_cell_tables(cell: str | None, truth: str | None) -> tuple[dict[str, Any], str]:
-    """The --cell file's tables (the shipped cell by default) with the --truth file's truth."""
-    tables, source = read_cell_data(cell)
-    if truth is None:
-        return with_truth(tables, None), source
-    try:
-        return with_truth(tables, read_cell_data(truth)[0]), f"{source} with the truth of {truth}"
-    except ConfigError as exc:
-        raise ConfigError(f"--truth {truth}: {exc}") from None
