@@ -266,8 +266,8 @@ def run_assembly(
 ) -> AssemblyOutcome:
     """Run the job once; the robot must be connected with servo power on.
 
-    Taught moves (start, pick, place) go out as linear moves cut into safety-sized steps
-    (SafetyLayer.move_linear), a locating job's moves to its survey pose and on to the
+    Taught moves (start, pick, place, check) go out as one linear move each, checked along
+    their whole line first (SafetyLayer.move_linear), a locating job's moves to its survey pose and on to the
     located part's start pose as joint moves (SafetyLayer.move_joint); the servo's steps
     as the step policy makes them.
     """

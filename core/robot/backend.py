@@ -104,8 +104,9 @@ class RobotBackend(Protocol):
 
     def cell_clock_s(self) -> float:
         """How long the real cell would have taken, as a clock: the plant's time for the
-        simulator; for a JRC the wall clock with an emulator's speed-up undone and the link
-        at its baud rate (on a real JRC, the wall clock). Only differences mean anything."""
+        simulator; on a real JRC the wall clock; for an emulated one the emulator's count of
+        each motion's duration and each exchange's bytes at the line's rate, with the host's
+        dwells (core/sim/controller_clock.py). Only differences mean anything."""
         ...
 
     def dwell(self, seconds: float) -> None:
