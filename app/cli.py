@@ -20,6 +20,7 @@ from vservo.core.production.cli import BACKEND_HELP, add_production_commands
 from vservo.core.production.storage import default_data_dir
 from vservo.core.sim.cli import add_jrc_emulator_command, add_virtual_cell_command
 from vservo.core.study.cli import (
+    add_cell_time_bench,
     add_jrc_bench,
     add_locate_bench,
     add_stream_bench,
@@ -226,6 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_locate_bench(bench)
     add_calibration_bench(bench)
     add_jrc_bench(bench)
+    add_cell_time_bench(bench)
     _add_ui_bench(bench)
     _add_browsers_bench(bench)
     bench.close()

@@ -44,12 +44,12 @@ def jrc_link(cell, config, faults=FaultPlan(), time_scale=TIME_SCALE, transport=
     """(a connected JrcBackend, the emulator of ``cell`` it talks to over a pty or a
     loopback TCP port, as ``transport`` says, its I/O wired as the cell file's [vacuum] says)."""
     emulator = JrcEmulator(cell, config.jrc, faults, time_scale, vacuum=config.vacuum_device)
-    line = emulator.start_for(replace(config.jrc, transport=transport))
+    line = emulator.start_for(replace(config.jrc, transport=transport, time_scale=time_scale))
     if transport is HostTransport.ETHERNET:
         # The host reads the status every status_poll_s of the emulator's time, as a
         # virtual cell's file says (its time_scale); a pendant hold then lasts many reads.
-        line = replace(line, time_scale=time_scale, timer_a_s=ETHERNET_TIMER_A_S)
-    robot = JrcBackend(line)
+        line = replace(line, timer_a_s=ETHERNET_TIMER_A_S)
+    robot = JrcBackend(line, controller_clock=emulator.cell_time_s)
     try:
         robot.connect()
         yield robot, emulator

@@ -210,7 +210,8 @@ class JrcLineConfig:
     jwait_slice_s: a wait for the end of a motion is split into JWAITs this long, so a
     hold from the host (e-stop, watchdog) reaches the JRC within one slice.
     time_scale: an emulated JRC runs this many times faster than real time (the virtual
-    cell writes it); 1, a real JRC. The host's cell clock undoes it.
+    cell writes it); 1, a real JRC. The host waits out its sampling periods (and, over
+    Ethernet, its status reads) that much faster; the cell clock is the emulator's own count.
 
     Over Ethernet (``transport``) the controller is ``host``:``tcp_port``, and as its
     server offers no JWAIT the end of a motion is found by reading its status (RSTATS)

@@ -172,14 +172,15 @@ class PlacementReport:
 @dataclass(frozen=True)
 class FlangeReadout:
     """The servo loop's measurement on a cell whose features come from camera frames:
-    the flange pose as the JRC reports it, the joints the arm's model puts it at (for the
-    joint limits in the law), nothing projected."""
+    the flange pose as the JRC reports it (SafetyLayer.pose: the target of the last move,
+    which it reported done, without a reading), the joints the arm's model puts it at (for
+    the joint limits in the law), nothing projected."""
 
     robot: SafetyLayer
 
     def measure(self, look: bool = False) -> Measurement:
         unseen = np.full(2, np.nan)
-        bMe = self.robot.read_pose()
+        bMe = self.robot.pose()
         return Measurement(
             self.robot.clock_s(),
             self.robot.model_joints(bMe),
@@ -266,8 +267,8 @@ def run_assembly(
 ) -> AssemblyOutcome:
     """Run the job once; the robot must be connected with servo power on.
 
-    Taught moves (start, pick, place) go out as linear moves cut into safety-sized steps
-    (SafetyLayer.move_linear), a locating job's moves to its survey pose and on to the
+    Taught moves (start, pick, place, check) go out as one linear move each, checked along
+    their whole line first (SafetyLayer.move_linear), a locating job's moves to its survey pose and on to the
     located part's start pose as joint moves (SafetyLayer.move_joint); the servo's steps
     as the step policy makes them.
     """
@@ -299,6 +300,9 @@ class AssemblySequence:
     def run(self) -> AssemblyOutcome:
         seen = None
         try:
+            # Read where the arm stands once: it may have been moved since the last run (the
+            # pendant, another program); from here on each move's end is its target.
+            self.robot.read_pose()
             start_bMe = self.job.start_bMe
             if self.job.survey_bMe is not None:
                 located = self._locate(self.job.survey_bMe)
@@ -345,7 +349,7 @@ class AssemblySequence:
         # A frame exposed after the move ended, from the pose the robot reports.
         survey = self.perception.perceive(FlangeReadout(robot).measure(), robot.clock_s())
         try:
-            located = self.settings.locator.locate(survey.corners_px, robot.read_pose(), job.part_side_m)
+            located = self.settings.locator.locate(survey.corners_px, robot.pose(), job.part_side_m)
         except LocateError as exc:
             return self._end(Outcome.FAULT, f"locate: {exc}")
         taught = job.taught_model or TaughtModel.of(self.model)
@@ -402,7 +406,7 @@ class AssemblySequence:
         job, robot, speed_m_s = self.job, self.robot, self.settings.speed_m_s
         self.timer.enter(CellTimePhase.PICK)
         self._say(Phase.PICKING, f"servo converged, feature error {servo.final_error_px:.2f} px")
-        bMe_end = robot.read_pose()
+        bMe_end = robot.pose()
         pick = grasp_choice(
             bMe_end @ job.eMe_pick,
             self._part_in_pick(),

@@ -168,7 +168,8 @@ class AssemblyRun:
         self.publisher.update(
             run=RunFigures(self.run_id, cycle.output.stage, cycle.iteration + 1, error_px, cycle.output.cVc, self.part_id),
             **({"detail": note} if note else {}),
-            **self.publisher.robot_readout(cycle.measurement.bMe),
+            # The cup does not change while the servo runs (suction comes at the pick): no I/O read.
+            **self.publisher.robot_readout(cycle.measurement.bMe, vacuum=False),
         )
         if frame is not None:
             corners, spot = cycle.features.corners_px, cycle.features.laser_spot_px

@@ -211,15 +211,16 @@ class CellController:
         for subscriber in list(self.frame_subscribers):
             subscriber(view)
 
-    def robot_readout(self, bMe: Matrix | None = None) -> dict[str, Any]:
-        """Flange pose (read from the robot unless given), joints and vacuum sensor for the state."""
+    def robot_readout(self, bMe: Matrix | None = None, vacuum: bool = True) -> dict[str, Any]:
+        """Flange pose (unless given, where the robot stands: read only when not known,
+        SafetyLayer.pose), joints and (``vacuum``: a JRC's I/O read) the vacuum sensor for the state."""
         try:
-            bMe = self.rig.robot.read_pose() if bMe is None else bMe
-            holding = self.rig.gripper.holding()
+            bMe = self.rig.robot.pose() if bMe is None else bMe
+            holding = {"holding_part": self.rig.gripper.holding()} if vacuum else {}
         except RobotError as exc:  # the link is down: the state says so, the last readout stands
             log.warning("robot readout failed: %s", exc)
             return {}
-        return {"bMe": bMe, "q": self._joints_shown(bMe), "holding_part": holding}
+        return {"bMe": bMe, "q": self._joints_shown(bMe), **holding}
 
     def _joints_shown(self, bMe: Matrix) -> Matrix:
         if self.rig.cell is not None:  # the simulated cell's plant: its true joints

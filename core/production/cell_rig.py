@@ -47,11 +47,12 @@ def real_rig(config: CellConfig) -> Rig:
     model = config.nominal
     intrinsics = model.camera.intrinsics
     camera = open_camera(config.camera_source, (intrinsics.width, intrinsics.height), config.safety.watchdog_s)
-    jrc = JrcBackend(config.jrc)
-    vacuum = config.vacuum_device
-    gripper: VacuumGripper = JrcVacuum(jrc, *vacuum.jrc_io()) if vacuum.device == "jrc_io" else NoVacuum()
     # A test cell's part feeder and gauge, on the fixture of [fixture] url; none on a production cell.
     fixture = FixtureClient(config.fixture_url) if config.fixture_url else None
+    # A test cell's controller is emulated: its fixture keeps the cell clock; a real one's is the wall clock.
+    jrc = JrcBackend(config.jrc, controller_clock=fixture.cell_time_s if fixture else None)
+    vacuum = config.vacuum_device
+    gripper: VacuumGripper = JrcVacuum(jrc, *vacuum.jrc_io()) if vacuum.device == "jrc_io" else NoVacuum()
     return Rig(
         config=config,
         robot=SafetyLayer.from_config(jrc, config),

@@ -3,21 +3,24 @@
 A production cell has none: parts arrive by hand or on a conveyor, and an integrator lays
 the calibration checkerboard. A test cell (the virtual cell of ``vservo virtual-cell``)
 has a fixture that puts a new part on the table on request (near where the job was
-taught, or at a given place), lays the checkerboard or takes it away, and gauges where a
-released part ended; the controller uses all but the gauge, and measures placement
-itself, by vision. The cell file names the fixture with ``[fixture] url``; its endpoints
-are in docs/connecting-your-cell.md.
+taught, or at a given place), lays the checkerboard or takes it away, gauges where a
+released part ended, and keeps the cell clock of its emulated controller; the controller
+uses all but the gauge, and measures placement itself, by vision. The cell file names
+the fixture with ``[fixture] url``; its endpoints are in docs/connecting-your-cell.md.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import urllib.error
 import urllib.request
 
 import numpy as np
 
 from vservo.core.errors import VservoError
+
+log = logging.getLogger("vservo.fixture")
 
 
 class FixtureError(VservoError, RuntimeError):
@@ -42,6 +45,20 @@ class FixtureClient:
     def lay_board(self, laid: bool) -> dict:
         """Lay the calibration checkerboard on the table (the parts cleared off it), or take it away."""
         return self._request("POST", "/board", {"laid": bool(laid)})
+
+    def cell_time_s(self) -> float:
+        """The test cell's clock: what its emulated controller would take on a real cell
+        (each motion's duration, each exchange's bytes at the line's rate); NaN, said in the
+        log, when the fixture cannot tell (a run's cell time is then unknown, the run goes on)."""
+        try:
+            seconds = self._request("GET", "/clock").get("cell_time_s")
+        except FixtureError as exc:
+            log.warning("no cell time: %s", exc)
+            return float("nan")
+        if isinstance(seconds, bool) or not isinstance(seconds, (int, float)):
+            log.warning("no cell time: fixture %s: GET /clock answered %r", self.url, seconds)
+            return float("nan")
+        return float(seconds)
 
     def _request(self, method: str, path: str, body: dict | None = None) -> dict:
         data = None if body is None else json.dumps(body).encode()

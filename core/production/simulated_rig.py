@@ -25,7 +25,7 @@ from vservo.core.robot.gripper import NoVacuum, VacuumGripper
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.robot.jrc_vacuum import JrcVacuum
 from vservo.core.robot.safety import SafetyLayer
-from vservo.core.servo.step_policy import DividedPositionStep, PositionStepPolicy, step_policy_from_config
+from vservo.core.servo.step_policy import PositionStepPolicy, step_policy_from_config
 from vservo.core.sim.backend import SimulatedBackend
 from vservo.core.sim.camera import SimulatedCamera
 from vservo.core.sim.jrc_emulator import JrcEmulator
@@ -34,8 +34,8 @@ from vservo.core.sim.part_feeder import present_part as feed_part
 from vservo.core.sim.plant import SimulatedCell
 from vservo.core.sim.vacuum import SimulatedVacuum
 
-# The emulated JRC moves this many times faster than a real one, and the host's sampling
-# period shrinks as much: a 2 s step of the thesis's cell takes 50 ms on screen.
+# The emulated JRC moves this many times faster than a real one, and the host waits out
+# its sampling period as much faster: a 2 s step of the thesis's cell takes 50 ms on screen.
 JRC_TIME_SCALE = 40.0
 
 
@@ -68,12 +68,14 @@ def simulated_rig(
         if not isinstance(policy, PositionStepPolicy):
             raise ValueError(f'{config.source}: the JRC takes position steps; set [motion] mode = "position_steps"')
         emulator = JrcEmulator(cell, config.jrc, time_scale=jrc_time_scale, vacuum=vacuum, plc=config.plc)
-        jrc = JrcBackend(emulator.start_for(replace(config.jrc, time_scale=jrc_time_scale)))
+        # The cell clock is the emulator's count of what the real JRC would take (each
+        # motion's duration, each exchange's bytes at the line's rate), not the wall clock.
+        jrc = JrcBackend(
+            emulator.start_for(replace(config.jrc, time_scale=jrc_time_scale)), controller_clock=emulator.cell_time_s
+        )
         robot = SafetyLayer.from_config(jrc, config)
         if vacuum.device == "jrc_io":
             gripper = JrcVacuum(jrc, *vacuum.jrc_io())
-        if isinstance(policy, DividedPositionStep):  # the period in the emulator's time
-            policy = replace(policy, sampling_period_s=policy.sampling_period_s / jrc_time_scale)
     # The emulator's thread moves the plant: the table changes between its commands.
     lock = emulator.lock if emulator is not None else nullcontext()
 

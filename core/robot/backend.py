@@ -104,12 +104,14 @@ class RobotBackend(Protocol):
 
     def cell_clock_s(self) -> float:
         """How long the real cell would have taken, as a clock: the plant's time for the
-        simulator; for a JRC the wall clock with an emulator's speed-up undone and the link
-        at its baud rate (on a real JRC, the wall clock). Only differences mean anything."""
+        simulator; on a real JRC the wall clock; for an emulated one the emulator's count of
+        each motion's duration and each exchange's bytes at the line's rate, with the host's
+        dwells (core/sim/controller_clock.py). Only differences mean anything."""
         ...
 
     def dwell(self, seconds: float) -> None:
-        """Let time pass with the robot standing still (the rest of a sampling period)."""
+        """Let ``seconds`` of the cell clock pass with the robot standing still (the rest of
+        a sampling period; an emulated controller's time_scale times faster on the wall)."""
         ...
 
 
@@ -122,29 +124,34 @@ def carry_out(robot: RobotBackend, command: RobotCommand, bMe: Matrix) -> float:
 
     A velocity step moves for its control period. A position step (the JRC style,
     section 5.3) moves to its target, waits for the end of the motion, then for the rest
-    of the sampling period, so the next target is sent one period after this one.
+    of the sampling period, so the next target is sent one period after this one (on the
+    cell clock: the period is the real cell's, and so is the dwell).
     Returns the robot's clock when the motion ended (before that rest): a frame exposed
     since then shows where the robot stopped.
     Raises MotionStopped when the robot stops short (hold, alarm, servo off).
     """
-    started_s = robot.clock_s()
     if isinstance(command, VelocityCommand):
         robot.move_timed(command.target(bMe), command.dt_s)
-        _wait_for_the_end(robot)
+        wait_for_the_end(robot)
         return robot.clock_s()
+    if command.period_s <= 0.0:  # no sampling wait (the fast policy): no clock to read
+        move_and_wait(robot, command.bMe_target, command.speed_m_s)
+        return robot.clock_s()
+    started_s = robot.cell_clock_s()
     move_and_wait(robot, command.bMe_target, command.speed_m_s)
     ended_s = robot.clock_s()
-    robot.dwell(command.period_s - (ended_s - started_s))
+    robot.dwell(command.period_s - (robot.cell_clock_s() - started_s))
     return ended_s
 
 
 def move_and_wait(robot: RobotBackend, bMe_target: Matrix, speed_m_s: float) -> None:
     """One linear move to bMe_target, waited for; raises MotionStopped if it stops short."""
     robot.move_to(bMe_target, speed_m_s)
-    _wait_for_the_end(robot)
+    wait_for_the_end(robot)
 
 
-def _wait_for_the_end(robot: RobotBackend) -> None:
+def wait_for_the_end(robot: RobotBackend) -> None:
+    """Wait for the motion under way to end; raises MotionStopped if it stops short."""
     if not robot.wait_motion():
         raise MotionStopped(f"the robot stopped before the end of its move: {robot.status().describe()}")
 
@@ -169,4 +176,5 @@ __all__ = [
     "apply_increment",
     "carry_out",
     "move_and_wait",
+    "wait_for_the_end",
 ]

@@ -78,6 +78,12 @@ def encode_blocks(message: Message) -> list[bytes]:
     return blocks
 
 
+def message_bytes(message: Message) -> int:
+    """The bytes one message's exchange puts on the line, both ends together, without
+    repeats: the sender's ENQ, the receiver's ACK0, each block and its ACK, the EOT."""
+    return 1 + len(ACK0) + sum(len(block) + len(ACK1) for block in encode_blocks(message)) + 1
+
+
 class Port(Protocol):
     """What the link needs of a serial port (pyserial's Serial has it): ``read`` returns
     what arrives within the port's short timeout, possibly nothing."""
@@ -190,7 +196,6 @@ class BscStation:
     yields: bool
     faults: LinkFaults | None = None
     counters: LinkCounters = field(default_factory=LinkCounters)
-    bid_at_s: float = 0.0  # when the other end's last bid (ENQ) arrived (time.monotonic)
 
     # -- sending ---------------------------------------------------------------------
 
@@ -286,7 +291,6 @@ class BscStation:
         """Wait for the other end's ENQ until the deadline; other bytes are skipped."""
         while (b := self.channel.read_byte(deadline)) is not None:
             if b == ENQ:
-                self.bid_at_s = time.monotonic()
                 return True
             self.counters.junk_bytes += 1
         return False

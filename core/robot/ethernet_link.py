@@ -34,7 +34,7 @@ import time
 
 from vservo.core.cell.config import JrcLineConfig
 from vservo.core.robot.backend import RobotError
-from vservo.core.robot.host_link import Answer, CommandNotOffered, Exchange, LinkError, ReplyKind
+from vservo.core.robot.host_link import Answer, CommandNotOffered, LinkError, ReplyKind
 
 CR, LF = b"\r", b"\n"
 START_REQUEST = "CONNECT Robot_access Keep-Alive:-1"
@@ -77,9 +77,7 @@ class EthernetLink:
         self._opened = False  # between open() and close(): a failed connection is made again
         self._socket: socket.socket | None = None
         self._buffer = bytearray()
-        self._received_at_s = 0.0  # when the bytes in the buffer arrived (time.monotonic)
         self._commands_left = 0  # on this connection; UNLIMITED, or a count
-        self._bytes = 0  # crossed the link during the exchange under way
         self.server = ""  # the server's start acknowledgement, once connected
         self.connections = 0  # made so far: a figure of how often the link failed
 
@@ -100,17 +98,13 @@ class EthernetLink:
     def offers(self, command: str) -> bool:
         return command not in NOT_OFFERED
 
-    def wire_time_s(self, n_bytes: int) -> float:
-        return n_bytes * 8 / ETHERNET_BIT_RATE
-
-    def exchange(self, text: str, reply_wait_s: float) -> Exchange:
+    def exchange(self, text: str, reply_wait_s: float) -> Answer:
         if not self._opened:
             raise RobotError(f"the controller at {self.where} is not connected: call connect() first")
         name, _, operands = text.partition(" ")
         if not self.offers(name):
             raise CommandNotOffered(f"{name} is not offered by the Ethernet server at {self.where}")
         data = (operands + "\r").encode("ascii") if operands else b""
-        self._bytes = 0
         if self._socket is None or self._commands_left == 0:
             self._drop()
             self._connect()
@@ -125,10 +119,9 @@ class EthernetLink:
         if data:
             self._send(data, f"the operands of {name}")
         line = self._read_line(reply_wait_s, f"the answer to {name}", "the reply wait")
-        answered_at_s = self._received_at_s
         if self._commands_left != UNLIMITED:
             self._commands_left -= 1
-        return Exchange(answer_of(name, line), answered_at_s, self._bytes)
+        return answer_of(name, line)
 
     # -- the connection ----------------------------------------------------------------
 
@@ -164,7 +157,6 @@ class EthernetLink:
         except OSError as exc:
             self._drop()
             raise LinkError(f"{what} could not be sent to {self.where}: {exc}") from exc
-        self._bytes += len(data)
 
     def _read_line(self, wait_s: float, what: str, timer: str) -> str:
         """The next line up to its CR, waiting up to wait_s (a CR LF's LF is skipped
@@ -200,6 +192,4 @@ class EthernetLink:
         if not chunk:
             self._drop()
             raise LinkError(f"the controller at {self.where} closed the connection before {what}")
-        self._received_at_s = time.monotonic()
-        self._bytes += len(chunk)
         self._buffer.extend(chunk)

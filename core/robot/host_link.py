@@ -55,16 +55,6 @@ class Answer:
         return Answer(ReplyKind.DATA, text)
 
 
-@dataclass(frozen=True)
-class Exchange:
-    """One host command's round trip: the answer, when the controller began sending it
-    (time.monotonic, as the host saw it), and the bytes that crossed the link both ways."""
-
-    answer: Answer
-    answered_at_s: float
-    n_bytes: int
-
-
 class HostLink(Protocol):
     """A transport of host commands. ``exchange`` raises LinkError when the link failed
     (the command may or may not have been carried out; the link may still carry a hold),
@@ -82,15 +72,11 @@ class HostLink(Protocol):
 
     def close(self) -> None: ...
 
-    def exchange(self, text: str, reply_wait_s: float) -> Exchange:
+    def exchange(self, text: str, reply_wait_s: float) -> Answer:
         """Send one host command (its text without line end) and take its answer,
         waiting up to ``reply_wait_s`` for it."""
         ...
 
     def offers(self, command: str) -> bool:
         """Whether the controller takes ``command`` (its name, e.g. "JWAIT") over this link."""
-        ...
-
-    def wire_time_s(self, n_bytes: int) -> float:
-        """How long n_bytes take on the medium, at its rate."""
         ...

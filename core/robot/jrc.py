@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,7 +39,7 @@ from vservo.core.geometry.spatial import Matrix, Pose6, matrix_from_pose, pose_f
 from vservo.core.robot.backend import RobotError, RobotNotReady, RobotStatus, apply_increment
 from vservo.core.robot.bsc import BscStation
 from vservo.core.robot.ethernet_link import EthernetLink
-from vservo.core.robot.host_link import Answer, Exchange, HostLink, LinkError, LinkLost, ReplyKind
+from vservo.core.robot.host_link import Answer, HostLink, LinkError, LinkLost, ReplyKind
 from vservo.core.robot.serial_link import SerialLink
 
 # Status codes of a status answer, after the host-control manuals of the ERC/MRC/XRC family.
@@ -191,22 +191,29 @@ class JrcBackend:
     ``link`` replaces the link altogether. Every method is safe to call from several
     threads (the loop, an e-stop, the watchdog): commands go out one at a time.
 
-    The cell clock (``cell_clock_s``) undoes an emulated JRC's speed-up (the line's
-    ``time_scale``, 1 on a real JRC): the wall clock, with every motion of the arm (from
-    the JRC taking the move to its answer that the move ended) and every dwell counted
-    ``time_scale`` times, and every
-    exchange at least as long as its bytes take on the link (at the line's baud rate: a
-    pseudo-terminal carries them faster).
+    The cell clock (``cell_clock_s``): on a real JRC the wall clock. An emulated one runs
+    ``time_scale`` times faster on a host whose delays the wall clock counts too, so its
+    test cell gives its own clock (``controller_clock``: the emulator's count of each
+    motion's duration and each exchange's bytes at the line's rate,
+    core/sim/controller_clock.py), to which the host adds its dwells (``dwell`` takes
+    controller time, and waits it out ``time_scale`` times faster); the same exchanges then
+    read the same time on every run.
     """
 
     name = "jrc"
 
-    def __init__(self, line: JrcLineConfig, port: str | None = None, link: HostLink | None = None) -> None:
+    def __init__(
+        self,
+        line: JrcLineConfig,
+        port: str | None = None,
+        link: HostLink | None = None,
+        controller_clock: Callable[[], float] | None = None,
+    ) -> None:
         self.line = line
         self.link = link if link is not None else host_link(line, port)
         self.port = self.link.where
-        self._cell_ahead_s = 0.0  # how far the cell clock runs ahead of the wall clock
-        self._motion_from_s: float | None = None  # a motion's span not yet counted starts here (_count_cell_time)
+        self.controller_clock = controller_clock
+        self._dwelt_s = 0.0  # the host's dwells (controller time)
         self._lock = threading.RLock()
         self._holds_waiting = 0  # holds from other threads (e-stop, watchdog) go before the next motion wait
         self._posture = 0  # the RPOSC "type": the arm configuration, sent back with MOVL
@@ -251,23 +258,21 @@ class JrcBackend:
         name = text.split(" ", 1)[0]
         with self._lock:
             self.last_command = text
-            started_s = time.monotonic()
             try:
-                exchange = self.link.exchange(text, reply_wait_s or self.line.timer_b_s)
+                answer = self.link.exchange(text, reply_wait_s or self.line.timer_b_s)
             except LinkLost as exc:  # the device itself is gone (unplugged, closed)
                 unheld = "" if name == "HOLD" else "no hold could be sent: "  # a failed HOLD says so itself
                 raise LinkError(f"{name} failed: {exc}; {unheld}the robot may still be moving") from exc
             except LinkError as exc:  # the link has ended the exchange
                 raise LinkError(f"{name} failed: {exc}; {self._hold_after_failure(name)}") from exc
-            self._count_cell_time(name, exchange, time.monotonic() - started_s)
-        return self._parse(name, exchange.answer)
+        return self._parse(name, answer)
 
     def _hold_after_failure(self, failed: str) -> str:
         """Hold the robot after a failed command, if the link carries HOLD 1 at all."""
         if failed == "HOLD":
             return "the hold itself failed: the robot may still be moving"
         try:
-            self._parse("HOLD", self.link.exchange("HOLD 1", self.line.timer_b_s).answer)
+            self._parse("HOLD", self.link.exchange("HOLD 1", self.line.timer_b_s))
         except LinkLost as exc:  # the device went while the link was failing
             return f"HOLD 1 could not be sent ({exc}): the robot may still be moving"
         except RobotError as exc:
@@ -443,34 +448,14 @@ class JrcBackend:
         return time.monotonic()
 
     def cell_clock_s(self) -> float:
-        return time.monotonic() + self._cell_ahead_s
+        if self.controller_clock is None:
+            return time.monotonic()
+        return self.controller_clock() + self._dwelt_s
 
     def dwell(self, seconds: float) -> None:
         if seconds > 0.0:
-            time.sleep(seconds)
-            self._cell_ahead_s += (self.line.time_scale - 1.0) * seconds
-
-    def _count_cell_time(self, name: str, exchange: Exchange, wall_s: float) -> None:
-        """What one exchange cost the cell beyond its wall time (class docstring).
-
-        The arm's motion, which an emulator runs time_scale times faster, lasts from the
-        JRC's answer to the MOVL or IMOV it has just set going to its answer that finds
-        the motion ended (a JWAIT's, or an RSTATS's: ``exchange.answered_at_s``, as the
-        host sees them): that span counts time_scale times, the link's exchanges outside
-        it once. Scaling each waiting exchange whole instead would count its handshakes,
-        and a loaded host's delays in them, time_scale times.
-        """
-        answer = exchange.answer
-        sped_up_s = 0.0  # the part of this exchange's wall time the emulator ran time_scale times faster
-        running = _still_moving(name, answer)
-        if name in ("MOVL", "IMOV") and answer.kind is ReplyKind.STATUS and answer.text.isdigit() and int(answer.text) == 0:
-            self._motion_from_s = exchange.answered_at_s
-        elif running is not None and self._motion_from_s is not None:
-            sped_up_s = max(exchange.answered_at_s - self._motion_from_s, 0.0)
-            self._motion_from_s = exchange.answered_at_s if running else None
-        cell_s = wall_s + (self.line.time_scale - 1.0) * sped_up_s
-        # The exchange's bytes take their time on the link, during the arm's motion as on a real line.
-        self._cell_ahead_s += max(self.link.wire_time_s(exchange.n_bytes), cell_s) - wall_s
+            time.sleep(seconds / self.line.time_scale)
+            self._dwelt_s += seconds
 
     # -- helpers ---------------------------------------------------------------------
 
@@ -504,15 +489,3 @@ class JrcBackend:
         if not np.isfinite(mm_s) or round(mm_s, 2) <= 0.0:
             raise RobotError(f"speed {speed_m_s!r} m/s cannot be sent: V must be at least 0.01 mm/s")
         return f"{mm_s:.2f}"
-
-
-def _still_moving(name: str, answer: Answer) -> bool | None:
-    """What an answer says of the motion: True while it runs, False once it has ended,
-    None when it says nothing of it. JWAIT's data answer comes when it has ended, its
-    status (2010) while it runs; RSTATS's running bit says it directly."""
-    if name == "JWAIT":
-        return answer.kind is ReplyKind.STATUS
-    if name == "RSTATS" and answer.kind is ReplyKind.DATA:
-        first = answer.text.split(",", 1)[0].strip()
-        return bool(int(first) & D1_RUNNING) if first.isdigit() else None
-    return None

@@ -6,7 +6,9 @@ checks, in order: a latched stop (e-stop or watchdog), the requested speed, that
 target is a finite pose, that the flange and every tool frame (camera, laser, vacuum
 cup) stay inside the workspace box, the size of the step from where the robot is, and
 that the NOMINAL arm's IK finds joints within their limits less a margin. A refused move
-raises a SafetyRefusal subclass naming the limit and the values, and nothing moves.
+raises a SafetyRefusal subclass naming the limit and the values, and nothing moves. A
+taught move of any length (move_linear) passes the same checks at points of its straight
+line no further apart than one step may be, and then goes out as one linear move.
 
 The e-stop holds the robot at once and refuses every move, servo power on and hold
 release until it is reset. The watchdog does the same when, during a servo, the camera
@@ -28,7 +30,7 @@ import numpy as np
 from vservo.core.cell.config import CellConfig, SafetyConfig
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, interpolate, pose_error
-from vservo.core.robot.backend import RobotBackend, RobotError, RobotStatus, apply_increment, move_and_wait
+from vservo.core.robot.backend import RobotBackend, RobotError, RobotStatus, apply_increment, move_and_wait, wait_for_the_end
 from vservo.robot_models.loader import load_arm
 
 log = logging.getLogger("vservo.safety")
@@ -36,8 +38,9 @@ log = logging.getLogger("vservo.safety")
 # The safety check asks only whether joints within the limits exist: a micrometre and a
 # microradian are far inside any arm's repeatability.
 CHECK_TOLERANCE = 1e-6
-# A long move's steps go up to this share of the step limits (the rest absorbs where the
-# arm really stopped); a joint-space path is sampled this finely to place them.
+# A path is checked at points this share of the step limits apart (a joint-space path's
+# steps end there too: the rest absorbs where the arm really stopped); a joint-space path
+# is sampled this finely to place them.
 STEP_FILL = 0.9
 JOINT_SAMPLE_RAD = np.deg2rad(0.5)
 
@@ -133,7 +136,10 @@ class SafetyLayer:
         self.watchdog = Watchdog(limits.watchdog_s, self._stop_from_watchdog)
         self._q_seed = np.asarray(q_seed, dtype=float).copy()
         self._stop_reason: str | None = None
-        self._pose: Matrix | None = None  # the pose last read, while no move has been sent since
+        # Where the robot stands, while it is known without a reading (pose()): the pose last
+        # read, or the target of the last move once the robot reported it done.
+        self._pose: Matrix | None = None
+        self._aim: Matrix | None = None  # the target of the move under way
         self._tool_frames = {"camera": arm.mount.eMc, "laser": arm.mount.eMl, "vacuum cup": arm.mount.eMv}
 
     @classmethod
@@ -167,6 +173,7 @@ class SafetyLayer:
 
     def _latch(self, reason: str) -> None:
         self._stop_reason = reason  # first: whatever happens to the hold, nothing moves any more
+        self._forget_pose()
         log.warning("safety stop: %s", reason)
         try:
             self.robot.hold(True)
@@ -258,6 +265,7 @@ class SafetyLayer:
         return result
 
     def connect(self) -> None:
+        self._forget_pose()
         self._link(self.robot.connect)
 
     def close(self) -> None:
@@ -274,60 +282,91 @@ class SafetyLayer:
         self._pose = self._link(self.robot.read_pose)
         return self._pose.copy()
 
+    def pose(self) -> Matrix:
+        """The flange pose, read from the robot only when it is not known: the pose last
+        read while no move was sent since, or the target of the last move once the robot
+        reported it done (a controller that reports a move done stands at its target, and
+        reads it back to its resolution). Servo power, holds, alarms and a new connection
+        forget it: the next call reads."""
+        return (self._pose if self._pose is not None else self.read_pose()).copy()
+
+    def _forget_pose(self) -> None:
+        self._pose = self._aim = None
+
     def servo(self, on: bool) -> None:
         if on:
             self._refuse_if_stopped("servo power on")
+        self._forget_pose()
         self._link(self.robot.servo, on)
 
     def hold(self, on: bool) -> None:
         if not on:
             self._refuse_if_stopped("hold release")
+        self._forget_pose()
         self._link(self.robot.hold, on)
 
     def reset_alarms(self) -> None:
+        self._forget_pose()
         self._link(self.robot.reset_alarms)
 
     def move_to(self, bMe_target: Matrix, speed_m_s: float) -> None:
         self._q_seed = self.check_target(bMe_target, speed_m_s, self._current_pose())
-        self._pose = None
+        self._sending(bMe_target)
         self._link(self.robot.move_to, bMe_target, speed_m_s)
 
     def move_by(self, bMe_increment: Matrix, speed_m_s: float) -> None:
         bMe_now = self._current_pose()
-        self._q_seed = self.check_target(apply_increment(bMe_now, bMe_increment), speed_m_s, bMe_now)
-        self._pose = None
+        bMe_target = apply_increment(bMe_now, bMe_increment)
+        self._q_seed = self.check_target(bMe_target, speed_m_s, bMe_now)
+        self._sending(bMe_target)
         self._link(self.robot.move_by, bMe_increment, speed_m_s)
+
+    def _sending(self, bMe_target: Matrix) -> None:
+        """A move to bMe_target goes out: where the robot stands is unknown until it ends."""
+        self._pose, self._aim = None, np.array(bMe_target, dtype=float)
 
     def move_linear(self, bMe_target: Matrix, speed_m_s: float) -> None:
         """A taught move of any length (to a start, pick or place pose) on the straight line,
-        as steps within max_step_m / max_step_rad (linear_path). The whole path is
-        checked before the first step goes out, so a refusal (SafetyRefusal) moves
-        nothing; then each step is sent and waited for (MotionStopped if the robot stops short)."""
-        self._follow(self.linear_path(self._current_pose(), bMe_target, speed_m_s), speed_m_s)
+        as one linear move (MOVL keeps to the straight line). The whole line is checked
+        first, at points within max_step_m / max_step_rad of each other (linear_path), so
+        a refusal (SafetyRefusal) moves nothing and the one move needs no step limit of
+        its own; then it is sent and waited for (MotionStopped if the robot stops short)."""
+        bMe_target = np.array(bMe_target, dtype=float)
+        checked = self._linear_checks(self._current_pose(), bMe_target, speed_m_s)
+        self._refuse_if_stopped("move")  # a stop latched while the path was checked
+        self._q_seed = checked[-1][1]
+        self._sending(bMe_target)
+        self._link(self.robot.move_to, bMe_target, speed_m_s)
+        wait_for_the_end(self)
 
     def move_joint(self, bMe_target: Matrix, speed_m_s: float) -> None:
         """A long move on the joint-space line (joint_path), checked whole first and sent
-        as steps as move_linear's are: the way a transfer between two far poses keeps to
-        the arm's workspace where the straight line between them leaves it."""
+        as steps, each a short linear move: the way a transfer between two far poses
+        keeps to the arm's workspace where the straight line between them leaves it."""
         self._follow(self.joint_path(self._current_pose(), bMe_target, speed_m_s), speed_m_s)
 
     def linear_path(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float) -> list[Matrix]:
-        """The steps of a straight move from bMe_from to bMe_target, each step checked
-        (check_target; SafetyRefusal names the first refused), no motion. The target is
-        checked against the workspace first: from the robot's pose to a target in the box,
-        the path's length, and so the work of checking it, is bounded whatever was asked."""
+        """The points of a straight move from bMe_from to bMe_target at which it is checked,
+        each within the step limits of the one before (check_target; SafetyRefusal names
+        the first refused), no motion. The target is checked against the workspace first:
+        from the robot's pose to a target in the box, the path's length, and so the work of
+        checking it, is bounded whatever was asked."""
+        return [bMe for bMe, _ in self._linear_checks(bMe_from, bMe_target, speed_m_s)]
+
+    def _linear_checks(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float) -> list[tuple[Matrix, Matrix]]:
+        """linear_path's points, each with the joints the nominal IK finds for it."""
         bMe_target = np.asarray(bMe_target, dtype=float)
         self._check_in_workspace(bMe_target)
         translation, rotation = pose_error(bMe_from, bMe_target)
-        # Steps of at most STEP_FILL of the limits: the next step starts where the arm
-        # really stopped (repeatability), not exactly on the line.
         fill = max(translation / self.limits.max_step_m, rotation / self.limits.max_step_rad) / STEP_FILL
         steps = max(1, int(np.ceil(fill)))
         waypoints = [interpolate(bMe_from, bMe_target, k / steps) for k in range(1, steps + 1)]
-        q = None  # each step's IK starts from the step before, as the controller's does
+        checked: list[tuple[Matrix, Matrix]] = []
+        q = None  # each point's IK starts from the point before, as the controller's does
         for bMe_before, bMe_waypoint in zip([bMe_from, *waypoints], waypoints):
             q = self.check_target(bMe_waypoint, speed_m_s, bMe_before, q)
-        return waypoints
+            checked.append((bMe_waypoint, q))
+        return checked
 
     def joint_path(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float, q_seed: Matrix | None = None) -> list[Matrix]:
         """The steps of a move from bMe_from to bMe_target on the straight line between
@@ -380,11 +419,15 @@ class SafetyLayer:
             raise TooFast(f"move refused: duration {duration_s!r} s is not a positive number")
         # A pure rotation asks no linear speed: check it at the slowest positive speed.
         self._q_seed = self.check_target(bMe_target, max(translation / duration_s, np.finfo(float).tiny), bMe_now)
-        self._pose = None
+        self._sending(bMe_target)
         self._link(self.robot.move_timed, bMe_target, duration_s)
 
     def wait_motion(self, timeout_s: float | None = None) -> bool:
-        return self._link(self.robot.wait_motion, timeout_s)
+        aim, self._aim = self._aim, None
+        done = self._link(self.robot.wait_motion, timeout_s)
+        if done and aim is not None:
+            self._pose = aim  # it stands at the target: no reading needed to know where
+        return done
 
     def clock_s(self) -> float:
         return self.robot.clock_s()
@@ -396,5 +439,5 @@ class SafetyLayer:
         self.robot.dwell(seconds)
 
     def _current_pose(self) -> Matrix:
-        """The pose last read if no move was sent since (the loop has just read it), else a fresh one."""
+        """pose(), without the copy: for the checks, which do not change it."""
         return self._pose if self._pose is not None else self.read_pose()

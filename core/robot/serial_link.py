@@ -19,7 +19,7 @@ import serial
 from vservo.core.cell.config import JrcLineConfig
 from vservo.core.robot.backend import RobotError
 from vservo.core.robot.bsc import BscStation, ByteChannel, Message
-from vservo.core.robot.host_link import Answer, Exchange, LinkLost, ReplyKind
+from vservo.core.robot.host_link import Answer, LinkLost, ReplyKind
 
 log = logging.getLogger("vservo.serial_link")
 
@@ -129,24 +129,19 @@ class SerialLink:
             raise RobotError(f"the JRC on {self.port} is not connected: call connect() first")
         return self._station
 
-    def exchange(self, text: str, reply_wait_s: float) -> Exchange:
+    def exchange(self, text: str, reply_wait_s: float) -> Answer:
         name = text.split(" ", 1)[0]
         station = self.station
-        channel = station.channel
-        bytes_before = channel.bytes_in + channel.bytes_out
         try:
-            channel.discard_input()  # late answers of an abandoned exchange
+            station.channel.discard_input()  # late answers of an abandoned exchange
             station.send(command_message(text))
             reply = station.receive(reply_wait_s, f"the reply to {name}")
         except (OSError, serial.SerialException) as exc:  # the port itself is gone (unplugged, closed)
             raise LinkLost(self._drop_lost_port(exc)) from exc
-        return Exchange(answer_of(name, reply), station.bid_at_s, channel.bytes_in + channel.bytes_out - bytes_before)
+        return answer_of(name, reply)
 
     def offers(self, command: str) -> bool:
         return True  # the JRC takes the whole command set over its serial line
-
-    def wire_time_s(self, n_bytes: int) -> float:
-        return self.line.wire_time_s(n_bytes)
 
     def _drop_lost_port(self, exc: Exception) -> str:
         """Close a port whose device is gone; what to tell the caller."""

@@ -70,7 +70,9 @@ class EthernetServer:
     """Serves ``answer`` (host command text in, Answer out) on ``host``:``port`` (0: any free one).
 
     ``faults`` is the emulator's FaultInjector (its ``draw`` and ``injected``);
-    ``connections`` counts the sessions started.
+    ``connections`` counts the sessions started; ``count(name, answer, request_bytes,
+    reply_bytes)`` hears of each command answered, before its answer goes out (the
+    emulator's cell clock).
     """
 
     def __init__(
@@ -81,8 +83,10 @@ class EthernetServer:
         stop: threading.Event,
         host: str = "127.0.0.1",
         port: int = 0,
+        count: Callable[[str, Answer, int, int], None] = lambda name, answer, request_bytes, reply_bytes: None,
     ) -> None:
         self.answer, self.line, self.faults, self._stop = answer, line, faults, stop
+        self.count = count
         self.listener = socket.create_server((host, port))
         self.address: tuple[str, int] = self.listener.getsockname()[:2]
         self.connections = 0
@@ -130,23 +134,27 @@ class EthernetServer:
             connection.sendall(f"{REFUSED} {words!r} is not {COMMAND_REQUEST} <command> <size>\r\n".encode("ascii", "replace"))
             return False
         name, size = request[1], int(request[2])
+        request_bytes = len(" ".join(request)) + 2 + size  # the request line with CR LF, the operands
         if name in NOT_OFFERED or not name.isalpha():
             connection.sendall(f"{REFUSED} {name} is not a command of this server\r\n".encode("ascii"))
             return False
         fault = self.faults.draw()
-        connection.sendall(f"{ACCEPTED} {name}\r\n".encode("ascii"))
+        accepted = f"{ACCEPTED} {name}\r\n".encode("ascii")
+        connection.sendall(accepted)
         operands = self._exactly(connection, size).decode("ascii", "replace").rstrip("\r") if size else ""
         if fault == "timeout":  # never answer: the host gives up and closes the connection
             self.faults.injected[fault] += 1
             self._until_closed(connection)
         answer = self.answer(f"{name} {operands}" if operands else name)
+        reply = framed(name, answer)
+        self.count(name, answer, request_bytes, len(accepted) + len(reply))
         if fault == "drop":
             self.faults.injected[fault] += 1
             return False  # carried out, and the connection closed before its answer
         if fault == "delay":
             self.faults.injected[fault] += 1
             time.sleep(self.faults.rng.uniform(0.3, 1.5) * self.line.timer_a_s)
-        connection.sendall(framed(name, answer))
+        connection.sendall(reply)
         return True
 
     # -- reading -----------------------------------------------------------------------

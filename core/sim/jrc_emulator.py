@@ -24,7 +24,10 @@ Other bytes read 0 and refuse IOWRITE (2110): this JRC has no other wiring.
 Time: the plant's clock runs ``time_scale`` times faster than the wall clock, so tests
 need not wait real seconds; JWAIT's time is JRC (plant) time. The plant is only
 touched while a command is handled, when the host is waiting for the reply, so a host
-thread may read the same SimulatedCell between commands without a lock.
+thread may read the same SimulatedCell between commands without a lock. The cell clock
+(``cell_time_s``, core/sim/controller_clock.py) counts what a real JRC would take for the
+same exchanges, each motion by its duration and each exchange by its bytes at the line's
+rate, whatever the wall clock did meanwhile.
 
 Fault injection (FaultPlan): each host exchange meets a fault with probability ``rate``,
 of a kind drawn uniformly from ``kinds``: a reply block with a corrupted BCC, a byte
@@ -58,8 +61,9 @@ from vservo.core.cell.config import HostTransport, JrcLineConfig, PlcConfig, Plc
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, pose_error
 from vservo.core.robot.backend import apply_increment
-from vservo.core.robot.bsc import BscStation, ByteChannel, LinkError, Message, Port
-from vservo.core.robot.host_link import Answer
+from vservo.core.robot.bsc import BscStation, ByteChannel, LinkError, Message, Port, message_bytes
+from vservo.core.robot.ethernet_link import ETHERNET_BIT_RATE
+from vservo.core.robot.host_link import Answer, ReplyKind
 from vservo.core.robot.jrc import (
     D1_RUNNING,
     D2_ALARM,
@@ -75,6 +79,7 @@ from vservo.core.robot.jrc import (
     wire_pose,
 )
 from vservo.core.robot.serial_link import HOST_COMMAND, open_serial, reply_message
+from vservo.core.sim.controller_clock import ControllerClock, Ended
 from vservo.core.sim.ethernet_server import EthernetServer
 from vservo.core.sim.plant import ROTATION_SPEED_RAD_S, SimulatedCell
 from vservo.core.sim.pseudo_terminal import PseudoTerminal
@@ -258,6 +263,8 @@ class JrcEmulator:
         self.faults = FaultInjector(faults, line)
         self.executed: list[str] = []
         self.exchanges = 0
+        self.clock = ControllerClock()
+        self._motion_taken_s = 0.0  # the duration of the motion the command being answered set going
         self.servo_on = False
         self.command_hold = False
         self.external_hold = False
@@ -291,7 +298,7 @@ class JrcEmulator:
         """Serve the Ethernet server's framing on a TCP port (0: any free one), and return
         the (host, port) the host connects to."""
         self.faults.serve_over(ETHERNET_FAULT_KINDS)
-        self.ethernet = EthernetServer(self.answer, self.line, self.faults, self._stop, host, port)
+        self.ethernet = EthernetServer(self.answer, self.line, self.faults, self._stop, host, port, self.count)
         self.address = self.ethernet.address
         self._run(self.ethernet.serve, "jrc-emulator-tcp")
         return self.address
@@ -365,16 +372,38 @@ class JrcEmulator:
     # -- the JRC -----------------------------------------------------------------------
 
     def handle(self, request: Message) -> Message:
-        """One host command in a BSC message in, its reply message out."""
+        """One host command in a BSC message in, its reply message out, counted on the cell clock."""
         if request.header != HOST_COMMAND:
             return reply_message(Answer.status(1010))
-        return reply_message(self.answer(request.text.rstrip("\r")))
+        text = request.text.rstrip("\r")
+        answer = self.answer(text)
+        reply = reply_message(answer)
+        self.count(text.partition(" ")[0], answer, message_bytes(request), message_bytes(reply))
+        return reply
 
     def answer(self, text: str) -> Answer:
         """One host command (its text, no line end) in, its answer out, whatever the link."""
         with self.lock:
             self.exchanges += 1
+            self._motion_taken_s = 0.0
             return self._answer(text)
+
+    def count(self, name: str, answer: Answer, request_bytes: int, reply_bytes: int) -> None:
+        """The exchange just answered (command ``name``, its ``answer``), its bytes each way,
+        on the cell clock (core/sim/controller_clock.py): before the answer goes out, so a
+        host that has the answer reads a clock that counts it."""
+        with self.lock:
+            ended = _ended(name, answer)
+            self.clock.count(name, self._wire_s(request_bytes), self._wire_s(reply_bytes), self._motion_taken_s, ended)
+
+    def _wire_s(self, n_bytes: int) -> float:
+        """How long n_bytes take on the link served: the serial line at its baud rate, or Ethernet."""
+        return n_bytes * 8 / ETHERNET_BIT_RATE if self.ethernet is not None else self.line.wire_time_s(n_bytes)
+
+    def cell_time_s(self) -> float:
+        """The cell clock: what a real JRC would have taken for the exchanges served so far."""
+        with self.lock:
+            return self.clock.now_s
 
     def advance(self) -> None:
         """Bring the plant up to now: a camera looking at it between commands sees the arm
@@ -567,6 +596,7 @@ class JrcEmulator:
         if fault is not None:
             motion.stop_at_s, motion.stop_kind = float(self.faults.rng.uniform(0.2, 0.8)) * duration, fault
         self.motion, self.last_motion_stopped = motion, False
+        self._motion_taken_s = duration
         self.executed.append(f"{name} {','.join(fields)}")
         return Answer.status(0)
 
@@ -621,6 +651,7 @@ class JrcEmulator:
 
     def _stop_motion(self) -> None:
         if self.motion is not None:
+            self.clock.cut(self.motion.elapsed_s)
             self.motion = None
             self.last_motion_stopped = True
 
@@ -628,6 +659,18 @@ class JrcEmulator:
 class _Refused(Exception):
     def __init__(self, code: int) -> None:
         self.code = code
+
+
+def _ended(name: str, answer: Answer) -> Ended:
+    """What an answer says of the motion under way: JWAIT answers data once it has ended
+    and 2010 while it runs; RSTATS's running bit says it directly."""
+    if name == "JWAIT":
+        if answer.kind is ReplyKind.DATA:
+            return Ended.ENDED
+        return Ended.RUNNING if int(answer.text) == ROBOT_OPERATING else Ended.SILENT
+    if name == "RSTATS" and answer.kind is ReplyKind.DATA:
+        return Ended.RUNNING if int(answer.text.split(",", 1)[0]) & D1_RUNNING else Ended.ENDED
+    return Ended.SILENT
 
 
 def _count(fields: list[str], low: int, high: int) -> None:

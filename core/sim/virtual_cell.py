@@ -141,8 +141,6 @@ def controller_tables(
         "reconnect_delay_s": 0.5,
     }
     tables.setdefault("vacuum", {}).update(device="jrc_io", suction_output=vacuum.suction_output, grip_input=vacuum.grip_input)
-    motion = tables.setdefault("motion", {})
-    motion["sampling_period_s"] = float(motion.get("sampling_period_s", 2.0)) / settings.time_scale
     tables["fixture"] = {"url": fixture_url}
     return tables
 
@@ -324,10 +322,11 @@ class _FixtureServer:
     place ({"seed": n} optional) or puts it at a given place ({"x_mm", "y_mm", "yaw_deg"}:
     its frame O, a top-face corner, on the table); GET /part says where the part truly
     is; POST /board ({"laid": true|false}) lays the checkerboard or takes it away, GET
-    /board says which; GET /released lists the gauged releases. The JRC's I/O panel, for
-    a PLC on the JRC's I/O ([line.plc] transport = "jrc_io"): POST /io ({"inputs":
-    {"<address>": true|false}}) switches the PLC's signals on the JRC's inputs, GET /io
-    reads them and the outputs the JRC's ladder sends the PLC."""
+    /board says which; GET /released lists the gauged releases; GET /clock reads the
+    emulated JRC's cell clock (core/sim/controller_clock.py), which the controller times
+    its runs by. The JRC's I/O panel, for a PLC on the JRC's I/O ([line.plc] transport =
+    "jrc_io"): POST /io ({"inputs": {"<address>": true|false}}) switches the PLC's signals
+    on the JRC's inputs, GET /io reads them and the outputs the JRC's ladder sends the PLC."""
 
     def __init__(self, virtual: VirtualCell, host: str = "127.0.0.1", port: int = 0) -> None:
         self.server = ThreadingHTTPServer((host, port), _handler_for(virtual))
@@ -347,7 +346,7 @@ class _FixtureServer:
         self.server.server_close()
 
 
-ENDPOINTS = ("POST /part", "GET /part", "POST /board", "GET /board", "GET /io", "POST /io", "GET /released")
+ENDPOINTS = ("POST /part", "GET /part", "POST /board", "GET /board", "GET /io", "POST /io", "GET /released", "GET /clock")
 _PART_BODY = 'the body is empty, {"seed": <integer>}, or {"x_mm": <number>, "y_mm": <number>, "yaw_deg": <number>}'
 _BOARD_BODY = 'the body is {"laid": true} or {"laid": false}'
 _IO_BODY = 'the body is {"inputs": {"<byte.bit address>": true|false, ...}}, at the addresses of [line.plc.inputs]'
@@ -417,6 +416,8 @@ def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
                 self._reply(200, _io_panel(virtual))
             elif self.path == "/released":
                 self._reply(200, {"released": [r.as_dict() for r in virtual.released]})
+            elif self.path == "/clock":
+                self._reply(200, {"cell_time_s": virtual.emulator.cell_time_s()})
             elif self.path == "/":
                 self._reply(200, {"fixture": "vservo virtual cell", "endpoints": list(ENDPOINTS)})
             else:

@@ -292,10 +292,12 @@ def add_locate_bench(bench: BenchCommand) -> None:
         "a locating job on parts put anywhere in its survey view (a commissioned cell with a fixture)",
         _cmd_bench_locate,
     )
-    locate.add_argument("--job", default="demo", help="locate: the taught job to run as a locating job (default demo)")
+    locate.add_argument(
+        "--job", default="demo", help="locate: the taught job to run as a locating job; cell-time: the job to run (default demo)"
+    )
     locate.add_argument("--placements", type=positive(int), default=40, help="locate: random placements of the part (default 40)")
     locate.add_argument(
-        "--data", metavar="DIR", help="locate: data folder for the jobs and runs (default: a new temporary folder)"
+        "--data", metavar="DIR", help="locate, cell-time: data folder for the jobs and runs (default: a new temporary folder)"
     )
 
 
@@ -308,6 +310,23 @@ def _cmd_bench_locate(args: argparse.Namespace) -> int:
     result = bench_locate(load_cell(args.cell), args.job, args.placements, args.seed or 0, data)
     print_result(result, args.json)
     return 0 if result["placed_share"] >= 0.95 else 1
+
+
+def add_cell_time_bench(bench: BenchCommand) -> None:
+    """Register ``vservo bench cell-time`` (its --job and --data are the locate bench's)."""
+    bench.add(
+        "cell-time",
+        "a job's cell time through the JRC link at the cell file's baud rate against the floor of its moves, by phase",
+        _cmd_bench_cell_time,
+    )
+
+
+def _cmd_bench_cell_time(args: argparse.Namespace) -> int:
+    from vservo.core.study.cell_time_bench import bench_cell_time
+
+    data = Path(args.data) if args.data else None
+    print_result(bench_cell_time(load_cell(args.cell), args.job, args.seed or 0, data), args.json)
+    return 0
 
 
 def _jpeg_quality(text: str) -> int:

@@ -36,7 +36,7 @@ def test_the_laser_servo_of_task_2_converges_through_the_jrc_link(transport):
             robot.servo(True)
             return SafetyLayer.from_config(robot, config)
 
-        policy = DividedPositionStep(motion.divide_factor, motion.sampling_period_s / TIME_SCALE, motion.speed_m_s)
+        policy = DividedPositionStep(motion.divide_factor, motion.sampling_period_s, motion.speed_m_s)
         result = run_task(config, TASKS[2], RunSettings(method="laser"), robot=through_the_jrc, policy=policy)
 
     outcome = result.outcome

@@ -96,17 +96,30 @@ def test_a_step_too_large_or_too_fast_is_refused(safe):
     assert pose_error(arm_pose(cell), transform(t=(0.01, 0.0, 0.0)) @ before)[0] < 1e-6
 
 
-def test_a_long_taught_move_goes_out_in_checked_steps(safe):
+def test_a_long_taught_move_is_checked_along_its_line_and_goes_out_as_one_move_without_a_reading(safe):
+    """144 mm and 25 deg, beyond one step's limits: checked at points at most 45 mm and
+    13.5 deg apart (linear_path), then one linear move; the next move starts from its
+    target, which the robot reported reached, without reading the pose again."""
     robot, cell = safe
     before = arm_pose(cell)
     target = transform(t=(0.0, 0.12, -0.08)) @ before @ transform(rot_z(np.radians(25.0)))
-    sent = []
-    move_to = robot.robot.move_to
-    robot.robot.move_to = lambda bMe, speed: (sent.append(pose_error(arm_pose(cell), bMe)), move_to(bMe, speed))[1]
+    points = robot.linear_path(robot.read_pose(), target, SPEED)
+    assert len(points) == 4 and np.allclose(points[-1], target)
+    steps = [pose_error(a, b) for a, b in zip([before, *points], points)]
+    assert max(t for t, _ in steps) <= 0.05 and max(r for _, r in steps) <= np.radians(15.0)
+    sent, reads = [], []
+    move_to, read_pose = robot.robot.move_to, robot.robot.read_pose
+    robot.robot.move_to = lambda bMe, speed: (sent.append(bMe), move_to(bMe, speed))[1]
+    robot.robot.read_pose = lambda: (reads.append(1), read_pose())[1]
     robot.move_linear(target, SPEED)
     assert pose_error(arm_pose(cell), target)[0] < 1e-4
-    assert len(sent) == 4  # 144 mm and 25 deg in steps of at most 45 mm and 13.5 deg
-    assert max(t for t, _ in sent) <= 0.05 and max(r for _, r in sent) <= np.radians(15.0)
+    assert len(sent) == 1 and np.allclose(sent[0], target)
+    robot.move_linear(before, SPEED)
+    assert len(sent) == 2 and not reads  # known where it stood: no reading
+    assert np.allclose(robot.pose(), before) and not reads
+    robot.hold(False)  # a hold (or servo power, an alarm reset) forgets it: the next call reads
+    robot.pose()
+    assert len(reads) == 1
 
 
 def test_a_long_move_refused_on_its_way_moves_nothing(safe):

@@ -17,7 +17,7 @@ from tests.virtual_cell_process import VirtualCellProcess
 from vservo.core.cell.config import load_cell, read_cell_data, with_truth
 from vservo.core.geometry.spatial import inverse, rot_x, transform
 from vservo.core.production.cell_rig import build_rig
-from vservo.core.production.fixture import FixtureError
+from vservo.core.production.fixture import FixtureClient, FixtureError
 from vservo.core.production.rig import extractor_for
 from vservo.core.sim.virtual_cell import ENDPOINTS, VirtualCell
 
@@ -125,6 +125,28 @@ def test_the_rig_lays_the_board_and_places_the_part_through_the_fixture(virtual_
             rig.place_part(2.0, 0.0, 0.0)
     finally:
         rig.close()
+
+
+def test_the_rig_times_its_moves_by_the_fixtures_clock(virtual_cell):
+    """The controller's cell clock is the emulated JRC's, read from the fixture: a 10 mm
+    move at 10 mm/s counts 1 s of motion and its MOVL's and JWAIT's bytes at 9600 baud
+    (about 0.13 s), though the virtual cell runs it 40 times faster."""
+    url = virtual_cell.addresses["fixture"]
+    rig = build_rig(load_cell(virtual_cell.addresses["cell_file"]))
+    try:
+        robot = rig.robot
+        robot.connect()
+        robot.servo(True)
+        bMe = robot.pose()
+        before_s, before_clock = robot.cell_clock_s(), fixture_request(url + "/clock")[1]["cell_time_s"]
+        robot.move_linear(transform(t=(0.0, 0.0, 0.01)) @ bMe, 0.01)
+        moved_s = robot.cell_clock_s() - before_s
+        assert fixture_request(url + "/clock")[1]["cell_time_s"] - before_clock == pytest.approx(moved_s)
+        assert 1.0 + 0.1 < moved_s < 1.0 + 0.2
+        robot.move_linear(bMe, 0.05)  # back where it was
+    finally:
+        rig.close()
+    assert np.isnan(FixtureClient("http://127.0.0.1:9", timeout_s=0.5).cell_time_s())  # no fixture there: unknown
 
 
 def test_the_board_is_refused_while_the_cup_holds_the_part():
