@@ -27,8 +27,16 @@ import numpy as np
 
 from vservo.core.cell.config import CellConfig, SafetyConfig
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
-from vservo.core.geometry.spatial import Matrix, interpolate, pose_error
-from vservo.core.robot.backend import RobotBackend, RobotError, RobotStatus, apply_increment, move_and_wait
+from vservo.core.geometry.spatial import Matrix, exp_twist, interpolate, pose_error
+from vservo.core.robot.backend import (
+    MotionStopped,
+    RobotBackend,
+    RobotError,
+    RobotStatus,
+    StreamingBackend,
+    apply_increment,
+    move_and_wait,
+)
 from vservo.robot_models.loader import load_arm
 
 log = logging.getLogger("vservo.safety")
@@ -302,8 +310,20 @@ class SafetyLayer:
         """A taught move of any length (to a start, pick or place pose) on the straight line,
         as steps within max_step_m / max_step_rad (linear_path). The whole path is
         checked before the first step goes out, so a refusal (SafetyRefusal) moves
-        nothing; then each step is sent and waited for (MotionStopped if the robot stops short)."""
-        self._follow(self.linear_path(self._current_pose(), bMe_target, speed_m_s), speed_m_s)
+        nothing; then each step is sent and waited for (MotionStopped if the robot stops short).
+        A controller that moves on the straight line itself (``linear_segments``, a UR's
+        movel) gets the checked path as one move to its end: the same line, without a stop
+        at every step."""
+        waypoints = self.linear_path(self._current_pose(), bMe_target, speed_m_s)
+        if not getattr(self.robot, "linear_segments", False):
+            self._follow(waypoints, speed_m_s)
+            return
+        self._refuse_if_stopped("move")
+        self._q_seed = self.model_joints(waypoints[-1])
+        self._pose = None
+        self._link(self.robot.move_to, waypoints[-1], speed_m_s)
+        if not self.wait_motion():
+            raise MotionStopped(f"the robot stopped before the end of its move: {self.robot.status().describe()}")
 
     def move_joint(self, bMe_target: Matrix, speed_m_s: float) -> None:
         """A long move on the joint-space line (joint_path), checked whole first and sent
@@ -382,6 +402,34 @@ class SafetyLayer:
         self._q_seed = self.check_target(bMe_target, max(translation / duration_s, np.finfo(float).tiny), bMe_now)
         self._pose = None
         self._link(self.robot.move_timed, bMe_target, duration_s)
+
+    def stream_twist(self, eVe: Matrix, hold_s: float) -> None:
+        """A streamed twist (a velocity-controlled robot), checked as a move: its linear speed,
+        and the pose it would reach if no other came after it (held hold_s from the pose
+        the robot last reported) against the workspace, the step limits and the joints."""
+        if not isinstance(self.robot, StreamingBackend):
+            raise RobotError(f"the {self.robot.name} robot takes no streamed twist: it is not velocity-controlled")
+        eVe = np.asarray(eVe, dtype=float)
+        if eVe.shape != (6,) or not np.all(np.isfinite(eVe)) or not (np.isfinite(hold_s) and hold_s > 0.0):
+            raise TooFast(f"twist refused: {eVe.tolist()} held {hold_s!r} s is not a finite twist held a positive time")
+        bMe_now = self.robot.read_pose()
+        target = bMe_now @ exp_twist(eVe * hold_s)
+        self._q_seed = self.check_target(target, max(float(np.linalg.norm(eVe[:3])), np.finfo(float).tiny), bMe_now)
+        self._pose = None
+        self._link(self.robot.stream_twist, eVe, hold_s)
+
+    def stop_motion(self) -> None:
+        """Bring a streamed motion to a standstill and wait for it (a backend that streams
+        nothing stands still after each move already)."""
+        stop = getattr(self.robot, "stop_motion", None)
+        if stop is not None:
+            self._link(stop)
+
+    def pose_at(self, t_s: float) -> Matrix:
+        """The flange pose at the robot's clock t_s, where the backend keeps its history
+        (a UR's RTDE states); else the pose it reports now."""
+        pose_at = getattr(self.robot, "pose_at", None)
+        return self.read_pose() if pose_at is None else self._link(pose_at, t_s)
 
     def wait_motion(self, timeout_s: float | None = None) -> bool:
         return self._link(self.robot.wait_motion, timeout_s)

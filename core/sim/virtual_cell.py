@@ -53,12 +53,17 @@ from vservo.core.sim.part_feeder import place_part, present_part
 from vservo.core.sim.plant import CellStateError, SimulatedCell
 from vservo.core.sim.render import SceneRenderer
 from vservo.core.sim.render_settings import RenderSettings
+from vservo.core.sim.ur_emulator import UrEmulator
 
 log = logging.getLogger("vservo.virtual_cell")
 
 # The cup's wiring when the --cell file does not put it on the JRC's I/O: the first
 # network input for suction, the first external input for the pressure switch.
 DEFAULT_VACUUM_IO = VacuumDeviceConfig("jrc_io", suction_output=27010, grip_input=20)
+# ... and on a UR controller's: the tool flange's first output and input.
+DEFAULT_UR_VACUUM_IO = VacuumDeviceConfig("ur_io", suction_output=0, grip_input=0, io="tool")
+# --robot-link ur: a Universal Robots controller (core/sim/ur_emulator.py) instead of a JRC.
+UR_LINK = "ur"
 
 
 @dataclass(frozen=True)
@@ -70,14 +75,16 @@ class VirtualCellSettings:
     written cell file adds to the camera's latency for the network and the decoder, so
     that its ``exposure_latency_s`` is an upper bound. robot_link: what carries the host
     commands to the emulated JRC: a pseudo-terminal (BSC), or a loopback TCP port (the
-    Ethernet server of later controllers)."""
+    Ethernet server of later controllers); or ``UR_LINK``, a Universal Robots controller
+    on its own loopback address (RTDE, dashboard, script port), whose clock runs
+    ``time_scale`` times real time (1 by default: the camera's frames are then its own)."""
 
     time_scale: float = 40.0
     fps: float = 30.0
     exposure_latency_s: float = 0.05
     latency_margin_s: float = 0.05
     release_poll_s: float = 0.01
-    robot_link: HostTransport = HostTransport.SERIAL
+    robot_link: str = HostTransport.SERIAL
 
 
 @dataclass(frozen=True)
@@ -143,8 +150,12 @@ def controller_tables(
 ) -> dict[str, Any]:
     """The cell file the controller gets: the nominal cell, wired to this virtual cell's devices."""
     tables = {k: copy.deepcopy(v) for k, v in cell_tables.items() if k != "simulation"}
-    tables.setdefault("robot", {})["backend"] = "jrc"
-    tables["jrc"] = jrc_table(tables.get("jrc", {}), jrc_link, settings.time_scale)
+    if settings.robot_link == UR_LINK:
+        tables.setdefault("robot", {})["backend"] = "ur"
+        tables["ur"] = {**tables.get("ur", {}), **jrc_link, "time_scale": settings.time_scale}
+    else:
+        tables.setdefault("robot", {})["backend"] = "jrc"
+        tables["jrc"] = jrc_table(tables.get("jrc", {}), jrc_link, settings.time_scale)
     camera = tables.setdefault("camera", {})
     camera["source"] = {
         "kind": "capture",
@@ -154,9 +165,15 @@ def controller_tables(
         "reconnect_attempts": 3,
         "reconnect_delay_s": 0.5,
     }
-    tables.setdefault("vacuum", {}).update(device="jrc_io", suction_output=vacuum.suction_output, grip_input=vacuum.grip_input)
+    wiring = {"device": vacuum.device, "suction_output": vacuum.suction_output, "grip_input": vacuum.grip_input}
+    tables.setdefault("vacuum", {}).update(wiring, **({"io": vacuum.io} if vacuum.device == "ur_io" else {}))
     motion = tables.setdefault("motion", {})
     motion["sampling_period_s"] = float(motion.get("sampling_period_s", 2.0)) / settings.time_scale
+    if settings.robot_link == UR_LINK:
+        # A UR is velocity-controlled: the servo streams a twist a frame, and taught moves go
+        # at the [safety] limit the cell allows (its movel keeps to the straight line).
+        motion["mode"] = "streaming"
+        motion["move_speed_mm_s"] = float(tables.get("safety", {}).get("max_speed_mm_s", 250.0))
     tables["fixture"] = {"url": fixture_url}
     return tables
 
@@ -181,8 +198,14 @@ class VirtualCell:
         if board_laid:
             self.cell.lay_board(True)
         self.taught_bMo = self.config.plant().scene.cube.bMo
-        self.vacuum = self.config.vacuum_device if self.config.vacuum_device.device == "jrc_io" else DEFAULT_VACUUM_IO
-        self.emulator = JrcEmulator(self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum)
+        self.emulator: JrcEmulator | UrEmulator
+        if settings.robot_link == UR_LINK:
+            wired = self.config.vacuum_device.device == "ur_io"
+            self.vacuum = self.config.vacuum_device if wired else DEFAULT_UR_VACUUM_IO
+            self.emulator = UrEmulator(self.cell, vacuum=self.vacuum, time_scale=settings.time_scale)
+        else:
+            self.vacuum = self.config.vacuum_device if self.config.vacuum_device.device == "jrc_io" else DEFAULT_VACUUM_IO
+            self.emulator = JrcEmulator(self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum)
         self.renderer = SceneRenderer(self.cell.truth.model.camera, RenderSettings())
         self.camera_rng = np.random.default_rng(self.cell.rng.integers(2**31))
         self.camera = CameraStream(
@@ -198,7 +221,11 @@ class VirtualCell:
     # -- running -----------------------------------------------------------------------
 
     def start(self) -> None:
-        if self.settings.robot_link is HostTransport.ETHERNET:
+        if isinstance(self.emulator, UrEmulator):
+            host = self.emulator.start()
+            self.jrc_port = host
+            self._jrc_keys = {"host": host}
+        elif self.settings.robot_link == HostTransport.ETHERNET:
             host, port = self.emulator.start_on_tcp(port=self.addresses.jrc_tcp_port)
             self.jrc_port = f"{host}:{port}"
             self._jrc_keys = {"transport": str(HostTransport.ETHERNET), "host": host, "port": port}
@@ -210,6 +237,7 @@ class VirtualCell:
         self._watch.start()
 
     def _start_on_pty(self) -> None:
+        assert isinstance(self.emulator, JrcEmulator)
         self.jrc_port = self.emulator.start_on_pty()
         if self.addresses.jrc_link is not None:
             # A new link beside the old one, then renamed over it: the name is never missing
