@@ -69,6 +69,8 @@ HELD_SAFETY_MODES = frozenset({3, 5, 12, 13})  # stops the arm recovers from whe
 NORMAL_SAFETY_MODES = frozenset({1, 2})
 # How long the state history is kept: longer than a camera's latency and a frame.
 HISTORY_S = 2.0
+# How often the reader looks for a new RTDE package: a quarter of a CB3's period (8 ms).
+POLL_S = 0.002
 # Below this TCP speed the arm stands still (m/s, rad/s).
 STANDING_SPEED = 1e-6
 
@@ -170,7 +172,7 @@ class UrBackend:
     def _read_states(self) -> None:
         """Keep each new RTDE package (a new controller timestamp) with the host's time."""
         receive, last = self._receive, None
-        while not self._stop.wait(0.0005):
+        while not self._stop.wait(POLL_S):
             if receive is None or not receive.isConnected():
                 continue
             timestamp = receive.getTimestamp()

@@ -104,7 +104,9 @@ PositionStepPolicy = DividedPositionStep | LargestSafeStep
 
 def step_policy_from_config(motion: MotionConfig) -> StepPolicy:
     if motion.mode == "streaming":
-        return StreamedVelocity(motion.stream_hold_s, motion.stream_gain, motion.speed_m_s, motion.fast.max_step_rad)
+        return StreamedVelocity(
+            motion.stream_hold_s, motion.stream_gain, motion.stream_max_speed_m_s, motion.stream_max_rotation_rad_s
+        )
     if motion.mode == "velocity":
         return IntegratedVelocity(motion.dt_s)
     if motion.policy is StepPolicyKind.FAST:

@@ -28,7 +28,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
@@ -85,6 +85,21 @@ class VirtualCellSettings:
     latency_margin_s: float = 0.05
     release_poll_s: float = 0.01
     robot_link: str = HostTransport.SERIAL
+
+    @property
+    def camera_time_scale(self) -> float:
+        """How many seconds of the cell's clock the camera's second is: a UR servoes on every
+        frame, so its camera keeps the controller's clock (fps frames a second of it, its
+        latency in it); a JRC's camera keeps the wall's."""
+        return self.time_scale if self.robot_link == UR_LINK else 1.0
+
+    @property
+    def stream_fps(self) -> float:
+        return self.fps * self.camera_time_scale
+
+    @property
+    def stream_latency_s(self) -> float:
+        return self.exposure_latency_s / self.camera_time_scale
 
 
 @dataclass(frozen=True)
@@ -160,7 +175,7 @@ def controller_tables(
     camera["source"] = {
         "kind": "capture",
         "device": camera_url,
-        "exposure_latency_s": round(settings.exposure_latency_s + settings.latency_margin_s, 4),
+        "exposure_latency_s": round(settings.stream_latency_s + settings.latency_margin_s, 4),
         "buffer_frames": 0,
         "reconnect_attempts": 3,
         "reconnect_delay_s": 0.5,
@@ -209,7 +224,7 @@ class VirtualCell:
         self.renderer = SceneRenderer(self.cell.truth.model.camera, RenderSettings())
         self.camera_rng = np.random.default_rng(self.cell.rng.integers(2**31))
         self.camera = CameraStream(
-            self._render, fps=settings.fps, exposure_latency_s=settings.exposure_latency_s, port=addresses.camera_port
+            self._render, fps=settings.stream_fps, exposure_latency_s=settings.stream_latency_s, port=addresses.camera_port
         )
         self.fixture = _FixtureServer(self, port=addresses.fixture_port)
         self.released: list[Released] = []
@@ -363,7 +378,8 @@ class _FixtureServer:
     place ({"seed": n} optional) or puts it at a given place ({"x_mm", "y_mm", "yaw_deg"}:
     its frame O, a top-face corner, on the table); GET /part says where the part truly
     is; POST /board ({"laid": true|false}) lays the checkerboard or takes it away, GET
-    /board says which; GET /released lists the gauged releases."""
+    /board says which; GET /released lists the gauged releases; GET /robot-log, a UR
+    controller's log (programs and stops on its clock)."""
 
     def __init__(self, virtual: VirtualCell, host: str = "127.0.0.1", port: int = 0) -> None:
         self.server = ThreadingHTTPServer((host, port), _handler_for(virtual))
@@ -383,7 +399,7 @@ class _FixtureServer:
         self.server.server_close()
 
 
-ENDPOINTS = ("POST /part", "GET /part", "POST /board", "GET /board", "GET /released")
+ENDPOINTS = ("POST /part", "GET /part", "POST /board", "GET /board", "GET /released", "GET /robot-log")
 _PART_BODY = 'the body is empty, {"seed": <integer>}, or {"x_mm": <number>, "y_mm": <number>, "yaw_deg": <number>}'
 _BOARD_BODY = 'the body is {"laid": true} or {"laid": false}'
 
@@ -426,6 +442,8 @@ def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
                 self._reply(200, {"board": virtual.board_state()})
             elif self.path == "/released":
                 self._reply(200, {"released": [r.as_dict() for r in virtual.released]})
+            elif self.path == "/robot-log":
+                self._robot_log()
             elif self.path == "/":
                 self._reply(200, {"fixture": "vservo virtual cell", "endpoints": list(ENDPOINTS)})
             else:
@@ -448,6 +466,16 @@ def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
                 self._reply(409, {"error": str(exc)})
             except ValueError as exc:  # json.JSONDecodeError is one
                 self._reply(400, {"error": str(exc)})
+
+        def _robot_log(self) -> None:
+            """A UR controller's log, on its own clock: every program it took and every stop."""
+            emulator = virtual.emulator
+            if not isinstance(emulator, UrEmulator):
+                self._reply(404, {"error": "GET /robot-log: only a UR controller (--robot-link ur) keeps a log"})
+                return
+            with emulator.lock:
+                entries = [asdict(entry) for entry in emulator.controller.log]
+            self._reply(200, {"period_s": emulator.controller.period_s, "log": entries})
 
         def _reply(self, status: int, body: dict) -> None:
             data = json.dumps(body).encode()
