@@ -73,9 +73,9 @@ class UrLimits:
 
 @dataclass(frozen=True)
 class LogEntry:
-    """One event on the controller's clock: a program received ("program"), its first
-    statement's name (``what``), or a stop ("stop", "protective stop") and when the arm
-    last moved before it came to rest (``detail``)."""
+    """One event on the controller's clock: a program received ("program") and its first
+    statement's name (``what``), or a stop ("stop", "pause", "protective stop",
+    "emergency stop", "runtime error", "power off")."""
 
     time_s: float
     kind: str
@@ -241,8 +241,9 @@ class UrController:
             self._halt(kind)
 
     def _halt(self, kind: str) -> None:
+        """The arm stops where it is: no period after this one moves it."""
         self.twist_b = np.zeros(6)
-        self.log.append(LogEntry(self.time_s, kind, f"{self.last_moved_s:.6f}"))
+        self.log.append(LogEntry(self.time_s, kind, ""))
 
     def power(self, on: bool) -> None:
         with self.lock:

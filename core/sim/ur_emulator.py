@@ -195,6 +195,10 @@ class _Listener:
             threading.Thread(target=self.serve, args=(connection,), name=f"{self.name}-client", daemon=True).start()
 
     def close(self) -> None:
+        try:
+            self.socket.shutdown(socket.SHUT_RDWR)  # wakes the accept (a close alone does not)
+        except OSError:
+            pass
         self.socket.close()
         for connection in self.connections:
             try:

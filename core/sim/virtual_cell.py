@@ -378,7 +378,8 @@ class _FixtureServer:
     place ({"seed": n} optional) or puts it at a given place ({"x_mm", "y_mm", "yaw_deg"}:
     its frame O, a top-face corner, on the table); GET /part says where the part truly
     is; POST /board ({"laid": true|false}) lays the checkerboard or takes it away, GET
-    /board says which; GET /released lists the gauged releases; GET /robot-log, a UR
+    /board says which; POST /camera ({"stalled": true|false}) stalls the camera's frames or
+    lets them go on; GET /released lists the gauged releases; GET /robot-log, a UR
     controller's log (programs and stops on its clock)."""
 
     def __init__(self, virtual: VirtualCell, host: str = "127.0.0.1", port: int = 0) -> None:
@@ -399,7 +400,7 @@ class _FixtureServer:
         self.server.server_close()
 
 
-ENDPOINTS = ("POST /part", "GET /part", "POST /board", "GET /board", "GET /released", "GET /robot-log")
+ENDPOINTS = ("POST /part", "GET /part", "POST /board", "GET /board", "POST /camera", "GET /released", "GET /robot-log")
 _PART_BODY = 'the body is empty, {"seed": <integer>}, or {"x_mm": <number>, "y_mm": <number>, "yaw_deg": <number>}'
 _BOARD_BODY = 'the body is {"laid": true} or {"laid": false}'
 
@@ -430,7 +431,19 @@ def _post_board(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
     return {"board": virtual.lay_board(body["laid"])}
 
 
-_POSTS: dict[str, Callable[[VirtualCell, dict[str, Any]], dict[str, Any]]] = {"/part": _post_part, "/board": _post_board}
+def _post_camera(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
+    """Stall the camera (its frames stop coming, the connection stays) or let it go on."""
+    if set(body) != {"stalled"} or not isinstance(body["stalled"], bool):
+        raise ValueError(f'{json.dumps(body)}: the body is {{"stalled": true}} or {{"stalled": false}}')
+    (virtual.camera.stalled.set if body["stalled"] else virtual.camera.stalled.clear)()
+    return {"camera": {"stalled": body["stalled"]}}
+
+
+_POSTS: dict[str, Callable[[VirtualCell, dict[str, Any]], dict[str, Any]]] = {
+    "/part": _post_part,
+    "/board": _post_board,
+    "/camera": _post_camera,
+}
 
 
 def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
@@ -473,9 +486,11 @@ def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
             if not isinstance(emulator, UrEmulator):
                 self._reply(404, {"error": "GET /robot-log: only a UR controller (--robot-link ur) keeps a log"})
                 return
+            controller = emulator.controller
             with emulator.lock:
-                entries = [asdict(entry) for entry in emulator.controller.log]
-            self._reply(200, {"period_s": emulator.controller.period_s, "log": entries})
+                entries = [asdict(entry) for entry in controller.log]
+                clock = {"time_s": controller.time_s, "last_moved_s": controller.last_moved_s}
+            self._reply(200, {"period_s": controller.period_s, **clock, "log": entries})
 
         def _reply(self, status: int, body: dict) -> None:
             data = json.dumps(body).encode()
