@@ -954,12 +954,18 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     is reported under the nominal key it overrides. ``base_dir``: the folder relative
     paths in the file are read from (the cell file's own).
     """
-    from vservo.robot_models.loader import ARM_NAMES, joint_limits
+    from vservo.robot_models.loader import is_urdf_arm, joint_limits
 
     data, wiring = _split_wiring(data)
     root = _Table(data, "", source)
     robot = root.table("robot")
-    arm = robot.choice("arm", ARM_NAMES, "upj")
+    arm = robot.text("arm", "upj")
+    if is_urdf_arm(arm) and not Path(arm.rpartition("#")[0]).is_absolute() and base_dir is not None:
+        arm = f"{base_dir / arm}"  # a URDF beside the cell file
+    try:
+        joint_limits(arm)
+    except (ValueError, FileNotFoundError) as exc:
+        raise robot.fail("arm", arm, str(exc)) from None
     home_deg = robot.vector("home_joints_deg", None, None)
     lower, upper = np.degrees(joint_limits(arm))
     if home_deg.shape != lower.shape:

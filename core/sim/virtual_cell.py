@@ -167,7 +167,9 @@ def controller_tables(
     tables = {k: copy.deepcopy(v) for k, v in cell_tables.items() if k != "simulation"}
     if settings.robot_link == UR_LINK:
         tables.setdefault("robot", {})["backend"] = "ur"
-        tables["ur"] = {**tables.get("ur", {}), **jrc_link, "time_scale": settings.time_scale}
+        # The emulated arm's moves accelerate at 2.5 m/s^2 unless the --cell file says otherwise
+        # (URScript's default for movel is 1.2; a UR's tool takes more).
+        tables["ur"] = {"acceleration_mm_s2": 2500.0, **tables.get("ur", {}), **jrc_link, "time_scale": settings.time_scale}
     else:
         tables.setdefault("robot", {})["backend"] = "jrc"
         tables["jrc"] = jrc_table(tables.get("jrc", {}), jrc_link, settings.time_scale)

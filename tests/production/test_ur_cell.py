@@ -3,7 +3,7 @@ process (the UR controller emulator on its RTDE, dashboard and script ports, the
 stream, the fixture), and the product driving it through the cell file it writes, with
 ur-rtde's own clients, exactly as it would drive a real arm.
 
-The virtual cell runs at a quarter of real time (--time-scale 0.25; its camera keeps the
+The virtual cell runs at a fifth of real time (--time-scale 0.2; its camera keeps the
 controller's clock): the machine's two cores are shared, and a servo at the camera's rate
 needs its host to keep up with every frame. Every figure here is on the controller's clock,
 read from its log (the fixture's GET /robot-log).
@@ -28,7 +28,7 @@ from vservo.core.production.storage import Store
 from vservo.core.robot.backend import RobotNotReady
 from vservo.core.robot.ur import UrBackend
 
-TIME_SCALE = "0.25"
+TIME_SCALE = "0.2"
 
 
 @pytest.fixture(scope="module")
