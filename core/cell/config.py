@@ -194,7 +194,7 @@ class MotionConfig:
     # mode = "streaming": a twist a camera frame, sent without waiting; the controller holds
     # it this long at most (a frame that does not come stops the arm)
     stream_hold_s: float = 0.1
-    stream_gain: float = 4.0  # the rate (1/s) the streamed servo's error falls at
+    stream_gain: float = 6.0  # the rate (1/s) the streamed servo's error falls at; times the loop's delay, below about 1
     stream_max_speed_m_s: float = 0.1  # the streamed twist scaled down to these, its direction kept
     stream_max_rotation_rad_s: float = math.radians(45.0)
 
@@ -740,7 +740,7 @@ def _motion(t: _Table, safety: SafetyConfig) -> MotionConfig:
         # A taught move faster than [safety] allows is refused when it is sent, as a jog's is.
         move_speed_m_s=t.number("move_speed_mm_s", 50.0, check=_positive, why="must be positive") / 1000.0,
         stream_hold_s=t.number("stream_hold_s", 0.1, check=lambda v: 0.0 < v <= 1.0, why="must be more than 0 and at most 1 s"),
-        stream_gain=t.number("stream_gain", 4.0, check=lambda v: 0.0 < v <= 20.0, why="must be more than 0 and at most 20 (1/s)"),
+        stream_gain=t.number("stream_gain", 6.0, check=lambda v: 0.0 < v <= 20.0, why="must be more than 0 and at most 20 (1/s)"),
         stream_max_speed_m_s=_within(
             t, "stream_max_speed_mm_s", 100.0, 1000.0 * safety.max_speed_m_s, "max_speed_mm_s", "a streamed twist"
         )

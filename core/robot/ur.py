@@ -28,6 +28,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -108,9 +109,10 @@ class UrBackend:
     def __init__(self, config: UrConfig) -> None:
         self.config = config
         self.acceleration_m_s2 = config.acceleration_m_s2
-        self._receive = None
-        self._script = None
-        self._dashboard = None
+        # ur-rtde's clients (its modules come without type information)
+        self._receive: Any = None
+        self._script: Any = None
+        self._dashboard: Any = None
         self._history: deque[UrState] = deque()
         self._latest: UrState | None = None
         self._fresh = threading.Condition()

@@ -53,10 +53,10 @@ def ur_pose(bMe: Matrix) -> list[float]:
 
 def pose_from_ur(values: Sequence[float]) -> Matrix:
     """The pose of [x, y, z, rx, ry, rz] (metres, rotation vector)."""
-    values = np.asarray(values, dtype=float)
-    if values.shape != (6,) or not np.all(np.isfinite(values)):
-        raise ValueError(f"a UR pose is 6 finite numbers [x, y, z, rx, ry, rz], got {values.tolist()}")
-    return transform(exp_twist(np.r_[0.0, 0.0, 0.0, values[3:]])[:3, :3], values[:3])
+    pose = np.asarray(values, dtype=float)
+    if pose.shape != (6,) or not np.all(np.isfinite(pose)):
+        raise ValueError(f"a UR pose is 6 finite numbers [x, y, z, rx, ry, rz], got {pose.tolist()}")
+    return transform(exp_twist(np.r_[0.0, 0.0, 0.0, pose[3:]])[:3, :3], pose[:3])
 
 
 def _numbers(values: Sequence[float]) -> str:

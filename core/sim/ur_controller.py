@@ -28,8 +28,8 @@ from enum import IntEnum
 import numpy as np
 
 from vservo.core.cell.config import VacuumDeviceConfig
-from vservo.core.cell.kinematics import UnreachableTarget
-from vservo.core.geometry.spatial import Matrix, exp_twist, interpolate, pose_error
+from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
+from vservo.core.geometry.spatial import Matrix, exp_twist, interpolate, pose_error, theta_u
 from vservo.core.robot.ur_script import BANK_SIZE, INPUT_BIT_OFFSET, OUTPUT_BIT_OFFSET, DigitalOutputs, pose_from_ur
 from vservo.core.sim.plant import SimulatedCell
 
@@ -173,7 +173,8 @@ class UrController:
         self.vacuum = vacuum if vacuum is not None and vacuum.device == "ur_io" else None
         self.state = ControllerState()
         self.program: list[Statement] = []
-        self.twist_b = np.zeros(6)  # the TCP's velocity (v, w) in the base frame
+        self.twist_b = np.zeros(6)  # the twist a speedl or stopl drives the TCP at (v, w in the base frame)
+        self.tcp_speed = np.zeros(6)  # the TCP's velocity over the last period, whatever moved it (RTDE's)
         self.time_s = 0.0  # the controller's clock
         self.log: list[LogEntry] = []
         self.last_moved_s = 0.0  # the controller's clock when the arm last moved
@@ -186,7 +187,7 @@ class UrController:
     # -- the plant as the controller sees it ---------------------------------------------
 
     @property
-    def arm(self):
+    def arm(self) -> ArmKinematics:
         return self.cell.jrc_arm  # the controller's nominal model of its arm
 
     @property
@@ -204,7 +205,7 @@ class UrController:
     @property
     def motion(self) -> object | None:
         """Something while the arm moves (a program runs or the arm still has speed), else None."""
-        return True if self.program or np.any(self.twist_b != 0.0) else None
+        return True if self.program or np.any(self.twist_b != 0.0) or np.any(self.tcp_speed != 0.0) else None
 
     def advance(self) -> None:
         """The plant is brought up to date by the ticks themselves."""
@@ -298,7 +299,7 @@ class UrController:
     def tick(self) -> None:
         """One control period: the program's statement runs on, the arm moves."""
         dt = self.period_s
-        moving_before = bool(np.any(self.twist_b != 0.0))
+        bMe_before = self.tcp_pose()
         while self.program:
             statement = self.program[0]
             if not self._step(statement, dt):
@@ -307,11 +308,15 @@ class UrController:
         if not self.program and np.any(self.twist_b != 0.0):
             # The program has ended (a speedl's time ran out) with the arm still moving: it stops.
             self._decelerate(self.limits.max_acceleration_m_s2, dt)
-        if moving_before or np.any(self.twist_b != 0.0):
-            self.last_moved_s = self.time_s + dt
         self.time_s += dt
-        if not self._moved_this_tick:
+        if self._moved_this_tick:
+            self.last_moved_s = self.time_s
+            bMe = self.tcp_pose()
+            turn = theta_u(bMe[:3, :3] @ bMe_before[:3, :3].T)
+            self.tcp_speed = np.r_[bMe[:3, 3] - bMe_before[:3, 3], turn] / dt
+        else:
             self.cell.pass_time(dt)
+            self.tcp_speed = np.zeros(6)
         self._moved_this_tick = False
 
     def _step(self, statement: Statement, dt: float) -> bool:
@@ -411,9 +416,12 @@ class UrController:
         and acceleration, or of its turn at the controller's turning limits where that takes longer."""
         acceleration, speed = statement.values
         speed = min(speed, self.limits.max_speed_m_s)
+        target = statement.target
+        if target is None:
+            raise ScriptError("movel without a target pose")
         if statement.start is None:
             statement.start = self.tcp_pose()
-            translation, rotation = pose_error(statement.start, statement.target)
+            translation, rotation = pose_error(statement.start, target)
             limits = self.limits
             by_length = (translation, speed, acceleration)
             by_turn = (rotation, limits.max_rotation_rad_s, limits.max_rotation_acceleration_rad_s2)
@@ -423,7 +431,7 @@ class UrController:
         statement.elapsed_s = min(statement.elapsed_s + dt, statement.duration_s)
         done = statement.elapsed_s >= statement.duration_s
         s = 1.0 if done or length == 0.0 else _trapezoid_distance(statement.elapsed_s, *statement.profile) / length
-        if not self._move_to(interpolate(statement.start, statement.target, s), dt, settle=done):
+        if not self._move_to(interpolate(statement.start, target, s), dt, settle=done):
             return False
         return done
 

@@ -18,6 +18,7 @@ RTDE client always connects to port 30004, so each emulator takes its own loopba
 from __future__ import annotations
 
 import errno
+import functools
 import logging
 import random
 import socket
@@ -42,9 +43,14 @@ def _vector(values) -> tuple[float, ...]:
     return tuple(float(v) for v in values)
 
 
+def _zeros6(controller: UrController) -> tuple[float, ...]:
+    """What the emulator does not model (joint speeds, forces) reads as zero."""
+    return (0.0,) * 6
+
+
 # Each variable: its RTDE type and how to read it from the controller (the lock held).
 def _variables() -> dict[str, tuple[str, Callable[[UrController], object]]]:
-    zeros6 = lambda c: (0.0,) * 6  # noqa: E731 (what the emulator does not model reads as zero)
+    zeros6 = _zeros6
     table: dict[str, tuple[str, Callable[[UrController], object]]] = {
         "timestamp": ("DOUBLE", lambda c: c.time_s),
         "actual_q": ("VECTOR6D", lambda c: _vector(c.q)),
@@ -53,8 +59,8 @@ def _variables() -> dict[str, tuple[str, Callable[[UrController], object]]]:
         "target_qd": ("VECTOR6D", zeros6),
         "actual_TCP_pose": ("VECTOR6D", lambda c: _vector(ur_pose(c.tcp_pose()))),
         "target_TCP_pose": ("VECTOR6D", lambda c: _vector(ur_pose(c.tcp_pose()))),
-        "actual_TCP_speed": ("VECTOR6D", lambda c: _vector(c.twist_b)),
-        "target_TCP_speed": ("VECTOR6D", lambda c: _vector(c.twist_b)),
+        "actual_TCP_speed": ("VECTOR6D", lambda c: _vector(c.tcp_speed)),
+        "target_TCP_speed": ("VECTOR6D", lambda c: _vector(c.tcp_speed)),
         "actual_TCP_force": ("VECTOR6D", zeros6),
         "robot_mode": ("INT32", lambda c: int(c.state.robot_mode)),
         "safety_mode": ("INT32", lambda c: int(c.state.safety_mode)),
@@ -68,9 +74,14 @@ def _variables() -> dict[str, tuple[str, Callable[[UrController], object]]]:
         "target_speed_fraction": ("DOUBLE", lambda c: 1.0),
     }
     for n in range(48):
-        table[f"output_int_register_{n}"] = ("INT32", lambda c, n=n: c.state.registers.get(n, 0))
+        table[f"output_int_register_{n}"] = ("INT32", functools.partial(_register, n=n))
         table[f"output_double_register_{n}"] = ("DOUBLE", lambda c: 0.0)
     return table
+
+
+def _register(controller: UrController, n: int) -> int:
+    """An output integer register, as the programs wrote it (0 until then)."""
+    return controller.state.registers.get(n, 0)
 
 
 def _safety_bits(controller: UrController) -> int:
@@ -138,12 +149,12 @@ class _RtdeSession:
         elif kind == "O":
             (frequency,) = struct.unpack(">d", payload[:8])
             # (ur-rtde ends the list with a comma, as a real controller accepts)
-            names = tuple(name for name in payload[8:].decode("utf-8").split(",") if name)
+            names = [name for name in payload[8:].decode("utf-8").split(",") if name]
             types = [VARIABLES[name][0] if name in VARIABLES else "NOT_FOUND" for name in names]
             known = "NOT_FOUND" not in types and 0.0 < frequency <= self.controller.frequency_hz
             if known:
                 every = max(1, round(self.controller.frequency_hz / frequency))
-                self.recipe = _Recipe(names, struct.Struct(">B" + "".join(_FORMATS[t] for t in types)), every)
+                self.recipe = _Recipe(tuple(names), struct.Struct(">B" + "".join(_FORMATS[t] for t in types)), every)
             self.send("O", struct.pack(">B", 1 if known else 0) + ",".join(types).encode())
         elif kind == "I":
             names = [name for name in payload.decode("utf-8").split(",") if name]

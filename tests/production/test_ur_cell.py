@@ -143,12 +143,23 @@ def test_a_stalled_camera_stops_the_arm_within_the_watchdog(ur_cell, controller)
     controller.reset()
 
 
+@pytest.fixture
+def fresh_ur_cell():
+    # A tenth of real time: ten runs in a row on cores other test suites load too (a load
+    # average of 20 to 30 on our two) must follow every frame of each.
+    cell = VirtualCellProcess("--seed", "3", "--robot-link", "ur", "--time-scale", "0.1")
+    try:
+        yield cell
+    finally:
+        assert cell.stop() == 0
+
+
 @pytest.mark.slow
-def test_the_demo_is_placed_ten_of_ten_streaming_at_the_cameras_rate_and_loads_no_simulator_module(ur_cell, tmp_path):
+def test_the_demo_is_placed_ten_of_ten_streaming_at_the_cameras_rate_and_loads_no_simulator_module(fresh_ur_cell, tmp_path):
     """The issue's acceptance on the UR: ten seeds placed within 0.3 mm by the virtual cell's
     gauge, each run within 6 s of the controller's clock, its servo streaming at least 25
     twists a second of it, and the run process importing no module of the simulator."""
-    figures = []
+    ur_cell, figures = fresh_ur_cell, []
     for seed in range(10):
         before = len(twists(robot_log(ur_cell)))
         run = subprocess.run(
@@ -164,10 +175,13 @@ def test_the_demo_is_placed_ten_of_ten_streaming_at_the_cameras_rate_and_loads_n
         released = ur_cell.next_event()
         streamed = twists(robot_log(ur_cell))[before:]
         rate = (len(streamed) - 1) / (streamed[-1] - streamed[0])
-        figures.append((seed, released["placement_error_mm"], summary["cell_time_s"], rate))
+        figures.append(
+            (seed, released["placement_error_mm"], summary["cell_time_s"], rate, summary["cell_time_by_phase_s"]["servo"])
+        )
+        print(seed, summary["cell_time_by_phase_s"], summary["stages"], f"{rate:.1f} twists/s", flush=True)
         assert summary["outcome"] == "placed" and released["inside"], (summary, released)
         assert released["placement_error_mm"] <= 0.3, released
-        assert summary["cell_time_s"] <= 6.0, summary
+        assert summary["cell_time_s"] <= 6.0, figures
         assert rate >= 25.0, figures
         assert not loaded_modules(run.stderr) & SIMULATOR_MODULES
-    print("seed, gauge mm, cell time s, twists per s:", np.round(figures, 3).tolist())
+    print("seed, gauge mm, cell time s, twists per s, servo s:", np.round(figures, 3).tolist())
