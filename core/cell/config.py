@@ -729,8 +729,9 @@ def _scene(t: _Table, board: BoardConfig | None) -> tuple[Scene, LaidBoard | Non
 
 def _motion(t: _Table, safety: SafetyConfig) -> MotionConfig:
     policy = StepPolicyKind(t.choice("policy", tuple(StepPolicyKind), StepPolicyKind.THESIS))
+    mode = t.choice("mode", ("position_steps", "velocity", "streaming"), "position_steps")
     motion = MotionConfig(
-        mode=t.choice("mode", ("position_steps", "velocity", "streaming"), "position_steps"),
+        mode=mode,
         divide_factor=t.number("divide_factor", 50.0, check=lambda v: v >= 1.0, why="must be at least 1"),
         sampling_period_s=t.number("sampling_period_s", 2.0, check=_positive, why="must be positive"),
         speed_m_s=t.number("speed_mm_s", 50.0, check=_positive, why="must be positive") / 1000.0,
@@ -741,8 +742,11 @@ def _motion(t: _Table, safety: SafetyConfig) -> MotionConfig:
         move_speed_m_s=t.number("move_speed_mm_s", 50.0, check=_positive, why="must be positive") / 1000.0,
         stream_hold_s=t.number("stream_hold_s", 0.1, check=lambda v: 0.0 < v <= 1.0, why="must be more than 0 and at most 1 s"),
         stream_gain=t.number("stream_gain", 6.0, check=lambda v: 0.0 < v <= 20.0, why="must be more than 0 and at most 20 (1/s)"),
-        stream_max_speed_m_s=_within(
-            t, "stream_max_speed_mm_s", 100.0, 1000.0 * safety.max_speed_m_s, "max_speed_mm_s", "a streamed twist"
+        # (a streamed servo's speed beyond [safety] would be refused every frame: refused here)
+        stream_max_speed_m_s=(
+            _within(t, "stream_max_speed_mm_s", 100.0, 1000.0 * safety.max_speed_m_s, "max_speed_mm_s", 'mode = "streaming"')
+            if mode == "streaming"
+            else t.number("stream_max_speed_mm_s", 100.0, check=_positive, why="must be positive")
         )
         / 1000.0,
         stream_max_rotation_rad_s=math.radians(

@@ -29,6 +29,7 @@ import numpy as np
 
 from vservo.core.cell.config import VacuumDeviceConfig
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
+from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix, exp_twist, interpolate, pose_error, theta_u
 from vservo.core.robot.ur_script import BANK_SIZE, INPUT_BIT_OFFSET, OUTPUT_BIT_OFFSET, DigitalOutputs, pose_from_ur
 from vservo.core.sim.plant import SimulatedCell
@@ -82,7 +83,7 @@ class LogEntry:
     what: str
 
 
-class ScriptError(ValueError):
+class ScriptError(VservoError, ValueError):
     """A program the controller cannot run: the message says which line and why."""
 
 

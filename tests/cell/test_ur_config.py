@@ -39,7 +39,7 @@ def test_a_ur_cell_reads_its_controller_its_cup_and_its_streamed_servo():
         (lambda t: t["robot"].update(backend="jrc"), "needs robot.backend = \"ur\", not 'jrc'"),
         (lambda t: t["ur"].update(script_port=0), "ur.script_port = 0: a TCP port"),
         (lambda t: t["ur"].update(acceleration_mm_s2=-1.0), "ur.acceleration_mm_s2 = -1.0"),
-        (lambda t: t["motion"].update(stream_max_speed_mm_s=900.0), "exceeds [safety] max_speed_mm_s = 250 (a streamed twist)"),
+        (lambda t: t["motion"].update(stream_max_speed_mm_s=900.0), 'exceeds [safety] max_speed_mm_s = 250 (mode = "streaming")'),
         (lambda t: t["motion"].update(stream_hold_s=3.0), "motion.stream_hold_s = 3.0: must be more than 0 and at most 1 s"),
     ],
 )
