@@ -77,7 +77,7 @@ def stage_words(stage: Stage | str | None) -> str:
 def banner_for(state: ControllerState, controller_gone: str | None = None) -> Banner:
     """The banner for the controller's state."""
     if controller_gone:
-        return Banner(Kind.FAULT, "CONTROLLER STOPPED", "Restart `vservo serve`.", controller_gone)
+        return Banner(Kind.FAULT, "CONTROLLER STOPPED", CONTROLLER_GONE_WORDS, controller_gone)
     job, detail = state.job or "demo", state.detail
     if state.phase is Phase.DONE:
         return _banner_done(state, job)
@@ -91,6 +91,9 @@ def banner_for(state: ControllerState, controller_gone: str | None = None) -> Ba
     kind, title, next_step = PHASE_BANNERS[state.phase]
     return Banner(kind, title.format(job=job), next_step, detail)
 
+
+# While the controller process is gone nothing holds the robot for vservo; `vservo serve` starts a new one.
+CONTROLLER_GONE_WORDS = "The robot is not held by vservo: if it moves, press the pendant's e-stop. A new controller is starting."
 
 # The banner of each phase but servoing and done: kind, title ({job}: the job's name) and what to do next.
 PHASE_BANNERS = {

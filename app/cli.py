@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 
 from vservo.core.calibration.cli import add_calibrate_command, add_calibration_bench
-from vservo.core.cell.cli import add_info_command
+from vservo.core.cell.cli import add_info_command, add_password_hash_command
 from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
 from vservo.core.errors import VservoError
 from vservo.core.perception.cli import add_detect_command
@@ -26,18 +26,17 @@ from vservo.core.study.cli import (
     add_study_commands,
     add_vision_bench,
 )
-from vservo.core.terminal.command_line import BenchCommand, Parser, positive, print_result, seed
+from vservo.core.terminal.command_line import CYCLE_PERIOD, BenchCommand, Parser, bounded, positive, print_result, seed
+from vservo.core.terminal.logs import add_log_options, configure_logging
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    import logging
-
     from vservo.app.controller_process import ControllerStartError
     from vservo.app.roles import TokenError, TokenSource, operator_token
     from vservo.app.server import ServeOptions, serve
     from vservo.app.web_guard import normalise_origin
 
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    configure_logging(args, "serve")
     try:
         token = operator_token(
             args.token,
@@ -62,6 +61,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         cell=args.cell,
         show_token=token.source is TokenSource.GENERATED,
         allowed_origins=origins,
+        log_options=("--log-level", args.log_level, "--log-format", args.log_format),
     )
     try:
         return serve(options, config, announce=lambda line: print(line, flush=True))
@@ -93,6 +93,13 @@ def _cmd_bench_ui(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_browsers(args: argparse.Namespace) -> int:
+    from vservo.app.bench_memory import bench_browsers
+
+    print_result(bench_browsers(args.clients, args.batch, args.cell), args.json)
+    return 0
+
+
 def _add_serve_command(commands: argparse._SubParsersAction) -> None:
     serve = commands.add_parser(
         "serve",
@@ -107,7 +114,9 @@ def _add_serve_command(commands: argparse._SubParsersAction) -> None:
         default="127.0.0.1",
         help="interface to serve on (default 127.0.0.1: this PC only; 0.0.0.0 opens it to the network)",
     )
-    serve.add_argument("--port", type=positive(int), default=8080, help="HTTP port (default 8080; the next free one if taken)")
+    serve.add_argument(
+        "--port", type=bounded(int, 1, 65535), default=8080, help="HTTP port (default 8080; the next free one if taken)"
+    )
     serve.add_argument("--data", metavar="DIR", help="data folder (default $VSERVO_DATA or ~/.local/share/vservo)")
     serve.add_argument("--seed", type=seed, default=None, help="seed of the simulated cell and of the parts' arrival")
     token = serve.add_mutually_exclusive_group()
@@ -132,11 +141,12 @@ def _add_serve_command(commands: argparse._SubParsersAction) -> None:
     )
     serve.add_argument(
         "--cycle-period",
-        type=float,
+        type=CYCLE_PERIOD,
         default=0.05,
         metavar="S",
         help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)",
     )
+    add_log_options(serve)
     serve.set_defaults(run=_cmd_serve)
 
 
@@ -172,8 +182,24 @@ def _add_ui_bench(bench: BenchCommand) -> None:
         help="ui: assemblies per monitor count (default 3; with light clients, as many again without any)",
     )
     ui.add_argument(
-        "--cycle-period", type=float, default=0.0, metavar="S", help="ui: shortest servo cycle in s (default 0: free-running)"
+        "--cycle-period",
+        type=CYCLE_PERIOD,
+        default=0.0,
+        metavar="S",
+        help="ui: shortest servo cycle in s (default 0: free-running)",
     )
+
+
+def _add_browsers_bench(bench: BenchCommand) -> None:
+    browsers = bench.add(
+        "browsers",
+        "vservo serve's memory after 200 browsers (light monitors) connected and left, against after the first 10",
+        _cmd_bench_browsers,
+    )
+    browsers.add_argument(
+        "--clients", type=bounded(int, 1, 10000), default=200, help="browsers: light monitors in all (default 200)"
+    )
+    browsers.add_argument("--batch", type=bounded(int, 1, 100), default=10, help="browsers: connected at a time (default 10)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -185,6 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--cell", metavar="FILE", help="cell configuration (TOML); default: the shipped cell")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=Parser)
     add_info_command(commands)
+    add_password_hash_command(commands)
     add_detect_command(commands)
     add_jrc_emulator_command(commands)
     add_virtual_cell_command(commands)
@@ -200,6 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_calibration_bench(bench)
     add_jrc_bench(bench)
     _add_ui_bench(bench)
+    _add_browsers_bench(bench)
     bench.close()
 
     _accept_cell_after_commands(parser)

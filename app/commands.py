@@ -62,6 +62,10 @@ class CommandQueue:
         log.warning("e-stop pressed in browser %s", client_id)
         threading.Thread(target=self._send, args=(_Request(client_id, Estop(), done),), name="app-estop", daemon=True).start()
 
+    def reconnect(self, call: Call) -> None:
+        """Send the next commands with ``call``: a new controller's channel in place of a dead one's."""
+        self._call = call
+
     def call_now(self, query: Query) -> Reply:
         """A read-only query answered in the caller's thread (the app's own refreshes, not a browser's)."""
         if not isinstance(query, Query):

@@ -16,6 +16,7 @@ import select
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from vservo.core.errors import VservoError
@@ -36,7 +37,14 @@ class ControllerProcess:
 
     @classmethod
     def start(
-        cls, *, backend: str, data: Path, seed: int | None, cycle_period_s: float, cell: str | None = None
+        cls,
+        *,
+        backend: str,
+        data: Path,
+        seed: int | None,
+        cycle_period_s: float,
+        cell: str | None = None,
+        log_options: Sequence[str] = (),
     ) -> ControllerProcess:
         key = new_key()
         command = [
@@ -53,6 +61,7 @@ class ControllerProcess:
             "--cycle-period",
             str(cycle_period_s),
             *(["--seed", str(seed)] if seed is not None else []),
+            *log_options,
         ]
         # Its log goes to our standard error, as the operator's terminal shows the app's.
         process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env={**os.environ, KEY_ENVIRONMENT: key.hex()})
@@ -71,6 +80,13 @@ class ControllerProcess:
     @property
     def alive(self) -> bool:
         return self.process.poll() is None
+
+    def exit_code(self, timeout_s: float) -> int | None:
+        """Its exit code once it has exited, waiting up to ``timeout_s``; None while it runs."""
+        try:
+            return self.process.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            return None
 
     def stop(self, timeout_s: float = 30.0) -> int | None:
         """SIGTERM (the controller holds the robot and exits), SIGKILL if it does not within the timeout."""

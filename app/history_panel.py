@@ -10,6 +10,7 @@ the feature error chart and the flange's path in 3D up to the frame shown, in re
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from dataclasses import dataclass, field
@@ -28,6 +29,8 @@ from vservo.app.stage_chart import stage_chart
 from vservo.app.status import run_heading, run_label, runs_table
 from vservo.core.perception.recording import Recording, RecordingError
 from vservo.core.production.protocol import RunEntry
+
+log = logging.getLogger("vservo.app")
 
 NO_RUN = "(no runs yet)"
 CHART_PERIOD_S = 0.25  # the replay's chart and 3D path follow at most this often
@@ -154,12 +157,15 @@ class HistoryPanel:
         with self._lock:
             new_run, self._newest = newest != self._newest, newest
         for view in views:
-            changed = view.set_options("history_run", labels)
-            if new_run and view.handles["history_run"].value != labels[0]:
-                view.handles["history_run"].value = labels[0]  # a run ended: show it
-                changed = True
-            if changed:
-                self._show_timeline(view)
+            try:
+                changed = view.set_options("history_run", labels)
+                if new_run and view.handles["history_run"].value != labels[0]:
+                    view.handles["history_run"].value = labels[0]  # a run ended: show it
+                    changed = True
+                if changed:
+                    self._show_timeline(view)
+            except RuntimeError:  # viser: its elements were removed as it left, before we heard of it
+                log.info("browser %d left while the runs changed", view.client_id)
 
     def refresh(self, view: SessionView) -> None:
         pass  # the table changes when a run ends (lists_changed)

@@ -25,7 +25,6 @@ import contextlib
 import io
 import logging
 import signal
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -41,7 +40,7 @@ from vservo.app.calibrate_panel import CalibratePanel
 from vservo.app.client_view import ClientView
 from vservo.app.commands import CommandQueue
 from vservo.app.context import ServeOptions
-from vservo.app.controller_process import ControllerProcess
+from vservo.app.controller_process import ControllerProcess, ControllerStartError
 from vservo.app.history_panel import HistoryPanel
 from vservo.app.roles import RoleRefused, Roles
 from vservo.app.scene3d import CellScene
@@ -64,6 +63,7 @@ from vservo.core.production.protocol import (
     Reset,
     RunEntry,
 )
+from vservo.core.terminal.logs import announce
 
 log = logging.getLogger("vservo.app")
 
@@ -71,9 +71,17 @@ IMAGE_PERIOD_S = 1 / 30  # the live image at up to 30 frames per second
 TEXT_PERIOD_S = 0.1
 SCENE_PERIOD_S = 0.1
 PLOT_PERIOD_S = 0.25
+WATCH_PERIOD_S = 0.25  # how often the controller process is looked at: a dead one is on the page within 2 s
+EXIT_WAIT_S = 2.0  # a controller whose channel ended has that long to exit before it counts as alive
+RESTART_RETRY_S = 10.0  # between attempts to start a new controller when one did not come up
 BANNER_HEIGHT_PX = 96
 SAFETY_WIDTH_PX = 440
 SAFETY_HEIGHT_PX = 310  # the E-STOP and five lines of status: never cut off
+SAFETY_TOP_PX = 10  # under the banner: the page's panels start below it already
+# Viser stacks notifications at the 3D view's top left, where the E-STOP floats: they start
+# under its panel instead, clipped at the window's bottom (the newest shows first).
+NOTICES_TOP_PX = SAFETY_TOP_PX + SAFETY_HEIGHT_PX + 10
+ESTOP_Z_INDEX = 1100  # over the banner (1000), notifications (400) and dialogs (Mantine's modal, 200)
 # The banner sits fixed over the top of the window; viser's root (#root > div) gives it room.
 BANNER_STYLE = f"""<style>
 #root > div {{ padding-top: {BANNER_HEIGHT_PX}px; box-sizing: border-box; }}
@@ -121,15 +129,9 @@ class OperatorApp:
             estop = server.gui.add_button(
                 "E-STOP", color="red", icon=viser.Icon.HAND_STOP, hint="Hold the robot now. Every browser may stop the cell."
             )
-            # Large: viser has no button size. Viser sets its icons half their width right of
-            # their box, which at this size runs the hand into the label's "E".
-            button = f"button[id='{estop._impl.uuid}']"
-            server.gui.add_html(
-                f"<style>{button} {{height: 84px !important; font-size: 1.8em; font-weight: 800; "
-                f"letter-spacing: 0.12em}} {button} svg {{left: 0 !important}}</style>"
-            )
+            server.gui.add_html(_estop_style(estop._impl.uuid))
             self.status = server.gui.add_markdown("")
-        self.safety.float(x=15, y=BANNER_HEIGHT_PX + 10, width=SAFETY_WIDTH_PX, height=SAFETY_HEIGHT_PX)
+        self.safety.float(x=15, y=SAFETY_TOP_PX, width=SAFETY_WIDTH_PX, height=SAFETY_HEIGHT_PX)
         estop.on_click(lambda event: self.commands.estop(event.client_id, self._estop_reply(event.client_id)))
         self.tabs = server.gui.add_tab_group(order=10)
         self.scene = CellScene(server, config)
@@ -367,11 +369,32 @@ class OperatorApp:
         self.scene.update(view.state, overlay, view.trace.path_m)
         self.teach.follow_flange(view.state.bMe)
 
+    def reconnect(self, channel: ControllerClient) -> None:
+        """A new controller in place of one that died: commands go to it, the pages show its state
+        and the runs it found unfinished (marked interrupted)."""
+        self.channel = channel
+        self.commands.reconnect(channel.call)
+        self.session.on_controller_back(channel.state)
+        self.in_background(self.refresh_lists)
+
     def close(self) -> None:
         self._stop.set()
         self._display_thread.join(5.0)
         self.calibrate.close()
         self.commands.close()
+
+
+def _estop_style(uuid: str) -> str:
+    """The E-STOP's style: large (viser has no button size; it sets its icons half their width
+    right of their box, which at this size runs the hand into the label's "E"), and nothing over
+    it: notifications start under its panel, which stays on top of any other element or dialog."""
+    button = f"button[id='{uuid}']"
+    return (
+        f"<style>{button} {{height: 84px !important; font-size: 1.8em; font-weight: 800; letter-spacing: 0.12em}} "
+        f"{button} svg {{left: 0 !important}} "
+        f".mantine-Paper-root:has({button}) {{z-index: {ESTOP_Z_INDEX} !important}} "
+        f".mantine-Notifications-root {{top: {NOTICES_TOP_PX}px !important; bottom: 0; overflow: hidden}}</style>"
+    )
 
 
 @dataclass
@@ -383,6 +406,51 @@ class RunningApp:
     channel: ControllerClient
     controller: ControllerProcess
     url: str
+    options: ServeOptions
+    lost: threading.Event  # set by the channel's reader as the channel ends
+
+    def watch_controller(self, stop: threading.Event) -> None:
+        """Until ``stop``: a controller process that stopped (its channel ended) is said on every
+        page at once (nothing holds the robot for vservo meanwhile), and a new one started and connected."""
+        while not stop.is_set():
+            if not self.lost.wait(WATCH_PERIOD_S) and self.controller.alive:
+                continue
+            if stop.is_set():
+                break
+            self.app.session.on_controller_gone("the channel to the controller process closed")  # the pages at once
+            code = self.controller.exit_code(EXIT_WAIT_S)
+            if stop.is_set():  # Ctrl-C at the terminal stops the controller and this app together
+                break
+            why = (
+                "the channel to the controller process closed (the process still ran: it is stopped)"
+                if code is None
+                else f"the controller process stopped ({_exit_words(code)})"
+            )
+            log.error("%s: starting a new one", why)
+            self.app.session.on_controller_gone(why)
+            while not stop.is_set() and (failed := self._restart_controller()) is not None:
+                self.app.session.on_controller_gone(f"{why}; a new one did not start: {failed}")
+                stop.wait(RESTART_RETRY_S)
+
+    def _restart_controller(self) -> str | None:
+        """A new controller process on the same cell and data (it marks the run the old one left
+        interrupted), the app reconnected to it; why not, if it did not come up."""
+        self.controller.stop()  # reaps the dead one (a live one, whose channel ended, holds the robot and exits)
+        self.lost.clear()
+        try:
+            controller = _start_controller(self.options)
+        except ControllerStartError as exc:
+            return str(exc)
+        try:
+            channel = _connect(controller, self.app.session, self.lost)
+        except ChannelError as exc:
+            controller.stop()
+            return str(exc)
+        old, self.controller, self.channel = self.channel, controller, channel
+        self.app.reconnect(channel)
+        old.close()
+        log.warning("a new controller process (PID %d) is connected", controller.process.pid)
+        return None
 
     def close(self) -> int | None:
         """Stop serving and stop the controller (SIGTERM: it holds the robot and exits); its exit code."""
@@ -397,13 +465,10 @@ class RunningApp:
 def start_app(options: ServeOptions, config: CellConfig) -> RunningApp:
     """Start the controller process, connect to it and serve the page (returns once serving)."""
     roles = Roles(options.token)
-    controller = ControllerProcess.start(
-        backend=options.backend, data=options.data, seed=options.seed, cycle_period_s=options.cycle_period_s, cell=options.cell
-    )
+    controller = _start_controller(options)
     try:
-        session = Session()
-        channel = ControllerClient(controller.address, controller.key, on_state=session.on_state, on_frame=session.on_frame)
-        session.on_state(channel.state)  # the welcome's state (ignored if a newer one came first)
+        session, lost = Session(), threading.Event()
+        channel = _connect(controller, session, lost)
         policy = OriginPolicy.allowing(options.allowed_origins)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner whatever verbose says; ours is below
             server = origin_checked_server(options.host, options.port, policy)
@@ -414,7 +479,31 @@ def start_app(options: ServeOptions, config: CellConfig) -> RunningApp:
     except BaseException:
         controller.stop()  # never leave the controller running without its app
         raise
-    return RunningApp(app, server, channel, controller, f"http://{options.host}:{port}")
+    return RunningApp(app, server, channel, controller, f"http://{options.host}:{port}", options, lost)
+
+
+def _start_controller(options: ServeOptions) -> ControllerProcess:
+    return ControllerProcess.start(
+        backend=options.backend,
+        data=options.data,
+        seed=options.seed,
+        cycle_period_s=options.cycle_period_s,
+        cell=options.cell,
+        log_options=options.log_options,
+    )
+
+
+def _connect(controller: ControllerProcess, session: Session, lost: threading.Event) -> ControllerClient:
+    """The channel to ``controller``, its states and frames into ``session``; ``lost`` set as it ends."""
+    channel = ControllerClient(
+        controller.address, controller.key, on_state=session.on_state, on_frame=session.on_frame, on_closed=lost.set
+    )
+    session.on_state(channel.state)  # the welcome's state (ignored if a newer one came first)
+    return channel
+
+
+def _exit_words(code: int | None) -> str:
+    return f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
 
 
 def serve(options: ServeOptions, config: CellConfig, announce: Callable[[str], None] = print) -> int:
@@ -427,12 +516,7 @@ def serve(options: ServeOptions, config: CellConfig, announce: Callable[[str], N
     try:
         token = options.token if options.show_token else "(the one given)"
         announce(f"vservo serve: {running.url}  operator token: {token}  (backend {options.backend}, data {options.data})")
-        while not stop.wait(0.5):
-            if not running.controller.alive:
-                why = f"the controller process exited with code {running.controller.process.returncode}"
-                running.app.session.on_controller_gone(why)
-                log.error("%s", why)
-                stop.wait()  # keep the page up to say so until the operator stops the app
+        running.watch_controller(stop)
     finally:
         code = running.close()
     return 0 if code in (0, None) else 1
@@ -444,7 +528,4 @@ def _log_thread_exception(args: threading.ExceptHookArgs) -> None:
         args.thread.name if args.thread else "?",
         exc_info=args.exc_value,
     )
-    print(
-        f"vservo serve: unhandled exception in thread {args.thread.name if args.thread else '?'}: {args.exc_value!r}",
-        file=sys.stderr,
-    )
+    announce(f"vservo serve: unhandled exception in thread {args.thread.name if args.thread else '?'}: {args.exc_value!r}")

@@ -122,8 +122,17 @@ class Session:
             self._changed.notify_all()
 
     def on_controller_gone(self, why: str) -> None:
+        """The controller process stopped: ``why``."""
         with self._changed:
             self._gone = why
+            self._states += 1  # the pages redraw the banner and the status
+            self._changed.notify_all()
+
+    def on_controller_back(self, welcome: ControllerState) -> None:
+        """A new controller is connected: its welcome's state stands, whatever its clock said before."""
+        with self._changed:
+            self._gone, self._state = None, welcome
+            self._states += 1
             self._changed.notify_all()
 
     # -- read by the display -----------------------------------------------------------
@@ -147,8 +156,6 @@ class Session:
             return SessionView(self._state, self._frame, trace, self._states, self._runs_ended, self._gone)
 
     def wait_for_news(self, seen_states: int, seen_frames: int, timeout_s: float) -> bool:
-        """Block until a state or frame newer than those counts arrives (or the controller goes); False on timeout."""
+        """Block until a state or frame newer than those counts arrives (or the controller goes or is back); False on timeout."""
         with self._changed:
-            return self._changed.wait_for(
-                lambda: self._states > seen_states or self._frames > seen_frames or self._gone is not None, timeout_s
-            )
+            return self._changed.wait_for(lambda: self._states > seen_states or self._frames > seen_frames, timeout_s)

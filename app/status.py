@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from vservo.app.banner import stage_words
+from vservo.app.banner import CONTROLLER_GONE_WORDS, stage_words
 from vservo.app.session import RunTrace
 from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
 from vservo.core.production.protocol import ControllerState, Outcome, Phase, RunEntry, RunOutcome
@@ -47,7 +47,7 @@ def _number(value: float | None, digits: int = 2, unit: str = "") -> str:
 def status_markdown(state: ControllerState, operator_present: bool, controller_gone: str | None = None) -> str:
     """The line every browser shows under the e-stop."""
     if controller_gone:
-        return f"**CONTROLLER STOPPED**: {controller_gone}. Restart `vservo serve`."
+        return f"**CONTROLLER STOPPED**: {controller_gone}. {CONTROLLER_GONE_WORDS}"
     parts = [f"**{PHASE_WORDS[state.phase]}**"]
     if state.job:
         parts.append(f"job `{state.job}`")
@@ -137,15 +137,25 @@ def runs_table(runs: Sequence[RunEntry], limit: int = 15) -> str:
     """Past runs, newest first, as a markdown table."""
     if not runs:
         return "No runs yet."
-    lines = ["| run | job | outcome | duration | final error | placement | started |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| run | job | outcome | duration | final error | placement | started | recording |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for run in runs[:limit]:
         started = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(run.started_at))
         lines.append(
             f"| {run.id} | {run.job} | {OUTCOME_WORDS[run.outcome]} | "
             f"{_number(run.duration_s, 1, ' s')} | {_number(run.final_error_px, 2, ' px')} | "
-            f"{_number(run.placement_error_mm, 2, ' mm')} | {started} |"
+            f"{_number(run.placement_error_mm, 2, ' mm')} | {started} | {recording_words(run)} |"
         )
     return "\n".join(lines)
+
+
+def recording_words(run: RunEntry) -> str:
+    """Whether the run's recording can be replayed: kept, removed by the retention, or never made."""
+    if run.recording_removed_at is not None:
+        return "recording removed"
+    return "kept" if run.recording else "-"
 
 
 def run_label(run: RunEntry) -> str:
@@ -155,4 +165,5 @@ def run_label(run: RunEntry) -> str:
 
 def run_heading(run: RunEntry) -> str:
     """One run in a line: its number, job, outcome and why (its stages are app/stage_chart.py's chart)."""
-    return f"**Run {run.id}** ({run.job}): {OUTCOME_WORDS[run.outcome]}, {run.reason or ''}"
+    removed = " (recording removed)" if run.recording_removed_at is not None else ""
+    return f"**Run {run.id}** ({run.job}): {OUTCOME_WORDS[run.outcome]}, {run.reason or ''}{removed}"

@@ -4,8 +4,8 @@ One file describes a cell. Its nominal sections (robot, camera, hand_eye, laser,
 vacuum, motion) are what control laws and calibrations may use; ``[camera.source]``
 and the ``[vacuum]`` device keys say which devices the controller drives (the
 simulator's, or a real camera and the vacuum on the JRC's I/O); ``[jrc]`` holds the
-serial line to a JRC, ``[safety]`` the limits on every move and ``[recordings]`` how many
-runs' recordings the data folder keeps; ``[simulation]``
+serial line to a JRC, ``[safety]`` the limits on every move, ``[recordings]`` how many
+runs' recordings the data folder keeps and ``[line.plc]`` the PLC handshake; ``[simulation]``
 describes the plant the simulator plays: its seed and noise, ``[simulation.scene]``
 (where the table, cube, metal part and the checkerboard, when laid, really are) and ``[simulation.truth.*]`` tables
 that override nominal values with what the cell really is (the robustness test of
@@ -18,6 +18,7 @@ converted to SI once, here. Every error names the file, the key and the bad valu
 
 from __future__ import annotations
 
+import copy
 import math
 import tomllib
 from collections.abc import Callable, Sequence
@@ -30,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from vservo.core.cell.kinematics import ToolMount
+from vservo.core.cell.line import LineConfig, parse_line
 from vservo.core.cell.scene import Cube, LaidBoard, MetalPart, Scene
 from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
@@ -268,6 +270,68 @@ class JrcLineConfig:
         return n_bytes * self.bits_per_character / self.baud
 
 
+class PlcTransport(StrEnum):
+    """What carries the PLC handshake's signals ([line.plc] transport, docs/plc.md)."""
+
+    MODBUS = "modbus"  # a Modbus TCP server the controller serves: the PLC, its client, writes coils and reads discrete inputs
+    JRC_IO = "jrc_io"  # the JRC's I/O lines: inputs the host reads, network inputs it writes (a ladder copies them out)
+
+
+@dataclass(frozen=True)
+class PlcInputMap:
+    """Where the PLC's signals to the cell are: coils (Modbus) or JRC input addresses (byte.bit).
+    ``job_bits``: the job number's bits, least significant first."""
+
+    start: int
+    part_present: int
+    reset: int
+    job_bits: tuple[int, ...]
+
+    def addresses(self) -> tuple[int, ...]:
+        """Every input's address: start, part_present, reset, then the job bits."""
+        return (self.start, self.part_present, self.reset, *self.job_bits)
+
+
+@dataclass(frozen=True)
+class PlcOutputMap:
+    """Where the cell's signals to the PLC are: discrete inputs (Modbus) or JRC network inputs
+    (byte.bit) that the controller's ladder copies to the outputs wired to the PLC."""
+
+    ready: int
+    busy: int
+    done: int
+    ok: int
+    not_ok: int
+    fault: int
+
+    def addresses(self) -> tuple[int, ...]:
+        """Every output's address, in the order of the fields."""
+        return (self.ready, self.busy, self.done, self.ok, self.not_ok, self.fault)
+
+
+@dataclass(frozen=True)
+class PlcConfig:
+    """[line.plc]: the PLC handshake (docs/plc.md). ``jobs``: (job number, job name) pairs;
+    ``poll_period_s``: how often the handshake reads its inputs and writes its outputs.
+    Modbus only: the server's ``host`` and ``port`` (0: any free one), and the part ID's
+    holding registers (``part_id_register``, None: the PLC gives none; two ASCII characters
+    a register)."""
+
+    transport: PlcTransport
+    inputs: PlcInputMap
+    outputs: PlcOutputMap
+    jobs: tuple[tuple[int, str], ...]
+    poll_period_s: float = 0.05
+    host: str = "127.0.0.1"
+    port: int = 5020
+    part_id_register: int | None = None
+    part_id_registers: int = 10
+
+    def job_name(self, number: int) -> str | None:
+        """The job the PLC's job number selects, None when [line.plc.jobs] has no such number."""
+        return dict(self.jobs).get(number)
+
+
 @dataclass(frozen=True)
 class UrConfig:
     """[ur]: a Universal Robots controller (docs/connecting-your-cell.md, "A Universal Robots arm").
@@ -366,6 +430,8 @@ class CellConfig:
     # a place pose against its pocket; the simulator's own is [simulation.scene].
     metal_part: MetalPart | None = None
     recordings: RecordingRetention = RecordingRetention()
+    plc: PlcConfig | None = None  # [line.plc]: the PLC handshake, None without one
+    line: LineConfig = LineConfig()  # [line]: the OPC UA server and the metrics endpoint (core/cell/line.py)
     ur: UrConfig = UrConfig()  # [ur]: a Universal Robots controller, for robot.backend = "ur"
 
     def plant(self) -> SimulationConfig:
@@ -467,6 +533,16 @@ def _positive(v: float) -> bool:
     return v > 0.0
 
 
+def _above_zero(high: float, unit: str) -> dict[str, Any]:
+    """``check`` and ``why`` of a number more than 0 and at most ``high``: the product's range for it."""
+    return {"check": lambda v: 0.0 < v <= high, "why": f"must be positive and at most {high:g} {unit}"}
+
+
+def _from_zero(high: float, unit: str) -> dict[str, Any]:
+    """``check`` and ``why`` of a number from 0 to ``high``."""
+    return {"check": lambda v: 0.0 <= v <= high, "why": f"must be >= 0 and at most {high:g} {unit}"}
+
+
 def _non_negative(v: float) -> bool:
     return v >= 0.0
 
@@ -477,7 +553,7 @@ def _camera(t: _Table) -> CameraModel:
     A data sheet gives the focal length in mm and the pixel pitch; a calibration measures
     the focal lengths in pixels, ``focal_length_px = [fx, fy]``, which then replaces them.
     """
-    focal = t.number("focal_length_mm", 6.0, check=_positive, why="must be positive")
+    focal = t.number("focal_length_mm", 6.0, **_above_zero(1000, "mm"))
     pixel = t.vector("pixel_size_mm", 2, [0.0074, 0.0074])
     if np.any(pixel <= 0):
         raise t.fail("pixel_size_mm", pixel.tolist(), "both sizes must be positive")
@@ -532,19 +608,15 @@ def _camera_source(t: _Table, base_dir: Path | None) -> CameraSourceConfig:
             or (isinstance(device, int) and device < 0)
         ):
             raise t.fail("device", device, "must be a device index >= 0, or a video file, stream URL or pipeline")
-        attempts = t.integer("reconnect_attempts", 3)
-        if attempts < 0:
-            raise t.fail("reconnect_attempts", attempts, "must be >= 0")
-        buffered = t.integer("buffer_frames", 0)
-        if buffered < 0:
-            raise t.fail("buffer_frames", buffered, "must be >= 0")
+        attempts = _integer_from_zero(t, "reconnect_attempts", 3, 1000)
+        buffered = _integer_from_zero(t, "buffer_frames", 0, 1000)
         source = CameraSourceConfig(
             kind,
             device=device,
             reconnect_attempts=attempts,
-            reconnect_delay_s=t.number("reconnect_delay_s", 0.5, check=_non_negative, why="must be >= 0"),
+            reconnect_delay_s=t.number("reconnect_delay_s", 0.5, **_from_zero(60, "s")),
             loop=t.flag("loop", False),
-            exposure_latency_s=t.number("exposure_latency_s", 0.0, check=_non_negative, why="must be >= 0"),
+            exposure_latency_s=t.number("exposure_latency_s", 0.0, **_from_zero(10, "s")),
             buffer_frames=buffered,
         )
     elif kind == "folder":
@@ -575,7 +647,7 @@ def _board(t: _Table) -> BoardConfig | None:
     """[board]: square side, inner corners and rough pose; None when the table is absent."""
     if not t._data:
         return None
-    square = t.number("square_mm", None, check=_positive, why="must be positive") / 1000.0
+    square = t.number("square_mm", None, **_above_zero(1000, "mm")) / 1000.0
     corners = t.vector("inner_corners", 2, None)
     if np.any(corners < 3) or np.any(corners != np.round(corners)) or corners[0] == corners[1]:
         raise t.fail(
@@ -658,6 +730,106 @@ def _vacuum_device(t: _Table) -> VacuumDeviceConfig:
     return vacuum
 
 
+# [line.plc]'s limits: Modbus addresses are 16-bit; a job number of more than 16 bits is a typo.
+MODBUS_ADDRESSES = (0, 65535)
+MAX_JOB_BITS = 16
+PLC_POLL_PERIOD_S = (0.005, 5.0)
+MAX_PART_ID_REGISTERS = 32  # 64 characters, the store's longest part ID
+_MODBUS_ONLY_KEYS = ("host", "port", "part_id_register", "part_id_registers")
+
+
+def _plc(t: _Table) -> PlcConfig:
+    transport = PlcTransport(t.choice("transport", tuple(PlcTransport)))
+    if transport is PlcTransport.JRC_IO:
+        for key in _MODBUS_ONLY_KEYS:
+            if key in t._data:
+                raise t.fail(key, t._data[key], 'has no meaning with transport = "jrc_io": remove it')
+    inputs = _plc_inputs(t.table("inputs"), transport)
+    outputs = _plc_outputs(t.table("outputs"), transport)
+    low, high = PLC_POLL_PERIOD_S
+    config = PlcConfig(
+        transport,
+        inputs,
+        outputs,
+        _plc_jobs(t.table("jobs"), len(inputs.job_bits)),
+        poll_period_s=t.number("poll_period_s", 0.05, check=lambda v: low <= v <= high, why=f"must be {low:g} to {high:g} s"),
+    )
+    if transport is PlcTransport.MODBUS:
+        port = t.integer("port", 5020)
+        if not 0 <= port <= TCP_PORTS[1]:
+            raise t.fail("port", port, f"a TCP port, 0 (any free one) to {TCP_PORTS[1]}")
+        count = t.integer("part_id_registers", 10)
+        if not 1 <= count <= MAX_PART_ID_REGISTERS:
+            raise t.fail("part_id_registers", count, f"must be 1 to {MAX_PART_ID_REGISTERS} (two characters a register)")
+        first = t.integer("part_id_register", -1)
+        if first != -1 and not 0 <= first <= MODBUS_ADDRESSES[1] + 1 - count:
+            raise t.fail(
+                "part_id_register",
+                first,
+                f"must be 0 to {MODBUS_ADDRESSES[1] + 1 - count}, its {count} registers within 0..65535",
+            )
+        config = replace(
+            config,
+            host=t.text("host", "127.0.0.1"),
+            port=port,
+            part_id_register=None if first == -1 else first,
+            part_id_registers=count,
+        )
+    t.finish()
+    return config
+
+
+def _plc_address(t: _Table, key: str, transport: PlcTransport, value: Any = None) -> int:
+    """One signal's address: a Modbus coil or discrete input (0..65535), or a JRC byte.bit address."""
+    value = t.integer(key) if value is None else value
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise t.fail(key, value, "must be an integer")
+    if transport is PlcTransport.JRC_IO and (value < 0 or value % 10 > 7):
+        raise t.fail(key, value, "must be a byte.bit I/O address >= 0 whose last digit, the bit, is 0..7")
+    if transport is PlcTransport.MODBUS and not MODBUS_ADDRESSES[0] <= value <= MODBUS_ADDRESSES[1]:
+        raise t.fail(key, value, f"must be a Modbus address, {MODBUS_ADDRESSES[0]} to {MODBUS_ADDRESSES[1]}")
+    return value
+
+
+def _distinct(t: _Table, addresses: dict[str, int]) -> None:
+    seen: dict[int, str] = {}
+    for key, address in addresses.items():
+        if address in seen:
+            raise t.fail(key, address, f"is also {t._key(seen[address])}: each signal needs its own address")
+        seen[address] = key
+
+
+def _plc_inputs(t: _Table, transport: PlcTransport) -> PlcInputMap:
+    bits = t._raw("job_bits", None)
+    if not isinstance(bits, list) or not 1 <= len(bits) <= MAX_JOB_BITS:
+        raise t.fail("job_bits", bits, f"must be a list of 1 to {MAX_JOB_BITS} addresses, least significant bit first")
+    job_bits = tuple(_plc_address(t, "job_bits", transport, bit) for bit in bits)
+    signals = {key: _plc_address(t, key, transport) for key in ("start", "part_present", "reset")}
+    _distinct(t, {**signals, **{f"job_bits[{i}]": bit for i, bit in enumerate(job_bits)}})
+    t.finish()
+    return PlcInputMap(job_bits=job_bits, **signals)
+
+
+def _plc_outputs(t: _Table, transport: PlcTransport) -> PlcOutputMap:
+    signals = {key: _plc_address(t, key, transport) for key in ("ready", "busy", "done", "ok", "not_ok", "fault")}
+    _distinct(t, signals)
+    t.finish()
+    return PlcOutputMap(**signals)
+
+
+def _plc_jobs(t: _Table, n_bits: int) -> tuple[tuple[int, str], ...]:
+    """[line.plc.jobs]: job number = "job name"; numbers the job bits can carry."""
+    if not t._data:
+        raise ConfigError(f'{t._source}: {t._path} is empty: give each job number its job, as 1 = "demo"')
+    jobs = []
+    for key in sorted(t._data):
+        if not key.isdigit() or int(key) >= 2**n_bits:
+            raise t.fail(key, t._data[key], f"the key must be a job number, 0 to {2**n_bits - 1} ({n_bits} job bits)")
+        jobs.append((int(key), t.text(key)))
+    t.finish()
+    return tuple(sorted(jobs))
+
+
 # The keys of the model tables that say how a device is wired rather than what the cell
 # is: the control laws never read them and [simulation.truth.*] cannot override them.
 _WIRING_KEYS = {"camera": ("source",), "vacuum": ("device", "suction_output", "grip_input", "io")}
@@ -693,6 +865,36 @@ def _check_devices(config: CellConfig) -> None:
         )
     if vacuum == "ur_io" and backend != "ur":
         raise ConfigError(f"{source}: vacuum.device = 'ur_io': a cup on a UR's I/O needs robot.backend = \"ur\", not {backend!r}")
+    if config.plc is not None and config.plc.transport is PlcTransport.JRC_IO:
+        _check_plc_on_jrc(config.plc, config)
+
+
+def _plc_input_signals(plc: PlcConfig) -> dict[str, int]:
+    """The PLC's input signals by their keys' names: start, ..., job_bits[0], ..."""
+    inputs = plc.inputs
+    named = {"start": inputs.start, "part_present": inputs.part_present, "reset": inputs.reset}
+    return {**named, **{f"job_bits[{i}]": bit for i, bit in enumerate(inputs.job_bits)}}
+
+
+def _check_plc_on_jrc(plc: PlcConfig, config: CellConfig) -> None:
+    """The handshake on the JRC's I/O needs the JRC, and lines of its own beside the cup's."""
+    if config.robot_backend != "jrc":
+        raise ConfigError(
+            f'{config.source}: line.plc.transport = "jrc_io": the PLC on the JRC\'s I/O needs robot.backend = "jrc", '
+            f"not {config.robot_backend!r}"
+        )
+    outputs = vars(plc.outputs)
+    for name, address in _plc_input_signals(plc).items():
+        if address in outputs.values():
+            raise ConfigError(f"{config.source}: line.plc.inputs.{name} = {address}: it is also a [line.plc.outputs] address")
+    if config.vacuum_device.device == "jrc_io":
+        suction, grip = config.vacuum_device.jrc_io()
+        for name, address in vars(plc.outputs).items():
+            if address == suction:
+                raise ConfigError(f"{config.source}: line.plc.outputs.{name} = {address}: it is vacuum.suction_output")
+        for name, address in _plc_input_signals(plc).items():
+            if address == grip:
+                raise ConfigError(f"{config.source}: line.plc.inputs.{name} = {address}: it is vacuum.grip_input")
 
 
 # How far the true board may lie from the table's plane: it is a printed sheet on it.
@@ -703,8 +905,10 @@ _SHEET_LEVEL_RAD = math.radians(0.01)
 def _scene(t: _Table, board: BoardConfig | None) -> tuple[Scene, LaidBoard | None]:
     """The scene as the plant starts (no board laid), and the board where it lies when laid:
     ``board_pose``, or the [board] pose by default; it must lie flat on the table."""
-    table_height = t.number("table_height_mm", 0.0) / 1000.0
-    cube = Cube(t.pose("object_pose", None), t.number("cube_side_mm", 20.0, check=_positive, why="must be positive") / 1000.0)
+    table_height = (
+        t.number("table_height_mm", 0.0, check=lambda v: abs(v) <= 2000.0, why="must be from -2000 to 2000 mm") / 1000.0
+    )
+    cube = Cube(t.pose("object_pose", None), t.number("cube_side_mm", 20.0, **_above_zero(1000, "mm")) / 1000.0)
     part = MetalPart(t.pose("metal_part_pose", None))
     laid = None
     if "board_pose" in t._data and board is None:
@@ -732,14 +936,16 @@ def _motion(t: _Table, safety: SafetyConfig) -> MotionConfig:
     mode = t.choice("mode", ("position_steps", "velocity", "streaming"), "position_steps")
     motion = MotionConfig(
         mode=mode,
-        divide_factor=t.number("divide_factor", 50.0, check=lambda v: v >= 1.0, why="must be at least 1"),
-        sampling_period_s=t.number("sampling_period_s", 2.0, check=_positive, why="must be positive"),
-        speed_m_s=t.number("speed_mm_s", 50.0, check=_positive, why="must be positive") / 1000.0,
-        dt_s=t.number("dt_s", 0.05, check=_positive, why="must be positive"),
+        divide_factor=t.number(
+            "divide_factor", 50.0, check=lambda v: 1.0 <= v <= 10000.0, why="must be at least 1 and at most 10000"
+        ),
+        sampling_period_s=t.number("sampling_period_s", 2.0, **_above_zero(60, "s")),
+        speed_m_s=t.number("speed_mm_s", 50.0, **_above_zero(5000, "mm/s")) / 1000.0,
+        dt_s=t.number("dt_s", 0.05, **_above_zero(10, "s")),
         policy=policy,
         fast=_fast_steps(t.table("fast"), safety if policy is StepPolicyKind.FAST else None),
         # A taught move faster than [safety] allows is refused when it is sent, as a jog's is.
-        move_speed_m_s=t.number("move_speed_mm_s", 50.0, check=_positive, why="must be positive") / 1000.0,
+        move_speed_m_s=t.number("move_speed_mm_s", 50.0, **_above_zero(5000, "mm/s")) / 1000.0,
         stream_hold_s=t.number("stream_hold_s", 0.1, check=lambda v: 0.0 < v <= 1.0, why="must be more than 0 and at most 1 s"),
         stream_gain=t.number("stream_gain", 6.0, check=lambda v: 0.0 < v <= 20.0, why="must be more than 0 and at most 20 (1/s)"),
         # (a streamed servo's speed beyond [safety] would be refused every frame: refused here)
@@ -788,6 +994,13 @@ def _within(t: _Table, key: str, default: float, limit: float, safety_key: str, 
 BAUD_RATES = (150, 300, 600, 1200, 2400, 4800, 9600, 19200)
 
 
+def _integer_from_zero(t: _Table, key: str, default: int, high: int) -> int:
+    value = t.integer(key, default)
+    if not 0 <= value <= high:
+        raise t.fail(key, value, f"must be a whole number >= 0 and at most {high}")
+    return value
+
+
 def _integer_in(t: _Table, key: str, default: int, options: Sequence[int]) -> int:
     value = t.integer(key, default)
     if value not in options:
@@ -818,8 +1031,8 @@ def _jrc(t: _Table) -> JrcLineConfig:
 def _line_timers(t: _Table) -> tuple[float, float, float]:
     """timer_a_s, timer_b_s and time_scale, which both transports have."""
     return (
-        t.number("timer_a_s", 3.0, check=_positive, why="must be positive"),
-        t.number("timer_b_s", 20.0, check=_positive, why="must be positive"),
+        t.number("timer_a_s", 3.0, **_above_zero(60, "s")),
+        t.number("timer_b_s", 20.0, **_above_zero(600, "s")),
         t.number("time_scale", 1.0, check=lambda v: 1.0 <= v <= 1000.0, why="must be 1 (a real JRC) to 1000"),
     )
 
@@ -827,9 +1040,7 @@ def _line_timers(t: _Table) -> tuple[float, float, float]:
 def _serial_line(t: _Table) -> JrcLineConfig:
     retries = {}
     for key, default in (("retry_1", 10), ("retry_2", 3)):
-        retries[key] = t.integer(key, default)
-        if retries[key] < 0:
-            raise t.fail(key, retries[key], "must be >= 0")
+        retries[key] = _integer_from_zero(t, key, default, 255)
     timer_a_s, timer_b_s, time_scale = _line_timers(t)
     return JrcLineConfig(
         port=t.text("port", "/dev/ttyS0"),
@@ -842,7 +1053,7 @@ def _serial_line(t: _Table) -> JrcLineConfig:
         timer_b_s=timer_b_s,
         retry_1=retries["retry_1"],
         retry_2=retries["retry_2"],
-        jwait_slice_s=t.number("jwait_slice_s", 0.5, check=_positive, why="must be positive"),
+        jwait_slice_s=t.number("jwait_slice_s", 0.5, **_above_zero(60, "s")),
         time_scale=time_scale,
     )
 
@@ -870,7 +1081,7 @@ def _ethernet_line(t: _Table) -> JrcLineConfig:
         transport=HostTransport.ETHERNET,
         host=t.text("host"),
         tcp_port=tcp_port,
-        status_poll_s=t.number("status_poll_s", 0.05, check=_positive, why="must be positive"),
+        status_poll_s=t.number("status_poll_s", 0.05, **_above_zero(10, "s")),
     )
 
 
@@ -901,10 +1112,10 @@ def _safety(t: _Table) -> SafetyConfig:
     safety = SafetyConfig(
         workspace_min_m=low / 1000.0,
         workspace_max_m=high / 1000.0,
-        max_step_m=t.number("max_step_mm", 50.0, check=_positive, why="must be positive") / 1000.0,
-        max_step_rad=math.radians(t.number("max_step_deg", 15.0, check=_positive, why="must be positive")),
-        max_speed_m_s=t.number("max_speed_mm_s", 250.0, check=_positive, why="must be positive") / 1000.0,
-        joint_margin_rad=math.radians(t.number("joint_margin_deg", 0.0, check=_non_negative, why="must be >= 0")),
+        max_step_m=t.number("max_step_mm", 50.0, **_above_zero(1000, "mm")) / 1000.0,
+        max_step_rad=math.radians(t.number("max_step_deg", 15.0, **_above_zero(180, "deg"))),
+        max_speed_m_s=t.number("max_speed_mm_s", 250.0, **_above_zero(5000, "mm/s")) / 1000.0,
+        joint_margin_rad=math.radians(t.number("joint_margin_deg", 0.0, **_from_zero(90, "deg"))),
         watchdog_s=t.number(
             "watchdog_s",
             5.0,
@@ -934,17 +1145,15 @@ def _simulation(t: _Table, truth: CellModel, board: BoardConfig | None) -> Simul
     t.table("truth")  # parsed by _truth_tables; marked as known here
     scene, laid_board = _scene(t.table("scene"), board)
     simulation = SimulationConfig(
-        seed=t.integer("seed", 0),
+        seed=_integer_from_zero(t, "seed", 0, 2**32 - 1),
         truth=truth,
         scene=scene,
         board=laid_board,
-        pixel_noise_px=t.number("pixel_noise_px", 0.0, check=_non_negative, why="must be >= 0"),
-        repeatability_m=t.number("repeatability_mm", 0.0, check=_non_negative, why="must be >= 0") / 1000.0,
-        repeatability_rad=math.radians(t.number("repeatability_deg", 0.0, check=_non_negative, why="must be >= 0")),
-        joint_placement_error_m=t.number("joint_placement_error_mm", 0.0, check=_non_negative, why="must be >= 0") / 1000.0,
-        joint_placement_error_rad=math.radians(
-            t.number("joint_placement_error_deg", 0.0, check=_non_negative, why="must be >= 0")
-        ),
+        pixel_noise_px=t.number("pixel_noise_px", 0.0, **_from_zero(100, "px")),
+        repeatability_m=t.number("repeatability_mm", 0.0, **_from_zero(100, "mm")) / 1000.0,
+        repeatability_rad=math.radians(t.number("repeatability_deg", 0.0, **_from_zero(90, "deg"))),
+        joint_placement_error_m=t.number("joint_placement_error_mm", 0.0, **_from_zero(100, "mm")) / 1000.0,
+        joint_placement_error_rad=math.radians(t.number("joint_placement_error_deg", 0.0, **_from_zero(90, "deg"))),
     )
     t.finish()
     return simulation
@@ -996,6 +1205,9 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     commissioning = _commissioning(root.table("commissioning"), base_dir)
     metal_part = _metal_part(root.table("metal_part"))
     recordings = _recordings(root.table("recordings"))
+    line_table = root.table("line")
+    plc = _plc(line_table.table("plc")) if "plc" in line_table._data else None
+    line = parse_line(line_table, base_dir)
     root.finish()
     camera_source = _camera_source(_Table(wiring.get("camera", {}), "camera", source).table("source"), base_dir)
     vacuum_device = _vacuum_device(_Table(wiring.get("vacuum", {}), "vacuum", source))
@@ -1016,6 +1228,8 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
         commissioning,
         metal_part,
         recordings,
+        plc,
+        line,
         ur,
     )
     _check_devices(config)
@@ -1061,6 +1275,34 @@ def write_thesis_policy_cell(folder: Path) -> Path:
     path = Path(folder) / "thesis-policy-cell.toml"
     path.write_text(thesis)
     return path
+
+
+def with_truth(cell_tables: dict[str, Any], truth_file: dict[str, Any] | None) -> dict[str, Any]:
+    """The cell's tables with the truth file's [simulation.truth.*] in place of its own,
+    and its [simulation.scene] board_pose (where the board truly lies), if it has one."""
+    tables = copy.deepcopy(cell_tables)
+    if truth_file is not None:
+        simulation = truth_file.get("simulation", {})
+        truth = simulation.get("truth")
+        if not isinstance(truth, dict) or not truth:
+            raise ConfigError("the truth file has no [simulation.truth.*] tables: it says nothing about the true cell")
+        tables.setdefault("simulation", {})["truth"] = copy.deepcopy(truth)
+        board_pose = simulation.get("scene", {}).get("board_pose")
+        if board_pose is not None:
+            tables["simulation"].setdefault("scene", {})["board_pose"] = copy.deepcopy(board_pose)
+    return tables
+
+
+def read_cell_data_with_truth(cell: str | Path | None, truth: str | Path | None) -> tuple[dict[str, Any], str]:
+    """The ``cell`` file's tables (the shipped cell by default) with the ``truth`` file's truth
+    laid over them (``--truth`` of ``vservo virtual-cell``, ``simulate`` and ``montecarlo``)."""
+    tables, source = read_cell_data(cell)
+    if truth is None:
+        return with_truth(tables, None), source
+    try:
+        return with_truth(tables, read_cell_data(truth)[0]), f"{source} with the truth of {truth}"
+    except ConfigError as exc:
+        raise ConfigError(f"--truth {truth}: {exc}") from None
 
 
 def load_cell(path: str | Path | None = None) -> CellConfig:

@@ -7,7 +7,7 @@ import argparse
 import numpy as np
 
 from vservo.core.cell.config import load_cell
-from vservo.core.terminal.command_line import print_result
+from vservo.core.terminal.command_line import bounded, print_result
 
 
 def _cmd_detect(args: argparse.Namespace) -> int:
@@ -42,7 +42,11 @@ def add_detect_command(commands: argparse._SubParsersAction) -> None:
     """Register ``vservo detect`` on the top-level subcommands."""
     detect = commands.add_parser("detect", help="the laser spot, the four corners and the object region found in one image file")
     detect.add_argument("image", help="image file (8- or 16-bit, grey or colour)")
-    detect.add_argument("--spot-threshold", type=int, default=250, help="fixed level of the laser spot (default 250)")
-    detect.add_argument("--region-threshold", type=int, default=100, help="fixed level of the object region (default 100)")
+    detect.add_argument(
+        "--spot-threshold", type=bounded(int, 0, 255), default=250, help="fixed level of the laser spot (default 250)"
+    )
+    detect.add_argument(
+        "--region-threshold", type=bounded(int, 0, 255), default=100, help="fixed level of the object region (default 100)"
+    )
     detect.add_argument("--json", action="store_true", help="one JSON object")
     detect.set_defaults(run=_cmd_detect)

@@ -89,7 +89,13 @@ class ImageFeatures:
 
     @property
     def laser_visible(self) -> bool:
-        return not bool(np.isnan(self.laser_spot_px).any()) and np.isfinite(self.laser_depth_m)
+        """The spot is seen and the model triangulates it (a depth to use)."""
+        return self.spot_seen and bool(np.isfinite(self.laser_depth_m))
+
+    @property
+    def spot_seen(self) -> bool:
+        """The spot is seen in the image, whether or not the model can triangulate it."""
+        return not bool(np.isnan(self.laser_spot_px).any())
 
 
 def laser_depth(laser: LaserPointer, camera: CameraModel, spot_px: Matrix) -> float:

@@ -117,6 +117,7 @@ class AssemblyOutcome:
             duration_s=round(self.duration_s, 3),
             iterations=self.iterations,
             notes=self.notes,
+            cell_time_s=_rounded(self.cell_time_s),
         )
 
 
@@ -372,7 +373,8 @@ class AssemblySequence:
         job = self.job
         self.timer.enter(CellTimePhase.SERVO)
         self._say(Phase.SERVOING, f"servoing with the {job.method} method")
-        law = build_law(self.model, LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px))
+        settings = LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px, laser_law=job.laser_law)
+        law = build_law(self.model, settings)
         cell: MeasurementSource = FlangeReadout(self.robot)
         perception = self.perception
         streamed = isinstance(self.policy, StreamedVelocity)

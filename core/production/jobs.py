@@ -18,7 +18,7 @@ broken file with a message that names the file and the field. Version 1 files (b
 the check view) still read, as jobs without a check view; versions 1 and 2 (before the
 taught model) as jobs without a taught model, which run as they were taught. The key
 ``grasp_symmetry`` is optional in every version: a file without it is of a square-faced
-part (4).
+part (4); so is ``laser_law``: a file without it runs the robust law.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ from vservo.core.production.protocol.commands import (
     POSE_TRANSLATION_M,
     THRESHOLD_PX,
 )
-from vservo.core.servo.methods import METHODS
+from vservo.core.servo.methods import METHODS, LaserLaw
 
 JOB_FORMAT = "vservo-job"
 JOB_VERSION = 3
@@ -126,6 +126,9 @@ class Job:
     grasp_symmetry: how many turns about the top face's vertical axis map the part onto
       itself (4: a square face, 2: a half turn only, 1: none); a run may pick and place it
       at the taught grasp turned by any of them (core/production/grasp.py).
+    laser_law: which switching IBVS with laser the laser method runs: the one robust to
+      calibration error (the default: a cell not yet commissioned still servoes), or the
+      thesis's own (docs/thesis-notes.md, "The robust law").
     """
 
     name: str
@@ -145,6 +148,7 @@ class Job:
     taught_model: TaughtModel | None = None
     survey_bMe: Matrix | None = None
     grasp_symmetry: int = 4
+    laser_law: LaserLaw = LaserLaw.ROBUST
 
     def __post_init__(self) -> None:
         validate_job_name(self.name)
@@ -196,6 +200,7 @@ class Job:
             "taught_model": None if self.taught_model is None else self.taught_model.as_dict(),
             "survey_bMe": None if self.survey_bMe is None else self.survey_bMe.tolist(),
             "grasp_symmetry": self.grasp_symmetry,
+            "laser_law": self.laser_law.value,
         }
 
 
@@ -311,6 +316,7 @@ def job_from_dict(data: Any, source: str) -> Job:
         eMe_pick=f.pose("eMe_pick"),
         bMe_place=f.pose("bMe_place"),
         grasp_symmetry=_grasp_symmetry(f),
+        laser_law=_laser_law(f),
         **(_check_fields(f, source) if version >= 2 else {}),
         **(_model_fields(f, source) if version >= 3 else {}),
     )
@@ -330,6 +336,14 @@ def _grasp_symmetry(f: _Fields) -> int:
             "about the top face's vertical axis that map the part onto itself)",
         )
     return int(value)
+
+
+def _laser_law(f: _Fields) -> LaserLaw:
+    """The optional laser_law (a job file without it: the robust law, the product's default)."""
+    value = f.data.get("laser_law", LaserLaw.ROBUST.value)
+    if value not in tuple(LaserLaw):
+        raise f.fail("laser_law", f"{value!r} is not one of {', '.join(law.value for law in LaserLaw)}")
+    return LaserLaw(value)
 
 
 def _check_fields(f: _Fields, source: str) -> dict[str, Any]:

@@ -45,6 +45,8 @@ class LoopLimits:
 
     retreat_area_fraction: the corners' image area below this fraction of both the first
       and the desired area means the camera is backing away (IBVS's retreat, Chaumette 1998).
+    retreat_distance_factor: for a law that estimates its distance to the part, that
+      distance beyond this factor times both the first one and Z* is the retreat.
     progress_window / progress_fraction: a stage whose error has not fallen by this
       fraction over this many cycles is stuck in a local minimum.
     lost_hold_cycles: for how many consecutive cycles the loop holds the robot (zero
@@ -54,6 +56,7 @@ class LoopLimits:
 
     max_iterations: int = 3000
     retreat_area_fraction: float = 0.75
+    retreat_distance_factor: float = 1.5
     progress_window: int = 150
     progress_fraction: float = 0.01
     lost_hold_cycles: int = 3
@@ -138,7 +141,7 @@ def hold_spot(features: ImageFeatures, last_seen: ImageFeatures | None) -> Image
     cycle. The part cannot hide the spot once it has moved by more than its own size:
     then the spot is gone, not hidden.
     """
-    if features.laser_visible or last_seen is None:
+    if features.spot_seen or last_seen is None:
         return features
     now, then = _seen_corners(features.corners_px), _seen_corners(last_seen.corners_px)
     if not (len(now) and len(then)):
@@ -155,6 +158,39 @@ def _seen_corners(corners_px: Matrix) -> Matrix:
 
 def corner_area_px2(corners_px: Matrix) -> float:
     return polygon_moments(corners_px)[0] if not np.isnan(corners_px).any() else float("nan")
+
+
+class RetreatTest:
+    """The camera backing away from the part (IBVS's retreat, Chaumette 1998).
+
+    A law that estimates its distance to the part (``ControlOutput.distance_m``) is
+    judged by it: retreating is that distance beyond ``retreat_distance_factor`` times
+    the larger of the first one and the taught Z*. The estimate rests on the model's
+    intrinsics, whose errors move it by up to a few tens of percent across the image;
+    a retreat grows without bound. Otherwise the corners' image area below
+    ``retreat_area_fraction`` of both the first and the desired area is the retreat.
+    """
+
+    def __init__(self, limits: LoopLimits, desired_area_px2: float, desired_depth_m: float) -> None:
+        self.fraction, self.factor = limits.retreat_area_fraction, limits.retreat_distance_factor
+        self.desired_area, self.desired_depth = desired_area_px2, desired_depth_m
+        self.first_area, self.first_distance = float("nan"), float("nan")
+
+    def __call__(self, features: ImageFeatures, output: ControlOutput) -> str | None:
+        """Why the camera is retreating, or None."""
+        if np.isfinite(output.distance_m):
+            if np.isnan(self.first_distance):
+                self.first_distance = output.distance_m
+            limit = self.factor * max(self.first_distance, self.desired_depth)
+            if output.distance_m > limit:
+                return f"distance {1000 * output.distance_m:.0f} mm, first {1000 * self.first_distance:.0f} mm"
+            return None
+        area = corner_area_px2(features.corners_px)
+        if np.isnan(self.first_area):
+            self.first_area = area
+        if area < self.fraction * min(self.first_area, self.desired_area):
+            return f"corner area {area:.0f} px^2, first {self.first_area:.0f} px^2"
+        return None
 
 
 def run_servo(
@@ -203,8 +239,7 @@ def _servo(
     joint_limits: JointLimitedSteps | None,
 ) -> ServoOutcome:
     eVc = twist_transform(model.eMc)
-    desired_area = corner_area_px2(desired.corners_px)
-    first_area = float("nan")
+    retreat_test = RetreatTest(limits, corner_area_px2(desired.corners_px), desired.depth_m)
     cycles: list[Cycle] = []
     stage: Stage | None = None
     last_spot: ImageFeatures | None = None  # the last frame that saw the laser spot
@@ -225,7 +260,7 @@ def _servo(
         seen = perception.perceive(measurement, motion_ended_s)
         if watchdog is not None:
             watchdog.feed("camera")
-        if seen.laser_visible:
+        if seen.spot_seen:
             last_spot = seen
         features = hold_spot(seen, last_spot)
         output = law.step(features, desired, stage)
@@ -249,11 +284,9 @@ def _servo(
             # Never send a NaN to a robot: the law broke down (a degenerate Jacobian or depth).
             return finish(False, Failure.SINGULAR_JACOBIAN, f"stage {output.stage} returned a non-finite twist")
 
-        area = corner_area_px2(features.corners_px)
-        if np.isnan(first_area):
-            first_area = area
-        if area < limits.retreat_area_fraction * min(first_area, desired_area):
-            return finish(False, Failure.CAMERA_RETREAT, f"corner area {area:.0f} px^2, first {first_area:.0f} px^2")
+        retreat = retreat_test(features, output)
+        if retreat is not None:
+            return finish(False, Failure.CAMERA_RETREAT, retreat)
 
         if output.stage != stage:
             recent_errors.clear()

@@ -7,6 +7,7 @@ simulation study, a replayed recording and an assembly job on the cell.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 from vservo.core.cell.config import CellModel
 from vservo.core.geometry.spatial import inverse
@@ -15,8 +16,16 @@ from vservo.core.servo.laws.hybrid import Hybrid25D
 from vservo.core.servo.laws.ibvs import ClassicIbvs
 from vservo.core.servo.laws.laser_ibvs import LaserIbvs
 from vservo.core.servo.laws.pbvs import Pbvs
+from vservo.core.servo.laws.robust_laser_ibvs import RobustLaserIbvs
 
 METHODS = ("laser", "ibvs", "pbvs", "2.5d")
+
+
+class LaserLaw(StrEnum):
+    """Which switching IBVS with laser the laser method runs."""
+
+    THESIS = "thesis"  # section 4.4 as the thesis gives it: the study's reproduction
+    ROBUST = "robust"  # robust to calibration error (core/servo/laws/robust_laser_ibvs.py)
 
 
 @dataclass(frozen=True)
@@ -30,13 +39,15 @@ class LawSettings:
     ibvs_depth: str = "exact"
     pbvs_pose: str = "pnp"
     final_threshold_px: float = 1.0
+    laser_law: LaserLaw = LaserLaw.THESIS
 
 
 def build_law(model: CellModel, settings: LawSettings) -> ControlLaw:
     """The control law of ``settings.method`` on the nominal cell ``model``."""
     camera, gain, final = model.camera, settings.gain, settings.final_threshold_px
     if settings.method == "laser":
-        return LaserIbvs(
+        law = RobustLaserIbvs if settings.laser_law is LaserLaw.ROBUST else LaserIbvs
+        return law(
             camera,
             cTe=inverse(model.eMc)[:3, 3],
             laser=model.laser,

@@ -12,7 +12,10 @@ The controller reaches it only as it reaches hardware, through the cell file it 
 - the fixture (``[fixture] url``): a JSON port that presents a new part (near where the
   job was taught, or at a given place), lays the calibration checkerboard on the table or
   takes it away, and gauges where a released part truly ended: what a test cell has and
-  a production cell does without.
+  a production cell does without;
+- the I/O panel a PLC is wired to, for a PLC on the JRC's I/O (``[line.plc] transport =
+  "jrc_io"``): the fixture's /io switches the PLC's signals on the JRC's inputs and reads
+  what the JRC's ladder sends back (a test's PLC program drives it).
 
 The plant plays the TRUE cell: the ``--cell`` file's [simulation] with the ``--truth``
 file's [simulation.truth.*] laid over it. The cell file written for the controller holds
@@ -44,7 +47,6 @@ from vservo.core.cell.config import (
     HostTransport,
     VacuumDeviceConfig,
     parse_cell,
-    read_cell_data,
 )
 from vservo.core.perception.recording import write_atomic
 from vservo.core.sim.camera_stream import CameraStream
@@ -130,22 +132,6 @@ class Released:
         return {"event": "released", "inside": self.inside, "placement_error_mm": round(self.placement_error_mm, 4)}
 
 
-def with_truth(cell_tables: dict[str, Any], truth_file: dict[str, Any] | None) -> dict[str, Any]:
-    """The cell's tables with the truth file's [simulation.truth.*] in place of its own,
-    and its [simulation.scene] board_pose (where the board truly lies), if it has one."""
-    tables = copy.deepcopy(cell_tables)
-    if truth_file is not None:
-        simulation = truth_file.get("simulation", {})
-        truth = simulation.get("truth")
-        if not isinstance(truth, dict) or not truth:
-            raise ConfigError("the truth file has no [simulation.truth.*] tables: it says nothing about the true cell")
-        tables.setdefault("simulation", {})["truth"] = copy.deepcopy(truth)
-        board_pose = simulation.get("scene", {}).get("board_pose")
-        if board_pose is not None:
-            tables["simulation"].setdefault("scene", {})["board_pose"] = copy.deepcopy(board_pose)
-    return tables
-
-
 def jrc_table(cell_jrc: dict[str, Any], link: dict[str, Any], time_scale: float) -> dict[str, Any]:
     """The controller's [jrc]: the --cell file's settings with the virtual JRC's link keys
     (``link``) and time scale, less the keys only the other link has."""
@@ -210,7 +196,8 @@ class VirtualCell:
     ) -> None:
         self.tables, self.source, self.settings, self.on_released = tables, source, settings, on_released
         self.addresses = addresses
-        self.config: CellConfig = parse_cell(tables, source)
+        # Its robot is a JRC whatever the file's [robot] backend says (the controller's file says "jrc").
+        self.config: CellConfig = parse_cell({**tables, "robot": {**tables.get("robot", {}), "backend": "jrc"}}, source)
         self.cell = SimulatedCell(self.config, seed)
         if board_laid:
             self.cell.lay_board(True)
@@ -222,7 +209,9 @@ class VirtualCell:
             self.emulator = UrEmulator(self.cell, vacuum=self.vacuum, time_scale=settings.time_scale)
         else:
             self.vacuum = self.config.vacuum_device if self.config.vacuum_device.device == "jrc_io" else DEFAULT_VACUUM_IO
-            self.emulator = JrcEmulator(self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum)
+            self.emulator = JrcEmulator(
+                self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum, plc=self.config.plc
+            )
         self.renderer = SceneRenderer(self.cell.truth.model.camera, RenderSettings())
         self.camera_rng = np.random.default_rng(self.cell.rng.integers(2**31))
         self.camera = CameraStream(
@@ -382,7 +371,10 @@ class _FixtureServer:
     is; POST /board ({"laid": true|false}) lays the checkerboard or takes it away, GET
     /board says which; POST /camera ({"stalled": true|false}) stalls the camera's frames or
     lets them go on; GET /released lists the gauged releases; GET /robot-log, a UR
-    controller's log (programs and stops on its clock)."""
+    controller's log (programs and stops on its clock). The JRC's I/O panel, for
+    a PLC on the JRC's I/O ([line.plc] transport = "jrc_io"): POST /io ({"inputs":
+    {"<address>": true|false}}) switches the PLC's signals on the JRC's inputs, GET /io
+    reads them and the outputs the JRC's ladder sends the PLC."""
 
     def __init__(self, virtual: VirtualCell, host: str = "127.0.0.1", port: int = 0) -> None:
         self.server = ThreadingHTTPServer((host, port), _handler_for(virtual))
@@ -402,9 +394,20 @@ class _FixtureServer:
         self.server.server_close()
 
 
-ENDPOINTS = ("POST /part", "GET /part", "POST /board", "GET /board", "POST /camera", "GET /released", "GET /robot-log")
+ENDPOINTS = (
+    "POST /part",
+    "GET /part",
+    "POST /board",
+    "GET /board",
+    "POST /camera",
+    "GET /io",
+    "POST /io",
+    "GET /released",
+    "GET /robot-log",
+)
 _PART_BODY = 'the body is empty, {"seed": <integer>}, or {"x_mm": <number>, "y_mm": <number>, "yaw_deg": <number>}'
 _BOARD_BODY = 'the body is {"laid": true} or {"laid": false}'
+_IO_BODY = 'the body is {"inputs": {"<byte.bit address>": true|false, ...}}, at the addresses of [line.plc.inputs]'
 
 
 def _is_number(value: Any) -> bool:
@@ -441,10 +444,35 @@ def _post_camera(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
     return {"camera": {"stalled": body["stalled"]}}
 
 
+def _io_panel(virtual: VirtualCell) -> dict[str, Any]:
+    if not isinstance(virtual.emulator, JrcEmulator):
+        raise ConfigError("the I/O panel is the JRC's: this virtual cell's robot is a UR controller")
+    panel = virtual.emulator.io_panel()
+    return {
+        "inputs": {str(address): on for address, on in panel.inputs.items()},
+        "outputs": {str(address): on for address, on in panel.outputs.items()},
+    }
+
+
+def _post_io(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
+    signals = body.get("inputs")
+    if set(body) != {"inputs"} or not isinstance(signals, dict) or not all(isinstance(on, bool) for on in signals.values()):
+        raise ValueError(f"{json.dumps(body)}: {_IO_BODY}")
+    try:
+        wanted = {int(address): on for address, on in signals.items()}
+    except ValueError:
+        raise ValueError(f"{json.dumps(body)}: {_IO_BODY}") from None
+    if not isinstance(virtual.emulator, JrcEmulator):
+        raise ConfigError("the I/O panel is the JRC's: this virtual cell's robot is a UR controller")
+    virtual.emulator.set_inputs(wanted)
+    return _io_panel(virtual)
+
+
 _POSTS: dict[str, Callable[[VirtualCell, dict[str, Any]], dict[str, Any]]] = {
     "/part": _post_part,
     "/board": _post_board,
     "/camera": _post_camera,
+    "/io": _post_io,
 }
 
 
@@ -455,6 +483,8 @@ def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
                 self._reply(200, {"part": virtual.part_pose()})
             elif self.path == "/board":
                 self._reply(200, {"board": virtual.board_state()})
+            elif self.path == "/io":
+                self._reply(200, _io_panel(virtual))
             elif self.path == "/released":
                 self._reply(200, {"released": [r.as_dict() for r in virtual.released]})
             elif self.path == "/robot-log":
@@ -506,14 +536,3 @@ def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
             log.debug("fixture: " + format, *args)
 
     return FixtureHandler
-
-
-def load_virtual_cell_tables(cell: str | None, truth: str | None) -> tuple[dict[str, Any], str]:
-    """The --cell file's tables (the shipped cell by default) with the --truth file's truth."""
-    tables, source = read_cell_data(cell)
-    if truth is None:
-        return with_truth(tables, None), source
-    try:
-        return with_truth(tables, read_cell_data(truth)[0]), f"{source} with the truth of {truth}"
-    except ConfigError as exc:
-        raise ConfigError(f"--truth {truth}: {exc}") from None

@@ -12,8 +12,9 @@ import numpy as np
 
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import Matrix
+from vservo.core.servo.methods import LaserLaw
 from vservo.core.sim import Arm
-from vservo.core.terminal.command_line import BenchCommand, fraction, positive, print_result, seed
+from vservo.core.terminal.command_line import BenchCommand, bounded, fraction, positive, print_result, seed
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -52,7 +53,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         cell_path=args.cell,
         task_number=args.task,
         method=args.method,
-        robust=args.robust,
+        robust=_reading(args),
         seed=args.seed,
         initial=args.initial,
         desired=args.desired,
@@ -62,6 +63,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         features=args.features,
         record_to=args.record,
         arm=Arm(args.arm),
+        truth=args.truth,
+        laser_law=LaserLaw(args.law),
     )
     summary = result.summary()
     if args.json:
@@ -82,13 +85,14 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 def _cmd_montecarlo(args: argparse.Namespace) -> int:
     from vservo.core.study.montecarlo import run_montecarlo
     from vservo.core.study.run import RunSettings
+    from vservo.core.study.simulate import study_cell
     from vservo.core.terminal.progress import Progress
 
-    config = load_cell(args.cell)
+    config = study_cell(args.cell, _reading(args), args.truth)
     progress = Progress(args.n, f"montecarlo {args.method}")
     summary = run_montecarlo(
         config,
-        RunSettings(method=args.method, arm=Arm(args.arm)),
+        RunSettings(method=args.method, arm=Arm(args.arm), laser_law=LaserLaw(args.law)),
         args.n,
         args.seed,
         args.processes,
@@ -168,6 +172,42 @@ def _add_arm_option(command: argparse.ArgumentParser) -> None:
     )
 
 
+def _reading(args: argparse.Namespace) -> Any:
+    """The Table 5-3 reading of ``--robust``, None without it."""
+    from vservo.core.study.tasks import Table53Reading
+
+    return None if args.robust is None else Table53Reading(args.robust)
+
+
+def _add_truth_options(command: argparse.ArgumentParser) -> None:
+    """--law, --robust and --truth: which laser law, and how the true cell differs from the model."""
+    from vservo.core.study.tasks import Table53Reading
+
+    command.add_argument(
+        "--law",
+        choices=tuple(law.value for law in LaserLaw),
+        default=LaserLaw.THESIS.value,
+        help="the laser method's law: thesis (section 4.4, the study's reproduction; default) or robust "
+        "(robust to calibration error, docs/thesis-notes.md)",
+    )
+
+    command.add_argument(
+        "--robust",
+        nargs="?",
+        const=Table53Reading.REPRODUCTION.value,
+        choices=tuple(reading.value for reading in Table53Reading),
+        help="the calibration errors of Table 5-3 (model and true cell both), read as the reproduction reads "
+        "them (reproduction, the default: the law keeps the actual values) or the other way (other: the law "
+        "applies the erroneous ones)",
+    )
+    command.add_argument(
+        "--truth",
+        metavar="FILE",
+        help="a cell file whose [simulation.truth.*] tables say how the true cell differs from the --cell "
+        "file's model (static/truths/ holds some); the control law sees only the model",
+    )
+
+
 def add_study_commands(commands: argparse._SubParsersAction) -> None:
     """Register ``vservo demo``, ``simulate``, ``montecarlo``, ``reproduce`` and ``replay``."""
     demo = commands.add_parser("demo", help="a tour of the simulated cell: arm, camera, laser, JRC-style steps")
@@ -184,7 +224,7 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
     )
     simulate.add_argument("--task", type=int, choices=(1, 2, 3, 4), help="task of Table 5-1 (default 2)")
     simulate.add_argument("--method", choices=("laser", "ibvs", "pbvs", "2.5d"), default="laser")
-    simulate.add_argument("--robust", action="store_true", help="the calibration errors of Table 5-3")
+    _add_truth_options(simulate)
     simulate.add_argument("--seed", type=seed, default=None, help="seed of the simulated cell")
     simulate.add_argument("--initial", type=_pose_argument, help="initial cMo, replaces the task's")
     simulate.add_argument("--desired", type=_pose_argument, help="desired cMo, replaces the task's")
@@ -207,6 +247,7 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
     montecarlo.add_argument("--n", type=positive(int), default=100, help="number of initial poses (default 100)")
     montecarlo.add_argument("--seed", type=seed, default=0, help="seed of the initial poses (default 0)")
     montecarlo.add_argument("--processes", type=positive(int), default=None, help="worker processes (default: all cores)")
+    _add_truth_options(montecarlo)
     _add_arm_option(montecarlo)
     montecarlo.add_argument("--json", action="store_true", help="one JSON object")
     montecarlo.set_defaults(run=_cmd_montecarlo)
@@ -215,7 +256,7 @@ def add_study_commands(commands: argparse._SubParsersAction) -> None:
     reproduce.add_argument("--out", required=True, metavar="DIR", help="folder for the results (created)")
     reproduce.add_argument(
         "--montecarlo",
-        type=int,
+        type=bounded(int, 0, 100_000),
         default=500,
         metavar="N",
         help="random initial poses per method for the Monte Carlo table (default 500, 0 skips it)",

@@ -21,7 +21,7 @@ from vservo.core.perception.features import DesiredImage, ImageFeatures, ObjectR
 from vservo.core.perception.recording import Recording
 from vservo.core.perception.vision.pipeline import ImageFeatureExtractor, front_winding
 from vservo.core.servo.laws.base import Stage
-from vservo.core.servo.methods import build_law
+from vservo.core.servo.methods import LaserLaw, build_law
 from vservo.core.sim.render_settings import RenderSettings
 from vservo.core.study.run import RunSettings
 
@@ -59,6 +59,8 @@ def replay(folder: str | Path, cell_path: str | Path | None = None) -> dict[str,
     description = recording.description
     settings_record = dict(description["settings"])
     settings_record["render"] = RenderSettings(**settings_record["render"])
+    # A recording from before the robust law ran the thesis's.
+    settings_record["laser_law"] = LaserLaw(settings_record.get("laser_law", LaserLaw.THESIS))
     settings = RunSettings(**{**settings_record, "record_to": None})
     desired = _desired(description["desired"])
     model = load_cell(cell_path).nominal

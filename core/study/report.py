@@ -19,7 +19,7 @@ import numpy as np
 from vservo.core.cell.config import CellConfig, parse_cell, read_cell_bytes, read_cell_data
 from vservo.core.servo.methods import METHODS
 from vservo.core.sim import Arm
-from vservo.core.study import canvas, plots, provenance
+from vservo.core.study import calibration_errors, canvas, plots, provenance
 from vservo.core.study.montecarlo import SampleOutcome, run_montecarlo
 from vservo.core.study.run import RunResult, RunSettings, run_task
 from vservo.core.study.tasks import (
@@ -357,6 +357,9 @@ def report_markdown(summaries: dict[str, Any]) -> str:
             )
         lines += ["", montecarlo_outcome(montecarlo)]
 
+    if "calibration_errors" in summaries:  # a snapshot from before the robust law has none
+        lines += calibration_errors.report_lines(summaries["calibration_errors"])
+
     notes = differences(runs, robust)
     lines += ["", "## Where the results differ from the thesis", ""] + [f"- {note}" for note in notes]
     lines += ["", "## Figures", ""] + [f"- `{name}`" for name in summaries["figures"]]
@@ -428,6 +431,8 @@ def reproduce(
                 on_sample=partial(_advance, bar),
             )
             bar.close()
+
+    summaries["calibration_errors"] = calibration_errors.run_calibration_errors(cell_path, montecarlo_n, seed, dt_s, arm)
 
     out.mkdir(parents=True, exist_ok=True)
     summaries["figures"] = [path.name for path in write_figures(study.results, study.robust, out)]

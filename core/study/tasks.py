@@ -49,6 +49,7 @@ where the arm follows it with every joint at least 3 deg from its limits.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -215,15 +216,16 @@ TASKS: dict[int, ServoTask] = {
     ),
 }
 
-# Table 5-3 (mm, deg, px), read as the module's docstring says: the control law keeps the
-# actual values, the simulated cell has the applied ones.
+# Table 5-3 (mm, deg, px): its two columns. The reproduction reads them as the module's
+# docstring says (the control law keeps the actual values, the simulated cell has the
+# applied ones); the other reading swaps them (the controller applies the erroneous values).
 # Cell-file tables: table -> key -> value, as a TOML reader gives them.
-ROBUSTNESS_NOMINAL: dict[str, dict[str, Any]] = {  # the actual values: what the control law believes
+TABLE_5_3_ACTUAL: dict[str, dict[str, Any]] = {
     "camera": {"focal_length_mm": 6.0, "principal_point_px": [320.0, 240.0]},
     "laser": {"cMl": [30.0, 0.0, 0.0, 0.0, -10.0, 0.0]},
     "hand_eye": {"eMc": [-20.0, 20.0, 20.0, 5.0, 5.0, 5.0]},
 }
-ROBUSTNESS_TRUTH: dict[str, dict[str, Any]] = {  # the applied values: what the cell is
+TABLE_5_3_APPLIED: dict[str, dict[str, Any]] = {
     "camera": {"focal_length_mm": 7.2, "principal_point_px": [384.0, 288.0]},
     "laser": {"cMl": [30.0, 10.0, 10.0, 0.0, -12.0, 2.0]},
     "hand_eye": {"eMc": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]},
@@ -231,17 +233,28 @@ ROBUSTNESS_TRUTH: dict[str, dict[str, Any]] = {  # the applied values: what the 
 ROBUSTNESS_TASK = replace(TASKS[2], placement=Placement(0.40, 270.0))
 
 
+class Table53Reading(StrEnum):
+    """Which column of Table 5-3 the control law keeps (docs/thesis-notes.md section 6)."""
+
+    REPRODUCTION = "reproduction"  # the law keeps the actual values, the cell has the applied ones
+    OTHER = "other"  # the law applies the applied (erroneous) values, the cell has the actual ones
+
+
 def servo_task(number: int, robust: bool = False) -> ServoTask:
     """Task ``number`` of Table 5-1; with ``robust``, task 2 as the robustness test places it."""
     return ROBUSTNESS_TASK if robust and number == 2 else TASKS[number]
 
 
-def robustness_cell(data: dict) -> dict:
-    """A copy of parsed cell-file data turned into the robustness test of Table 5-3."""
+def robustness_cell(data: dict, reading: Table53Reading = Table53Reading.REPRODUCTION) -> dict:
+    """A copy of parsed cell-file data turned into the robustness test of Table 5-3, read
+    as ``reading`` says: the nominal tables the law's column, [simulation.truth.*] the other."""
+    model, truth = (
+        (TABLE_5_3_ACTUAL, TABLE_5_3_APPLIED) if reading is Table53Reading.REPRODUCTION else (TABLE_5_3_APPLIED, TABLE_5_3_ACTUAL)
+    )
     cell = {key: dict(value) if isinstance(value, dict) else value for key, value in data.items()}
-    for table, values in ROBUSTNESS_NOMINAL.items():
+    for table, values in model.items():
         cell[table] = {**cell.get(table, {}), **values}
     simulation = dict(cell.get("simulation", {}))
-    simulation["truth"] = {table: dict(values) for table, values in ROBUSTNESS_TRUTH.items()}
+    simulation["truth"] = {table: dict(values) for table, values in truth.items()}
     cell["simulation"] = simulation
     return cell

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from collections.abc import Callable
 from typing import Any, NoReturn
 
@@ -25,11 +26,32 @@ def positive(kind: type) -> Any:
             value = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}") from None
-        if not value > 0:
+        if not 0 < value < math.inf:  # nan and inf too: a run for ever is no setting
             raise argparse.ArgumentTypeError(f"expected a positive {kind.__name__}, got {text!r}")
         return value
 
     return parse
+
+
+def bounded(kind: type, low: float, high: float, unit: str = "") -> Any:
+    """A number of ``kind`` (int or float) from ``low`` to ``high``: anything else (nan, inf, 1e300,
+    a word) is refused in one line naming the range."""
+    words = f"a {'whole number' if kind is int else 'number'} from {low:g} to {high:g}{f' {unit}' if unit else ''}"
+
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {words}, got {text!r}") from None
+        if not low <= value <= high:  # nan compares false
+            raise argparse.ArgumentTypeError(f"expected {words}, got {text!r}")
+        return value
+
+    return parse
+
+
+TCP_PORT = bounded(int, 0, 65535)  # 0: any free one
+CYCLE_PERIOD = bounded(float, 0.0, 10.0, "s")  # the shortest servo cycle a simulated run is slowed to
 
 
 def seed(text: str) -> int:

@@ -169,3 +169,23 @@ def test_the_cell_option_goes_before_or_after_the_command():
     ):
         result = run(*args)
         assert result.returncode == 2 and "cell file not found: /nowhere/cell.toml" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (("serve", "--port", "70000"), "argument --port: expected a whole number from 1 to 65535, got '70000'"),
+        (("serve", "--cycle-period", "nan"), "argument --cycle-period: expected a number from 0 to 10 s, got 'nan'"),
+        (("controller", "--cycle-period", "1e300"), "argument --cycle-period: expected a number from 0 to 10 s, got '1e300'"),
+        (("controller", "--port", "-1"), "argument --port: expected a whole number from 0 to 65535, got '-1'"),
+        (("detect", "x.png", "--spot-threshold", "300"), "argument --spot-threshold: expected a whole number from 0 to 255"),
+        (("virtual-cell", "--camera-port", "99999"), "argument --camera-port: expected a whole number from 0 to 65535"),
+        (("reproduce", "--out", "x", "--montecarlo", "10000000"), "argument --montecarlo: expected a whole number from 0"),
+        (("simulate", "--dt", "inf"), "argument --dt: expected a positive float, got 'inf'"),
+        (("bench", "browsers", "--clients", "0"), "argument --clients: expected a whole number from 1 to 10000, got '0'"),
+    ],
+)
+def test_a_number_option_beyond_its_range_is_refused_in_one_line(args, words):
+    refused = run(*args)
+    assert refused.returncode == 2, refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1 and words in refused.stderr, refused.stderr

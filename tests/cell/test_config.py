@@ -278,3 +278,28 @@ def test_a_real_cell_names_its_camera_and_its_vacuum_on_the_jrcs_io(tmp_path):
 def test_the_shipped_cell_is_the_simulated_one():
     cell = load_cell()
     assert not cell.real and cell.camera_source.kind == "simulated" and cell.vacuum_device.device == "simulated"
+
+
+@pytest.mark.parametrize(
+    ("table", "key", "value", "words"),
+    [
+        ("jrc", "timer_a_s", 1e300, "must be positive and at most 60 s"),
+        ("jrc", "timer_b_s", 1e9, "must be positive and at most 600 s"),
+        ("jrc", "retry_1", 10**12, "must be a whole number >= 0 and at most 255"),
+        ("motion", "sampling_period_s", 1e12, "must be positive and at most 60 s"),
+        ("motion", "move_speed_mm_s", 1e9, "must be positive and at most 5000 mm/s"),
+        ("motion", "divide_factor", 1e15, "must be at least 1 and at most 10000"),
+        ("safety", "max_step_mm", 1e9, "must be positive and at most 1000 mm"),
+        ("safety", "max_speed_mm_s", 1e9, "must be positive and at most 5000 mm/s"),
+        ("camera", "focal_length_mm", 1e12, "must be positive and at most 1000 mm"),
+        ("simulation", "seed", -1, "must be a whole number >= 0 and at most 4294967295"),
+        ("simulation", "pixel_noise_px", 1e9, "must be >= 0 and at most 100 px"),
+    ],
+)
+def test_a_number_beyond_the_products_range_is_refused_naming_the_key_and_the_range(table, key, value, words):
+    """Keys that took any positive number (a timer of 10^300 s waited for ever) take only the product's range."""
+    data = default_data()
+    data[table][key] = value
+    with pytest.raises(ConfigError) as error:
+        parse_cell(data, "big.toml")
+    assert str(error.value) == f"big.toml: {table}.{key} = {value!r}: {words}"

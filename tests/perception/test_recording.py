@@ -117,6 +117,7 @@ def test_to_jsonable() -> None:
         "converged": False,
         "failure": "no_progress",
         "note": "",
+        "distance_m": None,
     }
     assert to_jsonable(Pose6(1, 2, 3, 0.1, 0.2, 0.3))["theta"] == 0.2
     assert to_jsonable({"a": (np.int64(3), np.bool_(True), math.inf, np.float32(0.5)), 7: None}) == {

@@ -31,6 +31,7 @@ from vservo.core.sim.jrc_emulator import JrcEmulator
 from vservo.core.sim.plant import SimulatedCell
 
 ROOT = Path(__file__).resolve().parents[2]
+STOPPED_ON_RECORD_WITHIN_S = 1.0  # a run ends on record this soon after Ctrl-C or the e-stop (0.03 to 0.1 s measured)
 
 
 def test_a_lost_jrc_port_raises_link_error_and_connect_opens_it_again_when_it_is_back(tmp_path):
@@ -175,6 +176,7 @@ def test_ctrl_c_on_vservo_run_holds_records_and_exits_130(tmp_path):
     data = tmp_path / "data"
     run = _vservo(data=data)
     wait_until(lambda: _recorded_frames(data) >= 5 or run.poll() is not None, "5 recorded frames", 120, poll_s=0.01)
+    sent = time.time()
     run.send_signal(signal.SIGINT)
     _, stderr = run.communicate(timeout=60)
     assert run.returncode == 130, stderr
@@ -184,7 +186,35 @@ def test_ctrl_c_on_vservo_run_holds_records_and_exits_130(tmp_path):
     record = store.run(1)
     assert record.outcome is Outcome.ESTOPPED and record.reason == "Ctrl-C on vservo run"
     assert record.recording is not None
+    assert 0 <= record.finished_at - sent < STOPPED_ON_RECORD_WITHIN_S, record.finished_at - sent
     store.close()
+
+
+@pytest.mark.parametrize("during", ["moving to the start pose", "servoing"])
+def test_the_estop_ends_a_run_on_the_virtual_cell_on_record_within_a_second(tmp_path, during):
+    """The e-stop during the run's long move to its start pose, and during its servo, through
+    the JRC link to `vservo virtual-cell`: the run's stored end follows the press within 1 s."""
+    cell = VirtualCellProcess("--seed", "4", "--cell", thesis_policy_cell_file(tmp_path))
+    store = Store(tmp_path / "data")
+    controller = CellController(build_rig(load_cell(cell.addresses["cell_file"])), store)
+    try:
+        controller.present_part()
+        controller.start("demo")
+        if during == "servoing":
+            wait_until(lambda: controller.state.run.iteration >= 3, "3 servo cycles", 120, poll_s=0.01)
+        else:
+            wait_until(lambda: controller.state.detail == during, during, 60, poll_s=0.005)
+        pressed = time.time()
+        controller.estop()
+        controller.wait(30)
+        record = store.run(1)
+        assert record.outcome is Outcome.ESTOPPED and record.reason == "e-stop pressed", record
+        assert 0 <= record.finished_at - pressed < STOPPED_ON_RECORD_WITHIN_S, record.finished_at - pressed
+        assert controller.state.phase == Phase.ESTOPPED.value
+    finally:
+        controller.close()
+        store.close()
+        cell.stop()
 
 
 def test_the_estop_behind_a_silent_link_answers_within_a_second_and_says_the_hold_is_not_confirmed(tmp_path):

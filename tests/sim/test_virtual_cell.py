@@ -25,9 +25,8 @@ import pytest
 from tests.production.test_real_cell import SIMULATOR_MODULES, loaded_modules
 from tests.virtual_cell_process import ROOT, VirtualCellProcess
 from vservo.core.cell.cell_file import dumps_cell
-from vservo.core.cell.config import SERIAL_ONLY_KEYS, ConfigError, HostTransport, load_cell, read_cell_data
+from vservo.core.cell.config import SERIAL_ONLY_KEYS, ConfigError, HostTransport, load_cell, read_cell_data, with_truth
 from vservo.core.robot.jrc import JrcBackend
-from vservo.core.sim.virtual_cell import with_truth
 
 
 def fixture_request(url: str, method: str = "GET", body: bytes | None = None) -> tuple[int, dict]:

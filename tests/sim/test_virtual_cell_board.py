@@ -14,12 +14,12 @@ import pytest
 
 from tests.sim.test_virtual_cell import fixture_request
 from tests.virtual_cell_process import VirtualCellProcess
-from vservo.core.cell.config import load_cell, read_cell_data
+from vservo.core.cell.config import load_cell, read_cell_data, with_truth
 from vservo.core.geometry.spatial import inverse, rot_x, transform
 from vservo.core.production.cell_rig import build_rig
 from vservo.core.production.fixture import FixtureError
 from vservo.core.production.rig import extractor_for
-from vservo.core.sim.virtual_cell import ENDPOINTS, VirtualCell, with_truth
+from vservo.core.sim.virtual_cell import ENDPOINTS, VirtualCell
 
 SB_FLAGS = cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_EXHAUSTIVE
 

@@ -27,7 +27,7 @@ from vservo.core.study.montecarlo import DEPTH_RANGE_M, MAX_ROTATION_RAD, MAX_TR
 from vservo.core.study.report import report_markdown, reproduce, run_study, study_cells
 from vservo.core.study.run import RunSettings, run_task, teach
 from vservo.core.study.simulate import simulate
-from vservo.core.study.tasks import ROBUSTNESS_TASK, TASKS, THESIS_PATH_LENGTH_M
+from vservo.core.study.tasks import ROBUSTNESS_TASK, TASKS, THESIS_PATH_LENGTH_M, Table53Reading
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED_CELL = ROOT / "static" / "cell.toml"
@@ -165,7 +165,7 @@ def test_a_short_occlusion_of_the_spot_does_not_stop_the_run(runs):
 def test_the_robustness_test_converges_with_the_spot_off_its_row(runs):
     """Table 5-3: task 2 converges with the miscalibrated model, on a longer path (section
     5.2.2), and the laser spot leaves its image row as the thesis sees in Fig. 5-5 (a)."""
-    robust = simulate(task_number=2, method="laser", robust=True)
+    robust = simulate(task_number=2, method="laser", robust=Table53Reading.REPRODUCTION)
     ideal = runs[2, "laser"]
     assert robust.outcome.converged, robust.outcome.reason
     assert robust.outcome.final_error_px <= 1.0
@@ -319,6 +319,23 @@ def test_the_report_says_what_its_own_results_say(reproduced):
     assert "- Task 2, ibvs: path 0.310 m against the thesis's 0.404 m, 23.2% shorter." in report
     robust = results["robustness"]
     assert f"after {robust['iterations']} iterations" in report and f"{robust['path_length_m']:.3f} m against" in report
+
+
+def test_the_report_shows_task_2_under_both_readings_with_both_laws(reproduced):
+    """The section beyond the reproduction: task 2 under each reading of Table 5-3 with the
+    thesis's law and the robust one, as results.json has them (no Monte Carlo at n = 0)."""
+    out, results = reproduced
+    report = (out / "report.md").read_text()
+    section = report.split("## Calibration errors beyond the reproduction")[1].split("## Where")[0]
+    task_2 = results["calibration_errors"]["task 2"]
+    assert task_2["reproduction"]["thesis"] == results["robustness"]  # the robustness test itself
+    assert task_2["other"]["thesis"]["failure"] == "features_lost"  # the other reading: stage 3 diverges
+    assert all(task_2[reading]["robust"]["converged"] for reading in ("reproduction", "other"))
+    row = next(line for line in section.splitlines() if line.startswith("| task 2, Table 5-3 read the other way"))
+    other = task_2["other"]["robust"]
+    assert f"converged in {other['iterations']} iterations, path {other['path_length_m']:.3f} m" in row
+    assert "the robust law converges on task 2 under both readings of Table 5-3." in section
+    assert "Monte Carlo" not in section.split("|---|---|---|")[1]
 
 
 def _assert_same(fresh, committed, where="results"):

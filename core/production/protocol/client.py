@@ -104,12 +104,13 @@ class ControllerClient:
         authkey: bytes,
         on_state: Callable[[ControllerState], None] = lambda state: None,
         on_frame: Callable[[FrameMeta, bytes], None] = lambda meta, jpeg: None,
+        on_closed: Callable[[], None] = lambda: None,
     ) -> None:
         try:
             self.connection = Client(address, authkey=authkey)
         except Exception as exc:  # ConnectionRefusedError, AuthenticationError
             raise ChannelError(f"cannot connect to the controller at {address[0]}:{address[1]}: {exc!r}") from exc
-        self.on_state, self.on_frame = on_state, on_frame
+        self.on_state, self.on_frame, self.on_closed = on_state, on_frame, on_closed
         self.connection.send_bytes(encode(hello_message()))
         welcome = json.loads(self.connection.recv_bytes())
         if welcome.get("type") != "welcome":
@@ -150,6 +151,7 @@ class ControllerClient:
             with self._reply_ready:
                 self.connected = False
                 self._reply_ready.notify_all()
+            self.on_closed()  # at once: the app tells its pages the controller is gone
 
     def call(self, command: Command, timeout_s: float = 30.0) -> Reply:
         """Send ``command`` and wait for its reply, its result typed."""

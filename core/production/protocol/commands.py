@@ -497,6 +497,7 @@ class RunEntry:
     stages: tuple[StageCount, ...] = ()
     recording: str | None = None  # its folder, None when not recorded or removed by the retention
     part_id: str | None = None  # the part's ID, when the run was given one
+    recording_removed_at: float | None = None  # when the retention ([recordings] of the cell file) removed its recording
 
 
 @dataclass(frozen=True, eq=False)

@@ -67,6 +67,8 @@ class ControlOutput:
       NaN when not every corner is seen: the final criterion of every method.
     stage_error: the error the current stage regulates (a switch threshold applies to it).
     converged / failure: the verdict; note says why (a switch, a lost feature, ...).
+    distance_m: the law's estimate of the camera's distance to the part, NaN when it
+      makes none; the loop's retreat test then reads it instead of the image area.
     """
 
     cVc: Matrix
@@ -76,6 +78,7 @@ class ControlOutput:
     converged: bool = False
     failure: Failure | None = None
     note: str = ""
+    distance_m: float = float("nan")
 
     @classmethod
     def stop(cls, stage: Stage, error_px: float, failure: Failure, note: str) -> ControlOutput:

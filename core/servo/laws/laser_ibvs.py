@@ -122,8 +122,12 @@ class LaserIbvs:
         """Stage 1.C: v = cTe x w keeps the flange in place while the camera turns (eq. 4-38)."""
         return np.concatenate([np.cross(self.cTe, w), w])
 
+    def _spot_seen(self, features: ImageFeatures) -> bool:
+        """Whether stage 1 has a laser spot to turn by: one seen and triangulated with the model."""
+        return features.laser_visible
+
     def _stage_1(self, features: ImageFeatures, desired: DesiredImage, error_px: float) -> ControlOutput:
-        if not features.laser_visible:
+        if not self._spot_seen(features):
             # The beam lands nowhere the camera sees (it passes beside the part and off the
             # table, from a camera looking across the cell): turn the part onto the beam's
             # image at the part's estimated depth. Once the camera looks at the part the
@@ -138,7 +142,7 @@ class LaserIbvs:
         e = (features.corners_px - f_id).ravel()
         stage_error = float(np.linalg.norm(e))
         if stage_error <= self.f0_px:
-            return self._stage_2(features, desired, error_px, note=f"1A -> 2: ||f_id - f|| = {stage_error:.2f} px")
+            return self._aligned(features, desired, error_px, f"||f_id - f|| = {stage_error:.2f} px")
         J = rotational_jacobian(self.camera, features.corners_px)
         # The turn about the optical axis comes from the pattern's orientation: a least-
         # squares w_z vanishes at a half turn, where every error is radial (eq. 4-25).
@@ -151,11 +155,18 @@ class LaserIbvs:
         # pattern's shape, which only a translation changes: a beam out of the camera's x-z
         # plane (a real laser mount) can leave more than f0 of it, and 1.A would turn forever.
         turning_px = float(np.linalg.norm(J @ w)) / self.k_rotation_1a
-        if turning_px <= self.f0_turn_px:
-            return self._stage_2(
-                features, desired, error_px, note=f"1A -> 2: turned as far as turning helps (||f_id - f|| = {stage_error:.2f} px)"
-            )
+        if not self._turning_helps(turning_px, stage_error):
+            why = f"turned as far as turning helps (||f_id - f|| = {stage_error:.2f} px)"
+            return self._aligned(features, desired, error_px, why)
         return ControlOutput(self._with_compensation(w), Stage.ALIGN_1A, error_px, stage_error)
+
+    def _turning_helps(self, turning_px: float, stage_error: float) -> bool:
+        """Whether stage 1.A's turn still moves the corners by more than f0_turn_px."""
+        return turning_px > self.f0_turn_px
+
+    def _aligned(self, features: ImageFeatures, desired: DesiredImage, error_px: float, why: str) -> ControlOutput:
+        """Stage 1.A is done (eq. 4-27, or turning no longer helps): on to stage 2."""
+        return self._stage_2(features, desired, error_px, note=f"1A -> 2: {why}")
 
     def _beam_at_part(self, features: ImageFeatures, desired: DesiredImage) -> Matrix:
         """The beam's image point at the part's depth, estimated from the pattern's largest
