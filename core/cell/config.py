@@ -51,9 +51,10 @@ class ConfigError(VservoError, ValueError):
     """A cell configuration that cannot be used; the message names the key and value."""
 
 
-ROBOT_BACKENDS = ("sim", "jrc")  # the kinematic simulator, the JRC link
+ROBOT_BACKENDS = ("sim", "jrc", "ur")  # the kinematic simulator, the JRC link, a Universal Robots controller
 CAMERA_SOURCES = ("simulated", "capture", "folder")  # the simulator's renderer, OpenCV VideoCapture, still images
-VACUUM_DEVICES = ("simulated", "jrc_io", "none")  # the simulator's cup, the JRC's I/O, no cup
+VACUUM_DEVICES = ("simulated", "jrc_io", "ur_io", "none")  # the simulator's cup, the JRC's I/O, a UR's digital I/O, no cup
+UR_IO_BANKS = ("standard", "tool")  # a UR controller's digital I/O: the control box's, the tool flange's
 
 
 @dataclass(frozen=True)
@@ -139,7 +140,11 @@ class CameraSourceConfig:
 
 @dataclass(frozen=True)
 class VacuumDeviceConfig:
-    """The [vacuum] device: the simulator's cup, the JRC's I/O, or no cup.
+    """The [vacuum] device: the simulator's cup, the JRC's I/O, a UR controller's digital I/O, or no cup.
+
+    For "ur_io": the valve on digital output ``suction_output`` and the pressure switch on
+    digital input ``grip_input``, both of the bank ``io`` (the control box's standard
+    outputs 0..7, or the tool flange's 0..1).
 
     For "jrc_io" (docs/robot-link.md, I/O): ``suction_output`` is the network input the
     host writes, which a ladder line on the controller copies to the valve's output;
@@ -150,6 +155,7 @@ class VacuumDeviceConfig:
     device: str
     suction_output: int | None = None
     grip_input: int | None = None
+    io: str = "standard"  # "ur_io": the bank both signals are on, "standard" (0..7) or "tool" (0..1)
 
     def jrc_io(self) -> tuple[int, int]:
         """(suction_output, grip_input) of the "jrc_io" device; ConfigError for a device not wired to the JRC."""
@@ -179,7 +185,7 @@ class FastStepConfig:
 class MotionConfig:
     """How moves reach the robot (section 5.3: the JRC takes one target at a time)."""
 
-    mode: str  # "position_steps" (JRC style) or "velocity"
+    mode: str  # "position_steps" (JRC style), "velocity" (a twist per control period, waited for) or "streaming"
     divide_factor: float
     sampling_period_s: float
     speed_m_s: float
@@ -187,6 +193,12 @@ class MotionConfig:
     policy: StepPolicyKind  # for mode = "position_steps"
     fast: FastStepConfig
     move_speed_m_s: float  # taught moves (start, pick, place, check); approach and press at half
+    # mode = "streaming": a twist a camera frame, sent without waiting; the controller holds
+    # it this long at most (a frame that does not come stops the arm)
+    stream_hold_s: float = 0.1
+    stream_gain: float = 6.0  # the rate (1/s) the streamed servo's error falls at; times the loop's delay, below about 1
+    stream_max_speed_m_s: float = 0.1  # the streamed twist scaled down to these, its direction kept
+    stream_max_rotation_rad_s: float = math.radians(45.0)
 
 
 class HostTransport(StrEnum):
@@ -322,6 +334,26 @@ class PlcConfig:
 
 
 @dataclass(frozen=True)
+class UrConfig:
+    """[ur]: a Universal Robots controller (docs/connecting-your-cell.md, "A Universal Robots arm").
+
+    ``host``: the controller's address; RTDE is read on its port 30004 (ur-rtde's fixed
+    port), URScript programs go to ``script_port`` (the secondary interface, 30002) and
+    the dashboard server is ``dashboard_port`` (29999). ``acceleration_m_s2``: the TCP's
+    acceleration in every move and the deceleration of a stop (the speeds come from
+    [motion] and are bounded by [safety] max_speed_mm_s); ``rotation_speed_rad_s``: the
+    turning speed that goes with a move's linear speed. ``time_scale``: an emulated
+    controller runs this many times faster than real time (1 on a real arm).
+    """
+
+    host: str = "192.168.1.10"
+    script_port: int = 30002
+    dashboard_port: int = 29999
+    acceleration_m_s2: float = 1.2  # URScript's default for movel
+    time_scale: float = 1.0
+
+
+@dataclass(frozen=True)
 class SafetyConfig:
     """The limits the safety layer (core/robot/safety.py) puts on every move.
 
@@ -401,6 +433,7 @@ class CellConfig:
     recordings: RecordingRetention = RecordingRetention()
     plc: PlcConfig | None = None  # [line.plc]: the PLC handshake, None without one
     line: LineConfig = LineConfig()  # [line]: the OPC UA server and the metrics endpoint (core/cell/line.py)
+    ur: UrConfig = UrConfig()  # [ur]: a Universal Robots controller, for robot.backend = "ur"
 
     def plant(self) -> SimulationConfig:
         """The [simulation] table, for code that simulates this cell; ConfigError when the file has none."""
@@ -684,6 +717,14 @@ def _vacuum_device(t: _Table) -> VacuumDeviceConfig:
     device = t.choice("device", VACUUM_DEVICES, "simulated")
     if device == "jrc_io":
         vacuum = VacuumDeviceConfig(device, _io_address(t, "suction_output"), _io_address(t, "grip_input"))
+    elif device == "ur_io":
+        io = t.choice("io", UR_IO_BANKS, "standard")
+        highest = 7 if io == "standard" else 1
+        signals = [t.integer(key) for key in ("suction_output", "grip_input")]
+        for key, value in zip(("suction_output", "grip_input"), signals):
+            if not 0 <= value <= highest:
+                raise t.fail(key, value, f"must be a {io} digital signal, 0..{highest}")
+        vacuum = VacuumDeviceConfig(device, signals[0], signals[1], io)
     else:
         vacuum = VacuumDeviceConfig(device)
     t.finish()
@@ -792,7 +833,7 @@ def _plc_jobs(t: _Table, n_bits: int) -> tuple[tuple[int, str], ...]:
 
 # The keys of the model tables that say how a device is wired rather than what the cell
 # is: the control laws never read them and [simulation.truth.*] cannot override them.
-_WIRING_KEYS = {"camera": ("source",), "vacuum": ("device", "suction_output", "grip_input")}
+_WIRING_KEYS = {"camera": ("source",), "vacuum": ("device", "suction_output", "grip_input", "io")}
 
 
 def _split_wiring(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
@@ -809,20 +850,22 @@ def _split_wiring(data: dict[str, Any]) -> tuple[dict[str, Any], dict[str, dict[
 def _check_devices(config: CellConfig) -> None:
     """The devices of one cell must belong together: a real camera films a real robot."""
     source, backend, vacuum = config.source, config.robot_backend, config.vacuum_device.device
-    if config.real and backend != "jrc":
+    if config.real and backend not in ("jrc", "ur"):
         raise ConfigError(
             f"{source}: robot.backend = {backend!r}: a cell with camera.source.kind = "
-            f'{config.camera_source.kind!r} drives a real robot: set backend = "jrc"'
+            f'{config.camera_source.kind!r} drives a real robot: set backend = "jrc" or "ur"'
         )
     if config.real and vacuum == "simulated":
         raise ConfigError(
             f"{source}: vacuum.device = 'simulated': a cell with camera.source.kind = "
-            f'{config.camera_source.kind!r} has no simulator: choose "jrc_io" or "none"'
+            f'{config.camera_source.kind!r} has no simulator: choose "jrc_io", "ur_io" or "none"'
         )
     if vacuum == "jrc_io" and backend != "jrc":
         raise ConfigError(
             f"{source}: vacuum.device = 'jrc_io': the vacuum on the JRC's I/O needs robot.backend = \"jrc\", not {backend!r}"
         )
+    if vacuum == "ur_io" and backend != "ur":
+        raise ConfigError(f"{source}: vacuum.device = 'ur_io': a cup on a UR's I/O needs robot.backend = \"ur\", not {backend!r}")
     if config.plc is not None and config.plc.transport is PlcTransport.JRC_IO:
         _check_plc_on_jrc(config.plc, config)
 
@@ -891,8 +934,9 @@ def _scene(t: _Table, board: BoardConfig | None) -> tuple[Scene, LaidBoard | Non
 
 def _motion(t: _Table, safety: SafetyConfig) -> MotionConfig:
     policy = StepPolicyKind(t.choice("policy", tuple(StepPolicyKind), StepPolicyKind.THESIS))
+    mode = t.choice("mode", ("position_steps", "velocity", "streaming"), "position_steps")
     motion = MotionConfig(
-        mode=t.choice("mode", ("position_steps", "velocity"), "position_steps"),
+        mode=mode,
         divide_factor=t.number(
             "divide_factor", 50.0, check=lambda v: 1.0 <= v <= 10000.0, why="must be at least 1 and at most 10000"
         ),
@@ -903,6 +947,20 @@ def _motion(t: _Table, safety: SafetyConfig) -> MotionConfig:
         fast=_fast_steps(t.table("fast"), safety if policy is StepPolicyKind.FAST else None),
         # A taught move faster than [safety] allows is refused when it is sent, as a jog's is.
         move_speed_m_s=t.number("move_speed_mm_s", 50.0, **_above_zero(5000, "mm/s")) / 1000.0,
+        stream_hold_s=t.number("stream_hold_s", 0.1, check=lambda v: 0.0 < v <= 1.0, why="must be more than 0 and at most 1 s"),
+        stream_gain=t.number("stream_gain", 6.0, check=lambda v: 0.0 < v <= 20.0, why="must be more than 0 and at most 20 (1/s)"),
+        # (a streamed servo's speed beyond [safety] would be refused every frame: refused here)
+        stream_max_speed_m_s=(
+            _within(t, "stream_max_speed_mm_s", 100.0, 1000.0 * safety.max_speed_m_s, "max_speed_mm_s", 'mode = "streaming"')
+            if mode == "streaming"
+            else t.number("stream_max_speed_mm_s", 100.0, check=_positive, why="must be positive")
+        )
+        / 1000.0,
+        stream_max_rotation_rad_s=math.radians(
+            t.number(
+                "stream_max_rotation_deg_s", 45.0, check=lambda v: 0.0 < v <= 360.0, why="must be more than 0 and at most 360"
+            )
+        ),
     )
     t.finish()
     return motion
@@ -925,11 +983,11 @@ def _fast_steps(t: _Table, safety: SafetyConfig | None) -> FastStepConfig:
     return fast
 
 
-def _within(t: _Table, key: str, default: float, limit: float, safety_key: str) -> float:
+def _within(t: _Table, key: str, default: float, limit: float, safety_key: str, context: str = 'policy = "fast"') -> float:
     """A positive number at most the [safety] limit ``safety_key`` (``limit``), which would refuse more."""
     value = t.number(key, default, check=_positive, why="must be positive")
     if value > limit:
-        raise t.fail(key, value, f'exceeds [safety] {safety_key} = {limit:g} (policy = "fast"), which refuses such a move')
+        raise t.fail(key, value, f"exceeds [safety] {safety_key} = {limit:g} ({context}), which refuses such a move")
     return value
 
 
@@ -1028,6 +1086,25 @@ def _ethernet_line(t: _Table) -> JrcLineConfig:
     )
 
 
+def _ur(t: _Table) -> UrConfig:
+    ports = {}
+    for key, default in (("script_port", 30002), ("dashboard_port", 29999)):
+        ports[key] = t.integer(key, default)
+        if not TCP_PORTS[0] <= ports[key] <= TCP_PORTS[1]:
+            raise t.fail(key, ports[key], f"a TCP port, {TCP_PORTS[0]} to {TCP_PORTS[1]}")
+    ur = UrConfig(
+        host=t.text("host", UrConfig.host),
+        acceleration_m_s2=t.number(
+            "acceleration_mm_s2", 1200.0, check=lambda v: 0.0 < v <= 20000.0, why="must be more than 0 and at most 20000"
+        )
+        / 1000.0,
+        time_scale=t.number("time_scale", 1.0, check=lambda v: 0.01 <= v <= 100.0, why="must be 1 (a real arm), 0.01 to 100"),
+        **ports,
+    )
+    t.finish()
+    return ur
+
+
 def _safety(t: _Table) -> SafetyConfig:
     low = t.vector("workspace_min_mm", 3, [-650.0, -400.0, -170.0])
     high = t.vector("workspace_max_mm", 3, [-150.0, 400.0, 450.0])
@@ -1091,12 +1168,18 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     is reported under the nominal key it overrides. ``base_dir``: the folder relative
     paths in the file are read from (the cell file's own).
     """
-    from vservo.robot_models.loader import ARM_NAMES, joint_limits
+    from vservo.robot_models.loader import is_urdf_arm, joint_limits
 
     data, wiring = _split_wiring(data)
     root = _Table(data, "", source)
     robot = root.table("robot")
-    arm = robot.choice("arm", ARM_NAMES, "upj")
+    arm = robot.text("arm", "upj")
+    if is_urdf_arm(arm) and not Path(arm.rpartition("#")[0]).is_absolute() and base_dir is not None:
+        arm = f"{base_dir / arm}"  # a URDF beside the cell file
+    try:
+        joint_limits(arm)
+    except (ValueError, FileNotFoundError) as exc:
+        raise robot.fail("arm", arm, str(exc)) from None
     home_deg = robot.vector("home_joints_deg", None, None)
     lower, upper = np.degrees(joint_limits(arm))
     if home_deg.shape != lower.shape:
@@ -1116,6 +1199,7 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     # A controller's file for a real cell may leave the plant out: only a simulator reads it.
     simulation = _simulation(root.table("simulation"), truth, board) if "simulation" in data else None
     jrc = _jrc(root.table("jrc"))
+    ur = _ur(root.table("ur"))
     safety = _safety(root.table("safety"))
     motion = _motion(root.table("motion"), safety)
     fixture_url = _fixture_url(root.table("fixture"))
@@ -1147,6 +1231,7 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
         recordings,
         plc,
         line,
+        ur,
     )
     _check_devices(config)
     return config

@@ -31,6 +31,8 @@ from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, inverse
 from vservo.core.perception.features import ObjectRegion
 from vservo.core.perception.measurement import Measurement
+from vservo.core.perception.vision.pipeline import CameraPerception
+from vservo.core.production.exposure_matched import ExposureMatchedCamera
 from vservo.core.production.grasp import GraspChoice, grasp_choice
 from vservo.core.production.jobs import Job, TaughtModel
 from vservo.core.production.locate import LocateError, PartLocator
@@ -41,9 +43,9 @@ from vservo.core.robot.backend import RobotBackend, RobotError
 from vservo.core.robot.gripper import VacuumGripper
 from vservo.core.robot.safety import SafetyLayer, SafetyRefusal
 from vservo.core.servo.joint_limits import JointLimitedSteps, JointLimitSettings
-from vservo.core.servo.loop import Cycle, LoopLimits, Perception, ServoOutcome, run_servo
+from vservo.core.servo.loop import Cycle, LoopLimits, MeasurementSource, Perception, ServoOutcome, run_servo
 from vservo.core.servo.methods import LawSettings, build_law
-from vservo.core.servo.step_policy import StepPolicy
+from vservo.core.servo.step_policy import StepPolicy, StreamedVelocity
 
 log = logging.getLogger("vservo.assembly")
 
@@ -377,18 +379,27 @@ class AssemblySequence:
         self._say(Phase.SERVOING, f"servoing with the {job.method} method")
         settings = LawSettings(method=job.method, gain=job.gain, final_threshold_px=job.threshold_px, laser_law=job.laser_law)
         law = build_law(self.model, settings)
+        cell: MeasurementSource = FlangeReadout(self.robot)
+        perception = self.perception
+        streamed = isinstance(self.policy, StreamedVelocity)
+        if streamed:  # frame after frame with the pose at each exposure (core/production/exposure_matched.py)
+            if not isinstance(perception, CameraPerception):
+                raise RobotError("a streamed servo needs the camera's frames: this rig's perception has none")
+            cell = perception = ExposureMatchedCamera(perception, self.robot)
         self.servo = run_servo(
-            FlangeReadout(self.robot),
+            cell,
             law,
             job.desired,
             self.model,
             self.policy,
             self.settings.limits,
             on_cycle=lambda cycle: self.settings.on_event(ServoCycle(cycle)),
-            perception=self.perception,
+            perception=perception,
             robot=self.robot,
             joint_limits=joint_limited_steps(self.robot),
         )
+        if streamed and not self.settings.estopped():
+            self.robot.stop_motion()  # the last twist may still be held: the pick starts from a standing arm
         if self.servo.converged:
             return self.servo
         if self.settings.estopped():

@@ -1,8 +1,9 @@
 """The rig a cell file names: the real cell's devices, or the simulated cell's.
 
 On a real cell (a camera that is not the simulator's; its robot and vacuum are checked
-with it when the file is loaded) the rig is the JRC on ``[jrc] port`` behind the safety
-layer, the camera of ``[camera.source]``, the vacuum cup on the JRC's I/O or none, and
+with it when the file is loaded) the rig is the robot's controller behind the safety
+layer (the JRC of ``[jrc]``, or the Universal Robots controller of ``[ur]``), the camera of
+``[camera.source]``, the vacuum cup on the controller's I/O or none, and
 the detectors on the NOMINAL camera and laser, and a test cell's fixture
 (``[fixture] url``) to present or place new parts and lay the checkerboard, if it has one. Nothing of the simulator is imported
 then, and no gauge says where a released part ended: the run measures the placement
@@ -17,6 +18,7 @@ from vservo.core.perception.camera_source import FrameSource, ImageFolderSource,
 from vservo.core.production.fixture import FixtureClient
 from vservo.core.production.locate import PartLocator
 from vservo.core.production.rig import Rig, extractor_for
+from vservo.core.robot.backend import RobotBackend
 from vservo.core.robot.gripper import NoVacuum, VacuumGripper
 from vservo.core.robot.jrc import JrcBackend
 from vservo.core.robot.jrc_vacuum import JrcVacuum
@@ -31,31 +33,48 @@ def build_rig(config: CellConfig, seed: int | None = None, backend: str | None =
         from vservo.core.production.simulated_rig import simulated_rig
 
         return simulated_rig(config, seed, backend)
-    if backend not in (None, "jrc"):
+    if backend not in (None, config.robot_backend):
         raise ConfigError(
             f"{config.source}: a real cell (camera.source.kind = {config.camera_source.kind!r}) "
-            f"is driven by its JRC, not by the {backend!r} backend"
+            f"is driven by its {config.robot_backend!r} controller, not by the {backend!r} backend"
         )
     return real_rig(config)
 
 
-def real_rig(config: CellConfig) -> Rig:
-    """The real cell's devices: the JRC, the camera of [camera.source], the cup on the JRC's I/O."""
+def _robot_and_gripper(config: CellConfig, fixture: FixtureClient | None) -> tuple[RobotBackend, VacuumGripper]:
+    """The controller of [robot] backend ("jrc" or "ur") and the vacuum cup on its I/O. A
+    test cell's JRC is emulated: its fixture keeps the cell clock; a real one's is the wall
+    clock (a UR's is its own, in RTDE's timestamp)."""
+    vacuum = config.vacuum_device
+    if config.robot_backend == "ur":
+        from vservo.core.robot.ur import UrBackend
+        from vservo.core.robot.ur_script import DigitalOutputs
+        from vservo.core.robot.ur_vacuum import UrVacuum
+
+        ur = UrBackend(config.ur)
+        if vacuum.device == "ur_io" and vacuum.suction_output is not None and vacuum.grip_input is not None:
+            return ur, UrVacuum(ur, DigitalOutputs(vacuum.io), vacuum.suction_output, vacuum.grip_input)
+        return ur, NoVacuum()
     policy = step_policy_from_config(config.motion)
     if not isinstance(policy, PositionStepPolicy):
         raise ConfigError(f'{config.source}: the JRC takes position steps; set [motion] mode = "position_steps"')
+    jrc = JrcBackend(config.jrc, controller_clock=fixture.cell_time_s if fixture else None)
+    return jrc, JrcVacuum(jrc, *vacuum.jrc_io()) if vacuum.device == "jrc_io" else NoVacuum()
+
+
+def real_rig(config: CellConfig) -> Rig:
+    """The real cell's devices: the robot's controller (a JRC, or a UR), the camera of
+    [camera.source], the cup on the controller's I/O."""
+    policy = step_policy_from_config(config.motion)
     model = config.nominal
     intrinsics = model.camera.intrinsics
-    camera = open_camera(config.camera_source, (intrinsics.width, intrinsics.height), config.safety.watchdog_s)
-    # A test cell's part feeder and gauge, on the fixture of [fixture] url; none on a production cell.
+    # A test cell's part feeder, gauge and clock, on the fixture of [fixture] url; none on a production cell.
     fixture = FixtureClient(config.fixture_url) if config.fixture_url else None
-    # A test cell's controller is emulated: its fixture keeps the cell clock; a real one's is the wall clock.
-    jrc = JrcBackend(config.jrc, controller_clock=fixture.cell_time_s if fixture else None)
-    vacuum = config.vacuum_device
-    gripper: VacuumGripper = JrcVacuum(jrc, *vacuum.jrc_io()) if vacuum.device == "jrc_io" else NoVacuum()
+    robot, gripper = _robot_and_gripper(config, fixture)
+    camera = open_camera(config.camera_source, (intrinsics.width, intrinsics.height), config.safety.watchdog_s)
     return Rig(
         config=config,
-        robot=SafetyLayer.from_config(jrc, config),
+        robot=SafetyLayer.from_config(robot, config),
         gripper=gripper,
         camera=camera,
         extractor=extractor_for(config),

@@ -13,14 +13,14 @@ inside vservo; a backend converts to its controller's units at its edge.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix
-from vservo.core.robot.commands import RobotCommand, VelocityCommand
+from vservo.core.robot.commands import RobotCommand, StreamedTwist, VelocityCommand
 
 
 class RobotError(VservoError):
@@ -115,6 +115,16 @@ class RobotBackend(Protocol):
         ...
 
 
+@runtime_checkable
+class StreamingBackend(Protocol):
+    """A velocity-controlled robot that takes a twist at any time (a UR's speedl)."""
+
+    def stream_twist(self, eVe: Matrix, hold_s: float) -> None:
+        """Move the flange at the body twist eVe from now on, without waiting; the controller
+        holds it for hold_s at most, then stops the arm, unless the next twist comes first."""
+        ...
+
+
 class MotionStopped(RobotError):
     """A motion ended before its target: held, in alarm or without servo power."""
 
@@ -127,9 +137,15 @@ def carry_out(robot: RobotBackend, command: RobotCommand, bMe: Matrix) -> float:
     of the sampling period, so the next target is sent one period after this one (on the
     cell clock: the period is the real cell's, and so is the dwell).
     Returns the robot's clock when the motion ended (before that rest): a frame exposed
-    since then shows where the robot stopped.
+    since then shows where the robot stopped. A streamed twist goes out and is not waited
+    for: the robot moves on while the next frame is taken; its clock then is returned.
     Raises MotionStopped when the robot stops short (hold, alarm, servo off).
     """
+    if isinstance(command, StreamedTwist):
+        if not isinstance(robot, StreamingBackend):
+            raise RobotError(f"the {robot.name} robot takes no streamed twist: it is not velocity-controlled")
+        robot.stream_twist(command.eVe, command.hold_s)
+        return robot.clock_s()
     if isinstance(command, VelocityCommand):
         robot.move_timed(command.target(bMe), command.dt_s)
         wait_for_the_end(robot)
@@ -172,6 +188,7 @@ __all__ = [
     "RobotError",
     "RobotNotReady",
     "RobotStatus",
+    "StreamingBackend",
     "UnreachableTarget",
     "apply_increment",
     "carry_out",

@@ -34,4 +34,17 @@ class PositionCommand:
         return self.bMe_target
 
 
-RobotCommand = VelocityCommand | PositionCommand
+@dataclass(frozen=True)
+class StreamedTwist:
+    """Move the flange at the twist eVe (v, w in E) from now on, without waiting for it: the
+    controller holds it for hold_s at most and stops the arm unless the next twist comes first."""
+
+    eVe: Matrix
+    hold_s: float
+
+    def target(self, bMe: Matrix) -> Matrix:
+        """Where the flange would be if no twist came after this one: held hold_s from bMe."""
+        return bMe @ exp_twist(np.asarray(self.eVe, dtype=float) * self.hold_s)
+
+
+RobotCommand = VelocityCommand | PositionCommand | StreamedTwist

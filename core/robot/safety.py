@@ -29,8 +29,16 @@ import numpy as np
 
 from vservo.core.cell.config import CellConfig, SafetyConfig
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
-from vservo.core.geometry.spatial import Matrix, interpolate, pose_error
-from vservo.core.robot.backend import RobotBackend, RobotError, RobotStatus, apply_increment, move_and_wait, wait_for_the_end
+from vservo.core.geometry.spatial import Matrix, exp_twist, interpolate, pose_error
+from vservo.core.robot.backend import (
+    RobotBackend,
+    RobotError,
+    RobotStatus,
+    StreamingBackend,
+    apply_increment,
+    move_and_wait,
+    wait_for_the_end,
+)
 from vservo.robot_models.loader import load_arm
 
 log = logging.getLogger("vservo.safety")
@@ -421,6 +429,34 @@ class SafetyLayer:
         self._q_seed = self.check_target(bMe_target, max(translation / duration_s, np.finfo(float).tiny), bMe_now)
         self._sending(bMe_target)
         self._link(self.robot.move_timed, bMe_target, duration_s)
+
+    def stream_twist(self, eVe: Matrix, hold_s: float) -> None:
+        """A streamed twist (a velocity-controlled robot), checked as a move: its linear speed,
+        and the pose it would reach if no other came after it (held hold_s from the pose
+        the robot last reported) against the workspace, the step limits and the joints."""
+        if not isinstance(self.robot, StreamingBackend):
+            raise RobotError(f"the {self.robot.name} robot takes no streamed twist: it is not velocity-controlled")
+        eVe = np.asarray(eVe, dtype=float)
+        if eVe.shape != (6,) or not np.all(np.isfinite(eVe)) or not (np.isfinite(hold_s) and hold_s > 0.0):
+            raise TooFast(f"twist refused: {eVe.tolist()} held {hold_s!r} s is not a finite twist held a positive time")
+        bMe_now = self.robot.read_pose()
+        target = bMe_now @ exp_twist(eVe * hold_s)
+        self._q_seed = self.check_target(target, max(float(np.linalg.norm(eVe[:3])), np.finfo(float).tiny), bMe_now)
+        self._pose = None
+        self._link(self.robot.stream_twist, eVe, hold_s)
+
+    def stop_motion(self) -> None:
+        """Bring a streamed motion to a standstill and wait for it (a backend that streams
+        nothing stands still after each move already)."""
+        stop = getattr(self.robot, "stop_motion", None)
+        if stop is not None:
+            self._link(stop)
+
+    def pose_at(self, t_s: float) -> Matrix:
+        """The flange pose at the robot's clock t_s, where the backend keeps its history
+        (a UR's RTDE states); else the pose it reports now."""
+        pose_at = getattr(self.robot, "pose_at", None)
+        return self.read_pose() if pose_at is None else self._link(pose_at, t_s)
 
     def wait_motion(self, timeout_s: float | None = None) -> bool:
         aim, self._aim = self._aim, None

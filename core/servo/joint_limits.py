@@ -41,7 +41,7 @@ import pinocchio as pin
 
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, inverse, twist_transform
-from vservo.core.robot.commands import PositionCommand, RobotCommand, VelocityCommand
+from vservo.core.robot.commands import PositionCommand, RobotCommand, StreamedTwist, VelocityCommand
 
 # The controller's IK precision (as the simulated JRC's): far below any arm's repeatability.
 IK_TOLERANCE_M = 1e-7
@@ -195,4 +195,6 @@ def _retargeted(command: RobotCommand, bMe: Matrix, bMe_target: Matrix) -> Robot
     if isinstance(command, VelocityCommand):
         eVe = pin.log6(pin.SE3(inverse(bMe) @ bMe_target)).vector / command.dt_s
         return VelocityCommand(eVe, command.dt_s)
+    if isinstance(command, StreamedTwist):
+        return StreamedTwist(pin.log6(pin.SE3(inverse(bMe) @ bMe_target)).vector / command.hold_s, command.hold_s)
     return PositionCommand(bMe_target, command.speed_m_s, command.period_s)

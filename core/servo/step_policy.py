@@ -18,7 +18,7 @@ import numpy as np
 
 from vservo.core.cell.config import MotionConfig, StepPolicyKind
 from vservo.core.geometry.spatial import Matrix, exp_twist
-from vservo.core.robot.commands import PositionCommand, RobotCommand, VelocityCommand
+from vservo.core.robot.commands import PositionCommand, RobotCommand, StreamedTwist, VelocityCommand
 
 
 class StepPolicy(Protocol):
@@ -76,11 +76,37 @@ class LargestSafeStep:
         return PositionCommand(bMe @ exp_twist(scale * step), self.speed_m_s, 0.0)
 
 
+@dataclass(frozen=True)
+class StreamedVelocity:
+    """A robot under real-time velocity control, servoed at the camera's rate: each frame's
+    twist, times ``gain``, is streamed at once and held until the next (``hold_s`` at
+    most), scaled down as a whole (its direction kept) to ``max_speed_m_s`` and
+    ``max_rotation_rad_s``. With the laws' gain 1 the twist is the whole correction per
+    second (eq. 4-14), so ``gain`` is the rate (1/s) at which the error falls: far above
+    1/latency the loop would oscillate on the camera's delay."""
+
+    hold_s: float
+    gain: float
+    max_speed_m_s: float
+    max_rotation_rad_s: float
+
+    def command(self, bMe: Matrix, eVe: Matrix) -> StreamedTwist:
+        twist = self.gain * np.asarray(eVe, dtype=float)
+        sizes = (float(np.linalg.norm(twist[:3])), float(np.linalg.norm(twist[3:])))
+        limits = (self.max_speed_m_s, self.max_rotation_rad_s)
+        scale = min([1.0] + [limit / size for limit, size in zip(limits, sizes) if size > 0.0])
+        return StreamedTwist(scale * twist, self.hold_s)
+
+
 PositionStepPolicy = DividedPositionStep | LargestSafeStep
 """The policies a JRC can be servoed with: one Cartesian target at a time."""
 
 
 def step_policy_from_config(motion: MotionConfig) -> StepPolicy:
+    if motion.mode == "streaming":
+        return StreamedVelocity(
+            motion.stream_hold_s, motion.stream_gain, motion.stream_max_speed_m_s, motion.stream_max_rotation_rad_s
+        )
     if motion.mode == "velocity":
         return IntegratedVelocity(motion.dt_s)
     if motion.policy is StepPolicyKind.FAST:

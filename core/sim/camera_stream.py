@@ -83,6 +83,7 @@ class CameraStream:
             raise ValueError(f"jpeg_quality must be an integer in 0 .. 100, got {jpeg_quality!r}")
         self.render = render
         self.fps = float(fps)
+        self.stalled = threading.Event()  # set: no frame is sent (a camera whose output hangs)
         self.exposure_latency_s = float(exposure_latency_s)
         self.jpeg_quality = jpeg_quality
         self._stop = threading.Event()
@@ -177,6 +178,8 @@ class CameraStream:
             self._stop.wait(delay)
 
     def _publish(self, jpeg: bytes) -> None:
+        if self.stalled.is_set():
+            return  # a stalled camera: its frames never leave it
         with self._sent:
             self._jpeg = jpeg
             self._frame_number += 1

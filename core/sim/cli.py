@@ -93,17 +93,18 @@ def _cmd_virtual_cell(args: argparse.Namespace) -> int:
     import signal
 
     from vservo.core.cell.config import read_cell_data_with_truth
-    from vservo.core.sim.virtual_cell import Addresses, Released, VirtualCell, VirtualCellSettings
+    from vservo.core.sim.virtual_cell import UR_LINK, Addresses, Released, VirtualCell, VirtualCellSettings
 
-    over_ethernet = HostTransport(args.robot_link) is HostTransport.ETHERNET
-    if args.jrc_link and over_ethernet:
+    if args.jrc_link and args.robot_link != HostTransport.SERIAL:
         raise ValueError("--jrc-link names a pseudo-terminal: it needs --robot-link serial")
-    if args.jrc_tcp_port and not over_ethernet:
+    if args.jrc_tcp_port and args.robot_link != HostTransport.ETHERNET:
         raise ValueError("--jrc-tcp-port is the Ethernet server's port: it needs --robot-link ethernet")
     configure_logging(args, "virtual-cell")
     tables, source = read_cell_data_with_truth(args.cell, args.truth)
+    # A UR controller servoes at the camera's rate: its clock runs in real time unless asked.
+    time_scale = args.time_scale if args.time_scale is not None else 1.0 if args.robot_link == UR_LINK else 40.0
     settings = VirtualCellSettings(
-        time_scale=args.time_scale, fps=args.fps, exposure_latency_s=args.latency, robot_link=HostTransport(args.robot_link)
+        time_scale=time_scale, fps=args.fps, exposure_latency_s=args.latency, robot_link=args.robot_link
     )
 
     def print_released(released: Released) -> None:
@@ -137,7 +138,8 @@ def _cmd_virtual_cell(args: argparse.Namespace) -> int:
             flush=True,
         )
         announce(
-            f"virtual cell from {source}: JRC on {virtual.jrc_port} (time scale {args.time_scale:g}), camera "
+            f"virtual cell from {source}: {'UR controller' if args.robot_link == UR_LINK else 'JRC'} on {virtual.jrc_port} "
+            f"(time scale {time_scale:g}), camera "
             f"{virtual.camera.url}, fixture {virtual.fixture.url}; run the product with --cell {cell_file}; "
             "Ctrl-C or SIGTERM stops it"
         )
@@ -172,8 +174,9 @@ def add_virtual_cell_command(commands: argparse._SubParsersAction) -> None:
     virtual.add_argument(
         "--time-scale",
         type=positive(float),
-        default=40.0,
-        help="the JRC and the plant run this many times faster than a real cell (default 40)",
+        default=None,
+        help="the robot's controller and the plant run this many times faster than a real cell (default 40 for a JRC, "
+        "1 for a UR controller)",
     )
     virtual.add_argument("--fps", type=positive(float), default=30.0, help="camera frames per second (default 30)")
     virtual.add_argument(
@@ -198,10 +201,12 @@ def add_virtual_cell_command(commands: argparse._SubParsersAction) -> None:
     )
     virtual.add_argument(
         "--robot-link",
-        choices=tuple(HostTransport),
+        choices=(*HostTransport, "ur"),
         default=HostTransport.SERIAL.value,
         help="what carries the host commands to the JRC: serial, BSC on a pseudo-terminal (default), or ethernet, "
-        "the Ethernet server's framing on a loopback TCP port; the written cell file's [jrc] says which",
+        "the Ethernet server's framing on a loopback TCP port; the written cell file's [jrc] says which. ur: a "
+        "Universal Robots controller instead (RTDE, dashboard server, script port on a loopback address of its own; "
+        "the cell file's [ur])",
     )
     virtual.add_argument(
         "--jrc-tcp-port",

@@ -31,7 +31,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
@@ -55,12 +55,17 @@ from vservo.core.sim.part_feeder import place_part, present_part
 from vservo.core.sim.plant import CellStateError, SimulatedCell
 from vservo.core.sim.render import SceneRenderer
 from vservo.core.sim.render_settings import RenderSettings
+from vservo.core.sim.ur_emulator import UrEmulator
 
 log = logging.getLogger("vservo.virtual_cell")
 
 # The cup's wiring when the --cell file does not put it on the JRC's I/O: the first
 # network input for suction, the first external input for the pressure switch.
 DEFAULT_VACUUM_IO = VacuumDeviceConfig("jrc_io", suction_output=27010, grip_input=20)
+# ... and on a UR controller's: the tool flange's first output and input.
+DEFAULT_UR_VACUUM_IO = VacuumDeviceConfig("ur_io", suction_output=0, grip_input=0, io="tool")
+# --robot-link ur: a Universal Robots controller (core/sim/ur_emulator.py) instead of a JRC.
+UR_LINK = "ur"
 
 
 @dataclass(frozen=True)
@@ -72,14 +77,31 @@ class VirtualCellSettings:
     written cell file adds to the camera's latency for the network and the decoder, so
     that its ``exposure_latency_s`` is an upper bound. robot_link: what carries the host
     commands to the emulated JRC: a pseudo-terminal (BSC), or a loopback TCP port (the
-    Ethernet server of later controllers)."""
+    Ethernet server of later controllers); or ``UR_LINK``, a Universal Robots controller
+    on its own loopback address (RTDE, dashboard, script port), whose clock runs
+    ``time_scale`` times real time (1 by default: the camera's frames are then its own)."""
 
     time_scale: float = 40.0
     fps: float = 30.0
     exposure_latency_s: float = 0.05
     latency_margin_s: float = 0.05
     release_poll_s: float = 0.01
-    robot_link: HostTransport = HostTransport.SERIAL
+    robot_link: str = HostTransport.SERIAL
+
+    @property
+    def camera_time_scale(self) -> float:
+        """How many seconds of the cell's clock the camera's second is: a UR servoes on every
+        frame, so its camera keeps the controller's clock (fps frames a second of it, its
+        latency in it); a JRC's camera keeps the wall's."""
+        return self.time_scale if self.robot_link == UR_LINK else 1.0
+
+    @property
+    def stream_fps(self) -> float:
+        return self.fps * self.camera_time_scale
+
+    @property
+    def stream_latency_s(self) -> float:
+        return self.exposure_latency_s / self.camera_time_scale
 
 
 @dataclass(frozen=True)
@@ -129,18 +151,31 @@ def controller_tables(
 ) -> dict[str, Any]:
     """The cell file the controller gets: the nominal cell, wired to this virtual cell's devices."""
     tables = {k: copy.deepcopy(v) for k, v in cell_tables.items() if k != "simulation"}
-    tables.setdefault("robot", {})["backend"] = "jrc"
-    tables["jrc"] = jrc_table(tables.get("jrc", {}), jrc_link, settings.time_scale)
+    if settings.robot_link == UR_LINK:
+        tables.setdefault("robot", {})["backend"] = "ur"
+        # The emulated arm's moves accelerate at 2.5 m/s^2 unless the --cell file says otherwise
+        # (URScript's default for movel is 1.2; a UR's tool takes more).
+        tables["ur"] = {"acceleration_mm_s2": 2500.0, **tables.get("ur", {}), **jrc_link, "time_scale": settings.time_scale}
+    else:
+        tables.setdefault("robot", {})["backend"] = "jrc"
+        tables["jrc"] = jrc_table(tables.get("jrc", {}), jrc_link, settings.time_scale)
     camera = tables.setdefault("camera", {})
     camera["source"] = {
         "kind": "capture",
         "device": camera_url,
-        "exposure_latency_s": round(settings.exposure_latency_s + settings.latency_margin_s, 4),
+        "exposure_latency_s": round(settings.stream_latency_s + settings.latency_margin_s, 4),
         "buffer_frames": 0,
         "reconnect_attempts": 3,
         "reconnect_delay_s": 0.5,
     }
-    tables.setdefault("vacuum", {}).update(device="jrc_io", suction_output=vacuum.suction_output, grip_input=vacuum.grip_input)
+    wiring = {"device": vacuum.device, "suction_output": vacuum.suction_output, "grip_input": vacuum.grip_input}
+    tables.setdefault("vacuum", {}).update(wiring, **({"io": vacuum.io} if vacuum.device == "ur_io" else {}))
+    motion = tables.setdefault("motion", {})
+    if settings.robot_link == UR_LINK:
+        # A UR is velocity-controlled: the servo streams a twist a frame, and taught moves go
+        # at the [safety] limit the cell allows (its movel keeps to the straight line).
+        motion["mode"] = "streaming"
+        motion["move_speed_mm_s"] = float(tables.get("safety", {}).get("max_speed_mm_s", 250.0))
     tables["fixture"] = {"url": fixture_url}
     return tables
 
@@ -166,14 +201,20 @@ class VirtualCell:
         if board_laid:
             self.cell.lay_board(True)
         self.taught_bMo = self.config.plant().scene.cube.bMo
-        self.vacuum = self.config.vacuum_device if self.config.vacuum_device.device == "jrc_io" else DEFAULT_VACUUM_IO
-        self.emulator = JrcEmulator(
-            self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum, plc=self.config.plc
-        )
+        self.emulator: JrcEmulator | UrEmulator
+        if settings.robot_link == UR_LINK:
+            wired = self.config.vacuum_device.device == "ur_io"
+            self.vacuum = self.config.vacuum_device if wired else DEFAULT_UR_VACUUM_IO
+            self.emulator = UrEmulator(self.cell, vacuum=self.vacuum, time_scale=settings.time_scale)
+        else:
+            self.vacuum = self.config.vacuum_device if self.config.vacuum_device.device == "jrc_io" else DEFAULT_VACUUM_IO
+            self.emulator = JrcEmulator(
+                self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum, plc=self.config.plc
+            )
         self.renderer = SceneRenderer(self.cell.truth.model.camera, RenderSettings())
         self.camera_rng = np.random.default_rng(self.cell.rng.integers(2**31))
         self.camera = CameraStream(
-            self._render, fps=settings.fps, exposure_latency_s=settings.exposure_latency_s, port=addresses.camera_port
+            self._render, fps=settings.stream_fps, exposure_latency_s=settings.stream_latency_s, port=addresses.camera_port
         )
         self.fixture = _FixtureServer(self, port=addresses.fixture_port)
         self.released: list[Released] = []
@@ -185,7 +226,11 @@ class VirtualCell:
     # -- running -----------------------------------------------------------------------
 
     def start(self) -> None:
-        if self.settings.robot_link is HostTransport.ETHERNET:
+        if isinstance(self.emulator, UrEmulator):
+            host = self.emulator.start()
+            self.jrc_port = host
+            self._jrc_keys = {"host": host}
+        elif self.settings.robot_link == HostTransport.ETHERNET:
             host, port = self.emulator.start_on_tcp(port=self.addresses.jrc_tcp_port)
             self.jrc_port = f"{host}:{port}"
             self._jrc_keys = {"transport": str(HostTransport.ETHERNET), "host": host, "port": port}
@@ -197,6 +242,7 @@ class VirtualCell:
         self._watch.start()
 
     def _start_on_pty(self) -> None:
+        assert isinstance(self.emulator, JrcEmulator)
         self.jrc_port = self.emulator.start_on_pty()
         if self.addresses.jrc_link is not None:
             # A new link beside the old one, then renamed over it: the name is never missing
@@ -322,11 +368,13 @@ class _FixtureServer:
     place ({"seed": n} optional) or puts it at a given place ({"x_mm", "y_mm", "yaw_deg"}:
     its frame O, a top-face corner, on the table); GET /part says where the part truly
     is; POST /board ({"laid": true|false}) lays the checkerboard or takes it away, GET
-    /board says which; GET /released lists the gauged releases; GET /clock reads the
+    /board says which; POST /camera ({"stalled": true|false}) stalls the camera's frames or
+    lets them go on; GET /released lists the gauged releases; GET /clock reads the
     emulated JRC's cell clock (core/sim/controller_clock.py), which the controller times
-    its runs by. The JRC's I/O panel, for a PLC on the JRC's I/O ([line.plc] transport =
-    "jrc_io"): POST /io ({"inputs": {"<address>": true|false}}) switches the PLC's signals
-    on the JRC's inputs, GET /io reads them and the outputs the JRC's ladder sends the PLC."""
+    its runs by; GET /robot-log, a UR controller's log (programs and stops on its clock).
+    The JRC's I/O panel, for a PLC on the JRC's I/O ([line.plc] transport = "jrc_io"):
+    POST /io ({"inputs": {"<address>": true|false}}) switches the PLC's signals on the
+    JRC's inputs, GET /io reads them and the outputs the JRC's ladder sends the PLC."""
 
     def __init__(self, virtual: VirtualCell, host: str = "127.0.0.1", port: int = 0) -> None:
         self.server = ThreadingHTTPServer((host, port), _handler_for(virtual))
@@ -346,7 +394,18 @@ class _FixtureServer:
         self.server.server_close()
 
 
-ENDPOINTS = ("POST /part", "GET /part", "POST /board", "GET /board", "GET /io", "POST /io", "GET /released", "GET /clock")
+ENDPOINTS = (
+    "POST /part",
+    "GET /part",
+    "POST /board",
+    "GET /board",
+    "POST /camera",
+    "GET /io",
+    "POST /io",
+    "GET /released",
+    "GET /clock",
+    "GET /robot-log",
+)
 _PART_BODY = 'the body is empty, {"seed": <integer>}, or {"x_mm": <number>, "y_mm": <number>, "yaw_deg": <number>}'
 _BOARD_BODY = 'the body is {"laid": true} or {"laid": false}'
 _IO_BODY = 'the body is {"inputs": {"<byte.bit address>": true|false, ...}}, at the addresses of [line.plc.inputs]'
@@ -378,7 +437,17 @@ def _post_board(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
     return {"board": virtual.lay_board(body["laid"])}
 
 
+def _post_camera(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
+    """Stall the camera (its frames stop coming, the connection stays) or let it go on."""
+    if set(body) != {"stalled"} or not isinstance(body["stalled"], bool):
+        raise ValueError(f'{json.dumps(body)}: the body is {{"stalled": true}} or {{"stalled": false}}')
+    (virtual.camera.stalled.set if body["stalled"] else virtual.camera.stalled.clear)()
+    return {"camera": {"stalled": body["stalled"]}}
+
+
 def _io_panel(virtual: VirtualCell) -> dict[str, Any]:
+    if not isinstance(virtual.emulator, JrcEmulator):
+        raise ConfigError("the I/O panel is the JRC's: this virtual cell's robot is a UR controller")
     panel = virtual.emulator.io_panel()
     return {
         "inputs": {str(address): on for address, on in panel.inputs.items()},
@@ -394,6 +463,8 @@ def _post_io(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
         wanted = {int(address): on for address, on in signals.items()}
     except ValueError:
         raise ValueError(f"{json.dumps(body)}: {_IO_BODY}") from None
+    if not isinstance(virtual.emulator, JrcEmulator):
+        raise ConfigError("the I/O panel is the JRC's: this virtual cell's robot is a UR controller")
     virtual.emulator.set_inputs(wanted)
     return _io_panel(virtual)
 
@@ -401,6 +472,7 @@ def _post_io(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
 _POSTS: dict[str, Callable[[VirtualCell, dict[str, Any]], dict[str, Any]]] = {
     "/part": _post_part,
     "/board": _post_board,
+    "/camera": _post_camera,
     "/io": _post_io,
 }
 
@@ -416,8 +488,12 @@ def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
                 self._reply(200, _io_panel(virtual))
             elif self.path == "/released":
                 self._reply(200, {"released": [r.as_dict() for r in virtual.released]})
-            elif self.path == "/clock":
+            elif self.path == "/clock" and isinstance(virtual.emulator, JrcEmulator):
                 self._reply(200, {"cell_time_s": virtual.emulator.cell_time_s()})
+            elif self.path == "/clock":  # a UR's backend reads its clock from RTDE's timestamp
+                self._reply(404, {"error": "the cell clock is the emulated JRC's: this virtual cell's robot is a UR"})
+            elif self.path == "/robot-log":
+                self._robot_log()
             elif self.path == "/":
                 self._reply(200, {"fixture": "vservo virtual cell", "endpoints": list(ENDPOINTS)})
             else:
@@ -440,6 +516,18 @@ def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
                 self._reply(409, {"error": str(exc)})
             except ValueError as exc:  # json.JSONDecodeError is one
                 self._reply(400, {"error": str(exc)})
+
+        def _robot_log(self) -> None:
+            """A UR controller's log, on its own clock: every program it took and every stop."""
+            emulator = virtual.emulator
+            if not isinstance(emulator, UrEmulator):
+                self._reply(404, {"error": "GET /robot-log: only a UR controller (--robot-link ur) keeps a log"})
+                return
+            controller = emulator.controller
+            with emulator.lock:
+                entries = [asdict(entry) for entry in controller.log]
+                clock = {"time_s": controller.time_s, "last_moved_s": controller.last_moved_s}
+            self._reply(200, {"period_s": controller.period_s, **clock, "log": entries})
 
         def _reply(self, status: int, body: dict) -> None:
             data = json.dumps(body).encode()

@@ -176,7 +176,10 @@ def test_truth_overrides_change_the_truth_only():
             ["unknown key camera.source.device"],
         ),
         (lambda d: d["simulation"].update(truth={"camera": {"source": {"kind": "capture"}}}), ["unknown key camera.source"]),
-        (lambda d: d["vacuum"].update(device="suction-cup"), ["vacuum.device", "'suction-cup'", "simulated, jrc_io, none"]),
+        (
+            lambda d: d["vacuum"].update(device="suction-cup"),
+            ["vacuum.device", "'suction-cup'", "simulated, jrc_io, ur_io, none"],
+        ),
         (
             lambda d: (d["robot"].update(backend="jrc"), d["vacuum"].update(device="jrc_io", suction_output=27010)),
             ["missing key vacuum.grip_input"],

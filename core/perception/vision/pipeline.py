@@ -119,7 +119,11 @@ class CameraPerception:
     def perceive(self, measurement: object, motion_ended_s: float) -> ImageFeatures:
         """The features of the first frame the source exposed at or after ``motion_ended_s``
         (the robot's clock): never a frame that waited in a buffer through the motion."""
-        self.last_frame = frame = self.source.read_after(motion_ended_s)
+        return self.perceive_frame(self.source.read_after(motion_ended_s))
+
+    def perceive_frame(self, frame: Frame) -> ImageFeatures:
+        """The features of ``frame``, tracked from the frames before it."""
+        self.last_frame = frame
         features, self.last_report = self.extractor.extract(frame.image, self.previous_corners_px)
         if features.all_corners_visible:
             self.previous_corners_px = features.corners_px
