@@ -404,7 +404,7 @@ class CellController:
             validate_part_id(part_id)  # refused before anything moves
         with self._lock:
             self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
-            job, note = retargeted_job(self.store, self.rig.config.nominal, job_name)
+            job, note = retargeted_job(self.store, self.rig.config, job_name)
             self._enable_motion()
             run_id = self.store.start_run(job.name, self.rig.robot.name, part_id)
             self._desired = job.desired

@@ -151,7 +151,7 @@ class TeachingSession:
             f"desired image captured, laser depth {1000 * desired.depth_m:.1f} mm",
             desired=desired,
             taught_bMe=taught_bMe,
-            taught_model=TaughtModel.of(self.rig.config.nominal),
+            taught_model=TaughtModel.of(self.rig.config.nominal, self.rig.config.model_measured),
             seen_bMo=self._part_seen(taught_bMe, features.corners_px, part_side_m),
         )
         return desired

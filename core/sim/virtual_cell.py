@@ -124,8 +124,15 @@ def controller_tables(
     vacuum: VacuumDeviceConfig,
     settings: VirtualCellSettings,
 ) -> dict[str, Any]:
-    """The cell file the controller gets: the nominal cell, wired to this virtual cell's devices."""
+    """The cell file the controller gets: the nominal cell, wired to this virtual cell's devices.
+
+    A virtual cell playing its file's own model (no [simulation.truth.*], no --truth) says so
+    in a [commissioning] provenance: its model is the cell's, as a commissioned one is
+    (CellConfig.model_measured); with a truth of its own it leaves the file uncommissioned."""
     tables = {k: copy.deepcopy(v) for k, v in cell_tables.items() if k != "simulation"}
+    simulation = cell_tables.get("simulation", {})
+    if "commissioning" not in tables and not (isinstance(simulation, dict) and simulation.get("truth")):
+        tables["commissioning"] = {"provenance": {"declared": "the virtual cell plays this very model (no --truth)"}}
     tables.setdefault("robot", {})["backend"] = "jrc"
     tables["jrc"] = jrc_table(tables.get("jrc", {}), jrc_link, settings.time_scale)
     camera = tables.setdefault("camera", {})
