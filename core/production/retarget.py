@@ -168,3 +168,14 @@ def desired_view_for_part(job: Job, model: TaughtModel, bMo: Matrix) -> Matrix:
     view moved with the part (for a job retargeted to the cell's model, through the cell's
     hand-eye, as the servo sees it)."""
     return start_pose_for_part(replace(job, start_bMe=job.taught_bMe), model, bMo)
+
+
+def taught_part_on_table(job: Job, model: TaughtModel, eMv: Matrix) -> tuple[Matrix, float]:
+    """Where the job's part lay when it was taught: its top face's centre (x, y in the base
+    frame, m) and its turn about the vertical (rad). The centre is where the taught pick put
+    the cup (taught_bMe eMe_pick eMv: the cup is taught onto the face's middle), so no camera
+    calibration enters it; the turn is the desired view's, through ``model`` (the model the
+    job was taught through), a few degrees off at most on a cell never commissioned."""
+    cup_b = job.taught_bMe @ job.eMe_pick @ np.asarray(eMv, dtype=float)
+    bMo = job.taught_bMe @ model.eMc @ job.desired.cdMo
+    return cup_b[:2, 3].copy(), float(np.arctan2(bMo[1, 0], bMo[0, 0]))

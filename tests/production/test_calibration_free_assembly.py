@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 
 from tests.controller_fixtures import simulated_controller
-from vservo.core.cell.config import parse_cell, read_cell_data_with_truth
+from vservo.core.cell.config import CommissioningRecord, load_cell, parse_cell, read_cell_data_with_truth
+from vservo.core.geometry.spatial import inverse, rot_z, transform
 from vservo.core.production.assembly import Outcome, Phase
+from vservo.core.production.cell_controller import CommandRefused
 from vservo.core.production.demo_job import teach_demo_job
 
 TABLE_5_5 = Path(__file__).resolve().parents[2] / "static" / "truths" / "table-5-5.toml"
@@ -46,3 +48,37 @@ def test_parts_turned_over_the_whole_circle_are_placed_within_a_few_tenths_of_a_
         else:  # refused before the pick, saying what to do
             assert outcome.outcome is Outcome.FAULT and "refused before" in outcome.reason, (turn, outcome.reason)
             assert "present the part nearer its taught place" in outcome.reason
+
+
+def test_the_demo_job_taught_on_the_shipped_cell_is_refused_before_moving_on_a_cell_never_commissioned(tmp_path):
+    config = parse_cell(*read_cell_data_with_truth(None, TABLE_5_5))
+    assert not config.model_measured and load_cell().model_measured
+    with simulated_controller(config, tmp_path / "data") as controller:
+        controller.present_part()
+        before = controller.rig.robot.read_pose()
+        with pytest.raises(CommandRefused, match="commission this cell .* or teach the job again on this cell"):
+            controller.start("demo")
+        np.testing.assert_array_equal(controller.rig.robot.read_pose(), before)
+    commissioned = replace(config, commissioning=CommissioningRecord(None, {"date": "2026-11-28"}))
+    assert commissioned.model_measured  # then the job is retargeted to the commissioned model instead
+
+
+def test_present_part_brings_the_part_near_where_the_chosen_job_was_taught(controller):
+    demo = controller.store.load_job("demo")
+    # The demo job taught on a part 60 mm aside and turned 30 deg: every taught pose moved with it.
+    part = controller.rig.cell.state.scene.cube
+    centre = part.bMo @ transform(t=(0.01, 0.01, 0.0))
+    moved = transform(rot_z(np.radians(30.0)), (-0.02, 0.057, 0.0))
+    D = transform(t=centre[:3, 3] + moved[:3, 3]) @ transform(moved[:3, :3]) @ inverse(transform(t=centre[:3, 3]))
+    aside = replace(demo, name="aside", taught_bMe=D @ demo.taught_bMe, start_bMe=D @ demo.start_bMe)
+    controller.store.save_job(aside)
+    taught_centre_mm = 1000.0 * (D @ centre)[:2, 3]
+    for _ in range(5):
+        controller.present_part(job="aside")
+        bMo = controller.rig.cell.state.scene.cube.bMo
+        offset_mm = 1000.0 * (bMo @ transform(t=(0.01, 0.01, 0.0)))[:2, 3] - taught_centre_mm
+        assert np.all(np.abs(offset_mm) <= 15.0 + 1e-6), offset_mm  # the feeder's range about the job's part
+        turn_deg = np.degrees(np.arctan2(bMo[1, 0], bMo[0, 0]) - np.arctan2(part.bMo[1, 0], part.bMo[0, 0])) - 30.0
+        assert abs((turn_deg + 180.0) % 360.0 - 180.0) <= 20.0 + 0.1, turn_deg
+    with pytest.raises(CommandRefused, match="nothing"):
+        controller.present_part(job="nothing")
