@@ -54,6 +54,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 
 from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.cell.scene import arrival
 from vservo.core.geometry.spatial import Matrix, exp_twist
 from vservo.core.perception.camera_source import CameraSourceError, Frame
 from vservo.core.perception.features import DesiredImage, ImageFeatures
@@ -72,7 +73,6 @@ from vservo.core.production.storage import Store, validate_part_id
 from vservo.core.production.teaching_session import TeachingSession
 from vservo.core.robot.backend import MotionStopped, RobotError, apply_increment
 from vservo.core.robot.safety import SafetyLayer
-from vservo.core.sim.part_feeder import arrival
 
 if TYPE_CHECKING:  # commissioning's calibration (torch, the board finder) is imported when a cell is commissioned
     from vservo.core.production.commissioning import CommissionSettings, Step
@@ -394,6 +394,15 @@ class CellController:
     def suction(self, on: bool) -> bool:
         """Switch the cup's suction while teaching; whether the vacuum sensor then reports a part."""
         return self._while_teaching(lambda: self._teaching.suction(on))
+
+    def view_part(self) -> None:
+        """The camera over the part by the image alone (TeachingSession.view_part)."""
+        self._while_teaching(lambda: self._teaching.view_part(self.move_to, lambda: self.look(fresh=True)[1]))
+
+    def centre_cup(self) -> None:
+        """The cup on the middle of the part the camera sees, by the camera and the vacuum sensor
+        alone (TeachingSession.centre_cup)."""
+        self._while_teaching(lambda: self._teaching.centre_cup(self.move_to, lambda: self.look(fresh=True)[1].corners_px))
 
     def test_pick(self) -> bool:
         """Try the pick here, the way a run will (TeachingSession.test_pick). Whether it held."""

@@ -337,6 +337,18 @@ class Suction(Command):
 
 
 @dataclass(frozen=True)
+class ViewPart(Command):
+    """Bring the camera over the part the camera sees, by the image alone
+    (core/production/part_view.py): the desired view on a cell never commissioned."""
+
+
+@dataclass(frozen=True)
+class CentreCup(Command):
+    """Put the cup on the middle of the part the camera sees, by the camera and the vacuum
+    sensor alone (core/production/cup_centring.py): the pick pose on a cell never commissioned."""
+
+
+@dataclass(frozen=True)
 class TestPick(Command):
     """Try the pick here as a run will; the reply says whether the part held."""
 
