@@ -381,6 +381,7 @@ class AssemblySequence:
         prediction rests on the model (the part's pose from the corners seen, through the
         nominal camera and hand-eye): it only chooses and refuses, it positions nothing."""
         job = self.job
+        self.timer.enter(CellTimePhase.SERVO)  # choosing the servo's goal is the servo's work
         features = self.perception.perceive(FlangeReadout(self.robot).measure(), self.robot.clock_s())
         turns = view_turns(features.corners_px, job.desired, job.part_side_m, job.grasp_symmetry)
         refusals = []

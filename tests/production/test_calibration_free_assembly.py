@@ -16,6 +16,7 @@ from vservo.core.geometry.spatial import inverse, rot_z, transform
 from vservo.core.production.assembly import Outcome, Phase
 from vservo.core.production.cell_controller import CommandRefused
 from vservo.core.production.demo_job import teach_demo_job
+from vservo.core.production.placement_check import diagonals_crossing
 
 TABLE_5_5 = Path(__file__).resolve().parents[2] / "static" / "truths" / "table-5-5.toml"
 
@@ -82,3 +83,38 @@ def test_present_part_brings_the_part_near_where_the_chosen_job_was_taught(contr
         assert abs((turn_deg + 180.0) % 360.0 - 180.0) <= 20.0 + 0.1, turn_deg
     with pytest.raises(CommandRefused, match="nothing"):
         controller.present_part(job="nothing")
+
+
+def test_view_the_part_and_centre_the_cup_rest_on_no_calibration(tmp_path):
+    """On the cell Table 5-5's errors from its model: the camera brought over the part by the
+    image alone, the spot on its centre; the cup put on the middle of its top face by the camera
+    and the vacuum sensor, where the model's "Cup on it" would miss the part."""
+    config = parse_cell(*read_cell_data_with_truth(None, TABLE_5_5))
+    with simulated_controller(config, tmp_path / "data") as controller:
+        cell = controller.rig.cell
+        controller.begin_teach()
+        controller.present_part((-390.0, -40.0), 20.0)
+        controller.view_part()
+        features = controller.look(fresh=True)[1]
+        assert features.all_corners_visible and features.spot_seen
+        crossing = diagonals_crossing(features.corners_px)
+        assert np.linalg.norm(crossing - features.laser_spot_px) < 1.0  # the spot on the part's centre
+        controller.capture_desired()
+        controller.centre_cup()
+        assert "cup centred on the part" in controller.state.detail
+        oMv = inverse(cell.state.scene.cube.bMo) @ cell.ground_truth_bMe() @ config.plant().truth.eMv
+        np.testing.assert_allclose(1000.0 * oMv[:2, 3], [10.0, 10.0], atol=0.5)  # the top face's centre
+        assert -6.0 < 1000.0 * oMv[2, 3] < 0.0  # pressed into the compensator, within its stroke
+        assert not controller.state.holding_part and controller.test_pick()
+        # The model's own cup pose for the part it sees is off the part.
+        seen = controller.state.teaching
+        assert seen is not None and not seen.model_measured
+        bMo_model = controller._teaching.draft.seen_bMo
+        model_cup = inverse(cell.state.scene.cube.bMo) @ bMo_model @ transform(t=(0.01, 0.01, 0.0))
+        assert np.linalg.norm(model_cup[:2, 3] - [0.01, 0.01]) > 0.01
+        controller.move_to(
+            cell.ground_truth_bMe() @ transform(t=(0.0, 0.0, -0.03))
+        )  # 30 mm up the tool's z: the part out of reach
+        with pytest.raises(CommandRefused, match="four corners|felt no part"):
+            controller.present_part((-300.0, 150.0), 0.0)
+            controller.centre_cup()
