@@ -131,17 +131,6 @@ class CameraSourceConfig:
     pattern: str = "*.png"
 
     @property
-    def model_measured(self) -> bool:
-        """Whether the model is known to be this cell's own: commissioned (``vservo commission``
-        wrote [commissioning]), or the in-process simulator playing this very model (a file
-        without [simulation.truth.*]). Otherwise it is the nominal model of the cell's parts,
-        as far off as their tolerances leave (Table 5-5: the intrinsics 20 %, the hand-eye
-        20 mm and 5 deg)."""
-        if self.commissioning is not None:
-            return True
-        return not self.real and self.simulation is not None and not self.simulation.truth_overridden
-
-    @property
     def real(self) -> bool:
         """Frames from a device outside the simulator."""
         return self.kind != "simulated"

@@ -215,6 +215,16 @@ def lifted(bMe: Matrix, height_m: float) -> Matrix:
     return above
 
 
+def winds_up(poses: list[Matrix | None]) -> bool:
+    """Whether straight moves through ``poses`` (None skipped) and back to the first turn the
+    flange a full turn about the vertical: each move turns it the shorter way, so the turns
+    add up to a multiple of 360 deg, and a run that adds one winds the wrist towards joint 6's
+    limit run after run (the arm's model follows its joints continuously)."""
+    yaws = [float(np.arctan2(bMe[1, 0], bMe[0, 0])) for bMe in poses if bMe is not None]
+    turns = np.diff(np.unwrap(np.array([*yaws, yaws[0]]))) if yaws else np.zeros(0)
+    return abs(float(turns.sum())) > np.pi
+
+
 def _grasp_detail(grasp: GraspChoice, symmetry: int) -> str:
     turned = (
         f"the taught grasp turned {grasp.quarter_turns * 90} deg about the cup" if grasp.quarter_turns else "the taught grasp"
@@ -300,6 +310,7 @@ class AssemblySequence:
         self.started_s = time.monotonic()
         self.timer = CellTimer(robot)
         self.servo: ServoOutcome | None = None
+        self.start_bMe: Matrix | None = None  # where this run started from (the next starts there again)
 
     def run(self) -> AssemblyOutcome:
         seen = None
@@ -367,6 +378,7 @@ class AssemblySequence:
         return start_pose_for_part(job, taught, located.bMo)
 
     def _to_start(self, start_bMe: Matrix) -> None:
+        self.start_bMe = start_bMe
         self.timer.enter(CellTimePhase.START)
         self._say(Phase.SERVOING, "moving to the start pose")
         if self.job.survey_bMe is None:
@@ -426,18 +438,23 @@ class AssemblySequence:
 
     def _grasp(self, bMe_end: Matrix) -> tuple[GraspChoice | None, tuple[str, ...]]:
         """The grasp from the servo's end at bMe_end that turns the flange least and that the
-        arm can make (grasp.grasp_choice), or None and why none can be made."""
+        arm can make (grasp.grasp_choice), or None and why none can be made; of those, one
+        whose turns through the run add up to none (``winds_up``) where there is one."""
         job = self.job
         bMe_check = None if job.check is None else job.check.check_bMe
-        return grasp_choice(
-            bMe_end,
-            job.eMe_pick,
-            job.bMe_place,
-            self.model.eMv,
-            job.grasp_symmetry,
-            lambda bMe_pick, bMe_place: self._pick_and_place_refusal(bMe_end, bMe_pick, bMe_place, bMe_check),
-            bMe_next=bMe_check,
-        )
+
+        def choose(unwound: bool) -> tuple[GraspChoice | None, tuple[str, ...]]:
+            def refusal(bMe_pick: Matrix, bMe_place: Matrix) -> str | None:
+                if unwound and winds_up([self.start_bMe, bMe_end, bMe_pick, bMe_place, bMe_check]):
+                    return "it would wind the wrist a full turn over the run"
+                return self._pick_and_place_refusal(bMe_end, bMe_pick, bMe_place, bMe_check)
+
+            return grasp_choice(
+                bMe_end, job.eMe_pick, job.bMe_place, self.model.eMv, job.grasp_symmetry, refusal, bMe_next=bMe_check
+            )
+
+        chosen = choose(unwound=self.start_bMe is not None)
+        return chosen if chosen[0] is not None else choose(unwound=False)
 
     def _pick_and_place_refusal(
         self, bMe_end: Matrix, bMe_pick: Matrix, bMe_place: Matrix, bMe_check: Matrix | None
