@@ -47,6 +47,8 @@ from vservo.core.geometry.spatial import (
     pose_from_mm_deg,
     pose_to_mm_deg,
     rot_x,
+    rot_z,
+    rotation_angle,
     transform,
 )
 from vservo.core.production.demo_job import DESIRED_cMo
@@ -229,10 +231,20 @@ def teach_pose(state: ControllerState, name: str) -> Matrix | None:
     return None if job is None else getattr(job, name)
 
 
-def view_over_part(bMo: Matrix, eMc: Matrix) -> Matrix:
+def view_over_part(bMo: Matrix, eMc: Matrix, bMe_near: Matrix | None = None) -> Matrix:
     """bMe that sees the part at bMo as the demo job's desired view sees its part: the camera
-    162 mm over the top face, the four corners around the laser spot."""
-    return bMo @ inverse(DESIRED_cMo) @ inverse(eMc)
+    162 mm over the top face, the four corners around the laser spot. Of the four such views
+    a quarter turn apart about the part (its square face looks the same from each), the one
+    nearest ``bMe_near`` in turn when given: a move to it, and on from it to the views after
+    it, then turns the wrist the least, never near a half turn (which way round it goes could
+    then differ between the arm and its model)."""
+    views = []
+    for quarter in range(4):
+        turned = bMo @ transform(t=(PART_SIDE_M / 2, PART_SIDE_M / 2, 0.0)) @ transform(rot_z(quarter * np.pi / 2))
+        views.append(turned @ transform(t=(-PART_SIDE_M / 2, -PART_SIDE_M / 2, 0.0)) @ inverse(DESIRED_cMo) @ inverse(eMc))
+    if bMe_near is None:
+        return views[0]
+    return min(views, key=lambda bMe: rotation_angle(bMe[:3, :3].T @ np.asarray(bMe_near)[:3, :3]))
 
 
 def above_pocket(bMe_pocket: Matrix) -> Matrix:
@@ -410,7 +422,7 @@ STEP_FOLDERS: tuple[tuple[str, int, tuple[TeachButton, ...]], ...] = (
             TeachButton(
                 "Go over the placed part",
                 offered("place_bMo"),
-                lambda form: MoveTo(view_over_part(form.pose("place_bMo"), form.app.scene.mount.eMc)),
+                lambda form: MoveTo(view_over_part(form.pose("place_bMo"), form.app.scene.mount.eMc, form.state.bMe)),
                 "arrived",
                 hint="The camera over the part where the taught place sets it down, as over the part of the desired view",
             ),

@@ -215,14 +215,23 @@ def lifted(bMe: Matrix, height_m: float) -> Matrix:
     return above
 
 
+# A move that turns the flange about the vertical by more than this may go either way round
+# (the straight move's turn is the shorter one, and a half turn has two): the arm's model and
+# the controller may then part on which, and the wrist wind a turn without either saying so.
+AMBIGUOUS_TURN_RAD = np.radians(150.0)
+
+
 def winds_up(poses: list[Matrix | None]) -> bool:
     """Whether straight moves through ``poses`` (None skipped) and back to the first turn the
-    flange a full turn about the vertical: each move turns it the shorter way, so the turns
-    add up to a multiple of 360 deg, and a run that adds one winds the wrist towards joint 6's
-    limit run after run (the arm's model follows its joints continuously)."""
+    flange a full turn about the vertical, or may (a move near a half turn): each move turns
+    it the shorter way, so the turns add up to a multiple of 360 deg, and a run that adds one
+    winds the wrist towards joint 6's limit run after run (the arm's model follows its joints
+    continuously)."""
     yaws = [float(np.arctan2(bMe[1, 0], bMe[0, 0])) for bMe in poses if bMe is not None]
-    turns = np.diff(np.unwrap(np.array([*yaws, yaws[0]]))) if yaws else np.zeros(0)
-    return abs(float(turns.sum())) > np.pi
+    if not yaws:
+        return False
+    turns = np.diff(np.unwrap(np.array([*yaws, yaws[0]])))
+    return abs(float(turns.sum())) > np.pi or bool(np.any(np.abs(turns) > AMBIGUOUS_TURN_RAD))
 
 
 def _grasp_detail(grasp: GraspChoice, symmetry: int) -> str:
@@ -446,7 +455,7 @@ class AssemblySequence:
         def choose(unwound: bool) -> tuple[GraspChoice | None, tuple[str, ...]]:
             def refusal(bMe_pick: Matrix, bMe_place: Matrix) -> str | None:
                 if unwound and winds_up([self.start_bMe, bMe_end, bMe_pick, bMe_place, bMe_check]):
-                    return "it would wind the wrist a full turn over the run"
+                    return "it would wind the wrist a full turn over the run, or may (a move near a half turn)"
                 return self._pick_and_place_refusal(bMe_end, bMe_pick, bMe_place, bMe_check)
 
             return grasp_choice(
