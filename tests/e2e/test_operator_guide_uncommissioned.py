@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import json
 import os
+import queue
 import re
-import select
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -37,10 +38,36 @@ OFFSET_MM = 30.0
 GAUGE_MM = 0.3
 
 
+class Gauge:
+    """The virtual cell's lines (one per released part) read as they come, by a thread: a
+    select() on its buffered stdout would miss lines already read into the buffer."""
+
+    def __init__(self, cell: VirtualCellProcess) -> None:
+        self.lines: queue.Queue[dict] = queue.Queue()
+        self._thread = threading.Thread(target=self._read, args=(cell,), daemon=True)
+        self._thread.start()
+
+    def _read(self, cell: VirtualCellProcess) -> None:
+        for line in cell.process.stdout:
+            self.lines.put(json.loads(line))
+
+    def releases(self, wait_s: float) -> list[dict]:
+        """The parts the cup let go of since the last call, waiting ``wait_s`` for the first."""
+        events = []
+        try:
+            events.append(self.lines.get(timeout=wait_s))
+            while True:
+                events.append(self.lines.get(timeout=1.0))
+        except queue.Empty:
+            pass
+        return [event for event in events if event.get("event") == "released"]
+
+
 @pytest.fixture(scope="module")
 def virtual_cell():
     cell = VirtualCellProcess("--seed", "5", "--truth", str(TRUTH))
-    yield cell
+    gauge = Gauge(cell)
+    yield cell, gauge
     assert cell.stop() == 0, cell.log()[-2000:]
 
 
@@ -48,21 +75,13 @@ def virtual_cell():
 def page(virtual_cell, tmp_path_factory, chromium):
     chromium_or_fail()
     with ServeProcess.start(
-        tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.0, cell=virtual_cell.addresses["cell_file"]
+        tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.0, cell=virtual_cell[0].addresses["cell_file"]
     ) as serve:
         operator = open_pages(chromium, serve.url, [(1600, 1000)])[0]
         take_control(operator, TOKEN)
         yield operator
         assert serve.stop() == 0
         assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]
-
-
-def releases(cell: VirtualCellProcess, wait_s: float) -> list[dict]:
-    """The parts the cup let go of since the last call (the gauge's lines), waiting ``wait_s`` for the first."""
-    events = []
-    while select.select([cell.process.stdout], [], [], wait_s if not events else 0.5)[0]:
-        events.append(json.loads(cell.process.stdout.readline()))
-    return [event for event in events if event.get("event") == "released"]
 
 
 def test_the_demo_job_of_the_shipped_cell_is_refused_before_moving(page):
@@ -78,8 +97,9 @@ def test_the_demo_job_of_the_shipped_cell_is_refused_before_moving(page):
 
 
 def test_a_job_taught_as_the_guide_says_places_parts_turned_anyhow_on_a_cell_never_commissioned(page, virtual_cell):
+    _, gauge = virtual_cell
     teach_the_guide_job(page, lambda number, name: None, measured=False)
-    releases(virtual_cell, 1.0)  # the test picks' and the place's, while teaching
+    gauge.releases(2.0)  # the test picks' and the place's, while teaching
     rng = np.random.default_rng(26)
     lines, placed, errors, run_id = [], 0, [], 0
     for run in range(1, RUNS + 1):
@@ -87,7 +107,7 @@ def test_a_job_taught_as_the_guide_says_places_parts_turned_anyhow_on_a_cell_nev
         x, y, turn = PART_X_MM + radius * np.cos(angle), PART_Y_MM + radius * np.sin(angle), rng.uniform(-180.0, 180.0)
         assembled = assemble_once(page, round(x, 1), round(y, 1), round(turn, 1), run_id)
         run_id = assembled.run_id
-        gauged = releases(virtual_cell, 5.0 if assembled.placed else 1.0)
+        gauged = gauge.releases(10.0 if assembled.placed else 1.0)
         where = f"run {run}: part {radius:.1f} mm off, turned {turn:+.1f} deg"
         if assembled.placed:
             assert len(gauged) == 1, (where, gauged)
