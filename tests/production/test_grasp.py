@@ -7,7 +7,8 @@ import pytest
 
 from vservo.core.cell.config import load_cell
 from vservo.core.cell.scene import Cube
-from vservo.core.geometry.spatial import inverse, rot_z, rotation_angle, transform
+from vservo.core.geometry.spatial import inverse, rot_x, rot_z, rotation_angle, transform
+from vservo.core.production.assembly import winds_up
 from vservo.core.production.grasp import (
     allowed_turns,
     grasp_choice,
@@ -148,3 +149,13 @@ def test_the_grasp_that_turns_the_flange_least_is_chosen_and_an_unreachable_one_
     assert none is None and len(refused) == 2 and all("joint 6" in why for why in refused)
     taught, _ = grasp_choice(bMe_end, demo.eMe_pick, demo.bMe_place, eMv, 1, lambda pick, place: None)
     assert taught is not None and taught.quarter_turns == 0 and np.allclose(taught.bMe_pick, bMe_end @ demo.eMe_pick)
+
+
+def test_a_run_whose_moves_wind_the_wrist_a_full_turn_or_may_is_told():
+    def yawed(*degrees):
+        return [transform(rot_z(np.radians(d))) @ transform(rot_x(np.pi)) for d in degrees]
+
+    assert not winds_up(yawed(0.0, 30.0, -20.0, 100.0))  # turns -> +30, -50, +120, -100: none in all
+    assert winds_up(yawed(0.0, 100.0, -160.0, -60.0))  # +100, +100, +100, +60: a full turn
+    assert winds_up(yawed(0.0, 155.0))  # a move near a half turn may go either way round
+    assert not winds_up([None, *yawed(10.0)])
