@@ -101,7 +101,7 @@ def test_a_job_taught_as_the_guide_says_places_parts_turned_anyhow_on_a_cell_nev
     teach_the_guide_job(page, lambda number, name: None, measured=False)
     gauge.releases(2.0)  # the test picks' and the place's, while teaching
     rng = np.random.default_rng(26)
-    lines, placed, errors, run_id = [], 0, [], 0
+    lines, errors, wrong, run_id = [], [], [], 0
     for run in range(1, RUNS + 1):
         radius, angle = OFFSET_MM * np.sqrt(rng.uniform()), rng.uniform(0.0, 2.0 * np.pi)
         x, y, turn = PART_X_MM + radius * np.cos(angle), PART_Y_MM + radius * np.sin(angle), rng.uniform(-180.0, 180.0)
@@ -109,23 +109,22 @@ def test_a_job_taught_as_the_guide_says_places_parts_turned_anyhow_on_a_cell_nev
         run_id = assembled.run_id
         gauged = gauge.releases(10.0 if assembled.placed else 1.0)
         where = f"run {run}: part {radius:.1f} mm off, turned {turn:+.1f} deg"
-        if assembled.placed:
-            assert len(gauged) == 1, (where, gauged)
-            error_mm = float(gauged[0]["placement_error_mm"])
-            assert gauged[0]["inside"] and error_mm <= GAUGE_MM, (where, gauged, assembled.outcome)
-            placed, errors = placed + 1, [*errors, error_mm]
-            lines.append(f"{where}: placed, gauge {error_mm:.3f} mm")
-        else:  # refused before the pick, saying what to do; nothing released
-            assert not gauged, (where, gauged, assembled.status)
-            said = assembled.outcome + assembled.status
-            assert "refused before" in said and "present the part nearer" in said, (where, said)
-            lines.append(f"{where}: {assembled.outcome}")
+        said = assembled.outcome.splitlines()[0]
+        if assembled.placed and len(gauged) == 1 and gauged[0]["inside"] and gauged[0]["placement_error_mm"] <= GAUGE_MM:
+            errors.append(float(gauged[0]["placement_error_mm"]))
+            lines.append(f"{where}: placed, gauge {errors[-1]:.3f} mm")
+        else:
+            lines.append(f"{where}: {said}; gauge {gauged}")
+            # Anything but a placement: refused before the pick, saying what to do, nothing released.
+            if assembled.placed or gauged or "refused before" not in said or "present the part nearer" not in said:
+                wrong.append(lines[-1])
         if "FAULT" in assembled.status:
             page.get_by_role("button", name=re.compile("^Reset")).click()
             wait_for_status(page, r"Idle")
     lines.append(
-        f"placed {placed} of {RUNS}; gauge min {min(errors):.3f}, median {float(np.median(errors)):.3f}, max {max(errors):.3f} mm"
+        f"placed {len(errors)} of {RUNS}; gauge min {min(errors):.3f}, median {float(np.median(errors)):.3f}, "
+        f"max {max(errors):.3f} mm"
     )
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     (ARTIFACTS / "guide-uncommissioned-runs.txt").write_text("\n".join(lines) + "\n")
-    assert placed >= RUNS - 1, lines
+    assert len(errors) >= RUNS - 1 and not wrong, lines
