@@ -98,10 +98,14 @@ class AssemblePanel:
                         icon=viser.Icon.BOX,
                         order=12,
                         disabled=True,
-                        hint="A new part arrives near where the job was taught",
+                        hint="A new part arrives near where the chosen job's part was taught",
                     ),
                 )
-                present.on_click(lambda _: self.app.send(view, "Present part", PresentPart(), "a new part is on the table"))
+                present.on_click(
+                    lambda _: self.app.send(
+                        view, "Present part", lambda: PresentPart(job=job.value), "a new part is on the table"
+                    )
+                )
             start = view.button(
                 Button.START, gui.add_button("Start", icon=viser.Icon.PLAYER_PLAY, color="green", order=13, disabled=True)
             )

@@ -47,6 +47,8 @@ from vservo.core.geometry.spatial import (
     pose_from_mm_deg,
     pose_to_mm_deg,
     rot_x,
+    rot_z,
+    rotation_angle,
     transform,
 )
 from vservo.core.production.demo_job import DESIRED_cMo
@@ -55,6 +57,7 @@ from vservo.core.production.protocol import (
     CancelTeach,
     CaptureCheckView,
     CaptureDesired,
+    CentreCup,
     Command,
     ControllerState,
     JobDetail,
@@ -72,6 +75,7 @@ from vservo.core.production.protocol import (
     Teaching,
     TeachStep,
     TestPick,
+    ViewPart,
 )
 from vservo.core.production.protocol.commands import (
     APPROACH_M,
@@ -113,6 +117,12 @@ TOOLS = ("flange", "cup")
 # clear of the walls (12 mm deep), near enough to go the rest in one straight move.
 ABOVE_POCKET_M = 0.030
 NEXT_COLOR = "orange"  # the next step's button: the theme's buttons are blue already
+# What the page says under Part seen on a cell whose model is not measured (Teaching.model_measured).
+NOMINAL_WARNING = (
+    "**This cell was never commissioned**: Part seen, Flange to view it and Cup on it come from the nominal model and "
+    "can be tens of mm off (60 mm and 22 mm with Table 5-5's errors). Use **View the part** and **Centre the cup on "
+    "the part** instead: they rest on the image and the vacuum sensor alone."
+)
 
 
 class PoseEntryError(VservoError, ValueError):
@@ -221,10 +231,20 @@ def teach_pose(state: ControllerState, name: str) -> Matrix | None:
     return None if job is None else getattr(job, name)
 
 
-def view_over_part(bMo: Matrix, eMc: Matrix) -> Matrix:
+def view_over_part(bMo: Matrix, eMc: Matrix, bMe_near: Matrix | None = None) -> Matrix:
     """bMe that sees the part at bMo as the demo job's desired view sees its part: the camera
-    162 mm over the top face, the four corners around the laser spot."""
-    return bMo @ inverse(DESIRED_cMo) @ inverse(eMc)
+    162 mm over the top face, the four corners around the laser spot. Of the four such views
+    a quarter turn apart about the part (its square face looks the same from each), the one
+    nearest ``bMe_near`` in turn when given: a move to it, and on from it to the views after
+    it, then turns the wrist the least, never near a half turn (which way round it goes could
+    then differ between the arm and its model)."""
+    views = []
+    for quarter in range(4):
+        turned = bMo @ transform(t=(PART_SIDE_M / 2, PART_SIDE_M / 2, 0.0)) @ transform(rot_z(quarter * np.pi / 2))
+        views.append(turned @ transform(t=(-PART_SIDE_M / 2, -PART_SIDE_M / 2, 0.0)) @ inverse(DESIRED_cMo) @ inverse(eMc))
+    if bMe_near is None:
+        return views[0]
+    return min(views, key=lambda bMe: rotation_angle(bMe[:3, :3].T @ np.asarray(bMe_near)[:3, :3]))
 
 
 def above_pocket(bMe_pocket: Matrix) -> Matrix:
@@ -327,6 +347,14 @@ STEP_FOLDERS: tuple[tuple[str, int, tuple[TeachButton, ...]], ...] = (
         (
             _go_to_template("desired view", lambda job: job.taught_bMe),
             TeachButton(
+                "View the part",
+                teaching,
+                lambda form: ViewPart(),
+                "the part in view",
+                hint="By the image alone, right on any cell: the laser spot onto the part's centre, the part as large as "
+                "in the demo job's desired view",
+            ),
+            TeachButton(
                 "Capture desired image",
                 teaching,
                 lambda form: CaptureDesired(),
@@ -340,6 +368,14 @@ STEP_FOLDERS: tuple[tuple[str, int, tuple[TeachButton, ...]], ...] = (
         "3. Pick",
         8,
         (
+            TeachButton(
+                "Centre the cup on the part",
+                lambda state: teaching(state) and not state.holding_part,
+                lambda form: CentreCup(),
+                "cup centred on the part",
+                hint="From the desired view, by the camera and the vacuum sensor alone, right on any cell: the cup "
+                "over the part's centre, lowered until it grips, left pressed with the suction off",
+            ),
             TeachButton("Suction on", holding(False), lambda form: Suction(True)),
             TeachButton("Suction off", holding(True), lambda form: Suction(False)),
             TeachButton(
@@ -386,7 +422,7 @@ STEP_FOLDERS: tuple[tuple[str, int, tuple[TeachButton, ...]], ...] = (
             TeachButton(
                 "Go over the placed part",
                 offered("place_bMo"),
-                lambda form: MoveTo(view_over_part(form.pose("place_bMo"), form.app.scene.mount.eMc)),
+                lambda form: MoveTo(view_over_part(form.pose("place_bMo"), form.app.scene.mount.eMc, form.state.bMe)),
                 "arrived",
                 hint="The camera over the part where the taught place sets it down, as over the part of the desired view",
             ),
@@ -485,10 +521,14 @@ def seen_markdown(state: ControllerState, overlay: Overlay | None, mount: ToolMo
             f"Flange to view it: `{pose_words(view_over_part(bMo, eMc))}`  \n"
             f"Cup on it: `{pose_words(cup_on_part(bMo))}`"
         )
+    job = draft(state)
+    if job is not None and not job.model_measured and bMo is not None:
+        lines.append(NOMINAL_WARNING)
     pocket = teach_pose(state, "pocket_bMe")
     if pocket is not None:
         bMv = pocket @ mount.eMv
-        lines.append(f"Cup in the pocket: `{pose_words(bMv)}`")
+        assumed = "" if job is None or job.model_measured else " (the part taken as centred on the cup)"
+        lines.append(f"Cup in the pocket: `{pose_words(bMv)}`{assumed}")
     return "  \n".join(lines)
 
 

@@ -406,6 +406,7 @@ class SimulationConfig:
     repeatability_rad: float
     joint_placement_error_m: float
     joint_placement_error_rad: float
+    truth_overridden: bool = False  # the file declares [simulation.truth.*]: the plant is not the model
 
 
 @dataclass(frozen=True)
@@ -440,6 +441,17 @@ class CellConfig:
         if self.simulation is None:
             raise ConfigError(f"{self.source}: no [simulation] table: this file describes no plant to simulate")
         return self.simulation
+
+    @property
+    def model_measured(self) -> bool:
+        """Whether the model is known to be this cell's own: commissioned (``vservo commission``
+        wrote [commissioning]), or the in-process simulator playing this very model (a file
+        without [simulation.truth.*]). Otherwise it is the nominal model of the cell's parts,
+        as far off as their tolerances leave (Table 5-5: the intrinsics 20 %, the hand-eye
+        20 mm and 5 deg)."""
+        if self.commissioning is not None:
+            return True
+        return not self.real and self.simulation is not None and not self.simulation.truth_overridden
 
     @property
     def real(self) -> bool:
@@ -1142,7 +1154,7 @@ def _truth_tables(data: dict[str, Any], truth: Any, source: str) -> dict[str, An
     return merged
 
 
-def _simulation(t: _Table, truth: CellModel, board: BoardConfig | None) -> SimulationConfig:
+def _simulation(t: _Table, truth: CellModel, board: BoardConfig | None, truth_overridden: bool) -> SimulationConfig:
     t.table("truth")  # parsed by _truth_tables; marked as known here
     scene, laid_board = _scene(t.table("scene"), board)
     simulation = SimulationConfig(
@@ -1155,6 +1167,7 @@ def _simulation(t: _Table, truth: CellModel, board: BoardConfig | None) -> Simul
         repeatability_rad=math.radians(t.number("repeatability_deg", 0.0, **_from_zero(90, "deg"))),
         joint_placement_error_m=t.number("joint_placement_error_mm", 0.0, **_from_zero(100, "mm")) / 1000.0,
         joint_placement_error_rad=math.radians(t.number("joint_placement_error_deg", 0.0, **_from_zero(90, "deg"))),
+        truth_overridden=truth_overridden,
     )
     t.finish()
     return simulation
@@ -1197,7 +1210,7 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     truth = _cell_model(_Table(_truth_tables(data, truth_data, source), "", f"{source} [simulation.truth]"))
     board = _board(root.table("board"))
     # A controller's file for a real cell may leave the plant out: only a simulator reads it.
-    simulation = _simulation(root.table("simulation"), truth, board) if "simulation" in data else None
+    simulation = _simulation(root.table("simulation"), truth, board, bool(truth_data)) if "simulation" in data else None
     jrc = _jrc(root.table("jrc"))
     ur = _ur(root.table("ur"))
     safety = _safety(root.table("safety"))

@@ -20,6 +20,18 @@ import numpy as np
 from vservo.core.geometry.laser import Ray
 from vservo.core.geometry.spatial import Matrix, inverse, transform
 
+# How far from where its job was taught a new part arrives (a feeder's, or an operator's
+# hand's spread): what the servo's job is to absorb.
+PART_OFFSET_M = 0.015
+PART_YAW_RAD = np.deg2rad(20.0)
+
+
+def arrival(rng: np.random.Generator) -> tuple[Matrix, float]:
+    """Where a new part arrives from where its job was taught: an offset (x, y in m, each
+    within PART_OFFSET_M) and a turn about its centre (rad, within PART_YAW_RAD)."""
+    offset = rng.uniform(-PART_OFFSET_M, PART_OFFSET_M, 2)
+    return offset, float(rng.uniform(-PART_YAW_RAD, PART_YAW_RAD))
+
 
 @dataclass(frozen=True)
 class Box:

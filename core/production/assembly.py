@@ -4,7 +4,13 @@ The sequence, as the thesis's cell ran it: move to the job's start pose (the par
 area in view), servo with the job's control law until the feature error is below the
 taught threshold (3 px), move the fixed taught transform eMe_pick so the vacuum cup
 meets the part, suction on (the vacuum sensor must confirm the grip), lift, move over
-the taught place pose, lower into the metal part, release, retreat. When the job has a
+the taught place pose, lower into the metal part, release, retreat. A part turned from
+its taught orientation is served on the taught view turned by the quarter turns its
+symmetry allows that turn the camera least, decided in the image (core/production/grasp.py);
+the pick and the place are then the taught ones, so nothing from the servo's end to the
+release rests on the hand-eye or the intrinsics: the end effector ends at the taught pose
+relative to the part, turned with it, and the pick is "a fixed transformation for any
+object position" (section 5.3.2). When the job has a
 check view, move to its check pose and measure the placement from a frame exposed after
 that move (core/production/placement_check.py): the part is placed when it is seen within
 the job's tolerance, missed beyond it or when it is not seen at all.
@@ -28,12 +34,14 @@ import numpy as np
 
 from vservo.core.cell.config import CellModel
 from vservo.core.cell.kinematics import UnreachableTarget
-from vservo.core.geometry.spatial import Matrix, inverse
-from vservo.core.perception.features import ObjectRegion
+from vservo.core.cell.scene import Cube
+from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
+from vservo.core.geometry.spatial import Matrix
+from vservo.core.perception.features import DesiredImage, ImageFeatures, ObjectRegion
 from vservo.core.perception.measurement import Measurement
 from vservo.core.perception.vision.pipeline import CameraPerception
 from vservo.core.production.exposure_matched import ExposureMatchedCamera
-from vservo.core.production.grasp import GraspChoice, grasp_choice
+from vservo.core.production.grasp import GraspChoice, ViewTurn, grasp_choice, turned_desired, turned_goal, view_turns
 from vservo.core.production.jobs import Job, TaughtModel
 from vservo.core.production.locate import LocateError, PartLocator
 from vservo.core.production.placement_check import CheckView, PlacementCheck, check_placement
@@ -211,21 +219,38 @@ def lifted(bMe: Matrix, height_m: float) -> Matrix:
     return above
 
 
-def _passes(robot: SafetyLayer, poses: list[Matrix], speeds: list[float]) -> bool:
-    """Whether the taught moves through ``poses`` (pairs of consecutive ones, at ``speeds``)
-    pass the safety layer's checks, without moving."""
-    try:
-        for bMe_from, bMe_to, speed in zip(poses, poses[1:], speeds):
-            robot.linear_path(bMe_from, bMe_to, speed)
-    except SafetyRefusal:
+# A move that turns the flange about the vertical by more than this may go either way round
+# (the straight move's turn is the shorter one, and a half turn has two): the arm's model and
+# the controller may then part on which, and the wrist wind a turn without either saying so.
+AMBIGUOUS_TURN_RAD = np.radians(150.0)
+
+
+def winds_up(poses: list[Matrix | None]) -> bool:
+    """Whether straight moves through ``poses`` (None skipped) and back to the first turn the
+    flange a full turn about the vertical, or may (a move near a half turn): each move turns
+    it the shorter way, so the turns add up to a multiple of 360 deg, and a run that adds one
+    winds the wrist towards joint 6's limit run after run (the arm's model follows its joints
+    continuously)."""
+    yaws = [float(np.arctan2(bMe[1, 0], bMe[0, 0])) for bMe in poses if bMe is not None]
+    if not yaws:
         return False
-    return True
+    turns = np.diff(np.unwrap(np.array([*yaws, yaws[0]])))
+    return abs(float(turns.sum())) > np.pi or bool(np.any(np.abs(turns) > AMBIGUOUS_TURN_RAD))
 
 
-def _grasp_detail(doing: str, choice: GraspChoice, symmetry: int) -> str:
-    turned = f"the taught grasp turned {choice.turns * 360 // symmetry} deg" if choice.turns else "the taught grasp"
-    skipped = f"; {choice.unreachable_nearer} nearer out of reach" if choice.unreachable_nearer else ""
-    return f"{doing} at {turned}, the flange turning {np.degrees(choice.turn_rad):.0f} deg{skipped}"
+def _grasp_detail(grasp: GraspChoice, symmetry: int) -> str:
+    turned = (
+        f"the taught grasp turned {grasp.quarter_turns * 90} deg about the cup" if grasp.quarter_turns else "the taught grasp"
+    )
+    skipped = f"; {len(grasp.refused_nearer)} nearer out of reach" if grasp.refused_nearer else ""
+    turning = f"the flange turning {np.degrees(grasp.turn_rad):.0f} deg"
+    return f"picking and placing at {turned} (grasp symmetry {symmetry}), {turning}{skipped}"
+
+
+def _turn_detail(turn: ViewTurn, symmetry: int) -> str:
+    view = f"the taught view turned {turn.quarter_turns * 90} deg" if turn.quarter_turns else "the taught view"
+    seen = "" if np.isnan(turn.image_turn_rad) else f", the camera to turn about {np.degrees(turn.image_turn_rad):.0f} deg"
+    return f"servoing on {view} (grasp symmetry {symmetry}){seen}"
 
 
 def hold_after_fault(robot: RobotBackend) -> str:
@@ -298,6 +323,7 @@ class AssemblySequence:
         self.started_s = time.monotonic()
         self.timer = CellTimer(robot)
         self.servo: ServoOutcome | None = None
+        self.start_bMe: Matrix | None = None  # where this run started from (the next starts there again)
 
     def run(self) -> AssemblyOutcome:
         seen = None
@@ -312,13 +338,16 @@ class AssemblySequence:
                     return located
                 start_bMe = located
             self._to_start(start_bMe)
-            servo = self._servo()
+            desired = self._turned_view()
+            if isinstance(desired, AssemblyOutcome):
+                return desired
+            servo = self._servo(desired)
             if isinstance(servo, AssemblyOutcome):
                 return servo
-            bMe_pick = self._pick(servo)
-            if isinstance(bMe_pick, AssemblyOutcome):
-                return bMe_pick
-            self._place(bMe_pick)
+            grasp = self._pick(servo)
+            if isinstance(grasp, AssemblyOutcome):
+                return grasp
+            self._place(grasp)
             if self.job.check is not None:
                 seen = self._look_at_the_placed_part(self.job.check)
         except (RobotError, UnreachableTarget) as exc:
@@ -365,6 +394,7 @@ class AssemblySequence:
         return start_pose_for_part(job, taught, located.bMo)
 
     def _to_start(self, start_bMe: Matrix) -> None:
+        self.start_bMe = start_bMe
         self.timer.enter(CellTimePhase.START)
         self._say(Phase.SERVOING, "moving to the start pose")
         if self.job.survey_bMe is None:
@@ -372,8 +402,103 @@ class AssemblySequence:
         else:
             self.robot.move_joint(start_bMe, self.settings.speed_m_s)
 
-    def _servo(self) -> ServoOutcome | AssemblyOutcome:
-        """Servo on the taught image until the feature error is below the job's threshold."""
+    def _turned_view(self) -> DesiredImage | AssemblyOutcome:
+        """The taught view turned as the part's symmetry allows to turn the camera least,
+        decided from a frame at the start pose (core/production/grasp.py); of those whose
+        servo goal, pick and place the arm's model predicts in reach, the first. The
+        prediction rests on the model (the part's pose from the corners seen, through the
+        nominal camera and hand-eye): it only chooses and refuses, it positions nothing."""
+        job = self.job
+        self.timer.enter(CellTimePhase.SERVO)  # choosing the servo's goal is the servo's work
+        features = self.perception.perceive(FlangeReadout(self.robot).measure(), self.robot.clock_s())
+        turns = view_turns(features.corners_px, job.desired, job.part_side_m, job.grasp_symmetry)
+        refusals = []
+        for turn in turns:
+            desired = turned_desired(job.desired, job.part_side_m, turn.quarter_turns)
+            refusal = self._goal_refusal(features, turn.quarter_turns)
+            if refusal is None:
+                self._say(Phase.SERVOING, _turn_detail(turn, job.grasp_symmetry))
+                return desired
+            refusals.append(f"turned {turn.quarter_turns * 90} deg: {refusal}")
+        turned = "" if np.isnan(turns[0].image_turn_rad) else f" (seen turned {np.degrees(turns[0].image_turn_rad):.0f} deg)"
+        return self._end(
+            Outcome.FAULT,
+            f"refused before moving on: the part{turned} cannot be picked at any of the taught view's turns its grasp "
+            f"symmetry {job.grasp_symmetry} allows, the arm cannot reach them ({'; '.join(refusals)}): "
+            "present the part nearer its taught place and turn",
+        )
+
+    def _goal_refusal(self, features: ImageFeatures, quarter_turns: int) -> str | None:
+        """Why the servo's goal at the taught view turned ``quarter_turns``, or the pick and
+        place from there, is out of the arm's reach as predicted (grasp.turned_goal); None when
+        in reach or not predictable (a corner unseen: the check after the servo still
+        refuses before the pick)."""
+        job = self.job
+        if not features.all_corners_visible:
+            return None
+        taught = job.taught_model or TaughtModel.of(self.model)
+        model = self.model
+        try:
+            cMo = pose_from_planar_points(features.corners_px, Cube(np.eye(4), job.part_side_m).corners_o, model.camera)
+        except PoseEstimationError:
+            return None
+        bMo_now = self.robot.read_pose() @ model.eMc @ cMo
+        bMo_taught = job.taught_bMe @ taught.eMc @ job.desired.cdMo
+        bMe_goal = turned_goal(job.taught_bMe, bMo_taught, bMo_now, job.part_side_m, quarter_turns)
+        try:
+            self.robot.check_target(bMe_goal, self.settings.speed_m_s, bMe_now=bMe_goal)
+        except (SafetyRefusal, UnreachableTarget) as exc:
+            return f"the servo's goal is refused ({exc})"
+        choice, refused = self._grasp(bMe_goal)
+        return None if choice is not None else "; ".join(refused)
+
+    def _grasp(self, bMe_end: Matrix) -> tuple[GraspChoice | None, tuple[str, ...]]:
+        """The grasp from the servo's end at bMe_end that turns the flange least and that the
+        arm can make (grasp.grasp_choice), or None and why none can be made; of those, one
+        whose turns through the run add up to none (``winds_up``) where there is one."""
+        job = self.job
+        bMe_check = None if job.check is None else job.check.check_bMe
+
+        def choose(unwound: bool) -> tuple[GraspChoice | None, tuple[str, ...]]:
+            def refusal(bMe_pick: Matrix, bMe_place: Matrix) -> str | None:
+                if unwound and winds_up([self.start_bMe, bMe_end, bMe_pick, bMe_place, bMe_check]):
+                    return "it would wind the wrist a full turn over the run, or may (a move near a half turn)"
+                return self._pick_and_place_refusal(bMe_end, bMe_pick, bMe_place, bMe_check)
+
+            return grasp_choice(
+                bMe_end, job.eMe_pick, job.bMe_place, self.model.eMv, job.grasp_symmetry, refusal, bMe_next=bMe_check
+            )
+
+        chosen = choose(unwound=self.start_bMe is not None)
+        return chosen if chosen[0] is not None else choose(unwound=False)
+
+    def _pick_and_place_refusal(
+        self, bMe_end: Matrix, bMe_pick: Matrix, bMe_place: Matrix, bMe_check: Matrix | None
+    ) -> str | None:
+        """Why the moves from the servo's end at bMe_end to the pick, on to the place and the
+        check pose do not pass the safety layer's checks (the arm's kinematic model only);
+        None when they do."""
+        approach_m, speed_m_s = self.job.approach_m, self.settings.speed_m_s
+        legs = [
+            ("the pick", [bMe_end, lifted(bMe_pick, approach_m), bMe_pick], [speed_m_s, speed_m_s / 2]),
+            (
+                "the place",
+                [lifted(bMe_pick, approach_m), lifted(bMe_place, approach_m), bMe_place],
+                [speed_m_s, speed_m_s / 2],
+            ),
+        ]
+        if bMe_check is not None:
+            legs.append(("the check view", [lifted(bMe_place, approach_m), bMe_check], [speed_m_s]))
+        for name, poses, speeds in legs:
+            try:
+                for bMe_from, bMe_to, speed in zip(poses, poses[1:], speeds):
+                    self.robot.linear_path(bMe_from, bMe_to, speed)
+            except (SafetyRefusal, UnreachableTarget) as exc:
+                return f"{name} is refused ({exc})"
+        return None
+
+    def _servo(self, desired: DesiredImage) -> ServoOutcome | AssemblyOutcome:
+        """Servo on the (turned) taught image until the feature error is below the job's threshold."""
         job = self.job
         self.timer.enter(CellTimePhase.SERVO)
         self._say(Phase.SERVOING, f"servoing with the {job.method} method")
@@ -389,7 +514,7 @@ class AssemblySequence:
         self.servo = run_servo(
             cell,
             law,
-            job.desired,
+            desired,
             self.model,
             self.policy,
             self.settings.limits,
@@ -407,60 +532,40 @@ class AssemblySequence:
         failure = self.servo.failure.value if self.servo.failure else ""
         return self._end(Outcome.FAULT, f"servo failed: {failure} ({self.servo.reason})")
 
-    def _part_in_pick(self) -> Matrix:
-        """pMo: the part in the flange at the pick, where the servo's end puts it (eMc cdMo)."""
-        return inverse(self.job.eMe_pick) @ self.model.eMc @ self.job.desired.cdMo
-
-    def _pick(self, servo: ServoOutcome) -> Matrix | AssemblyOutcome:
-        """Down onto the part at the taught transform (turned as the part's symmetry allows,
-        to turn the flange least), suction on, the grip confirmed, up: the pick pose."""
-        job, robot, speed_m_s = self.job, self.robot, self.settings.speed_m_s
+    def _pick(self, servo: ServoOutcome) -> GraspChoice | AssemblyOutcome:
+        """Down onto the part at the taught transform from the servo's end (turned about the
+        cup as the part's symmetry allows, to turn the flange least), suction on, the grip
+        confirmed, up; refused before it moves when the arm can make no such pick and place."""
+        job = self.job
         self.timer.enter(CellTimePhase.PICK)
         self._say(Phase.PICKING, f"servo converged, feature error {servo.final_error_px:.2f} px")
-        bMe_end = robot.pose()
-        pick = grasp_choice(
-            bMe_end @ job.eMe_pick,
-            self._part_in_pick(),
-            job.part_side_m,
-            job.grasp_symmetry,
-            bMe_end,
-            lambda bMe: _passes(robot, [bMe_end, lifted(bMe, job.approach_m), bMe], [speed_m_s, speed_m_s / 2]),
-        )
-        self._say(Phase.PICKING, _grasp_detail("picking", pick, job.grasp_symmetry))
-        self._move(lifted(pick.bMe, job.approach_m))
-        self._move(pick.bMe, speed_m_s / 2)
+        grasp, refused = self._grasp(self.robot.pose())
+        if grasp is None:
+            return self._end(
+                Outcome.FAULT,
+                f"refused before the pick, the arm cannot reach it: {'; '.join(refused)}: "
+                "present the part nearer its taught place and turn",
+            )
+        self._say(Phase.PICKING, _grasp_detail(grasp, job.grasp_symmetry))
+        self._move(lifted(grasp.bMe_pick, job.approach_m))
+        self._move(grasp.bMe_pick, self.settings.speed_m_s / 2)
         self.gripper.set_vacuum(True)
         if not self.gripper.holding():
             self.gripper.set_vacuum(False)
             return self._end(Outcome.FAULT, "the vacuum sensor reports no part on the cup after suction on")
-        self._move(lifted(pick.bMe, job.approach_m))
-        return pick.bMe
+        self._move(lifted(grasp.bMe_pick, job.approach_m))
+        return grasp
 
-    def _place(self, bMe_pick: Matrix) -> None:
-        """Over the metal part, down, release, up: the place turned as far as the part's
-        symmetry allows, to turn the flange least from the lifted pick and on to the check pose."""
-        job, robot, speed_m_s = self.job, self.robot, self.settings.speed_m_s
+    def _place(self, grasp: GraspChoice) -> None:
+        """Over the metal part, down at the taught place pose (turned about the cup as the pick
+        was), release, up."""
+        job, speed_m_s = self.job, self.settings.speed_m_s
         self.timer.enter(CellTimePhase.PLACE)
         self._say(Phase.PLACING, "carrying the part to the metal part")
-        bMe_check = None if job.check is None else job.check.check_bMe
-        bMe_lifted = lifted(bMe_pick, job.approach_m)
-        place = grasp_choice(
-            job.bMe_place,
-            self._part_in_pick(),
-            job.part_side_m,
-            job.grasp_symmetry,
-            bMe_lifted,
-            lambda bMe: (
-                _passes(robot, [bMe_lifted, lifted(bMe, job.approach_m), bMe], [speed_m_s, speed_m_s / 2])
-                and (bMe_check is None or _passes(robot, [lifted(bMe, job.approach_m), bMe_check], [speed_m_s]))
-            ),
-            bMe_next=bMe_check,
-        )
-        self._say(Phase.PLACING, _grasp_detail("placing", place, job.grasp_symmetry))
-        self._move(lifted(place.bMe, job.approach_m))
-        self._move(place.bMe, speed_m_s / 2)
+        self._move(lifted(grasp.bMe_place, job.approach_m))
+        self._move(grasp.bMe_place, speed_m_s / 2)
         self.gripper.set_vacuum(False)
-        self._move(lifted(place.bMe, job.approach_m))
+        self._move(lifted(grasp.bMe_place, job.approach_m))
 
     def _look_at_the_placed_part(self, check: CheckView) -> PlacementCheck:
         self.timer.enter(CellTimePhase.CHECK)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vservo.core.cell.config import CellModel
+from vservo.core.cell.config import CellConfig
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.camera_source import CameraSourceError
 from vservo.core.perception.recording import RecordingError, RunRecorder
@@ -33,7 +33,7 @@ from vservo.core.production.assembly import (
 from vservo.core.production.controller_state import EStopLatch, FrameView, Publisher
 from vservo.core.production.jobs import Job, JobError
 from vservo.core.production.protocol import CommandRefused, RunFigures
-from vservo.core.production.retarget import retarget, retarget_note
+from vservo.core.production.retarget import retarget, retarget_note, transfer_refusal
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store, StoreError
 from vservo.core.servo.loop import Cycle, cycle_record
@@ -43,15 +43,21 @@ log = logging.getLogger("vservo.controller")
 TRAIL_LENGTH = 400  # feature positions kept for the trajectories drawn on the image
 
 
-def retargeted_job(store: Store, model: CellModel, job_name: str) -> tuple[Job, str | None]:
+def retargeted_job(store: Store, config: CellConfig, job_name: str) -> tuple[Job, str | None]:
     """The stored job ``job_name`` retargeted to the cell's model (core/production/retarget.py),
     and how it was retargeted (None: as taught): a job taught through another calibration of
-    the camera, hand-eye or laser sees the same part through this one."""
+    the camera, hand-eye or laser sees the same part through this one. Refused, before
+    anything moves, for a job taught through a measured model on a cell never commissioned
+    (retarget.transfer_refusal)."""
+    model = config.nominal
     try:
         stored = store.load_job(job_name)
         job = retarget(stored, model)
     except JobError as exc:
         raise CommandRefused(str(exc)) from exc
+    refusal = transfer_refusal(stored, config.model_measured)
+    if refusal is not None:
+        raise CommandRefused(refusal)
     note = retarget_note(stored, model)
     if note:
         log.info("job %r: %s", job.name, note)

@@ -54,6 +54,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 
 from vservo.core.cell.kinematics import UnreachableTarget
+from vservo.core.cell.scene import arrival
 from vservo.core.geometry.spatial import Matrix, exp_twist
 from vservo.core.perception.camera_source import CameraSourceError, Frame
 from vservo.core.perception.features import DesiredImage, ImageFeatures
@@ -62,10 +63,11 @@ from vservo.core.production.assembly_run import AssemblyRun, retargeted_job
 from vservo.core.production.commissioning_session import CommissioningSession, commissioned_path, is_shipped_cell
 from vservo.core.production.controller_state import EStopLatch, FrameView, TeachDraft
 from vservo.core.production.fixture import FixtureError
-from vservo.core.production.jobs import Job
+from vservo.core.production.jobs import Job, JobError, TaughtModel
 from vservo.core.production.placement_check import CheckView
 from vservo.core.production.protocol import CommandRefused, ControllerState, Phase, RunFigures
 from vservo.core.production.protocol.commands import PART_SIDE_M
+from vservo.core.production.retarget import taught_part_on_table
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store, validate_part_id
 from vservo.core.production.teaching_session import TeachingSession
@@ -317,14 +319,18 @@ class CellController:
                 self._jogging.clear()
             self.update(**self.robot_readout())
 
-    def present_part(self, centre_mm: Sequence[float] | None = None, turn_deg: float = 0.0) -> None:
+    def present_part(self, centre_mm: Sequence[float] | None = None, turn_deg: float = 0.0, job: str | None = None) -> None:
         """A new part on the table where the cell can (the simulated cell, or a test cell's
-        fixture), whenever no run or commissioning moves the robot, teaching included: near
-        where the demo job was taught, or with its top face's centre at ``centre_mm`` (X, Y
-        in the base frame) turned ``turn_deg`` about the vertical. The cup lets go of a part
-        it held."""
+        fixture), whenever no run or commissioning moves the robot, teaching included: with
+        its top face's centre at ``centre_mm`` (X, Y in the base frame) turned ``turn_deg``
+        about the vertical; else near where ``job``'s part was taught (a feeder's random
+        offset and turn, core/sim/part_feeder.py, from retarget.taught_part_on_table); else
+        near where the cell's feeder puts parts (the demo job's place). The cup lets go of a
+        part it held."""
         with self._lock:
             self._require(Phase.IDLE, Phase.TEACHING, Phase.DONE, Phase.FAULT)
+            if centre_mm is None and job is not None and self.rig.place_part is not None:
+                centre_mm, turn_deg = self._near_the_taught_part(job)
             try:
                 if centre_mm is None and self.rig.present_part is not None:
                     self.rig.present_part(self.rng)
@@ -336,6 +342,20 @@ class CellController:
             except (FixtureError, ValueError) as exc:
                 raise CommandRefused(str(exc)) from None
             self.update(detail="a new part is on the table", **self.robot_readout())
+
+    def _near_the_taught_part(self, job_name: str) -> tuple[tuple[float, float], float]:
+        """Where a part of ``job_name`` arrives: its taught place moved by a feeder's random
+        offset and turn (centre in mm, turn in deg)."""
+        try:
+            job = self.store.load_job(job_name)
+        except JobError as exc:
+            raise CommandRefused(str(exc)) from None
+        centre_m, yaw_rad = taught_part_on_table(
+            job, job.taught_model or TaughtModel.of(self.rig.config.nominal), self.rig.config.nominal.eMv
+        )
+        offset_m, turn_rad = arrival(self.rng)
+        x_mm, y_mm = 1000.0 * (centre_m + offset_m)
+        return (float(x_mm), float(y_mm)), float(np.degrees(yaw_rad + turn_rad))
 
     # -- teaching (teaching_session.py) ---------------------------------------------------
 
@@ -379,6 +399,15 @@ class CellController:
         """Switch the cup's suction while teaching; whether the vacuum sensor then reports a part."""
         return self._while_teaching(lambda: self._teaching.suction(on))
 
+    def view_part(self) -> None:
+        """The camera over the part by the image alone (TeachingSession.view_part)."""
+        self._while_teaching(lambda: self._teaching.view_part(self.move_to, lambda: self.look(fresh=True)[1]))
+
+    def centre_cup(self) -> None:
+        """The cup on the middle of the part the camera sees, by the camera and the vacuum sensor
+        alone (TeachingSession.centre_cup)."""
+        self._while_teaching(lambda: self._teaching.centre_cup(self.move_to, lambda: self.look(fresh=True)[1].corners_px))
+
     def test_pick(self) -> bool:
         """Try the pick here, the way a run will (TeachingSession.test_pick). Whether it held."""
         return self._while_teaching(lambda: self._teaching.test_pick(self.move_to))
@@ -409,7 +438,7 @@ class CellController:
             validate_part_id(part_id)  # refused before anything moves
         with self._lock:
             self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
-            job, note = retargeted_job(self.store, self.rig.config.nominal, job_name)
+            job, note = retargeted_job(self.store, self.rig.config, job_name)
             self._enable_motion()
             run_id = self.store.start_run(job.name, self.rig.robot.name, part_id)
             self._started_by_line = by_line
@@ -556,7 +585,7 @@ def run_job_once(controller: CellController, job_name: str, part_id: str | None 
     if controller.state.phase is Phase.FAULT:
         controller.reset()
     if controller.rig.present_part is not None:
-        controller.present_part()
+        controller.present_part(job=job_name)
     run_id = controller.start(job_name, part_id=part_id)
     controller.wait()
     outcome = controller.last_outcome

@@ -86,7 +86,7 @@ def teach_demo_job(config: CellConfig) -> tuple[Job, np.ndarray, np.ndarray]:
         eMe_pick=inverse(taught_bMe) @ bMe_pick,
         bMe_place=bMe_place,
         check=check,
-        taught_model=TaughtModel.of(model),
+        taught_model=TaughtModel.of(model, config.model_measured),
     )
     rig.close()
     return job, frame.image, check_frame.image

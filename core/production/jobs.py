@@ -69,6 +69,10 @@ class TaughtModel:
     camera: CameraModel
     eMc: Matrix
     cMl: Matrix
+    # Whether the model was the cell's own, measured (CellConfig.model_measured), when the job
+    # was taught: then the pixels are of a known camera and any commissioned cell can see them
+    # through its own; else they are of the cell they were taught on, whose true camera nobody knows.
+    measured: bool = False
 
     # Tight enough that only the very model matches (a JSON round trip is exact), loose
     # enough that float noise in a model read from a cell file does not count as a change.
@@ -76,8 +80,8 @@ class TaughtModel:
     TOLERANCE = 1e-9
 
     @classmethod
-    def of(cls, model: CellModel) -> TaughtModel:
-        return cls(model.camera, np.array(model.eMc, dtype=float), np.array(model.laser.cMl, dtype=float))
+    def of(cls, model: CellModel, measured: bool = False) -> TaughtModel:
+        return cls(model.camera, np.array(model.eMc, dtype=float), np.array(model.laser.cMl, dtype=float), measured)
 
     def matches(self, model: CellModel) -> bool:
         """Whether ``model`` is this one: same image size, intrinsics to 1e-6 px, distortion,
@@ -105,6 +109,7 @@ class TaughtModel:
             },
             "eMc": self.eMc.tolist(),
             "cMl": self.cMl.tolist(),
+            "measured": self.measured,
         }
 
 
@@ -367,7 +372,10 @@ def _model_fields(f: _Fields, source: str) -> dict[str, Any]:
             raise camera.fail("image_size_px", f"{size.tolist()} is not two positive whole numbers")
         intrinsics = Intrinsics(camera.number("fx_px"), camera.number("fy_px"), float(u0), float(v0), int(size[0]), int(size[1]))
         distortion = Distortion(*camera.array("distortion", (5,)))
-        model = TaughtModel(CameraModel(intrinsics, distortion), fields.pose("eMc"), fields.pose("cMl"))
+        measured = fields.data.get("measured", False)  # optional: files before it taught on an unknown model
+        if not isinstance(measured, bool):
+            raise fields.fail("measured", f"{measured!r} is not true or false")
+        model = TaughtModel(CameraModel(intrinsics, distortion), fields.pose("eMc"), fields.pose("cMl"), measured)
     survey = f.get("survey_bMe")
     return {"taught_model": model, "survey_bMe": None if survey is None else f.pose("survey_bMe")}
 

@@ -71,6 +71,25 @@ def retarget(job: Job, model: CellModel) -> Job:
     )
 
 
+def transfer_refusal(job: Job, model_measured: bool) -> str | None:
+    """Why ``job`` cannot run on a cell whose model is not measured (CellConfig.model_measured),
+    None when it can. A job taught through a measured model holds the pixels of a known camera
+    (the shipped demo job's: the simulated cell's own); on a cell never commissioned the camera,
+    hand-eye and laser are the nominal ones, as far off as the parts' tolerances leave, so the
+    servo would end where the taught pixels are seen through an unknown camera, the cup off
+    the part by the hand-eye's error and the part released off the pocket. A job taught
+    through an unmeasured model was taught on the cell it runs on (its pixels are that cell's
+    camera's, whatever the model), and runs as taught."""
+    taught = job.taught_model
+    if model_measured or taught is None or not taught.measured:
+        return None
+    return (
+        f"job {job.name!r} was taught on another cell, through its measured model, and this cell's model is the "
+        "nominal one, never commissioned: commission this cell (vservo commission, docs/commissioning.md) so that the "
+        "job is retargeted to it, or teach the job again on this cell"
+    )
+
+
 def retarget_note(job: Job, model: CellModel) -> str | None:
     """What a run of ``job`` on a cell of ``model`` should say about retargeting; None: nothing."""
     if job.taught_model is None:
@@ -149,3 +168,14 @@ def desired_view_for_part(job: Job, model: TaughtModel, bMo: Matrix) -> Matrix:
     view moved with the part (for a job retargeted to the cell's model, through the cell's
     hand-eye, as the servo sees it)."""
     return start_pose_for_part(replace(job, start_bMe=job.taught_bMe), model, bMo)
+
+
+def taught_part_on_table(job: Job, model: TaughtModel, eMv: Matrix) -> tuple[Matrix, float]:
+    """Where the job's part lay when it was taught: its top face's centre (x, y in the base
+    frame, m) and its turn about the vertical (rad). The centre is where the taught pick put
+    the cup (taught_bMe eMe_pick eMv: the cup is taught onto the face's middle), so no camera
+    calibration enters it; the turn is the desired view's, through ``model`` (the model the
+    job was taught through), a few degrees off at most on a cell never commissioned."""
+    cup_b = job.taught_bMe @ job.eMe_pick @ np.asarray(eMv, dtype=float)
+    bMo = job.taught_bMe @ model.eMc @ job.desired.cdMo
+    return cup_b[:2, 3].copy(), float(np.arctan2(bMo[1, 0], bMo[0, 0]))

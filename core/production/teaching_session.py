@@ -17,17 +17,19 @@ import numpy as np
 
 from vservo.core.cell.scene import Cube
 from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
-from vservo.core.geometry.spatial import Matrix
+from vservo.core.geometry.spatial import Matrix, inverse, rot_x, rot_z, transform
 from vservo.core.perception.camera_source import Frame
-from vservo.core.perception.features import DesiredImage, ImageFeatures
+from vservo.core.perception.features import DesiredImage, ImageFeatures, pattern_scale
 from vservo.core.production.controller_state import Publisher, TeachDraft
+from vservo.core.production.cup_centring import CellMotions, Centred, CentringError, centre_cup
 from vservo.core.production.jobs import Job, JobError, TaughtModel
+from vservo.core.production.part_view import ViewError, ViewMotions, view_part
 from vservo.core.production.placement_check import CheckView
 from vservo.core.production.pocket import PocketFit, flange_in_pocket, part_on_flange, pocket_fit
 from vservo.core.production.protocol import CommandRefused, Phase, Teaching
 from vservo.core.production.protocol.commands import PART_SIDE_M
 from vservo.core.production.rig import Rig
-from vservo.core.production.storage import Store
+from vservo.core.production.storage import DEMO_JOB, Store
 from vservo.core.robot.backend import RobotError
 from vservo.core.servo.teaching import TeachError, desired_from_features
 
@@ -41,6 +43,10 @@ TEST_PICK_LIFT_M = 0.005
 # the job's placement tolerance): beyond it the part moved between the desired image and
 # the pick, or slipped on the cup, and every run would place it so.
 PLACE_TURN_WARNING_DEG = 2.0
+# "View the part" leaves the part this large against the demo job's desired view: the camera
+# about 180 mm over it (nominally; 150 mm with Table 5-5's shorter true focal length), the
+# vacuum cup, 150 mm under the flange, well clear of the part and the table.
+VIEW_SCALE = 0.9
 
 
 class TeachingSession:
@@ -88,10 +94,24 @@ class TeachingSession:
         self.publisher.update(detail=detail, teaching=self._teaching())
 
     def _part_held(self, draft: TeachDraft) -> Matrix | None:
-        """eMo: the desired image's part as the taught pick holds it (None until both are taught)."""
+        """eMo: the desired image's part as the taught pick holds it (None until both are taught).
+
+        On a cell whose model is measured, as the desired image saw it through the model; on
+        one never commissioned that is as far off as the model (22 mm with Table 5-5's errors),
+        so the part is taken as centred on the cup (as "Centre the cup on the part" leaves it),
+        its top face on the cup's face (the compensator extended once it is lifted), only its
+        turn about the cup's axis from the image: then neither the camera's model nor the
+        hand-eye enters the pocket's aids, only the cup's mount eMv."""
         if draft.taught_bMe is None or draft.seen_bMo is None or draft.eMe_pick is None:
             return None
-        return part_on_flange(draft.taught_bMe, draft.eMe_pick, draft.seen_bMo)
+        eMo = part_on_flange(draft.taught_bMe, draft.eMe_pick, draft.seen_bMo)
+        if self.rig.config.model_measured:
+            return eMo
+        eMv = self.rig.config.nominal.eMv
+        x_v = (inverse(eMv) @ eMo)[:3, 0]
+        side = PART_SIDE_M
+        vMo_centred = inverse(transform(rot_x(np.pi), (side / 2, side / 2, 0.0)))
+        return eMv @ transform(rot_z(float(np.arctan2(x_v[1], x_v[0])))) @ vMo_centred
 
     def _placed(self, draft: TeachDraft) -> Matrix | None:
         """bMo: where the taught pick and place set the desired image's part down (None until taught)."""
@@ -111,13 +131,14 @@ class TeachingSession:
         draft, pocket = self.draft, self.rig.config.metal_part
         eMo = self._part_held(draft)
         if pocket is None or eMo is None or draft.seen_bMo is None:
-            return Teaching(draft.taught, view_bMe=draft.taught_bMe)
+            return Teaching(draft.taught, view_bMe=draft.taught_bMe, model_measured=self.rig.config.model_measured)
         fit = self._pocket_fit()
         return Teaching(
             draft.taught,
             view_bMe=draft.taught_bMe,
             pocket_bMe=flange_in_pocket(eMo, pocket, PART_SIDE_M, draft.seen_bMo),
             place_bMo=None if fit is None else fit.bMo,
+            model_measured=self.rig.config.model_measured,
         )
 
     def _place_words(self) -> str:
@@ -151,7 +172,7 @@ class TeachingSession:
             f"desired image captured, laser depth {1000 * desired.depth_m:.1f} mm",
             desired=desired,
             taught_bMe=taught_bMe,
-            taught_model=TaughtModel.of(self.rig.config.nominal),
+            taught_model=TaughtModel.of(self.rig.config.nominal, self.rig.config.model_measured),
             seen_bMo=self._part_seen(taught_bMe, features.corners_px, part_side_m),
         )
         return desired
@@ -181,6 +202,11 @@ class TeachingSession:
         """The check view's part against where the taught pick and place put the part the
         desired image saw: the words to add to the state (a warning beyond the bounds)."""
         draft = self.draft
+        if not self.rig.config.model_measured:
+            return (
+                ": this cell was never commissioned, so the camera's model cannot say in mm where the part lies "
+                "(no place check); the runs measure their placement against this view in the image, which needs no model"
+            )
         expected = self._placed(draft)  # the part held as the pick found it, set down by the place pose
         placed = None if expected is None else self._part_seen(check.check_bMe, check.corners_px)
         if expected is None or placed is None:
@@ -235,6 +261,50 @@ class TeachingSession:
             detail=f"suction {'on' if on else 'off'}: the vacuum sensor reports {sensor}", **self.publisher.robot_readout()
         )
         return holding
+
+    def view_part(self, move_to: Callable[[Matrix], None], features: Callable[[], ImageFeatures]) -> None:
+        """The camera over the part by the image alone (core/production/part_view.py): the
+        laser spot on the part's centre, the part as large in the image as the demo job's
+        desired view shows it (VIEW_SCALE of it): where to capture the desired image, right on a
+        cell never commissioned."""
+        demo = self.store.load_job(DEMO_JOB)
+        k = self.rig.config.nominal.camera.intrinsics
+        motions = ViewMotions(move_to, self.rig.robot.read_pose, features)
+        try:
+            _, moves = view_part(motions, VIEW_SCALE * pattern_scale(demo.desired.corners_px), np.array([k.u0, k.v0]))
+        except ViewError as exc:
+            raise CommandRefused(str(exc)) from exc
+        self.publisher.update(
+            detail=f"the part in view by the image alone ({moves} moves), the laser spot on its centre: Capture desired image",
+            **self.publisher.robot_readout(),
+        )
+
+    def centre_cup(self, move_to: Callable[[Matrix], None], corners_px: Callable[[], Matrix]) -> Centred:
+        """The cup on the middle of the part the camera sees from here, by the camera and the
+        vacuum sensor alone (core/production/cup_centring.py), left pressed on it with the
+        suction off: the pick pose to test and set, right on a cell never commissioned."""
+        if self._holding():
+            raise CommandRefused("the cup holds a part already: Suction off first")
+        model = self.rig.config.nominal
+        motions = CellMotions(move_to, self.rig.robot.read_pose, corners_px, self._grips)
+        try:
+            centred = centre_cup(motions, model.eMv, model.eMc)
+        except CentringError as exc:
+            raise CommandRefused(str(exc)) from exc
+        self.publisher.update(
+            detail=f"cup centred on the part by the camera and the vacuum sensor: moved {1000 * centred.offset_m:.1f} mm "
+            f"across, the top face felt at Z {1000 * centred.face_z_m:.1f} mm: Test pick, then Set pick pose here",
+            **self.publisher.robot_readout(),
+        )
+        return centred
+
+    def _grips(self) -> bool:
+        """Suction on, the vacuum sensor read, suction off: whether the cup would grip here."""
+        try:
+            self.rig.gripper.set_vacuum(True)
+            return self._holding()
+        finally:
+            self.rig.gripper.set_vacuum(False)
 
     def test_pick(self, move_to: Callable[[Matrix], None]) -> bool:
         """Try the pick here, the way a run will: suction on, lift TEST_PICK_LIFT_M by

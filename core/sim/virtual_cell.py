@@ -149,8 +149,15 @@ def controller_tables(
     vacuum: VacuumDeviceConfig,
     settings: VirtualCellSettings,
 ) -> dict[str, Any]:
-    """The cell file the controller gets: the nominal cell, wired to this virtual cell's devices."""
+    """The cell file the controller gets: the nominal cell, wired to this virtual cell's devices.
+
+    A virtual cell playing its file's own model (no [simulation.truth.*], no --truth) says so
+    in a [commissioning] provenance: its model is the cell's, as a commissioned one is
+    (CellConfig.model_measured); with a truth of its own it leaves the file uncommissioned."""
     tables = {k: copy.deepcopy(v) for k, v in cell_tables.items() if k != "simulation"}
+    simulation = cell_tables.get("simulation", {})
+    if "commissioning" not in tables and not (isinstance(simulation, dict) and simulation.get("truth")):
+        tables["commissioning"] = {"provenance": {"declared": "the virtual cell plays this very model (no --truth)"}}
     if settings.robot_link == UR_LINK:
         tables.setdefault("robot", {})["backend"] = "ur"
         # The emulated arm's moves accelerate at 2.5 m/s^2 unless the --cell file says otherwise

@@ -95,7 +95,9 @@ def test_a_real_cell_assembles_through_the_jrc_and_an_image_folder_without_loadi
     wiring = VacuumDeviceConfig("jrc_io", suction_output=27013, grip_input=20)
     with JrcEmulator(cell, shipped.jrc, time_scale=TIME_SCALE, vacuum=wiring) as emulator:
         cell_file = tmp_path / "real-cell.toml"
-        cell_file.write_text(real_cell_text(emulator.device, '"folder"\npath = "frames"'))
+        # The cell's model is its own (the frames' twin plays it), as a commissioned cell's is.
+        declared = '\n[commissioning]\nprovenance = { declared = "the emulated arm and the frames play this model" }\n'
+        cell_file.write_text(real_cell_text(emulator.device, '"folder"\npath = "frames"') + declared)
         config = load_cell(cell_file)
         assert config.vacuum_device == wiring
         run = subprocess.run(

@@ -27,6 +27,7 @@ from vservo.core.production.protocol.commands import (
     CancelTeach,
     CaptureCheckView,
     CaptureDesired,
+    CentreCup,
     Command,
     CommandRefused,
     Commission,
@@ -51,6 +52,7 @@ from vservo.core.production.protocol.commands import (
     Start,
     Suction,
     TestPick,
+    ViewPart,
 )
 from vservo.core.production.protocol.state import (
     CommissioningProgress,
@@ -112,6 +114,8 @@ __all__ = [
     "Suction",
     "TeachStep",
     "Teaching",
+    "CentreCup",
     "TestPick",
+    "ViewPart",
     "new_key",
 ]

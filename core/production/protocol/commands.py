@@ -250,13 +250,17 @@ class MoveTo(Command):
 
 @dataclass(frozen=True)
 class PresentPart(Command):
-    """A new part on the table: near where the demo job was taught, or with its top face's
-    centre at centre_mm (X, Y in the base frame) turned turn_deg about the vertical."""
+    """A new part on the table: with its top face's centre at centre_mm (X, Y in the base
+    frame) turned turn_deg about the vertical, or near where ``job``'s part was taught, or
+    near where the cell's feeder puts parts."""
 
     centre_mm: Numbers | None = None
     turn_deg: float = 0.0
+    job: str | None = None
 
     def __post_init__(self) -> None:
+        if self.job is not None:
+            _job_name("job", self.job)
         if self.centre_mm is not None:
             self._set("centre_mm", _vector("centre_mm", self.centre_mm, 2, PART_CENTRE_MM))
         self._set("turn_deg", PART_TURN_DEG.check("turn_deg", self.turn_deg))
@@ -330,6 +334,18 @@ class Suction(Command):
 
     def __post_init__(self) -> None:
         _flag("on", self.on)
+
+
+@dataclass(frozen=True)
+class ViewPart(Command):
+    """Bring the camera over the part the camera sees, by the image alone
+    (core/production/part_view.py): the desired view on a cell never commissioned."""
+
+
+@dataclass(frozen=True)
+class CentreCup(Command):
+    """Put the cup on the middle of the part the camera sees, by the camera and the vacuum
+    sensor alone (core/production/cup_centring.py): the pick pose on a cell never commissioned."""
 
 
 @dataclass(frozen=True)

@@ -96,6 +96,10 @@ class Teaching:
     view_bMe: Matrix | None = None
     pocket_bMe: Matrix | None = None
     place_bMo: Matrix | None = None
+    # Whether the cell's model is measured (CellConfig.model_measured): else the aids that
+    # rest on it (the part's position in mm, the flange to view it, the cup on it) are the
+    # nominal model's, tens of mm off, and the page says so.
+    model_measured: bool = True
 
     def __post_init__(self) -> None:
         for name in ("view_bMe", "pocket_bMe", "place_bMo"):

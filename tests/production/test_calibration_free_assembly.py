@@ -1,0 +1,120 @@
+"""A cell whose truth is Table 5-5's errors away from its (nominal) cell file assembles a job
+taught on it whatever the part's turn: the chain from the taught view to the release rests
+on no calibration (core/production/grasp.py)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.controller_fixtures import simulated_controller
+from vservo.core.cell.config import CommissioningRecord, load_cell, parse_cell, read_cell_data_with_truth
+from vservo.core.geometry.spatial import inverse, rot_z, transform
+from vservo.core.production.assembly import Outcome, Phase
+from vservo.core.production.cell_controller import CommandRefused
+from vservo.core.production.demo_job import teach_demo_job
+from vservo.core.production.placement_check import diagonals_crossing
+
+TABLE_5_5 = Path(__file__).resolve().parents[2] / "static" / "truths" / "table-5-5.toml"
+
+
+@pytest.mark.slow
+def test_parts_turned_over_the_whole_circle_are_placed_within_a_few_tenths_of_a_millimetre(tmp_path):
+    config = parse_cell(*read_cell_data_with_truth(None, TABLE_5_5))
+    assert not np.allclose(config.plant().truth.eMc, config.nominal.eMc)  # the model is off
+    job, image, check_image = teach_demo_job(config)  # taught on this cell, through its nominal model
+    rng = np.random.default_rng(1)
+    bMo = config.plant().scene.cube.bMo
+    centre_mm = 1000.0 * (bMo @ np.array([0.01, 0.01, 0.0, 1.0]))[:2]
+    yaw_deg = np.degrees(np.arctan2(bMo[1, 0], bMo[0, 0]))
+    with simulated_controller(config, tmp_path / "data") as controller:
+        controller.store.save_job(replace(job, name="turned"), image, check_image)
+        outcomes = []
+        for turn_deg in np.linspace(-180.0, 180.0, 8, endpoint=False) + rng.uniform(0.0, 45.0):
+            offset_mm = rng.uniform(0.0, 30.0) * np.array([np.cos(a := rng.uniform(0, 2 * np.pi)), np.sin(a)])
+            if controller.state.phase == Phase.FAULT.value:
+                controller.reset()
+            controller.present_part(tuple(centre_mm + offset_mm), yaw_deg + turn_deg)
+            controller.start("turned")
+            controller.wait()
+            outcomes.append((turn_deg, controller.last_outcome))
+    placed = [outcome for _, outcome in outcomes if outcome.outcome is Outcome.PLACED]
+    assert len(placed) >= 7, [(round(turn), outcome.reason) for turn, outcome in outcomes]
+    for turn, outcome in outcomes:
+        if outcome.outcome is Outcome.PLACED:
+            assert outcome.gauge_inside and outcome.gauge_placement_error_mm < 0.3, (turn, outcome.reason)
+        else:  # refused before the pick, saying what to do
+            assert outcome.outcome is Outcome.FAULT and "refused before" in outcome.reason, (turn, outcome.reason)
+            assert "present the part nearer its taught place" in outcome.reason
+
+
+def test_the_demo_job_taught_on_the_shipped_cell_is_refused_before_moving_on_a_cell_never_commissioned(tmp_path):
+    config = parse_cell(*read_cell_data_with_truth(None, TABLE_5_5))
+    assert not config.model_measured and load_cell().model_measured
+    with simulated_controller(config, tmp_path / "data") as controller:
+        controller.present_part()
+        before = controller.rig.robot.read_pose()
+        with pytest.raises(CommandRefused, match="commission this cell .* or teach the job again on this cell"):
+            controller.start("demo")
+        np.testing.assert_array_equal(controller.rig.robot.read_pose(), before)
+    commissioned = replace(config, commissioning=CommissioningRecord(None, {"date": "2026-11-28"}))
+    assert commissioned.model_measured  # then the job is retargeted to the commissioned model instead
+
+
+def test_present_part_brings_the_part_near_where_the_chosen_job_was_taught(controller):
+    demo = controller.store.load_job("demo")
+    # The demo job taught on a part 60 mm aside and turned 30 deg: every taught pose moved with it.
+    part = controller.rig.cell.state.scene.cube
+    centre = part.bMo @ transform(t=(0.01, 0.01, 0.0))
+    moved = transform(rot_z(np.radians(30.0)), (-0.02, 0.057, 0.0))
+    D = transform(t=centre[:3, 3] + moved[:3, 3]) @ transform(moved[:3, :3]) @ inverse(transform(t=centre[:3, 3]))
+    aside = replace(demo, name="aside", taught_bMe=D @ demo.taught_bMe, start_bMe=D @ demo.start_bMe)
+    controller.store.save_job(aside)
+    taught_centre_mm = 1000.0 * (D @ centre)[:2, 3]
+    for _ in range(5):
+        controller.present_part(job="aside")
+        bMo = controller.rig.cell.state.scene.cube.bMo
+        offset_mm = 1000.0 * (bMo @ transform(t=(0.01, 0.01, 0.0)))[:2, 3] - taught_centre_mm
+        assert np.all(np.abs(offset_mm) <= 15.0 + 1e-6), offset_mm  # the feeder's range about the job's part
+        turn_deg = np.degrees(np.arctan2(bMo[1, 0], bMo[0, 0]) - np.arctan2(part.bMo[1, 0], part.bMo[0, 0])) - 30.0
+        assert abs((turn_deg + 180.0) % 360.0 - 180.0) <= 20.0 + 0.1, turn_deg
+    with pytest.raises(CommandRefused, match="nothing"):
+        controller.present_part(job="nothing")
+
+
+def test_view_the_part_and_centre_the_cup_rest_on_no_calibration(tmp_path):
+    """On the cell Table 5-5's errors from its model: the camera brought over the part by the
+    image alone, the spot on its centre; the cup put on the middle of its top face by the camera
+    and the vacuum sensor, where the model's "Cup on it" would miss the part."""
+    config = parse_cell(*read_cell_data_with_truth(None, TABLE_5_5))
+    with simulated_controller(config, tmp_path / "data") as controller:
+        cell = controller.rig.cell
+        controller.begin_teach()
+        controller.present_part((-390.0, -40.0), 20.0)
+        controller.view_part()
+        features = controller.look(fresh=True)[1]
+        assert features.all_corners_visible and features.spot_seen
+        crossing = diagonals_crossing(features.corners_px)
+        assert np.linalg.norm(crossing - features.laser_spot_px) < 1.0  # the spot on the part's centre
+        controller.capture_desired()
+        controller.centre_cup()
+        assert "cup centred on the part" in controller.state.detail
+        oMv = inverse(cell.state.scene.cube.bMo) @ cell.ground_truth_bMe() @ config.plant().truth.eMv
+        np.testing.assert_allclose(1000.0 * oMv[:2, 3], [10.0, 10.0], atol=0.5)  # the top face's centre
+        assert -6.0 < 1000.0 * oMv[2, 3] < 0.0  # pressed into the compensator, within its stroke
+        assert not controller.state.holding_part and controller.test_pick()
+        # The model's own cup pose for the part it sees is off the part.
+        seen = controller.state.teaching
+        assert seen is not None and not seen.model_measured
+        bMo_model = controller._teaching.draft.seen_bMo
+        model_cup = inverse(cell.state.scene.cube.bMo) @ bMo_model @ transform(t=(0.01, 0.01, 0.0))
+        assert np.linalg.norm(model_cup[:2, 3] - [0.01, 0.01]) > 0.01
+        controller.move_to(
+            cell.ground_truth_bMe() @ transform(t=(0.0, 0.0, -0.03))
+        )  # 30 mm up the tool's z: the part out of reach
+        with pytest.raises(CommandRefused, match="four corners|felt no part"):
+            controller.present_part((-300.0, 150.0), 0.0)
+            controller.centre_cup()
