@@ -29,6 +29,7 @@ class ServeOptions:
     seed: int | None = None
     token: str = ""
     cycle_period_s: float = 0.05
+    time_scale: float | None = 1.0  # the simulated cell's pace: S times the real cell's (None: as fast as it computes)
     cell: str | None = None
     show_token: bool = True  # print it when serving starts: only a generated one, which nobody else knows yet
     allowed_origins: tuple[str, ...] = ()  # web pages besides the app's own that may open its WebSocket

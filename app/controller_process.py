@@ -36,8 +36,16 @@ class ControllerProcess:
 
     @classmethod
     def start(
-        cls, *, backend: str, data: Path, seed: int | None, cycle_period_s: float, cell: str | None = None
+        cls,
+        *,
+        backend: str,
+        data: Path,
+        seed: int | None,
+        cycle_period_s: float,
+        cell: str | None = None,
+        time_scale: float | None = 1.0,
     ) -> ControllerProcess:
+        """The controller process; ``time_scale``: the simulated cell's pace (None: as fast as it computes)."""
         key = new_key()
         command = [
             sys.executable,
@@ -52,6 +60,8 @@ class ControllerProcess:
             str(data),
             "--cycle-period",
             str(cycle_period_s),
+            "--time-scale",
+            str(time_scale or 0.0),
             *(["--seed", str(seed)] if seed is not None else []),
         ]
         # Its log goes to our standard error, as the operator's terminal shows the app's.

@@ -398,7 +398,12 @@ def start_app(options: ServeOptions, config: CellConfig) -> RunningApp:
     """Start the controller process, connect to it and serve the page (returns once serving)."""
     roles = Roles(options.token)
     controller = ControllerProcess.start(
-        backend=options.backend, data=options.data, seed=options.seed, cycle_period_s=options.cycle_period_s, cell=options.cell
+        backend=options.backend,
+        data=options.data,
+        seed=options.seed,
+        cycle_period_s=options.cycle_period_s,
+        time_scale=options.time_scale,
+        cell=options.cell,
     )
     try:
         session = Session()
