@@ -13,7 +13,8 @@ import html
 from dataclasses import dataclass
 from enum import Enum
 
-from vservo.core.production.protocol import ControllerState, Outcome, Phase
+from vservo.core.production.protocol import ControllerState, Outcome, Phase, RunOutcome
+from vservo.core.production.protocol.catalogue import explain
 from vservo.core.servo.laws.base import Stage
 
 
@@ -82,19 +83,40 @@ def banner_for(state: ControllerState, controller_gone: str | None = None) -> Ba
     if state.phase is Phase.DONE:
         return _banner_done(state, job)
     if state.phase is Phase.SERVOING:
+        words = stage_words(state.run.stage)
         return Banner(
             Kind.BUSY,
-            f"RUNNING job {job}: {stage_words(state.run.stage)}",
+            f"RUNNING job {job}" + (f": {words}" if words else ""),
             "The robot moves: keep clear; E-STOP holds it.",
-            detail,
+            _servo_figures(state) or detail,
         )
+    last = state.last_outcome
+    if state.phase is Phase.FAULT and last is not None and last.outcome is Outcome.FAULT and last.end is not None:
+        return _banner_explained(Kind.FAULT, f"FAULT: job {job}", last)
     kind, title, next_step = PHASE_BANNERS[state.phase]
     return Banner(kind, title.format(job=job), next_step, detail)
+
+
+def _servo_figures(state: ControllerState) -> str:
+    """The servo in the operator's words (the law's own note, with its formulas, is the Engineering fold's)."""
+    run = state.run
+    if not run.iteration:
+        return ""
+    off = "" if run.error_px is None else f": the part {run.error_px:.1f} px from the taught view"
+    return f"servo cycle {run.iteration}{off}"
+
+
+def _banner_explained(kind: Kind, title: str, last: RunOutcome) -> Banner:
+    """A run's end as the catalogue explains it: what happened, what to do (the engineer's reason is in the Engineering fold)."""
+    assert last.end is not None
+    explanation = explain(last.end)
+    return Banner(kind, title, explanation.action.value, explanation.sentence)
 
 
 # The banner of each phase but servoing and done: kind, title ({job}: the job's name) and what to do next.
 PHASE_BANNERS = {
     Phase.IDLE: (Kind.READY, "READY", "Choose a job, present a part and press Start; or teach a new job."),
+    Phase.MANUAL: (Kind.BUSY, "MANUAL", "Move the arm in the Teach tab (Move the arm); press Leave manual mode when done."),
     Phase.TEACHING: (Kind.BUSY, "TEACHING", "Follow the steps in the Teach tab, then Save the job."),
     Phase.COMMISSIONING: (Kind.BUSY, "COMMISSIONING", "The robot shows the camera the board: keep clear of the cell."),
     Phase.PICKING: (Kind.BUSY, "RUNNING job {job}: picking the part", "The robot moves: keep clear."),
@@ -109,6 +131,8 @@ def _banner_done(state: ControllerState, job: str) -> Banner:
     last = state.last_outcome
     outcome = None if last is None else last.outcome
     reason = (last.reason if last is not None else "") or state.detail
+    if outcome in (Outcome.FAULT, Outcome.ESTOPPED) and last is not None and last.end is not None:
+        return _banner_explained(OUTCOME_KINDS[outcome], f"{outcome.value.upper()}: job {job}", last)
     if outcome == Outcome.MISSED:
         return Banner(Kind.MISSED, f"MISSED: job {job}", "Take the part out of the metal part, then press Reset.", reason)
     if outcome in (Outcome.FAULT, Outcome.ESTOPPED):

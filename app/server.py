@@ -245,6 +245,7 @@ class OperatorApp:
 
     def _on_connect(self, client: viser.ClientHandle) -> None:
         view = ClientView(client)
+        view.on_detail = self.assemble.show_refusal
         with self._building:  # viser allows one `with tab:` at a time, and browsers connect in parallel
             self._add_control_box(view)
             for panel in self.panels:

@@ -24,7 +24,7 @@ from vservo.core.geometry.spatial import Matrix, inverse, transform
 from vservo.core.production.demo_job import DESIRED_cMo
 from vservo.core.production.protocol import CommandRefused
 from vservo.core.production.protocol.catalogue import Refusal
-from vservo.core.robot.backend import MotionStopped, RobotError
+from vservo.core.robot.backend import MotionStopped, RobotError, RobotNotReady
 from vservo.core.robot.safety import (
     BeyondJointLimits,
     OutsideWorkspace,
@@ -114,6 +114,8 @@ def move_refused(robot: SafetyLayer, exc: Exception, bMe_target: Matrix, speed_m
         return CommandRefused(detail, Refusal.LINE_BLOCKED)
     if isinstance(exc, SafetyRefusal):
         return CommandRefused(detail, SAFETY_REFUSALS.get(type(exc), Refusal.MOVE_STOPPED))
+    if isinstance(exc, RobotNotReady):
+        return CommandRefused(detail, Refusal.ROBOT_HELD)
     if isinstance(exc, RobotError):
-        return CommandRefused(f"the robot refused the move: {detail}", Refusal.MOVE_STOPPED)
+        return CommandRefused(detail, Refusal.MOVE_STOPPED)
     raise exc

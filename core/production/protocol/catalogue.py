@@ -55,6 +55,7 @@ class Refusal(StrEnum):
     NOT_NOW = "not_now"  # the cell's phase does not allow it
     NOT_MANUAL = "not_manual"  # a jog or a typed move outside teaching and manual mode
     ROBOT_ALARM = "robot_alarm"
+    ROBOT_HELD = "robot_held"  # held after a fault or an e-stop: Reset releases it
     LINE_BLOCKED = "line_blocked"  # the straight line cannot, a joint-space path can
     UNREACHABLE = "unreachable"  # no joints within the limits reach the target
     OUTSIDE_WORKSPACE = "outside_workspace"
@@ -126,6 +127,7 @@ REFUSALS: dict[Refusal, Explanation] = {
     Refusal.NOT_NOW: _E("The cell cannot do that in its present state.", Action.FOLLOW_BANNER),
     Refusal.NOT_MANUAL: _E("The arm is moved by hand only while teaching or in manual mode.", Action.ENTER_MANUAL),
     Refusal.ROBOT_ALARM: _E("The robot's controller is in alarm.", Action.CLEAR_ALARM),
+    Refusal.ROBOT_HELD: _E("The robot is held (after a fault or an e-stop).", Action.RESET),
     Refusal.LINE_BLOCKED: _E(
         "The arm cannot go there in a straight line (a joint would pass its limit on the way), but it can on a joint path.",
         Action.JOINT_PATH,
