@@ -350,7 +350,7 @@ SURVEY = TeachButton(
 )
 MANUAL = TeachButton(
     "Manual mode",
-    lambda state: state.phase in (Phase.IDLE, Phase.DONE, Phase.FAULT),
+    lambda state: state.phase in (Phase.IDLE, Phase.DONE),
     lambda form: EnterManual(),
     hint="Jog and Move there outside teaching, until Leave manual mode",
 )

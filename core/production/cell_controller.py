@@ -289,7 +289,7 @@ class CellController:
     def enter_manual(self) -> None:
         """Manual mode: the operator moves the arm by hand (jogs, typed moves) until leaving it."""
         with self._lock:
-            self._require(Phase.IDLE, Phase.DONE, Phase.FAULT)
+            self._require(Phase.IDLE, Phase.DONE)  # after a fault the robot is held: Reset first
             self.update(phase=Phase.MANUAL, detail="manual mode: jog or type a pose; Leave manual mode when done")
 
     def leave_manual(self) -> None:

@@ -91,10 +91,12 @@ def test_a_part_out_of_reach_of_the_cup_is_a_fault_with_the_robot_held(controlle
     assert controller.last_outcome.outcome is Outcome.FAULT
     assert "vacuum" in controller.last_outcome.reason
     assert controller.rig.robot.status().held
-    controller.enter_manual()
-    with pytest.raises(CommandRefused, match="held") as refused:
-        controller.jog([0.0, 0.0, 0.01])
-    assert refused.value.kind is Refusal.ROBOT_HELD
+    with pytest.raises(CommandRefused) as refused:
+        controller.jog([0.0, 0.0, 0.01])  # no hand moves outside teaching and manual mode
+    assert refused.value.kind is Refusal.NOT_MANUAL
+    with pytest.raises(CommandRefused) as refused:
+        controller.enter_manual()  # nor manual mode with the robot held after the fault
+    assert refused.value.kind is Refusal.NOT_NOW
     controller.reset()
     controller.enter_manual()
     controller.jog([0.0, 0.0, 0.01])
