@@ -338,9 +338,11 @@ class CellController:
             self._require(*HAND_MOVES, kind=Refusal.NOT_MANUAL)
             step = np.concatenate([np.asarray(translation_m, float), np.asarray(rotation_rad, float)])
             if step.shape != (6,) or not np.all(np.isfinite(step)):
-                raise CommandRefused(f"a jog takes 3 finite translations and 3 rotations, got {step.tolist()}")
+                raise CommandRefused(
+                    f"a jog takes 3 finite translations and 3 rotations, got {step.tolist()}", Refusal.OUT_OF_RANGE
+                )
             if frame not in ("base", "tool"):
-                raise CommandRefused(f"jog frame {frame!r}: choose base or tool")
+                raise CommandRefused(f"jog frame {frame!r}: choose base or tool", Refusal.OUT_OF_RANGE)
             bMe = self.rig.robot.read_pose()
             # In the base frame: translation added, rotation about the flange's own origin.
             increment = exp_twist(np.concatenate([np.zeros(3), step[3:]]))

@@ -287,7 +287,7 @@ class TeachingSession:
             ("placement_tolerance_mm", tolerance),
         ):
             if not (np.isfinite(value) and value > 0):
-                raise CommandRefused(f"{name} must be a positive number, got {value!r}")
+                raise CommandRefused(f"{name} must be a positive number, got {value!r}", Refusal.OUT_OF_RANGE)
         self._set_draft(
             "settings changed", threshold_px=threshold_px, gain=gain, approach_m=approach_m, placement_tolerance_mm=tolerance
         )
