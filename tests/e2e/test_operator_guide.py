@@ -1,11 +1,15 @@
 """docs/operator-guide.md's "Teaching a new job", followed word for word in Chromium.
 
 `vservo serve` as a real process, headless Chromium as the operator's browser. The test
-does what the guide says, step by step, from "(new job)" (no template), with the values
-the page shows (the flange pose the Teach tab offers to view the part it sees, the cup pose
-on it and in the pocket of the cell file's metal part): it teaches a new job on a part
-presented 40 mm from where the demo job's part lies, saves it, and assembles it three
-times, each on a newly presented part: placed each time. Each teach step's page goes to
+starts where a demo run leaves the arm (over the metal part's pocket) and does what the
+guide says, step by step: Home, Survey, then from "(new job)" (no template), with the
+values the page shows (the flange pose the Teach tab offers to view the part it sees, the
+cup pose on it and in the pocket of the cell file's metal part), it teaches a new job on a
+part presented 40 mm from where the demo job's part lies, saves it, and assembles it three
+times, each on a newly presented part: placed each time. Every refusal it provokes on the
+way (Start with no part, an unreachable Move there, a straight line a joint path makes, a
+test pick with nothing under the cup) shows the catalogue's sentence and action
+(core/production/protocol/catalogue.py), and the Teach tab's next step follows the draft. Each teach step's page goes to
 $VSERVO_DOC_IMAGES (docs/images: the guide's pictures are made so) or else
 $VSERVO_ARTIFACTS (default test-artifacts/, not versioned) as guide-NN-step.png. Chromium
 must be at /usr/bin/chromium: a missing browser fails the test, it never skips it.
@@ -31,7 +35,9 @@ from vservo.app.browser import (
     status_text,
     take_control,
     type_into,
+    wait_for_banner,
 )
+from vservo.core.production.protocol.catalogue import Refusal, RunEnd, explain
 
 TOKEN = "guide-operator-token"
 ARTIFACTS = Path(os.environ.get("VSERVO_ARTIFACTS", Path(__file__).resolve().parents[2] / "test-artifacts"))
@@ -56,16 +62,48 @@ def page(tmp_path_factory):
         assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]  # nor a display update that failed
 
 
+def notices(page) -> str:
+    return " ".join(page.locator(".mantine-Notification-root").all_inner_texts())
+
+
 def press(page, button: str, done: str, timeout_s: float = 60.0) -> None:
     """Press ``button`` and wait for the page to say ``done`` (a notice or the status line)."""
     dismiss_notifications(page)
     page.get_by_role("button", name=button, exact=True).click()
 
     def said() -> bool:
-        notices = " ".join(page.locator(".mantine-Notification-root").all_inner_texts())
-        return re.search(done, notices + status_text(page)) is not None
+        return re.search(done, notices(page) + status_text(page)) is not None
 
     wait_until(said, f"{button}: the page never said {done!r}; last {status_text(page)!r}", timeout_s)
+
+
+def refused(page, button: str, kind: Refusal, timeout_s: float = 60.0) -> str:
+    """Press ``button``: the notice says it was refused, in the catalogue's sentence and action
+    for ``kind`` (no engineering line, no doubled prefix); the notice's words."""
+    explanation = explain(kind)
+    dismiss_notifications(page)
+    page.get_by_role("button", name=button, exact=True).click()
+    wait_until(lambda: f"{button}: refused" in notices(page), f"{button} was never refused; {status_text(page)!r}", timeout_s)
+    words = notices(page)
+    assert explanation.sentence in words and explanation.action.value in words, words
+    assert "refused: refused" not in words and "move refused" not in words, words
+    return words
+
+
+def engineering_line(page, button: str) -> str:
+    """The refusal's engineering line, in the live panel's Engineering fold (opened, read, folded)."""
+    fold = page.get_by_text("Engineering", exact=True).first
+    fold.click()
+    line = page.get_by_text(f"Last refusal ({button})").first
+    line.wait_for(timeout=10_000)
+    text = line.inner_text()
+    fold.click()
+    return text
+
+
+def next_step(page) -> str:
+    """The Teach tab's next step (**Next: ...**), which its orange button follows."""
+    return re.search(r"Next: ([^·\n]+?)\s*(·|$)", page.get_by_text("Next: ").first.inner_text()).group(1)
 
 
 def shot(page, number: int, name: str) -> None:
@@ -119,18 +157,56 @@ def jog(page, button: str, times: int, axis: int, mm: float) -> None:
         wait_until(lambda: abs(flange_of(status_text(page))[axis] - (before + mm)) < 0.05, f"the flange moved {button}")
 
 
+def after_a_demo_run(page) -> None:
+    """A demo run placed: the arm ends over the metal part's pocket; then Start again with
+    no new part: the run faults, and the banner says so in the catalogue's words."""
+    page.get_by_role("tab", name="Assemble").click()
+    page.get_by_role("button", name="Present part", exact=True).click()
+    wait_until(lambda: "a new part is on the table" in status_text(page), "a part presented")
+    page.get_by_role("button", name="Start", exact=True).click()
+    wait_for_banner(page, "placed", r"PLACED: job demo", timeout_s=120)
+    page.get_by_role("button", name="Start", exact=True).click()  # the part is in the pocket: none to servo on
+    words = wait_for_banner(page, "fault", r"FAULT: job demo", timeout_s=120)
+    ends = [end for end in RunEnd if explain(end).sentence in words]
+    assert ends and explain(ends[0]).action.value in words, words  # the sentence and what to do
+    assert "servo failed" not in words, words  # the engineer's line is the Engineering fold's
+    page.get_by_role("button", name=re.compile("^Reset")).click()
+    wait_for_banner(page, "ready", "READY", timeout_s=30)
+
+
 def test_teach_a_new_job_as_the_guide_says_and_assemble_it_three_times(page):
-    # Taking control.
+    # Taking control; a demo run leaves the arm over the pocket.
     take_control(page, TOKEN)
+    after_a_demo_run(page)
+
+    # Home, then Survey: the camera over the table where parts are presented.
+    page.get_by_role("tab", name="Teach").click()
+    over_the_pocket = flange_of(status_text(page))
+    press(page, "Home", "arrived at home")
+    assert flange_of(status_text(page)) != over_the_pocket
+    press(page, "Survey", "arrived at the survey pose")
 
     # 1. Teach tab, Template (new job), Begin teaching.
-    page.get_by_role("tab", name="Teach").click()
     choose(page, "Template", "(new job)")
     press(page, "Begin teaching", r"jog to the desired view")
+    assert next_step(page) == "Capture desired image"
     shot(page, 1, "begin")
 
-    # 2. Present the part: X -390, Y -40, turn 0.
+    # 2. Present the part: X -390, Y -40, turn 0; the survey sees it.
     present(page, PART_X_MM, PART_Y_MM, 0.0)
+    seen_at(page, PART_X_MM, PART_Y_MM)
+
+    # Reachability explained: a target no joints reach names the joint and the way to move
+    # it; one the straight line cannot make is offered on a joint path, which makes it.
+    choose(page, "Move to: tool", "flange")
+    type_into(page, "Pose X Y Z phi theta psi (mm, deg)", "-200 0 0 180 0 180")
+    words = refused(page, "Move there", Refusal.UNREACHABLE)
+    assert re.search(r"joint_\d stops at its (upper|lower) limit: move the target toward [+-][XYZ]", words), words
+    assert "joint" in engineering_line(page, "Move there")  # the safety layer's own line
+    type_into(page, "Pose X Y Z phi theta psi (mm, deg)", "-350 200 300 180 0 180")
+    refused(page, "Move there", Refusal.LINE_BLOCKED)
+    press(page, "Move there (joint path)", "arrived")
+    press(page, "Survey", "arrived at the survey pose")
 
     # 3. The desired view: the part seen where it was presented, the flange to the pose the
     # tab offers to view it, capture.
@@ -139,10 +215,16 @@ def test_teach_a_new_job_as_the_guide_says_and_assemble_it_three_times(page):
     press(page, "Capture desired image", "desired image captured")
     shot(page, 2, "desired-view")
 
-    # 4. The pick: the cup to the pose the tab offers, a test pick, set it, suction on.
+    # 4. The pick: a test pick with nothing under the cup is refused and offered again; the
+    # cup to the pose the tab offers, a test pick, set it, suction on.
+    assert next_step(page) == "Test pick"
+    refused(page, "Test pick", Refusal.NO_GRIP)
+    assert next_step(page) == "Test pick"  # the failed test pick is the next step again
     move_to(page, "cup", "Cup on it")
     press(page, "Test pick", "grip good")
+    assert next_step(page) == "Set pick pose here"
     press(page, "Set pick pose here", "pick pose set")
+    assert next_step(page) == "Suction on"
     press(page, "Suction on", "reports a part on the cup")
     shot(page, 3, "pick")
 
@@ -153,8 +235,10 @@ def test_teach_a_new_job_as_the_guide_says_and_assemble_it_three_times(page):
     move_to(page, "cup", "Cup in the pocket")
     press(page, "Set place pose here", r"place pose set here: the part sits 0\.\d mm and [+-]0\.\d deg from the pocket")
     assert "WARNING" not in status_text(page)
+    assert next_step(page) == "Suction off"  # the part still on the cup
     shot(page, 4, "place")
     press(page, "Suction off", "reports no part on the cup")
+    assert next_step(page) == "Capture check view"
 
     # 6. The check view: over the placed part, capture it.
     press(page, "Go over the placed part", "arrived")
