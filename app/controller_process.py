@@ -43,7 +43,7 @@ class ControllerProcess:
         seed: int | None,
         cycle_period_s: float,
         cell: str | None = None,
-        time_scale: float | None = 1.0,
+        time_scale: float | None = None,
     ) -> ControllerProcess:
         """The controller process; ``time_scale``: the simulated cell's pace (None: as fast as it computes)."""
         key = new_key()
