@@ -10,12 +10,15 @@ must be at /usr/bin/chromium: a missing browser fails the test, it never skips i
 
 from __future__ import annotations
 
+import os
 import time
+from pathlib import Path
 
 from tests.chromium import chromium_or_fail, headless_chromium
 from vservo.app.browser import ServeProcess, banner, open_pages, take_control, wait_for_banner, wait_for_status
 
 TOKEN = "e2e-pace-token"
+ARTIFACTS = Path(os.environ.get("VSERVO_ARTIFACTS", Path(__file__).resolve().parents[2] / "test-artifacts"))
 SHIPPED_CYCLE_PERIOD_S = 0.05  # `vservo serve --cycle-period`'s default
 WATCHABLE_S = 5.0  # the issue's bar: long enough to watch the stages and reach the E-STOP
 
@@ -36,5 +39,7 @@ def test_the_running_banner_of_a_demo_run_stays_on_the_page_for_seconds_at_the_s
             on_page_s = time.monotonic() - seen_from
             assert shown[0] == "placed", shown  # the run ended, placed: not a fault that cut it short
             assert on_page_s >= WATCHABLE_S, on_page_s
+            ARTIFACTS.mkdir(parents=True, exist_ok=True)
+            (ARTIFACTS / "pace.txt").write_text(f"the RUNNING banner of a demo run was on the page {on_page_s:.1f} s\n")
         assert serve.stop() == 0
         assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]
