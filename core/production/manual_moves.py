@@ -80,6 +80,7 @@ def reach_advice(arm: ArmKinematics, bMe_target: Matrix, q_seed: Matrix) -> str:
     """Which joint keeps the arm from bMe_target and which way to move the target: the
     joint closest to its limit in the IK's best attempt, and the flange's motion in the
     base frame as that joint turns back from it."""
+    q: Matrix | None
     try:
         q = arm.ik(bMe_target, q_seed, tolerance_m=1e-6, tolerance_rad=1e-6).q
     except UnreachableTarget as exc:

@@ -175,12 +175,11 @@ class ControllerClient:
         message = self._wait_reply(request, command.command_name, timeout_s)
         if not message.get("ok"):
             kind = message.get("kind")
-            known = kind in tuple(Refusal)
             advice = message.get("advice")
             return Reply(
                 False,
                 error=str(message.get("error")),
-                kind=Refusal(kind) if known else Refusal.INTERNAL,
+                kind=Refusal(kind) if isinstance(kind, str) and kind in tuple(Refusal) else Refusal.INTERNAL,
                 advice=advice if isinstance(advice, str) else "",
             )
         try:
