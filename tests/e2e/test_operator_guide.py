@@ -87,6 +87,7 @@ def refused(page, button: str, kind: Refusal, timeout_s: float = 60.0) -> str:
     words = notices(page)
     assert explanation.sentence in words and explanation.action.value in words, words
     assert "refused: refused" not in words and "move refused" not in words, words
+    dismiss_notifications(page)
     return words
 
 
@@ -114,9 +115,11 @@ def shot(page, number: int, name: str) -> None:
 
 def offered(page, words: str) -> str:
     """The pose the Teach tab offers after ``words`` (e.g. "Cup on it")."""
-    line = page.get_by_text(words).first
+    line = page.get_by_text(re.compile(f"{words}: ")).first
     line.wait_for(timeout=30_000)
-    return re.search(rf"{words}: {POSE}", line.inner_text()).group(1)
+    found = re.search(rf"{words}: {POSE}", line.inner_text())
+    assert found is not None, line.inner_text()
+    return found.group(1)
 
 
 def move_to(page, tool: str, words: str) -> None:
@@ -288,6 +291,10 @@ def test_holding_a_jog_button_moves_the_arm_until_it_is_let_go(page):
         take_control(page, TOKEN)
     page.get_by_role("tab", name="Teach").click()
     page.get_by_text("Hold to jog").first.click()  # the folder is folded
+    hold = page.get_by_role("button", name="Hold +Z", exact=True)
+    assert hold.is_disabled()  # jogs only while teaching or in manual mode
+    press(page, "Manual mode", "manual mode")
+    wait_until(lambda: not hold.is_disabled(), "Hold +Z live in manual mode")
     choose(page, "Speed", "medium: 10 mm/s, 5 deg/s")
     # One step first: a fresh controller publishes the flange pose with its first move.
     shown = flange_of(status_text(page))
@@ -296,7 +303,6 @@ def test_holding_a_jog_button_moves_the_arm_until_it_is_let_go(page):
     wait_until(lambda: flange_of(status_text(page)) != shown, "the flange pose shown after a step")
     time.sleep(1.0)
     before = flange_of(status_text(page))[2]
-    hold = page.get_by_role("button", name="Hold +Z", exact=True)
     hold.hover()
     page.mouse.down()
     time.sleep(1.5)
@@ -306,3 +312,5 @@ def test_holding_a_jog_button_moves_the_arm_until_it_is_let_go(page):
     time.sleep(1.5)
     assert flange_of(status_text(page))[2] == released  # nothing moves once let go
     assert 3.0 < released - before < 30.0, (before, released)  # about 1.5 s at 10 mm/s
+    press(page, "Leave manual mode", "manual mode left")
+    wait_until(hold.is_disabled, "Hold +Z disabled once manual mode is left")
