@@ -88,22 +88,13 @@ def banner_for(state: ControllerState, controller_gone: str | None = None) -> Ba
             Kind.BUSY,
             f"RUNNING job {job}" + (f": {words}" if words else ""),
             "The robot moves: keep clear; E-STOP holds it.",
-            _servo_figures(state) or detail,
+            "" if state.run.iteration else detail,  # the law's notes, with their formulas, are the Engineering fold's
         )
     last = state.last_outcome
     if state.phase is Phase.FAULT and last is not None and last.outcome is Outcome.FAULT and last.end is not None:
         return _banner_explained(Kind.FAULT, f"FAULT: job {job}", last)
     kind, title, next_step = PHASE_BANNERS[state.phase]
     return Banner(kind, title.format(job=job), next_step, detail)
-
-
-def _servo_figures(state: ControllerState) -> str:
-    """The servo in the operator's words (the law's own note, with its formulas, is the Engineering fold's)."""
-    run = state.run
-    if not run.iteration:
-        return ""
-    off = "" if run.error_px is None else f": the part {run.error_px:.1f} px from the taught view"
-    return f"servo cycle {run.iteration}{off}"
 
 
 def _banner_explained(kind: Kind, title: str, last: RunOutcome) -> Banner:
