@@ -16,6 +16,7 @@ from vservo.app.banner import stage_words
 from vservo.app.session import RunTrace
 from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
 from vservo.core.production.protocol import ControllerState, Outcome, Phase, RunEntry, RunOutcome
+from vservo.core.production.protocol.catalogue import explain
 
 PHASE_WORDS = {
     Phase.IDLE: "Idle",
@@ -63,7 +64,15 @@ def status_markdown(state: ControllerState, operator_present: bool, controller_g
     robot = f"{state.robot} on {state.backend}".strip()
     # Until the controller has read the robot (its first command) the pose is unknown: never a made-up one.
     flange = flange_text(state.bMe) if state.q.size else "flange pose not known yet"
-    return f"{' · '.join(parts)}  \n{state.detail}  \n<small>{robot} · {flange} · {control}</small>"
+    return f"{' · '.join(parts)}  \n{_plain_detail(state)}  \n<small>{robot} · {flange} · {control}</small>"
+
+
+def _plain_detail(state: ControllerState) -> str:
+    """The controller's line, but a faulted run's in the catalogue's words (its own is the Engineering fold's)."""
+    last = state.last_outcome
+    if state.phase is Phase.FAULT and last is not None and last.outcome is Outcome.FAULT and last.end is not None:
+        return explain(last.end).sentence
+    return state.detail
 
 
 # The laws' equations per stage (section 4.4; docs/thesis-notes.md), for the engineering fold.

@@ -154,6 +154,8 @@ def test_a_run_fault_is_said_in_the_catalogues_words_with_what_to_do():
         banner = banner_for(replace(state, last_outcome=last))
         assert banner.detail == explain(RunEnd.CAMERA_RETREAT).sentence and banner.next_step == Action.COMMISSION.value
         assert "camera_retreat" not in banner.html()  # the engineer's words are the Engineering fold's
+    status = status_markdown(ControllerState(Phase.FAULT, reason, job="demo", last_outcome=last), True)
+    assert explain(RunEnd.CAMERA_RETREAT).sentence in status and "camera_retreat" not in status
 
 
 def test_the_running_banner_has_no_empty_stage_and_no_formulas():
