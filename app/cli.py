@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 
 from vservo.core.calibration.cli import add_calibrate_command, add_calibration_bench
-from vservo.core.cell.cli import add_info_command
+from vservo.core.cell.cli import add_info_command, add_password_hash_command
 from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
 from vservo.core.errors import VservoError
 from vservo.core.perception.cli import add_detect_command
@@ -27,17 +27,16 @@ from vservo.core.study.cli import (
     add_vision_bench,
 )
 from vservo.core.terminal.command_line import BenchCommand, Parser, positive, print_result, seed
+from vservo.core.terminal.logs import add_log_options, configure_logging
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    import logging
-
     from vservo.app.controller_process import ControllerStartError
     from vservo.app.roles import TokenError, TokenSource, operator_token
     from vservo.app.server import ServeOptions, serve
     from vservo.app.web_guard import normalise_origin
 
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    configure_logging(args, "serve")
     try:
         token = operator_token(
             args.token,
@@ -63,6 +62,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         cell=args.cell,
         show_token=token.source is TokenSource.GENERATED,
         allowed_origins=origins,
+        log_options=("--log-level", args.log_level, "--log-format", args.log_format),
     )
     try:
         return serve(options, config, announce=lambda line: print(line, flush=True))
@@ -139,6 +139,7 @@ def _add_serve_command(commands: argparse._SubParsersAction) -> None:
         help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)",
     )
     serve.add_argument("--time-scale", type=time_scale, default=1.0, metavar="S", help=TIME_SCALE_HELP)
+    add_log_options(serve)
     serve.set_defaults(run=_cmd_serve)
 
 
@@ -187,6 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--cell", metavar="FILE", help="cell configuration (TOML); default: the shipped cell")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=Parser)
     add_info_command(commands)
+    add_password_hash_command(commands)
     add_detect_command(commands)
     add_jrc_emulator_command(commands)
     add_virtual_cell_command(commands)

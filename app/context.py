@@ -35,6 +35,7 @@ class ServeOptions:
     cell: str | None = None
     show_token: bool = True  # print it when serving starts: only a generated one, which nobody else knows yet
     allowed_origins: tuple[str, ...] = ()  # web pages besides the app's own that may open its WebSocket
+    log_options: tuple[str, ...] = ()  # --log-level and --log-format, handed on to the controller process
 
 
 class AppContext(Protocol):

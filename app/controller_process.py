@@ -16,6 +16,7 @@ import select
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from vservo.core.errors import VservoError
@@ -44,6 +45,7 @@ class ControllerProcess:
         cycle_period_s: float,
         cell: str | None = None,
         time_scale: float | None = None,
+        log_options: Sequence[str] = (),
     ) -> ControllerProcess:
         """The controller process; ``time_scale``: the simulated cell's pace (None: as fast as it computes)."""
         key = new_key()
@@ -63,6 +65,7 @@ class ControllerProcess:
             "--time-scale",
             str(time_scale or 0.0),
             *(["--seed", str(seed)] if seed is not None else []),
+            *log_options,
         ]
         # Its log goes to our standard error, as the operator's terminal shows the app's.
         process = subprocess.Popen(command, stdout=subprocess.PIPE, text=True, env={**os.environ, KEY_ENVIRONMENT: key.hex()})

@@ -25,7 +25,6 @@ import contextlib
 import io
 import logging
 import signal
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -64,6 +63,7 @@ from vservo.core.production.protocol import (
     Reset,
     RunEntry,
 )
+from vservo.core.terminal.logs import announce
 
 log = logging.getLogger("vservo.app")
 
@@ -405,6 +405,7 @@ def start_app(options: ServeOptions, config: CellConfig) -> RunningApp:
         cycle_period_s=options.cycle_period_s,
         time_scale=options.time_scale,
         cell=options.cell,
+        log_options=options.log_options,
     )
     try:
         session = Session()
@@ -450,7 +451,4 @@ def _log_thread_exception(args: threading.ExceptHookArgs) -> None:
         args.thread.name if args.thread else "?",
         exc_info=args.exc_value,
     )
-    print(
-        f"vservo serve: unhandled exception in thread {args.thread.name if args.thread else '?'}: {args.exc_value!r}",
-        file=sys.stderr,
-    )
+    announce(f"vservo serve: unhandled exception in thread {args.thread.name if args.thread else '?'}: {args.exc_value!r}")

@@ -21,4 +21,14 @@ if [ ! -x "$chromium" ]; then
     export DEBIAN_FRONTEND=noninteractive
     apt-get update -qq && apt-get install -y -qq --no-install-recommends chromium > /dev/null
 fi
+# tests/project/test_deploy.py checks the service unit with systemd-analyze (Debian's systemd package).
+if ! command -v systemd-analyze > /dev/null; then
+    if ! command -v apt-get > /dev/null || [ "$(id -u)" -ne 0 ]; then
+        echo "tests/install.sh: systemd-analyze is missing and installing it needs apt-get as root: run \`sudo apt-get install systemd\`" >&2
+        exit 1
+    fi
+    echo "tests/install.sh: installing systemd-analyze (apt-get install systemd)" >&2
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq && apt-get install -y -qq --no-install-recommends systemd > /dev/null
+fi
 python -m pip install -c constraints.txt -e '.[test]'

@@ -82,3 +82,31 @@ def add_info_command(commands: argparse._SubParsersAction) -> None:
     info = commands.add_parser("info", help="print the loaded robot, camera and laser settings")
     info.add_argument("--json", action="store_true", help="one JSON object")
     info.set_defaults(run=_cmd_info)
+
+
+def _cmd_password_hash(args: argparse.Namespace) -> int:
+    import getpass
+    import sys
+
+    from vservo.core.cell.line import PasswordHash
+
+    if sys.stdin.isatty():
+        password = getpass.getpass("password: ")
+        if getpass.getpass("again: ") != password:
+            print("vservo password-hash: error: the two passwords differ", file=sys.stderr)
+            return 2
+    else:
+        password = sys.stdin.readline().rstrip("\r\n")
+    print(PasswordHash.of(password).text())
+    return 0
+
+
+def add_password_hash_command(commands: argparse._SubParsersAction) -> None:
+    """Register ``vservo password-hash`` on the top-level subcommands."""
+    command = commands.add_parser(
+        "password-hash",
+        help="hash an OPC UA user's password for the cell file's [line.opcua.users.NAME] password_hash",
+        description="Reads the password from the terminal (twice) or one line of standard input, never from "
+        "the command line, and prints its salted PBKDF2-SHA256 hash for password_hash (docs/deployment.md).",
+    )
+    command.set_defaults(run=_cmd_password_hash)

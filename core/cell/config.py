@@ -4,8 +4,8 @@ One file describes a cell. Its nominal sections (robot, camera, hand_eye, laser,
 vacuum, motion) are what control laws and calibrations may use; ``[camera.source]``
 and the ``[vacuum]`` device keys say which devices the controller drives (the
 simulator's, or a real camera and the vacuum on the JRC's I/O); ``[jrc]`` holds the
-serial line to a JRC, ``[safety]`` the limits on every move and ``[recordings]`` how many
-runs' recordings the data folder keeps; ``[simulation]``
+serial line to a JRC, ``[safety]`` the limits on every move, ``[recordings]`` how many
+runs' recordings the data folder keeps and ``[line.plc]`` the PLC handshake; ``[simulation]``
 describes the plant the simulator plays: its seed and noise, ``[simulation.scene]``
 (where the table, cube, metal part and the checkerboard, when laid, really are) and ``[simulation.truth.*]`` tables
 that override nominal values with what the cell really is (the robustness test of
@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from vservo.core.cell.kinematics import ToolMount
+from vservo.core.cell.line import LineConfig, parse_line
 from vservo.core.cell.scene import Cube, LaidBoard, MetalPart, Scene
 from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel, Distortion, Intrinsics
@@ -257,6 +258,68 @@ class JrcLineConfig:
         return n_bytes * self.bits_per_character / self.baud
 
 
+class PlcTransport(StrEnum):
+    """What carries the PLC handshake's signals ([line.plc] transport, docs/plc.md)."""
+
+    MODBUS = "modbus"  # a Modbus TCP server the controller serves: the PLC, its client, writes coils and reads discrete inputs
+    JRC_IO = "jrc_io"  # the JRC's I/O lines: inputs the host reads, network inputs it writes (a ladder copies them out)
+
+
+@dataclass(frozen=True)
+class PlcInputMap:
+    """Where the PLC's signals to the cell are: coils (Modbus) or JRC input addresses (byte.bit).
+    ``job_bits``: the job number's bits, least significant first."""
+
+    start: int
+    part_present: int
+    reset: int
+    job_bits: tuple[int, ...]
+
+    def addresses(self) -> tuple[int, ...]:
+        """Every input's address: start, part_present, reset, then the job bits."""
+        return (self.start, self.part_present, self.reset, *self.job_bits)
+
+
+@dataclass(frozen=True)
+class PlcOutputMap:
+    """Where the cell's signals to the PLC are: discrete inputs (Modbus) or JRC network inputs
+    (byte.bit) that the controller's ladder copies to the outputs wired to the PLC."""
+
+    ready: int
+    busy: int
+    done: int
+    ok: int
+    not_ok: int
+    fault: int
+
+    def addresses(self) -> tuple[int, ...]:
+        """Every output's address, in the order of the fields."""
+        return (self.ready, self.busy, self.done, self.ok, self.not_ok, self.fault)
+
+
+@dataclass(frozen=True)
+class PlcConfig:
+    """[line.plc]: the PLC handshake (docs/plc.md). ``jobs``: (job number, job name) pairs;
+    ``poll_period_s``: how often the handshake reads its inputs and writes its outputs.
+    Modbus only: the server's ``host`` and ``port`` (0: any free one), and the part ID's
+    holding registers (``part_id_register``, None: the PLC gives none; two ASCII characters
+    a register)."""
+
+    transport: PlcTransport
+    inputs: PlcInputMap
+    outputs: PlcOutputMap
+    jobs: tuple[tuple[int, str], ...]
+    poll_period_s: float = 0.05
+    host: str = "127.0.0.1"
+    port: int = 5020
+    part_id_register: int | None = None
+    part_id_registers: int = 10
+
+    def job_name(self, number: int) -> str | None:
+        """The job the PLC's job number selects, None when [line.plc.jobs] has no such number."""
+        return dict(self.jobs).get(number)
+
+
 @dataclass(frozen=True)
 class SafetyConfig:
     """The limits the safety layer (core/robot/safety.py) puts on every move.
@@ -335,6 +398,8 @@ class CellConfig:
     # a place pose against its pocket; the simulator's own is [simulation.scene].
     metal_part: MetalPart | None = None
     recordings: RecordingRetention = RecordingRetention()
+    plc: PlcConfig | None = None  # [line.plc]: the PLC handshake, None without one
+    line: LineConfig = LineConfig()  # [line]: the OPC UA server and the metrics endpoint (core/cell/line.py)
 
     def plant(self) -> SimulationConfig:
         """The [simulation] table, for code that simulates this cell; ConfigError when the file has none."""
@@ -618,6 +683,106 @@ def _vacuum_device(t: _Table) -> VacuumDeviceConfig:
     return vacuum
 
 
+# [line.plc]'s limits: Modbus addresses are 16-bit; a job number of more than 16 bits is a typo.
+MODBUS_ADDRESSES = (0, 65535)
+MAX_JOB_BITS = 16
+PLC_POLL_PERIOD_S = (0.005, 5.0)
+MAX_PART_ID_REGISTERS = 32  # 64 characters, the store's longest part ID
+_MODBUS_ONLY_KEYS = ("host", "port", "part_id_register", "part_id_registers")
+
+
+def _plc(t: _Table) -> PlcConfig:
+    transport = PlcTransport(t.choice("transport", tuple(PlcTransport)))
+    if transport is PlcTransport.JRC_IO:
+        for key in _MODBUS_ONLY_KEYS:
+            if key in t._data:
+                raise t.fail(key, t._data[key], 'has no meaning with transport = "jrc_io": remove it')
+    inputs = _plc_inputs(t.table("inputs"), transport)
+    outputs = _plc_outputs(t.table("outputs"), transport)
+    low, high = PLC_POLL_PERIOD_S
+    config = PlcConfig(
+        transport,
+        inputs,
+        outputs,
+        _plc_jobs(t.table("jobs"), len(inputs.job_bits)),
+        poll_period_s=t.number("poll_period_s", 0.05, check=lambda v: low <= v <= high, why=f"must be {low:g} to {high:g} s"),
+    )
+    if transport is PlcTransport.MODBUS:
+        port = t.integer("port", 5020)
+        if not 0 <= port <= TCP_PORTS[1]:
+            raise t.fail("port", port, f"a TCP port, 0 (any free one) to {TCP_PORTS[1]}")
+        count = t.integer("part_id_registers", 10)
+        if not 1 <= count <= MAX_PART_ID_REGISTERS:
+            raise t.fail("part_id_registers", count, f"must be 1 to {MAX_PART_ID_REGISTERS} (two characters a register)")
+        first = t.integer("part_id_register", -1)
+        if first != -1 and not 0 <= first <= MODBUS_ADDRESSES[1] + 1 - count:
+            raise t.fail(
+                "part_id_register",
+                first,
+                f"must be 0 to {MODBUS_ADDRESSES[1] + 1 - count}, its {count} registers within 0..65535",
+            )
+        config = replace(
+            config,
+            host=t.text("host", "127.0.0.1"),
+            port=port,
+            part_id_register=None if first == -1 else first,
+            part_id_registers=count,
+        )
+    t.finish()
+    return config
+
+
+def _plc_address(t: _Table, key: str, transport: PlcTransport, value: Any = None) -> int:
+    """One signal's address: a Modbus coil or discrete input (0..65535), or a JRC byte.bit address."""
+    value = t.integer(key) if value is None else value
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise t.fail(key, value, "must be an integer")
+    if transport is PlcTransport.JRC_IO and (value < 0 or value % 10 > 7):
+        raise t.fail(key, value, "must be a byte.bit I/O address >= 0 whose last digit, the bit, is 0..7")
+    if transport is PlcTransport.MODBUS and not MODBUS_ADDRESSES[0] <= value <= MODBUS_ADDRESSES[1]:
+        raise t.fail(key, value, f"must be a Modbus address, {MODBUS_ADDRESSES[0]} to {MODBUS_ADDRESSES[1]}")
+    return value
+
+
+def _distinct(t: _Table, addresses: dict[str, int]) -> None:
+    seen: dict[int, str] = {}
+    for key, address in addresses.items():
+        if address in seen:
+            raise t.fail(key, address, f"is also {t._key(seen[address])}: each signal needs its own address")
+        seen[address] = key
+
+
+def _plc_inputs(t: _Table, transport: PlcTransport) -> PlcInputMap:
+    bits = t._raw("job_bits", None)
+    if not isinstance(bits, list) or not 1 <= len(bits) <= MAX_JOB_BITS:
+        raise t.fail("job_bits", bits, f"must be a list of 1 to {MAX_JOB_BITS} addresses, least significant bit first")
+    job_bits = tuple(_plc_address(t, "job_bits", transport, bit) for bit in bits)
+    signals = {key: _plc_address(t, key, transport) for key in ("start", "part_present", "reset")}
+    _distinct(t, {**signals, **{f"job_bits[{i}]": bit for i, bit in enumerate(job_bits)}})
+    t.finish()
+    return PlcInputMap(job_bits=job_bits, **signals)
+
+
+def _plc_outputs(t: _Table, transport: PlcTransport) -> PlcOutputMap:
+    signals = {key: _plc_address(t, key, transport) for key in ("ready", "busy", "done", "ok", "not_ok", "fault")}
+    _distinct(t, signals)
+    t.finish()
+    return PlcOutputMap(**signals)
+
+
+def _plc_jobs(t: _Table, n_bits: int) -> tuple[tuple[int, str], ...]:
+    """[line.plc.jobs]: job number = "job name"; numbers the job bits can carry."""
+    if not t._data:
+        raise ConfigError(f'{t._source}: {t._path} is empty: give each job number its job, as 1 = "demo"')
+    jobs = []
+    for key in sorted(t._data):
+        if not key.isdigit() or int(key) >= 2**n_bits:
+            raise t.fail(key, t._data[key], f"the key must be a job number, 0 to {2**n_bits - 1} ({n_bits} job bits)")
+        jobs.append((int(key), t.text(key)))
+    t.finish()
+    return tuple(sorted(jobs))
+
+
 # The keys of the model tables that say how a device is wired rather than what the cell
 # is: the control laws never read them and [simulation.truth.*] cannot override them.
 _WIRING_KEYS = {"camera": ("source",), "vacuum": ("device", "suction_output", "grip_input")}
@@ -651,6 +816,36 @@ def _check_devices(config: CellConfig) -> None:
         raise ConfigError(
             f"{source}: vacuum.device = 'jrc_io': the vacuum on the JRC's I/O needs robot.backend = \"jrc\", not {backend!r}"
         )
+    if config.plc is not None and config.plc.transport is PlcTransport.JRC_IO:
+        _check_plc_on_jrc(config.plc, config)
+
+
+def _plc_input_signals(plc: PlcConfig) -> dict[str, int]:
+    """The PLC's input signals by their keys' names: start, ..., job_bits[0], ..."""
+    inputs = plc.inputs
+    named = {"start": inputs.start, "part_present": inputs.part_present, "reset": inputs.reset}
+    return {**named, **{f"job_bits[{i}]": bit for i, bit in enumerate(inputs.job_bits)}}
+
+
+def _check_plc_on_jrc(plc: PlcConfig, config: CellConfig) -> None:
+    """The handshake on the JRC's I/O needs the JRC, and lines of its own beside the cup's."""
+    if config.robot_backend != "jrc":
+        raise ConfigError(
+            f'{config.source}: line.plc.transport = "jrc_io": the PLC on the JRC\'s I/O needs robot.backend = "jrc", '
+            f"not {config.robot_backend!r}"
+        )
+    outputs = vars(plc.outputs)
+    for name, address in _plc_input_signals(plc).items():
+        if address in outputs.values():
+            raise ConfigError(f"{config.source}: line.plc.inputs.{name} = {address}: it is also a [line.plc.outputs] address")
+    if config.vacuum_device.device == "jrc_io":
+        suction, grip = config.vacuum_device.jrc_io()
+        for name, address in vars(plc.outputs).items():
+            if address == suction:
+                raise ConfigError(f"{config.source}: line.plc.outputs.{name} = {address}: it is vacuum.suction_output")
+        for name, address in _plc_input_signals(plc).items():
+            if address == grip:
+                raise ConfigError(f"{config.source}: line.plc.inputs.{name} = {address}: it is vacuum.grip_input")
 
 
 # How far the true board may lie from the table's plane: it is a printed sheet on it.
@@ -913,6 +1108,9 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
     commissioning = _commissioning(root.table("commissioning"), base_dir)
     metal_part = _metal_part(root.table("metal_part"))
     recordings = _recordings(root.table("recordings"))
+    line_table = root.table("line")
+    plc = _plc(line_table.table("plc")) if "plc" in line_table._data else None
+    line = parse_line(line_table, base_dir)
     root.finish()
     camera_source = _camera_source(_Table(wiring.get("camera", {}), "camera", source).table("source"), base_dir)
     vacuum_device = _vacuum_device(_Table(wiring.get("vacuum", {}), "vacuum", source))
@@ -933,6 +1131,8 @@ def parse_cell(data: dict[str, Any], source: str = "<cell>", base_dir: Path | No
         commissioning,
         metal_part,
         recordings,
+        plc,
+        line,
     )
     _check_devices(config)
     return config

@@ -119,6 +119,7 @@ class AssemblyOutcome:
             iterations=self.iterations,
             notes=self.notes,
             end=self.end,
+            cell_time_s=_rounded(self.cell_time_s),
         )
 
 

@@ -82,8 +82,10 @@ class AssemblyRun:
         publisher: Publisher,
         estop: EStopLatch,
         cycle_period_s: float,
+        part_id: str | None = None,
     ) -> None:
         self.job, self.run_id, self.note, self.record = job, run_id, note, record
+        self.part_id = part_id
         self.rig, self.store, self.publisher, self.estop = rig, store, publisher, estop
         self.cycle_period_s = cycle_period_s  # a floor on the servo cycle, so a fast simulator can be watched
         self._recorder: RunRecorder | None = None
@@ -165,7 +167,7 @@ class AssemblyRun:
         note = cycle.output.note  # without one, the detail said last stands
         error_px = float(cycle.output.error_px) if np.isfinite(cycle.output.error_px) else None
         self.publisher.update(
-            run=RunFigures(self.run_id, cycle.output.stage, cycle.iteration + 1, error_px, cycle.output.cVc),
+            run=RunFigures(self.run_id, cycle.output.stage, cycle.iteration + 1, error_px, cycle.output.cVc, self.part_id),
             **({"detail": note} if note else {}),
             **self.publisher.robot_readout(cycle.measurement.bMe),
         )

@@ -169,6 +169,7 @@ class CellController:
         self._jogging = threading.Event()  # a jog or a gizmo move is under way
         self._run_thread: _WorkThread | None = None  # an assembly run's, or commissioning's
         self._work = "an assembly run"  # what the thread does, for the refusals while it runs
+        self._started_by_line = False  # the run under way was started by the PLC or OPC UA
         self._desired: DesiredImage | None = None  # drawn over the live image
         self._teaching = TeachingSession(rig, store, self)
         self._commissioning = CommissioningSession(rig, store.root, seed, self, self._estop)
@@ -257,9 +258,11 @@ class CellController:
         return self._run_thread is not None and not self._run_thread.finished.is_set()
 
     @property
-    def in_motion(self) -> bool:
-        """A run or a jog is moving the robot (the channel holds it if its last app goes away)."""
-        return self.running or self._jogging.is_set()
+    def moved_by_apps(self) -> bool:
+        """A run an app started, or a jog, is moving the robot: the channel holds it if its
+        last app goes away. A run the line started (PLC, OPC UA) goes on without a page: the
+        line's own client watches it, and a monitor closing must not stop the line."""
+        return (self.running and not self._started_by_line) or self._jogging.is_set()
 
     def _require(self, *phases: Phase, kind: Refusal = Refusal.NOT_NOW) -> None:
         """Refuse unless the cell is in one of ``phases`` (``kind``: how the refusal is explained)."""
@@ -442,9 +445,10 @@ class CellController:
 
     # -- assembly (assembly_run.py) -------------------------------------------------------
 
-    def start(self, job_name: str, record: bool = True, part_id: str | None = None) -> int:
+    def start(self, job_name: str, record: bool = True, part_id: str | None = None, by_line: bool = False) -> int:
         """Start one assembly of ``job_name`` in the background, its run recording ``part_id``
-        (for traceability) when given; returns the run's id.
+        (for traceability) when given; returns the run's id. ``by_line``: the PLC or OPC UA
+        starts it, not an app (see moved_by_apps).
 
         The job is first retargeted to the cell file's model (core/production/retarget.py):
         a job taught through another calibration of the camera, hand-eye or laser sees
@@ -456,8 +460,11 @@ class CellController:
             job, note = retargeted_job(self.store, self.rig.config.nominal, job_name)
             self._enable_motion()
             run_id = self.store.start_run(job.name, self.rig.robot.name, part_id)
+            self._started_by_line = by_line
             self._desired = job.desired
-            self.update(phase=Phase.SERVOING, detail="starting", job=job.name, run=RunFigures(run_id), last_outcome=None)
+            self.update(
+                phase=Phase.SERVOING, detail="starting", job=job.name, run=RunFigures(run_id, part_id=part_id), last_outcome=None
+            )
             run = AssemblyRun(
                 job,
                 run_id,
@@ -468,6 +475,7 @@ class CellController:
                 publisher=self,
                 estop=self._estop,
                 cycle_period_s=self.cycle_period_s,
+                part_id=part_id,
             )
             self._start_work("an assembly run", self._assemble, (run,), "assembly")
             return run_id

@@ -17,8 +17,9 @@ The connection goes on either way.
 
 Commands of one app are carried out in the order sent, one at a time, except ``estop``:
 it is carried out the moment it arrives, even while a long move of that app is under
-way. When the last app disconnects (closed, crashed, cable pulled) while a run or a jog
-is moving the robot, the controller e-stops: the robot is held and the state says why.
+way. When the last app disconnects (closed, crashed, cable pulled) while a run it started
+or a jog is moving the robot, the controller e-stops: the robot is held and the state says
+why. A run the line started (PLC, OPC UA) goes on: its own client watches it.
 """
 
 from __future__ import annotations
@@ -215,7 +216,7 @@ class ControllerServer:
                 subscriber.closed = True
                 subscriber.pending.notify()
             subscriber.close()
-            if last_gone and not self._stopping.is_set() and self.controller.in_motion:
+            if last_gone and not self._stopping.is_set() and self.controller.moved_by_apps:
                 log.warning(APP_GONE)
                 self.controller.estop(APP_GONE)
 

@@ -15,8 +15,10 @@ from typing import TYPE_CHECKING, Any
 from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
 from vservo.core.production.storage import default_data_dir
 from vservo.core.terminal.command_line import print_result, seed
+from vservo.core.terminal.logs import add_log_options, announce, configure_logging
 
 if TYPE_CHECKING:  # imported when a command runs: `vservo --help` stays quick
+    from vservo.core.cell.config import CellConfig
     from vservo.core.production.cell_controller import CellController
     from vservo.core.production.rig import Rig
     from vservo.core.production.storage import RunRecord, Store
@@ -35,6 +37,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from vservo.core.production.cell_rig import build_rig
     from vservo.core.production.storage import Store
 
+    configure_logging(args, "run")
     config = load_cell(args.cell)
     store = Store.for_controller(args.data or default_data_dir(), config.recordings)
     controller = _controller_on(build_rig(config, args.seed, args.backend), store, seed=args.seed or 0)
@@ -63,9 +66,11 @@ def _cmd_controller(args: argparse.Namespace) -> int:
 
     from vservo.core.production.cell_rig import build_rig
     from vservo.core.production.channel import ControllerServer
+    from vservo.core.production.plc.service import PlcService
     from vservo.core.production.protocol import KEY_ENVIRONMENT
     from vservo.core.production.storage import Store
 
+    configure_logging(args, "controller")
     key = os.environ.get(KEY_ENVIRONMENT, "")
     try:
         authkey = bytes.fromhex(key)
@@ -89,15 +94,59 @@ def _cmd_controller(args: argparse.Namespace) -> int:
         signal.signal(signum, lambda *_: stop.set())
     if args.exit_with_parent:
         threading.Thread(target=_stop_when_orphaned, args=(os.getppid(), stop), name="parent-watch", daemon=True).start()
-    print(
-        json.dumps({"controller": {"host": server.address[0], "port": server.address[1], "backend": controller.rig.robot.name}}),
-        flush=True,
-    )
+    address: dict[str, Any] = {"host": server.address[0], "port": server.address[1], "backend": controller.rig.robot.name}
+    plc, line_services = None, []
+    try:
+        plc = PlcService.start(controller)  # the PLC handshake of [line.plc], if the cell file has one
+        line_services = _line_services(controller, config, address)
+    except BaseException:
+        if plc is not None:
+            plc.close()
+        server.close()
+        controller.close()
+        store.close()
+        raise
+    announced = {"controller": address}
+    print(json.dumps(announced if plc is None else {**announced, "plc": plc.where()}), flush=True)
     stop.wait()
+    # The stop is under way: a second signal (the app's SIGTERM after a service manager's SIGINT
+    # to both) must not cut it short, nor kill the process as the interpreter restores the
+    # default handlers on its way out.
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, signal.SIG_IGN)
+    for service in line_services:
+        service.close()
+    if plc is not None:
+        plc.close()
     server.close()
     controller.close()  # holds the robot if a run is under way
     store.close()
     return 0
+
+
+def _line_services(controller: CellController, config: CellConfig, address: dict[str, Any]) -> list[Any]:
+    """The cell file's [line] services on the controller: its metrics endpoint and its OPC UA
+    server, each started when enabled; their addresses go into the controller's first line."""
+    services: list[Any] = []
+    try:
+        if config.line.metrics.enabled:
+            from vservo.core.production.metrics import ControllerMetrics
+
+            metrics = ControllerMetrics(controller)
+            services.append(metrics)
+            host, port = metrics.serve(config.line.metrics)
+            address["metrics"] = f"http://{host}:{port}/metrics"
+        if config.line.opcua.enabled:
+            from vservo.core.production.opcua_server import CellOpcUaServer
+
+            opcua = CellOpcUaServer(controller, config.line.opcua)
+            services.append(opcua)
+            address["opcua"] = opcua.start()
+    except BaseException:
+        for service in services:
+            service.close()
+        raise
+    return services
 
 
 # What `vservo runs` exports of each run, in this order (the CSV's columns).
@@ -272,11 +321,7 @@ def _stop_when_orphaned(parent_pid: int, stop: threading.Event, period_s: float 
     """
     while not stop.wait(period_s):
         if os.getppid() != parent_pid:
-            print(
-                f"vservo controller: the process that started it ({parent_pid}) is gone: holding the robot and stopping",
-                file=sys.stderr,
-                flush=True,
-            )
+            announce(f"vservo controller: the process that started it ({parent_pid}) is gone: holding the robot and stopping")
             stop.set()
 
 
@@ -308,6 +353,7 @@ def add_production_commands(commands: argparse._SubParsersAction) -> None:
     run.add_argument("--backend", choices=ROBOT_BACKENDS, help=BACKEND_HELP)
     run.add_argument("--json", action="store_true", help="one JSON object")
     run.add_argument("--part-id", metavar="ID", help="the part's ID, stored with the run for traceability (`vservo runs`)")
+    add_log_options(run)
     run.set_defaults(run=_cmd_run)
 
     runs = commands.add_parser("runs", help="export the runs of a data folder with their figures (JSON, or CSV with --csv)")
@@ -341,6 +387,7 @@ def add_production_commands(commands: argparse._SubParsersAction) -> None:
         help="hold the robot and exit when the process that started this one is gone "
         "(`vservo serve` sets it: a killed app leaves no controller holding the cell)",
     )
+    add_log_options(controller)
     controller.set_defaults(run=_cmd_controller)
 
     commission = commands.add_parser(

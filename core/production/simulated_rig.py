@@ -73,7 +73,7 @@ def simulated_rig(
     else:
         if not isinstance(policy, PositionStepPolicy):
             raise ValueError(f'{config.source}: the JRC takes position steps; set [motion] mode = "position_steps"')
-        emulator = JrcEmulator(cell, config.jrc, time_scale=jrc_time_scale, vacuum=vacuum)
+        emulator = JrcEmulator(cell, config.jrc, time_scale=jrc_time_scale, vacuum=vacuum, plc=config.plc)
         jrc = JrcBackend(emulator.start_for(replace(config.jrc, time_scale=jrc_time_scale)))
         robot = SafetyLayer.from_config(jrc, config)
         if vacuum.device == "jrc_io":

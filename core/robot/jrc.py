@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -420,12 +421,23 @@ class JrcBackend:
         return bool(value >> bit & 1)
 
     def write_signal(self, address: int, on: bool) -> None:
-        """Switch one network input: its byte is read, changed in that bit only and written
-        back, under the link's lock, so the byte's other signals keep their state."""
-        byte, bit = io_byte(address)
+        """Switch one network input (``write_signals``)."""
+        self.write_signals({address: on})
+
+    def write_signals(self, signals: Mapping[int, bool]) -> None:
+        """Switch network inputs, {byte.bit address: on}: each byte they are in is read,
+        changed in their bits only and written back, under the link's lock, so the byte's
+        other signals keep their state."""
+        by_byte: dict[int, list[tuple[int, bool]]] = {}
+        for address, on in signals.items():
+            byte, bit = io_byte(address)
+            by_byte.setdefault(byte, []).append((bit, on))
         with self._lock:
-            (value,) = self.read_io(byte)
-            self.write_io(byte, [value | 1 << bit if on else value & ~(1 << bit)])
+            for byte, bits in by_byte.items():
+                (value,) = self.read_io(byte)
+                for bit, on in bits:
+                    value = value | 1 << bit if on else value & ~(1 << bit)
+                self.write_io(byte, [value])
 
     def clock_s(self) -> float:
         return time.monotonic()

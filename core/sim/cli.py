@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import threading
 from pathlib import Path
 
 from vservo.core.cell.config import HostTransport, load_cell
 from vservo.core.terminal.command_line import fraction, positive, seed
+from vservo.core.terminal.logs import add_log_options, announce, configure_logging
 
 
 def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
@@ -20,6 +20,7 @@ def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
     from vservo.core.sim.jrc_emulator import FaultPlan, JrcEmulator
     from vservo.core.sim.plant import SimulatedCell
 
+    configure_logging(args, "jrc-emulator")
     config = load_cell(args.cell)
     emulator = JrcEmulator(
         SimulatedCell(config),
@@ -28,6 +29,7 @@ def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
         args.time_scale,
         pace=args.pace,
         vacuum=config.vacuum_device,
+        plc=config.plc,
     )
     line = config.jrc
     if args.tcp_port is not None:
@@ -41,21 +43,17 @@ def _cmd_jrc_emulator(args: argparse.Namespace) -> int:
         where = str(emulator.device)
         link = f"{line.baud} baud, {line.data_bits} data bits, {line.parity} parity, {line.stop_bits} stop bit(s)"
     print(where, flush=True)
-    print(
+    announce(
         f"JRC emulator on {where}: {link}; time scale {args.time_scale:g}, faults {args.fault_rate:.0%}; "
-        "Ctrl-C or SIGTERM stops it",
-        file=sys.stderr,
-        flush=True,
+        "Ctrl-C or SIGTERM stops it"
     )
     stopped = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stopped.set())
     stopped.wait()
     emulator.stop()
-    print(
-        f"served {emulator.exchanges} exchanges, {len(emulator.executed)} moves; "
-        f"faults injected {dict(emulator.faults.injected)}",
-        file=sys.stderr,
+    announce(
+        f"served {emulator.exchanges} exchanges, {len(emulator.executed)} moves; faults injected {dict(emulator.faults.injected)}"
     )
     return 0
 
@@ -87,6 +85,7 @@ def add_jrc_emulator_command(commands: argparse._SubParsersAction) -> None:
         help="the simulated robot runs this many times faster than real time (default 1)",
     )
     emulator.add_argument("--pace", action="store_true", help="send and receive bytes at the baud rate")
+    add_log_options(emulator)
     emulator.set_defaults(run=_cmd_jrc_emulator)
 
 
@@ -101,6 +100,7 @@ def _cmd_virtual_cell(args: argparse.Namespace) -> int:
         raise ValueError("--jrc-link names a pseudo-terminal: it needs --robot-link serial")
     if args.jrc_tcp_port and not over_ethernet:
         raise ValueError("--jrc-tcp-port is the Ethernet server's port: it needs --robot-link ethernet")
+    configure_logging(args, "virtual-cell")
     tables, source = read_cell_data_with_truth(args.cell, args.truth)
     settings = VirtualCellSettings(
         time_scale=args.time_scale, fps=args.fps, exposure_latency_s=args.latency, robot_link=HostTransport(args.robot_link)
@@ -136,12 +136,10 @@ def _cmd_virtual_cell(args: argparse.Namespace) -> int:
             ),
             flush=True,
         )
-        print(
+        announce(
             f"virtual cell from {source}: JRC on {virtual.jrc_port} (time scale {args.time_scale:g}), camera "
             f"{virtual.camera.url}, fixture {virtual.fixture.url}; run the product with --cell {cell_file}; "
-            "Ctrl-C or SIGTERM stops it",
-            file=sys.stderr,
-            flush=True,
+            "Ctrl-C or SIGTERM stops it"
         )
         stopped.wait()
     return 0
@@ -218,4 +216,5 @@ def add_virtual_cell_command(commands: argparse._SubParsersAction) -> None:
     virtual.add_argument(
         "--fixture-port", type=int, default=0, metavar="PORT", help="the fixture's TCP port (default: any free one)"
     )
+    add_log_options(virtual)
     virtual.set_defaults(run=_cmd_virtual_cell)

@@ -14,7 +14,12 @@ motion where it is and discards the rest of it: the host decides how to go on.
 I/O: given the cell's vacuum wiring (the cell file's [vacuum] with device = "jrc_io"),
 it does what a real cell's ladder and pressure switch do: IOWRITE to the suction network input
 switches the simulated cup, and IOREAD of the grip input answers whether the cup holds
-the part. Other bytes read 0 and refuse IOWRITE (2110): this JRC has no other wiring.
+the part. Given a PLC on its I/O ([line.plc] with transport = "jrc_io"), it has the I/O
+panel a PLC is wired to: the PLC's signals drive the JRC's general inputs at the
+[line.plc.inputs] addresses (``set_inputs``: what the PLC's program switches), which IOREAD
+reports, and the network inputs at the [line.plc.outputs] addresses take IOWRITE, the
+ladder copying each to the general output wired to the PLC (``io_panel`` shows them).
+Other bytes read 0 and refuse IOWRITE (2110): this JRC has no other wiring.
 
 Time: the plant's clock runs ``time_scale`` times faster than the wall clock, so tests
 need not wait real seconds; JWAIT's time is JRC (plant) time. The plant is only
@@ -49,7 +54,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import serial
 
-from vservo.core.cell.config import HostTransport, JrcLineConfig, VacuumDeviceConfig
+from vservo.core.cell.config import HostTransport, JrcLineConfig, PlcConfig, PlcTransport, VacuumDeviceConfig
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, pose_error
 from vservo.core.robot.backend import apply_increment
@@ -196,6 +201,15 @@ class FaultInjector:
         self._armed = None
 
 
+@dataclass(frozen=True)
+class IoPanel:
+    """The lines a PLC on the JRC's I/O is wired to, by byte.bit address: the JRC's inputs its
+    signals drive, and the outputs the ladder copies from the network inputs the host wrote."""
+
+    inputs: dict[int, bool]
+    outputs: dict[int, bool]
+
+
 @dataclass
 class Motion:
     """One linear move under way, in joint space, in JRC (plant) time."""
@@ -228,6 +242,7 @@ class JrcEmulator:
         time_scale: float = 1.0,
         pace: bool = False,
         vacuum: VacuumDeviceConfig | None = None,
+        plc: PlcConfig | None = None,
     ) -> None:
         if not time_scale > 0.0:
             raise ValueError(f"time scale {time_scale!r} must be positive")
@@ -235,6 +250,11 @@ class JrcEmulator:
         # (suction_output, grip_input) when the cup is wired to the I/O
         self.vacuum_io = vacuum.jrc_io() if vacuum is not None and vacuum.device == "jrc_io" else None
         self.network_inputs: dict[int, int] = {}  # byte address -> the value the host wrote
+        # The PLC's wiring: the inputs its signals drive, the network inputs the ladder copies out to it.
+        wired = plc is not None and plc.transport is PlcTransport.JRC_IO
+        self.plc_inputs = plc.inputs.addresses() if plc is not None and wired else ()
+        self.plc_outputs = plc.outputs.addresses() if plc is not None and wired else ()
+        self.panel: dict[int, int] = {}  # byte address -> the PLC's signals on those general inputs
         self.faults = FaultInjector(faults, line)
         self.executed: list[str] = []
         self.exchanges = 0
@@ -469,16 +489,45 @@ class JrcEmulator:
         address, count, *values = _integers(fields)
         if len(values) != _io_bytes(address, count) or not all(0 <= v <= 0xFF for v in values):
             raise _Refused(1013)
-        if self.vacuum_io is None or len(values) != 1 or address != io_byte(self.vacuum_io[0])[0]:
+        writable = {io_byte(a)[0] for a in self.plc_outputs}
+        if self.vacuum_io is not None:
+            writable.add(io_byte(self.vacuum_io[0])[0])
+        if len(values) != 1 or address not in writable:
             raise _Refused(NOT_ACCESSIBLE)
         self.network_inputs[address] = values[0]
-        # The ladder line: the suction network input drives the valve's output.
-        _, bit = io_byte(self.vacuum_io[0])
-        self.cell.vacuum(bool(values[0] >> bit & 1))
+        if self.vacuum_io is not None and address == io_byte(self.vacuum_io[0])[0]:
+            # The ladder line: the suction network input drives the valve's output.
+            _, bit = io_byte(self.vacuum_io[0])
+            self.cell.vacuum(bool(values[0] >> bit & 1))
         return Answer.status(0)
 
+    def set_inputs(self, signals: dict[int, bool]) -> None:
+        """The PLC switches its signals on the JRC's general inputs, {byte.bit address: on};
+        a ValueError for an address no PLC signal is wired to."""
+        unwired = sorted(set(signals) - set(self.plc_inputs))
+        if unwired:
+            raise ValueError(f"input {unwired[0]} is not wired to the PLC: its inputs are {', '.join(map(str, self.plc_inputs))}")
+        with self.lock:
+            for address, on in signals.items():
+                byte, bit = io_byte(address)
+                value = self.panel.get(byte, 0)
+                self.panel[byte] = value | 1 << bit if on else value & ~(1 << bit)
+
+    def io_panel(self) -> IoPanel:
+        """The PLC's lines now."""
+
+        def bit_of(values: dict[int, int], address: int) -> bool:
+            byte, bit = io_byte(address)
+            return bool(values.get(byte, 0) >> bit & 1)
+
+        with self.lock:
+            return IoPanel(
+                inputs={a: bit_of(self.panel, a) for a in self.plc_inputs},
+                outputs={a: bit_of(self.network_inputs, a) for a in self.plc_outputs},
+            )
+
     def _io_value(self, byte: int) -> int:
-        value = self.network_inputs.get(byte, 0)
+        value = self.network_inputs.get(byte, 0) | self.panel.get(byte, 0)
         if self.vacuum_io is not None:
             grip_byte, bit = io_byte(self.vacuum_io[1])
             if byte == grip_byte:  # the pressure switch

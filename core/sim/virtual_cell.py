@@ -12,7 +12,10 @@ The controller reaches it only as it reaches hardware, through the cell file it 
 - the fixture (``[fixture] url``): a JSON port that presents a new part (near where the
   job was taught, or at a given place), lays the calibration checkerboard on the table or
   takes it away, and gauges where a released part truly ended: what a test cell has and
-  a production cell does without.
+  a production cell does without;
+- the I/O panel a PLC is wired to, for a PLC on the JRC's I/O (``[line.plc] transport =
+  "jrc_io"``): the fixture's /io switches the PLC's signals on the JRC's inputs and reads
+  what the JRC's ladder sends back (a test's PLC program drives it).
 
 The plant plays the TRUE cell: the ``--cell`` file's [simulation] with the ``--truth``
 file's [simulation.truth.*] laid over it. The cell file written for the controller holds
@@ -159,13 +162,16 @@ class VirtualCell:
     ) -> None:
         self.tables, self.source, self.settings, self.on_released = tables, source, settings, on_released
         self.addresses = addresses
-        self.config: CellConfig = parse_cell(tables, source)
+        # Its robot is a JRC whatever the file's [robot] backend says (the controller's file says "jrc").
+        self.config: CellConfig = parse_cell({**tables, "robot": {**tables.get("robot", {}), "backend": "jrc"}}, source)
         self.cell = SimulatedCell(self.config, seed)
         if board_laid:
             self.cell.lay_board(True)
         self.taught_bMo = self.config.plant().scene.cube.bMo
         self.vacuum = self.config.vacuum_device if self.config.vacuum_device.device == "jrc_io" else DEFAULT_VACUUM_IO
-        self.emulator = JrcEmulator(self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum)
+        self.emulator = JrcEmulator(
+            self.cell, self.config.jrc, time_scale=settings.time_scale, vacuum=self.vacuum, plc=self.config.plc
+        )
         self.renderer = SceneRenderer(self.cell.truth.model.camera, RenderSettings())
         self.camera_rng = np.random.default_rng(self.cell.rng.integers(2**31))
         self.camera = CameraStream(
@@ -318,7 +324,10 @@ class _FixtureServer:
     place ({"seed": n} optional) or puts it at a given place ({"x_mm", "y_mm", "yaw_deg"}:
     its frame O, a top-face corner, on the table); GET /part says where the part truly
     is; POST /board ({"laid": true|false}) lays the checkerboard or takes it away, GET
-    /board says which; GET /released lists the gauged releases."""
+    /board says which; GET /released lists the gauged releases. The JRC's I/O panel, for
+    a PLC on the JRC's I/O ([line.plc] transport = "jrc_io"): POST /io ({"inputs":
+    {"<address>": true|false}}) switches the PLC's signals on the JRC's inputs, GET /io
+    reads them and the outputs the JRC's ladder sends the PLC."""
 
     def __init__(self, virtual: VirtualCell, host: str = "127.0.0.1", port: int = 0) -> None:
         self.server = ThreadingHTTPServer((host, port), _handler_for(virtual))
@@ -338,9 +347,10 @@ class _FixtureServer:
         self.server.server_close()
 
 
-ENDPOINTS = ("POST /part", "GET /part", "POST /board", "GET /board", "GET /released")
+ENDPOINTS = ("POST /part", "GET /part", "POST /board", "GET /board", "GET /io", "POST /io", "GET /released")
 _PART_BODY = 'the body is empty, {"seed": <integer>}, or {"x_mm": <number>, "y_mm": <number>, "yaw_deg": <number>}'
 _BOARD_BODY = 'the body is {"laid": true} or {"laid": false}'
+_IO_BODY = 'the body is {"inputs": {"<byte.bit address>": true|false, ...}}, at the addresses of [line.plc.inputs]'
 
 
 def _is_number(value: Any) -> bool:
@@ -369,7 +379,31 @@ def _post_board(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
     return {"board": virtual.lay_board(body["laid"])}
 
 
-_POSTS: dict[str, Callable[[VirtualCell, dict[str, Any]], dict[str, Any]]] = {"/part": _post_part, "/board": _post_board}
+def _io_panel(virtual: VirtualCell) -> dict[str, Any]:
+    panel = virtual.emulator.io_panel()
+    return {
+        "inputs": {str(address): on for address, on in panel.inputs.items()},
+        "outputs": {str(address): on for address, on in panel.outputs.items()},
+    }
+
+
+def _post_io(virtual: VirtualCell, body: dict[str, Any]) -> dict[str, Any]:
+    signals = body.get("inputs")
+    if set(body) != {"inputs"} or not isinstance(signals, dict) or not all(isinstance(on, bool) for on in signals.values()):
+        raise ValueError(f"{json.dumps(body)}: {_IO_BODY}")
+    try:
+        wanted = {int(address): on for address, on in signals.items()}
+    except ValueError:
+        raise ValueError(f"{json.dumps(body)}: {_IO_BODY}") from None
+    virtual.emulator.set_inputs(wanted)
+    return _io_panel(virtual)
+
+
+_POSTS: dict[str, Callable[[VirtualCell, dict[str, Any]], dict[str, Any]]] = {
+    "/part": _post_part,
+    "/board": _post_board,
+    "/io": _post_io,
+}
 
 
 def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
@@ -379,6 +413,8 @@ def _handler_for(virtual: VirtualCell) -> type[BaseHTTPRequestHandler]:
                 self._reply(200, {"part": virtual.part_pose()})
             elif self.path == "/board":
                 self._reply(200, {"board": virtual.board_state()})
+            elif self.path == "/io":
+                self._reply(200, _io_panel(virtual))
             elif self.path == "/released":
                 self._reply(200, {"released": [r.as_dict() for r in virtual.released]})
             elif self.path == "/":

@@ -308,6 +308,28 @@ def test_the_last_app_leaving_during_a_run_holds_the_robot_and_the_run_says_why(
         store.close()
 
 
+def test_the_last_app_leaving_during_a_run_the_line_started_leaves_it_going(tmp_path):
+    """A monitor page that watched a run the PLC or OPC UA started, then closed, does not
+    stop the line: only what an app started is held when the last app goes."""
+    store = Store(tmp_path)
+    controller = CellController(simulated_rig(with_the_thesis_policy(load_cell()), seed=2), store, seed=2, cycle_period_s=0.05)
+    key = new_key()
+    server = ControllerServer(controller, key)
+    try:
+        watcher = ControllerClient(server.address, key)
+        run_id = controller.start("demo", part_id="LINE-1", by_line=True)
+        assert controller.running
+        watcher.close()
+        controller.wait(120.0)
+        record = store.run(run_id)
+        assert record.outcome is Outcome.PLACED, record.reason
+        assert not controller.rig.robot.status().held
+    finally:
+        server.close()
+        controller.close()
+        store.close()
+
+
 def test_the_last_app_leaving_while_idle_changes_nothing(served):
     controller, server, key = served
     ControllerClient(server.address, key).close()

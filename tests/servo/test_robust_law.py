@@ -10,8 +10,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from tests.servo_fixtures import CAMERA, DESIRED_cMo, desired_image, features, project
 from tests.app.test_cli import run
+from tests.servo_fixtures import CAMERA, DESIRED_cMo, desired_image, features, project
 from vservo.core.cell.config import ConfigError, load_cell
 from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import exp_twist, inverse, matrix_from_pose, transform

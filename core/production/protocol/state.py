@@ -120,13 +120,15 @@ class Teaching:
 @dataclass(frozen=True, eq=False)
 class RunFigures:
     """The servo of the run under way (or the last one): its stage, cycle, feature error (px,
-    None when not measured) and the camera twist cVc (m/s, rad/s; NaN where not finite)."""
+    None when not measured) and the camera twist cVc (m/s, rad/s; NaN where not finite);
+    the part's ID when the run was given one."""
 
     run_id: int | None = None
     stage: Stage | None = None
     iteration: int = 0
     error_px: float | None = None
     cVc: Matrix = field(default_factory=lambda: np.zeros(6))
+    part_id: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "cVc", _frozen(self.cVc, (6,)))
@@ -144,6 +146,7 @@ class RunOutcome:
     iterations: int = 0
     notes: tuple[str, ...] = ()  # how the job was run (retargeted, not recorded, ...)
     end: RunEnd | None = None  # why, as the catalogue explains it (protocol/catalogue.py)
+    cell_time_s: float | None = None  # the run on the cell's clock (None where the backend keeps none)
 
 
 class CommissionStep(StrEnum):
