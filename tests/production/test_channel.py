@@ -27,6 +27,7 @@ from vservo.core.production.protocol import (
     EnterManual,
     Estop,
     GetJob,
+    GoHome,
     Jog,
     LeaveManual,
     ListJobs,
@@ -460,7 +461,7 @@ def test_a_number_out_of_the_pages_range_sent_straight_over_the_channel_is_refus
         reply = _reply(client, 1)
         assert not reply["ok"] and reply["error"] == error
         np.testing.assert_array_equal(controller.rig.robot.read_pose(), bMe)  # nothing moved
-        assert client.call(Jog()).ok  # and the connection goes on
+        assert client.call(GoHome()).ok  # and the connection goes on
     finally:
         client.close()
 
