@@ -20,8 +20,7 @@ import numpy as np
 
 from vservo.core.cell.config import CellConfig
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
-from vservo.core.geometry.spatial import Matrix, inverse, transform
-from vservo.core.production.demo_job import DESIRED_cMo
+from vservo.core.geometry.spatial import Matrix, Pose6, inverse, matrix_from_pose, transform
 from vservo.core.production.protocol import CommandRefused
 from vservo.core.production.protocol.catalogue import Refusal
 from vservo.core.robot.backend import MotionStopped, RobotError, RobotNotReady
@@ -37,7 +36,9 @@ from vservo.core.robot.safety import (
 
 # The camera this high over the table in the survey (the desired view's is 162 mm over a
 # part's top face, 20 mm above the table): it sees the table some 40 mm around the middle.
+# Turned as the demo job's desired view is (its cMo), looking straight down at the table.
 SURVEY_HEIGHT_M = 0.25
+SURVEY_cMt = matrix_from_pose(Pose6(0.0, 0.0, SURVEY_HEIGHT_M, np.pi, 0.0, -np.pi))  # t: the table's middle
 # A base axis is named in the advice when it carries at least this share of the motion.
 AXIS_SHARE = 0.35
 
@@ -64,9 +65,7 @@ def survey_bMe(config: CellConfig) -> Matrix | None:
     if board is None:
         return None
     middle = board.bMboard @ np.append(board.corners_board().mean(axis=0), 1.0)
-    cMo = DESIRED_cMo.copy()
-    cMo[:3, 3] = (0.0, 0.0, SURVEY_HEIGHT_M)
-    return transform(t=middle[:3]) @ inverse(cMo) @ inverse(config.nominal.eMc)
+    return transform(t=middle[:3]) @ inverse(SURVEY_cMt) @ inverse(config.nominal.eMc)
 
 
 def _directions(v: Matrix) -> str:
