@@ -22,7 +22,7 @@ from vservo.app.client_view import ClientView
 from vservo.app.context import AppContext
 from vservo.app.session import LiveFrame, RunTrace, SessionView
 from vservo.app.status import engineering_markdown, outcome_markdown, run_progress
-from vservo.core.production.protocol import PresentPart, Start
+from vservo.core.production.protocol import ControllerState, Phase, PresentPart, Start
 from vservo.core.production.protocol.state import MOVING
 
 TWIST_NAMES = ("vx m/s", "vy m/s", "vz m/s", "wx rad/s", "wy rad/s", "wz rad/s")
@@ -34,6 +34,11 @@ PROGRESS_COLOURS: dict[Kind, Literal["green", "orange", "red"]] = {
     Kind.FAULT: "red",
     Kind.ESTOPPED: "red",
 }
+
+
+def ran_job(state: ControllerState) -> str | None:
+    """The job the cell runs, or last ran (None before the first run: teaching names its template)."""
+    return state.job if state.run.run_id is not None and state.phase is not Phase.TEACHING else None
 
 
 def plot_data(trace: RunTrace) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
@@ -69,6 +74,7 @@ class AssemblePanel:
             # What an engineer reads (the law's stage, its error norm, the commanded twist), folded away.
             with gui.add_folder("Engineering", expand_by_default=False):
                 self.engineering = gui.add_markdown("")
+                self.refusal = gui.add_markdown("")  # the last refusal as the controller wrote it
                 self.twist_plot = gui.add_uplot(
                     blank_twist,
                     (
@@ -82,14 +88,18 @@ class AssemblePanel:
         self._lock = threading.Lock()
         self._job_shown: str | None = None
         self._threshold_px = 3.0
+        self._job_run: str | None = None  # the job the cell runs or last ran, which every Job selector shows
+        self._selectors: dict[int, ClientView] = {}
 
     # -- per browser ---------------------------------------------------------------------
 
     def add_client(self, view: ClientView) -> None:
         gui = view.client.gui
         names = self.app.job_names() or ["demo"]
+        ran = ran_job(self.app.session.state)
+        initial = ran if ran in names else "demo" if "demo" in names else names[0]
         with self.tab:
-            job = view.control(gui.add_dropdown("Job", names, initial_value="demo" if "demo" in names else names[0], order=11))
+            job = view.control(gui.add_dropdown("Job", names, initial_value=initial, order=11))
             if self.app.session.state.can_present_part:  # only where the cell has a part feeder
                 present = view.button(
                     Button.PRESENT_PART,
@@ -111,9 +121,29 @@ class AssemblePanel:
             )
         start.on_click(lambda _: self.app.send(view, "Start", lambda: Start(job.value)))
         view.handles["assemble_job"] = job
+        with self._lock:
+            self._selectors[view.client_id] = view
 
     def remove_client(self, client_id: int) -> None:
-        pass  # a browser's elements go with its connection
+        with self._lock:
+            self._selectors.pop(client_id, None)
+
+    def show_refusal(self, what: str, detail: str) -> None:
+        """A refusal's engineering line (the notice said it in the catalogue's words)."""
+        self.refusal.content = f"Last refusal ({what}): {detail}"
+
+    def _follow_run(self, state: ControllerState) -> None:
+        """Every Job selector shows the job the cell runs or last ran, once it starts."""
+        ran = ran_job(state)
+        with self._lock:
+            if ran is None or ran == self._job_run:
+                return
+            self._job_run = ran
+            views = list(self._selectors.values())
+        for view in views:
+            selector = view.handles.get("assemble_job")
+            if selector is not None and ran in selector.options and selector.value != ran:
+                selector.value = ran
 
     def lists_changed(self, views: list[ClientView]) -> None:
         names = self.app.job_names() or ["demo"]
@@ -129,6 +159,7 @@ class AssemblePanel:
     def refresh(self, view: SessionView) -> None:
         state = view.state
         self._follow_job(state.job or "demo")
+        self._follow_run(state)
         banner = banner_for(state)
         self.stage.content = f"**{banner.title}** · {banner.detail}"
         self.engineering.content = engineering_markdown(state)

@@ -13,7 +13,8 @@ import html
 from dataclasses import dataclass
 from enum import Enum
 
-from vservo.core.production.protocol import ControllerState, Outcome, Phase
+from vservo.core.production.protocol import ControllerState, Outcome, Phase, RunOutcome
+from vservo.core.production.protocol.catalogue import explain
 from vservo.core.servo.laws.base import Stage
 
 
@@ -82,12 +83,16 @@ def banner_for(state: ControllerState, controller_gone: str | None = None) -> Ba
     if state.phase is Phase.DONE:
         return _banner_done(state, job)
     if state.phase is Phase.SERVOING:
+        words = stage_words(state.run.stage)
         return Banner(
             Kind.BUSY,
-            f"RUNNING job {job}: {stage_words(state.run.stage)}",
+            f"RUNNING job {job}" + (f": {words}" if words else ""),
             "The robot moves: keep clear; E-STOP holds it.",
-            detail,
+            "" if state.run.iteration else detail,  # the law's notes, with their formulas, are the Engineering fold's
         )
+    last = state.last_outcome
+    if state.phase is Phase.FAULT and last is not None and last.outcome is Outcome.FAULT and last.end is not None:
+        return _banner_explained(Kind.FAULT, f"FAULT: job {job}", last)
     kind, title, next_step = PHASE_BANNERS[state.phase]
     return Banner(kind, title.format(job=job), next_step, detail)
 
@@ -95,9 +100,18 @@ def banner_for(state: ControllerState, controller_gone: str | None = None) -> Ba
 # While the controller process is gone nothing holds the robot for vservo; `vservo serve` starts a new one.
 CONTROLLER_GONE_WORDS = "The robot is not held by vservo: if it moves, press the pendant's e-stop. A new controller is starting."
 
+
+def _banner_explained(kind: Kind, title: str, last: RunOutcome) -> Banner:
+    """A run's end as the catalogue explains it: what happened, what to do (the engineer's reason is in the Engineering fold)."""
+    assert last.end is not None
+    explanation = explain(last.end)
+    return Banner(kind, title, explanation.action.value, explanation.sentence)
+
+
 # The banner of each phase but servoing and done: kind, title ({job}: the job's name) and what to do next.
 PHASE_BANNERS = {
     Phase.IDLE: (Kind.READY, "READY", "Choose a job, present a part and press Start; or teach a new job."),
+    Phase.MANUAL: (Kind.BUSY, "MANUAL", "Move the arm in the Teach tab (Move the arm); press Leave manual mode when done."),
     Phase.TEACHING: (Kind.BUSY, "TEACHING", "Follow the steps in the Teach tab, then Save the job."),
     Phase.COMMISSIONING: (Kind.BUSY, "COMMISSIONING", "The robot shows the camera the board: keep clear of the cell."),
     Phase.PICKING: (Kind.BUSY, "RUNNING job {job}: picking the part", "The robot moves: keep clear."),
@@ -112,6 +126,8 @@ def _banner_done(state: ControllerState, job: str) -> Banner:
     last = state.last_outcome
     outcome = None if last is None else last.outcome
     reason = (last.reason if last is not None else "") or state.detail
+    if outcome in (Outcome.FAULT, Outcome.ESTOPPED) and last is not None and last.end is not None:
+        return _banner_explained(OUTCOME_KINDS[outcome], f"{outcome.value.upper()}: job {job}", last)
     if outcome == Outcome.MISSED:
         return Banner(Kind.MISSED, f"MISSED: job {job}", "Take the part out of the metal part, then press Reset.", reason)
     if outcome in (Outcome.FAULT, Outcome.ESTOPPED):

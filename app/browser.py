@@ -92,12 +92,15 @@ class ServeProcess:
         token: str,
         *,
         cycle_period_s: float = 0.02,
+        time_scale: float | None = 0.0,
         seed: int = 3,
         timeout_s: float = 120.0,
         cell: str | None = None,
         python_options: tuple[str, ...] = (),
     ) -> ServeProcess:
-        """``python_options``: the interpreter's own (``-X importtime``: its imports on standard error)."""
+        """``python_options``: the interpreter's own (``-X importtime``: its imports on standard error);
+        ``time_scale``: the simulated cell's pace (0, as tests run it: as fast as it computes; None:
+        the shipped default, the real cell's)."""
         stderr_path = Path(data) / "serve.stderr"
         Path(data).mkdir(parents=True, exist_ok=True)
         cell_option = ["--cell", cell] if cell else []
@@ -116,6 +119,7 @@ class ServeProcess:
             str(cycle_period_s),
             "--seed",
             str(seed),
+            *([] if time_scale is None else ["--time-scale", f"{time_scale:g}"]),
         ]
         environment = {**os.environ, TOKEN_ENVIRONMENT: token}  # not --token: ps would show it
         with open(stderr_path, "w") as stderr:

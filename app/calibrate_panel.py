@@ -35,6 +35,7 @@ from vservo.app.client_view import ClientView
 from vservo.app.context import AppContext
 from vservo.app.session import SessionView
 from vservo.core.production.protocol import ApplyCommissioning, Commission, Reply
+from vservo.core.production.protocol.catalogue import Refusal
 
 
 class CalibratePanel:
@@ -138,7 +139,8 @@ class CalibratePanel:
             return
         record = self.app.session.state.commissioning
         if record is None:
-            view.notify("Apply: refused", "nothing was commissioned", error=True)
+            nothing = Reply(False, kind=Refusal.NOT_COMMISSIONED)
+            view.say_refused("Apply", nothing.operator_words(), "nothing was commissioned")
             return
         with view.client.gui.add_modal("Apply the commissioning") as modal:
             view.client.gui.add_markdown(commission_text.apply_question(record))
@@ -149,7 +151,7 @@ class CalibratePanel:
             if reply.ok:
                 view.notify("Apply", f"the controller runs on {reply.result}")
             else:
-                view.notify("Apply: refused", reply.error or "no reason given", error=True)
+                view.report("Apply")(reply)
 
         def on_write(_: object) -> None:
             modal.close()

@@ -16,7 +16,7 @@ from vservo.core.cell.cli import add_info_command, add_password_hash_command
 from vservo.core.cell.config import ROBOT_BACKENDS, load_cell
 from vservo.core.errors import VservoError
 from vservo.core.perception.cli import add_detect_command
-from vservo.core.production.cli import BACKEND_HELP, add_production_commands
+from vservo.core.production.cli import BACKEND_HELP, TIME_SCALE_HELP, add_production_commands, time_scale
 from vservo.core.production.storage import default_data_dir
 from vservo.core.sim.cli import add_jrc_emulator_command, add_virtual_cell_command
 from vservo.core.study.cli import (
@@ -59,6 +59,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         seed=args.seed,
         token=token.value,
         cycle_period_s=args.cycle_period,
+        time_scale=args.time_scale,
         cell=args.cell,
         show_token=token.source is TokenSource.GENERATED,
         allowed_origins=origins,
@@ -147,6 +148,7 @@ def _add_serve_command(commands: argparse._SubParsersAction) -> None:
         metavar="S",
         help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)",
     )
+    serve.add_argument("--time-scale", type=time_scale, default=1.0, metavar="S", help=TIME_SCALE_HELP)
     add_log_options(serve)
     serve.set_defaults(run=_cmd_serve)
 

@@ -21,6 +21,7 @@ import viser
 from vservo.app.banner import Button
 from vservo.app.roles import RoleRefused, Roles
 from vservo.core.production.protocol import Reply
+from vservo.core.production.protocol.catalogue import refusal_kind
 
 
 class ClientView:
@@ -34,6 +35,7 @@ class ClientView:
         self.handles: dict[str, Any] = {}  # panels keep this browser's displays here by name
         self._buttons: dict[Button, tuple[Any, bool]] = {}  # button -> (handle, operator only)
         self._live: frozenset[Button] = frozenset()
+        self.on_detail: Callable[[str, str], None] | None = None  # a refusal's engineering line, for the Engineering fold
 
     def control(self, handle: Any) -> Any:
         """Register a control that only the operator may use; returns it. Button groups
@@ -112,14 +114,21 @@ class ClientView:
 
         def done(reply: Reply) -> None:
             if not reply.ok:
-                self.notify(f"{what}: refused", reply.error or "no reason given", error=True)
+                self.say_refused(what, reply.operator_words(), reply.error or "no reason given")
             elif success:
                 self.notify(what, success)
 
         return done
 
     def refused(self, what: str, exc: Exception) -> None:
-        self.notify(f"{what}: refused", str(exc), error=True)
+        """A refusal the app made itself (the role, a field out of range), explained as the controller's are."""
+        self.say_refused(what, Reply(False, kind=refusal_kind(exc), advice=getattr(exc, "advice", "")).operator_words(), str(exc))
+
+    def say_refused(self, what: str, words: str, detail: str) -> None:
+        """The catalogue's sentence and action in red; the engineer's line to the Engineering fold (``on_detail``)."""
+        self.notify(f"{what}: refused", words, error=True)
+        if self.on_detail is not None:
+            self.on_detail(what, detail)
 
 
 def _enable(handle: Any, enabled: bool) -> None:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 from vservo.app.roles import RoleRefused, Roles
 from vservo.core.production.protocol import ChannelError, Command, Estop, Query, Reply
+from vservo.core.production.protocol.catalogue import Refusal
 
 log = logging.getLogger("vservo.app")
 
@@ -80,7 +81,8 @@ class CommandQueue:
         while (request := self._requests.get()) is not None:
             if not isinstance(request.command, Query) and not self.roles.is_operator(request.client_id):
                 # Control changed hands while this waited in the queue: the new operator did not ask for it.
-                request.done(Reply(False, error=f"{request.what}: control was released before it was sent"))
+                released = f"{request.what}: control was released before it was sent"
+                request.done(Reply(False, error=released, kind=Refusal.CONTROL))
                 continue
             self._send(request)
 
@@ -88,7 +90,7 @@ class CommandQueue:
         try:
             reply = self._call(request.command, self.timeout_s)
         except ChannelError as exc:
-            reply = Reply(False, error=f"{request.what}: {exc}")
+            reply = Reply(False, error=f"{request.what}: {exc}", kind=Refusal.CHANNEL)
         try:
             request.done(reply)
         except Exception:  # a browser that left meanwhile must not stop the worker

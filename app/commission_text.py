@@ -30,6 +30,9 @@ STEP_WORDS = {
 }
 
 
+SKIPPED = "out of the arm's reach, skipped"  # a viewpoint commissioning passes over: no failure
+
+
 def progress_markdown(record: CommissioningProgress | None, cell_file: str) -> str:
     """Which cell file the controller runs on, and how commissioning goes: a line per part of
     the procedure (views, or epochs, done of total and the last note)."""
@@ -56,10 +59,13 @@ def progress_markdown(record: CommissioningProgress | None, cell_file: str) -> s
     lines = [head, ""] if record.applied else [runs_on, head, ""]
     for name, line in record.progress.items():
         what = PROCEDURE.get(name, name)
+        # Once it ended, the step's verdict speaks: the last view's note (a viewpoint out of
+        # reach, skipped) would read as a failure of a step that is good.
+        last = "" if summary is not None else f" (last: {SKIPPED if line.note == 'unreachable' else line.note})"
         count = (
             f"epoch {line.done} of at most {line.total}, {line.note}"
             if name == "nn"
-            else f"{line.done} of {line.total} views (last: {line.note})"
+            else f"{line.done} of {line.total} views{last}"
         )
         lines.append(f"- {what}: {count}")
     return "\n".join(lines).strip()

@@ -29,6 +29,9 @@ class ServeOptions:
     seed: int | None = None
     token: str = ""
     cycle_period_s: float = 0.05
+    # The simulated cell's pace: S times the real cell's; None (the tests', the benches'): as fast
+    # as it computes. `vservo serve` gives its --time-scale, 1 by default.
+    time_scale: float | None = None
     cell: str | None = None
     show_token: bool = True  # print it when serving starts: only a generated one, which nobody else knows yet
     allowed_origins: tuple[str, ...] = ()  # web pages besides the app's own that may open its WebSocket

@@ -44,8 +44,10 @@ class ControllerProcess:
         seed: int | None,
         cycle_period_s: float,
         cell: str | None = None,
+        time_scale: float | None = None,
         log_options: Sequence[str] = (),
     ) -> ControllerProcess:
+        """The controller process; ``time_scale``: the simulated cell's pace (None: as fast as it computes)."""
         key = new_key()
         command = [
             sys.executable,
@@ -60,6 +62,8 @@ class ControllerProcess:
             str(data),
             "--cycle-period",
             str(cycle_period_s),
+            "--time-scale",
+            str(time_scale or 0.0),
             *(["--seed", str(seed)] if seed is not None else []),
             *log_options,
         ]

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vservo.core.errors import VservoError
+from vservo.core.production.protocol.catalogue import Refusal
 
 log = logging.getLogger("vservo.app.roles")
 
@@ -42,6 +43,8 @@ FAILURE_WINDOW_S = 60.0
 
 class RoleRefused(VservoError, PermissionError):
     """A browser asked for something only the operator may do; the message says what to do."""
+
+    kind = Refusal.CONTROL  # as the page explains it (protocol/catalogue.py)
 
 
 def new_token() -> str:

@@ -247,6 +247,7 @@ class OperatorApp:
 
     def _on_connect(self, client: viser.ClientHandle) -> None:
         view = ClientView(client)
+        view.on_detail = self.assemble.show_refusal
         with self._building:  # viser allows one `with tab:` at a time, and browsers connect in parallel
             self._add_control_box(view)
             for panel in self.panels:
@@ -488,6 +489,7 @@ def _start_controller(options: ServeOptions) -> ControllerProcess:
         data=options.data,
         seed=options.seed,
         cycle_period_s=options.cycle_period_s,
+        time_scale=options.time_scale,
         cell=options.cell,
         log_options=options.log_options,
     )

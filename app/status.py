@@ -16,9 +16,11 @@ from vservo.app.banner import CONTROLLER_GONE_WORDS, stage_words
 from vservo.app.session import RunTrace
 from vservo.core.geometry.spatial import pose_from_matrix, pose_to_mm_deg
 from vservo.core.production.protocol import ControllerState, Outcome, Phase, RunEntry, RunOutcome
+from vservo.core.production.protocol.catalogue import explain
 
 PHASE_WORDS = {
     Phase.IDLE: "Idle",
+    Phase.MANUAL: "Manual",
     Phase.TEACHING: "Teaching",
     Phase.COMMISSIONING: "Commissioning",
     Phase.SERVOING: "Servoing",
@@ -62,7 +64,15 @@ def status_markdown(state: ControllerState, operator_present: bool, controller_g
     robot = f"{state.robot} on {state.backend}".strip()
     # Until the controller has read the robot (its first command) the pose is unknown: never a made-up one.
     flange = flange_text(state.bMe) if state.q.size else "flange pose not known yet"
-    return f"{' · '.join(parts)}  \n{state.detail}  \n<small>{robot} · {flange} · {control}</small>"
+    return f"{' · '.join(parts)}  \n{_plain_detail(state)}  \n<small>{robot} · {flange} · {control}</small>"
+
+
+def _plain_detail(state: ControllerState) -> str:
+    """The controller's line, but a faulted run's in the catalogue's words (its own is the Engineering fold's)."""
+    last = state.last_outcome
+    if state.phase is Phase.FAULT and last is not None and last.outcome is Outcome.FAULT and last.end is not None:
+        return explain(last.end).sentence
+    return state.detail
 
 
 # The laws' equations per stage (section 4.4; docs/thesis-notes.md), for the engineering fold.
@@ -77,26 +87,38 @@ STAGE_EQUATIONS = {
 
 
 def engineering_markdown(state: ControllerState) -> str:
-    """The servo's own terms: stage code and its equations, cycle, ||f_id - f|| and the twist cVc."""
+    """The servo's own terms: stage code and its equations, cycle, ||f_id - f|| and the twist cVc;
+    the controller's own line and the last run's reason as it wrote them (the banner explains them)."""
     run = state.run
+    lines = [f"Controller: {state.detail or '-'}"]
+    if state.last_outcome is not None:
+        end = f" ({state.last_outcome.end.value})" if state.last_outcome.end is not None else ""
+        lines.append(f"Last run's end{end}: {state.last_outcome.reason}")
     if not run.stage:
-        return "No servo stage under way."
+        return "  \n".join(["No servo stage under way.", *lines])
     twist = ", ".join(_number(v, 4) for v in run.cVc)
-    return (
-        f"stage `{run.stage}` ({STAGE_EQUATIONS.get(str(run.stage), 'no equation on record')}) · cycle "
-        f"{run.iteration} · ||f_id - f|| = {_number(run.error_px, 2, ' px')}  \n"
-        f"cVc = [{twist}] (m/s, rad/s)"
+    return "  \n".join(
+        [
+            f"stage `{run.stage}` ({STAGE_EQUATIONS.get(str(run.stage), 'no equation on record')}) · cycle "
+            f"{run.iteration} · ||f_id - f|| = {_number(run.error_px, 2, ' px')}",
+            f"cVc = [{twist}] (m/s, rad/s)",
+            *lines,
+        ]
     )
 
 
-def flange_text(bMe: object) -> str:
-    """The flange pose as the robot's pendant shows it: X Y Z in mm, phi theta psi in deg (eq. 2-13).
-
-    Angles in [-90, 270): a tool pointing down has an angle of 180 deg, which in (-180, 180]
-    would flip between 179.99 and -179.99 at every tremor."""
-    pose = np.array(pose_to_mm_deg(pose_from_matrix(np.asarray(bMe, float))), float)
+def pendant_pose(bMx: object) -> np.ndarray:
+    """A pose as the robot's pendant shows it: X Y Z in mm, phi theta psi in deg (eq. 2-13),
+    rounded to 2 decimals. Angles in [-90, 270): a tool pointing down has an angle of 180 deg,
+    which in (-180, 180] would flip between 179.99 and -179.99 at every tremor."""
+    pose = np.array(pose_to_mm_deg(pose_from_matrix(np.asarray(bMx, float))), float)
     pose[3:] = (pose[3:] + 90.0) % 360.0 - 90.0
-    x, y, z, phi, theta, psi = np.round(pose, 2) + 0.0  # no "-0.00"
+    return np.round(pose, 2) + 0.0  # no "-0.00"
+
+
+def flange_text(bMe: object) -> str:
+    """The flange pose as the robot's pendant shows it (``pendant_pose``)."""
+    x, y, z, phi, theta, psi = pendant_pose(bMe)
     return f"flange X {x:.2f} Y {y:.2f} Z {z:.2f} mm, phi {phi:.2f} theta {theta:.2f} psi {psi:.2f} deg"
 
 

@@ -35,6 +35,7 @@ from vservo.app.context import AppContext
 from vservo.app.live_image import Overlay
 from vservo.app.scene3d import part_pose_from_corners
 from vservo.app.session import SessionView
+from vservo.app.status import pendant_pose
 from vservo.core.cell.kinematics import ToolMount
 from vservo.core.errors import VservoError
 from vservo.core.geometry.camera import CameraModel
@@ -43,9 +44,7 @@ from vservo.core.geometry.spatial import (
     inverse,
     matrix_from_pose,
     pose_error,
-    pose_from_matrix,
     pose_from_mm_deg,
-    pose_to_mm_deg,
     rot_x,
     rot_z,
     rotation_angle,
@@ -60,8 +59,13 @@ from vservo.core.production.protocol import (
     CentreCup,
     Command,
     ControllerState,
+    EnterManual,
+    GoHome,
+    GoSurvey,
     JobDetail,
     Jog,
+    LeaveManual,
+    MoveJoint,
     MoveTo,
     Phase,
     PresentPart,
@@ -88,7 +92,7 @@ from vservo.core.production.protocol.commands import (
     THRESHOLD_PX,
     Range,
 )
-from vservo.core.production.protocol.state import STANDING
+from vservo.core.production.protocol.state import HAND_MOVES, STANDING
 
 NEW_JOB = "(new job)"
 # Jog step: translation (m) and rotation (deg) per press.
@@ -142,8 +146,9 @@ def parse_pose_mm_deg(text: str) -> Matrix:
 
 
 def pose_words(bMx: Matrix) -> str:
-    """A pose as the move-to entry takes it: 'X Y Z phi theta psi' in mm and deg, 2 decimals."""
-    return " ".join(f"{v:.2f}" for v in np.round(pose_to_mm_deg(pose_from_matrix(bMx)), 2) + 0.0)
+    """A pose as the move-to entry takes it: 'X Y Z phi theta psi' in mm and deg, 2 decimals,
+    the angles as the status line shows them (pendant_pose)."""
+    return " ".join(f"{v:.2f}" for v in pendant_pose(bMx))
 
 
 def cup_on_part(bMo: Matrix, side_m: float = PART_SIDE_M) -> Matrix:
@@ -338,61 +343,101 @@ PRESENT = TeachButton(
     hint="A new part on the table, its top face's centre at X, Y, turned",
     icon=viser.Icon.BOX,
 )
-MOVE_THERE = TeachButton("Move there", standing, lambda form: MoveTo(form.typed_pose()), "arrived", icon=viser.Icon.ARROW_RIGHT)
+
+
+def hand_moves(state: ControllerState) -> bool:
+    """Jogs and typed moves act: while teaching, or in manual mode."""
+    return state.phase in HAND_MOVES
+
+
+MOVE_THERE = TeachButton("Move there", hand_moves, lambda form: MoveTo(form.typed_pose()), "arrived", icon=viser.Icon.ARROW_RIGHT)
+MOVE_JOINT = TeachButton(
+    "Move there (joint path)",
+    hand_moves,
+    lambda form: MoveJoint(form.typed_pose()),
+    "arrived",
+    hint="The same target on a joint-space path: where the straight line would take a joint past its limit",
+)
+HOME = TeachButton(
+    "Home", standing, lambda form: GoHome(), hint="The cell file's home pose, on a joint-space path", icon=viser.Icon.HOME
+)
+SURVEY = TeachButton(
+    "Survey",
+    standing,
+    lambda form: GoSurvey(),
+    hint="The camera over the table where parts are presented, on a joint-space path",
+    icon=viser.Icon.EYE,
+)
+MANUAL = TeachButton(
+    "Manual mode",
+    lambda state: state.phase in (Phase.IDLE, Phase.DONE),
+    lambda form: EnterManual(),
+    hint="Jog and Move there outside teaching, until Leave manual mode",
+)
+LEAVE_MANUAL = TeachButton("Leave manual mode", lambda state: state.phase is Phase.MANUAL, lambda form: LeaveManual())
+VIEW_PART = TeachButton(
+    "View the part",
+    teaching,
+    lambda form: ViewPart(),
+    "the part in view",
+    hint="By the image alone, right on any cell: the laser spot onto the part's centre, the part as large as "
+    "in the demo job's desired view",
+)
+CENTRE_CUP = TeachButton(
+    "Centre the cup on the part",
+    lambda state: teaching(state) and not state.holding_part,
+    lambda form: CentreCup(),
+    "cup centred on the part",
+    hint="From the desired view, by the camera and the vacuum sensor alone, right on any cell: the cup "
+    "over the part's centre, lowered until it grips, left pressed with the suction off",
+)
+CAPTURE_DESIRED = TeachButton(
+    "Capture desired image",
+    teaching,
+    lambda form: CaptureDesired(),
+    "desired image captured",
+    icon=viser.Icon.CAMERA,
+    teaches=TeachStep.DESIRED_IMAGE,
+)
+SUCTION_ON = TeachButton("Suction on", holding(False), lambda form: Suction(True))
+SUCTION_OFF = TeachButton("Suction off", holding(True), lambda form: Suction(False))
+TEST_PICK = TeachButton(
+    "Test pick",
+    holding(False),
+    lambda form: TestPick(),
+    hint="Suction on, lift 5 mm, report the grip, put the part back down and release",
+)
+SET_PICK = TeachButton(
+    "Set pick pose here",
+    taught(TeachStep.DESIRED_IMAGE),
+    lambda form: SetPickPose(),
+    "pick pose set",
+    teaches=TeachStep.PICK_POSE,
+)
+SET_PLACE = TeachButton(
+    "Set place pose here",
+    holding(True),
+    lambda form: SetPlacePose(),
+    "place pose set",
+    hint="The part on the cup, in the metal part",
+    teaches=TeachStep.PLACE_POSE,
+)
+CAPTURE_CHECK = TeachButton(
+    "Capture check view",
+    teaching,
+    lambda form: CaptureCheckView(),
+    "check view captured",
+    hint="The part placed in the metal part, the camera over it seeing its four corners",
+    icon=viser.Icon.CAMERA,
+    teaches=TeachStep.CHECK_VIEW,
+)
+SET_START = TeachButton(
+    "Set start pose here", teaching, lambda form: SetStartPose(), "start pose set", teaches=TeachStep.START_POSE
+)
 # The steps' folders, in the operator's order: the title, its place on the page, its buttons.
 STEP_FOLDERS: tuple[tuple[str, int, tuple[TeachButton, ...]], ...] = (
-    (
-        "2. Desired view",
-        7,
-        (
-            _go_to_template("desired view", lambda job: job.taught_bMe),
-            TeachButton(
-                "View the part",
-                teaching,
-                lambda form: ViewPart(),
-                "the part in view",
-                hint="By the image alone, right on any cell: the laser spot onto the part's centre, the part as large as "
-                "in the demo job's desired view",
-            ),
-            TeachButton(
-                "Capture desired image",
-                teaching,
-                lambda form: CaptureDesired(),
-                "desired image captured",
-                icon=viser.Icon.CAMERA,
-                teaches=TeachStep.DESIRED_IMAGE,
-            ),
-        ),
-    ),
-    (
-        "3. Pick",
-        8,
-        (
-            TeachButton(
-                "Centre the cup on the part",
-                lambda state: teaching(state) and not state.holding_part,
-                lambda form: CentreCup(),
-                "cup centred on the part",
-                hint="From the desired view, by the camera and the vacuum sensor alone, right on any cell: the cup "
-                "over the part's centre, lowered until it grips, left pressed with the suction off",
-            ),
-            TeachButton("Suction on", holding(False), lambda form: Suction(True)),
-            TeachButton("Suction off", holding(True), lambda form: Suction(False)),
-            TeachButton(
-                "Test pick",
-                holding(False),
-                lambda form: TestPick(),
-                hint="Suction on, lift 5 mm, report the grip, put the part back down and release",
-            ),
-            TeachButton(
-                "Set pick pose here",
-                taught(TeachStep.DESIRED_IMAGE),
-                lambda form: SetPickPose(),
-                "pick pose set",
-                teaches=TeachStep.PICK_POSE,
-            ),
-        ),
-    ),
+    ("2. Desired view", 7, (_go_to_template("desired view", lambda job: job.taught_bMe), VIEW_PART, CAPTURE_DESIRED)),
+    ("3. Pick", 8, (CENTRE_CUP, SUCTION_ON, SUCTION_OFF, TEST_PICK, SET_PICK)),
     (
         "4. Place",
         9,
@@ -405,14 +450,7 @@ STEP_FOLDERS: tuple[tuple[str, int, tuple[TeachButton, ...]], ...] = (
                 hint="The carried part 30 mm over where it sits in the metal part's pocket",
             ),
             _go_to_template("place pose", lambda job: job.bMe_place),
-            TeachButton(
-                "Set place pose here",
-                holding(True),
-                lambda form: SetPlacePose(),
-                "place pose set",
-                hint="The part on the cup, in the metal part",
-                teaches=TeachStep.PLACE_POSE,
-            ),
+            SET_PLACE,
         ),
     ),
     (
@@ -427,15 +465,7 @@ STEP_FOLDERS: tuple[tuple[str, int, tuple[TeachButton, ...]], ...] = (
                 hint="The camera over the part where the taught place sets it down, as over the part of the desired view",
             ),
             _go_to_template("check view", lambda job: job.check_bMe),
-            TeachButton(
-                "Capture check view",
-                teaching,
-                lambda form: CaptureCheckView(),
-                "check view captured",
-                hint="The part placed in the metal part, the camera over it seeing its four corners",
-                icon=viser.Icon.CAMERA,
-                teaches=TeachStep.CHECK_VIEW,
-            ),
+            CAPTURE_CHECK,
         ),
     ),
     (
@@ -450,9 +480,7 @@ STEP_FOLDERS: tuple[tuple[str, int, tuple[TeachButton, ...]], ...] = (
                 hint="Where the desired image was captured",
             ),
             _go_to_template("start pose", lambda job: job.start_bMe),
-            TeachButton(
-                "Set start pose here", teaching, lambda form: SetStartPose(), "start pose set", teaches=TeachStep.START_POSE
-            ),
+            SET_START,
         ),
     ),
 )
@@ -475,13 +503,26 @@ CANCEL = TeachButton("Cancel teaching", teaching, lambda form: CancelTeach(), "t
 
 
 def next_button(state: ControllerState) -> str:
-    """The button of the operator's next step: the first whose step is not taught yet."""
+    """The button of the operator's next step, from what the draft has and what the cell
+    says now: a test pick until one held, then the pick; with the part on the cup, the place,
+    then Suction off before anything else; the check view, the start pose, Save."""
     job = draft(state)
     if job is None:
         return BEGIN.label
-    untaught = {*job.missing, *job.optional_missing}
-    steps = (row for _, _, rows in STEP_FOLDERS for row in rows if row.teaches in untaught)
-    return next((row.label for row in steps), SAVE.label)
+    taught, holding_part = job.taught, state.holding_part
+    if TeachStep.DESIRED_IMAGE not in taught:
+        return CAPTURE_DESIRED.label
+    if TeachStep.PICK_POSE not in taught:
+        return SET_PICK.label if job.test_pick_held else TEST_PICK.label
+    if TeachStep.PLACE_POSE not in taught:
+        return SET_PLACE.label if holding_part else SUCTION_ON.label
+    if holding_part:
+        return SUCTION_OFF.label
+    if TeachStep.CHECK_VIEW not in taught:
+        return CAPTURE_CHECK.label
+    if TeachStep.START_POSE not in taught:
+        return SET_START.label
+    return SAVE.label
 
 
 def teach_checklist(state: ControllerState) -> str:
@@ -624,6 +665,8 @@ class TeachPanel:
         """Jog by steps, a typed pose to move to, the gizmo, hold to jog."""
         gui, c = view.client.gui, view.control
         with gui.add_folder("Move the arm", order=6):
+            for row in (HOME, SURVEY, MANUAL, LEAVE_MANUAL):
+                self._add_button(view, form, buttons, row)
             frame = c(gui.add_dropdown("Frame", ("base", "tool"), initial_value="base"))
             step = c(gui.add_dropdown("Step", tuple(STEPS), initial_value="1 mm / 1 deg"))
             move = c(gui.add_button_group("Move", TRANSLATIONS))
@@ -631,11 +674,12 @@ class TeachPanel:
             form.handles["tool"] = c(gui.add_dropdown("Move to: tool", TOOLS, initial_value="flange"))
             form.handles["target"] = c(gui.add_text("Pose X Y Z phi theta psi (mm, deg)", ""))
             self._add_button(view, form, buttons, MOVE_THERE)
+            self._add_button(view, form, buttons, MOVE_JOINT)
             gizmo = form.handles["gizmo"] = c(gui.add_checkbox("3D gizmo on the flange (moves on release)", False))
             with gui.add_folder("Hold to jog", expand_by_default=False):
                 speed = c(gui.add_dropdown("Speed", tuple(SPEEDS), initial_value=tuple(SPEEDS)[0]))
                 holds = {name: gui.add_button(f"Hold {name}", disabled=True) for name in (*TRANSLATIONS, *ROTATIONS)}
-        buttons.extend((handle, standing, False) for handle in holds.values())
+        buttons.extend((handle, hand_moves, False) for handle in holds.values())
 
         def on_jog(event: Any) -> None:
             translation, rotation = jog_step(event.target.value, step.value)

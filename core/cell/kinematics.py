@@ -48,7 +48,14 @@ class KinematicsError(VservoError):
 
 
 class UnreachableTarget(KinematicsError):
-    """No joint configuration within the limits puts the frame at the target pose."""
+    """No joint configuration within the limits puts the frame at the target pose.
+
+    ``best_q``: the joints of the IK's closest attempt (None when the target is beyond the
+    arm's reach and no attempt was made), which joints it left at their limits says."""
+
+    def __init__(self, message: str, best_q: Matrix | None = None) -> None:
+        super().__init__(message)
+        self.best_q = best_q
 
 
 @dataclass(frozen=True)
@@ -183,7 +190,8 @@ class ArmKinematics:
         raise UnreachableTarget(
             f"IK of {frame!r} did not converge from {restarts + 1} seeds: remaining error "
             f"{best.translation_error_m * 1e3:.1f} mm / {np.rad2deg(best.rotation_error_rad):.1f} deg"
-            + (f", {', '.join(at_limits)}" if at_limits else ", no joint at a limit (singular or out of the workspace)")
+            + (f", {', '.join(at_limits)}" if at_limits else ", no joint at a limit (singular or out of the workspace)"),
+            best.q.copy(),
         )
 
     @staticmethod

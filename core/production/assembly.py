@@ -45,12 +45,14 @@ from vservo.core.production.grasp import GraspChoice, ViewTurn, grasp_choice, tu
 from vservo.core.production.jobs import Job, TaughtModel
 from vservo.core.production.locate import LocateError, PartLocator
 from vservo.core.production.placement_check import CheckView, PlacementCheck, check_placement
+from vservo.core.production.protocol.catalogue import RunEnd
 from vservo.core.production.protocol.state import Outcome, Phase, RunOutcome
 from vservo.core.production.retarget import desired_view_for_part, start_pose_for_part
 from vservo.core.robot.backend import RobotBackend, RobotError
 from vservo.core.robot.gripper import VacuumGripper
 from vservo.core.robot.safety import SafetyLayer, SafetyRefusal
 from vservo.core.servo.joint_limits import JointLimitedSteps, JointLimitSettings
+from vservo.core.servo.laws.base import Failure
 from vservo.core.servo.loop import Cycle, LoopLimits, MeasurementSource, Perception, ServoOutcome, run_servo
 from vservo.core.servo.methods import LawSettings, build_law
 from vservo.core.servo.step_policy import StepPolicy, StreamedVelocity
@@ -95,6 +97,7 @@ class AssemblyOutcome:
     notes: tuple[str, ...] = ()  # what the operator should know of how the job was run (retargeting)
     cell_time_s: float | None = None  # the cell clock's time for the run (RobotBackend.cell_clock_s)
     cell_time_by_phase_s: dict[str, float] | None = None  # the same, split by CellTimePhase (the phases run)
+    end: RunEnd | None = None  # why, as the catalogue explains it to the operator (protocol/catalogue.py)
 
     def summary(self) -> dict:
         """The JSON object of ``vservo run --json``."""
@@ -125,6 +128,7 @@ class AssemblyOutcome:
             duration_s=round(self.duration_s, 3),
             iterations=self.iterations,
             notes=self.notes,
+            end=self.end,
             cell_time_s=_rounded(self.cell_time_s),
         )
 
@@ -352,8 +356,8 @@ class AssemblySequence:
                 seen = self._look_at_the_placed_part(self.job.check)
         except (RobotError, UnreachableTarget) as exc:
             if self.settings.estopped():
-                return self._end(Outcome.ESTOPPED, "e-stop pressed")
-            return self._end(Outcome.FAULT, f"robot: {exc}")
+                return self._end(Outcome.ESTOPPED, "e-stop pressed", RunEnd.ESTOPPED)
+            return self._end(Outcome.FAULT, f"robot: {exc}", RunEnd.ROBOT_FAULT)
         return self._verdict(seen)
 
     def _say(self, phase: Phase, detail: str) -> None:
@@ -371,6 +375,7 @@ class AssemblySequence:
                 Outcome.FAULT,
                 "the job locates its part and this cell has no network to locate it with: "
                 "commission the nn step (docs/commissioning.md)",
+                RunEnd.NO_NETWORK,
             )
         self.timer.enter(CellTimePhase.LOCATE)
         self._say(Phase.SERVOING, "surveying the table for the part")
@@ -382,14 +387,15 @@ class AssemblySequence:
         try:
             located = self.settings.locator.locate(survey.corners_px, robot.pose(), job.part_side_m)
         except LocateError as exc:
-            return self._end(Outcome.FAULT, f"locate: {exc}")
+            return self._end(Outcome.FAULT, f"locate: {exc}", RunEnd.LOCATE_FAILED)
         taught = job.taught_model or TaughtModel.of(self.model)
         where = f"part located at ({1000 * located.bMo[0, 3]:.1f}, {1000 * located.bMo[1, 3]:.1f}) mm"
         try:  # a goal out of reach would servo until stuck against a joint limit
             goal_bMe = desired_view_for_part(job, taught, located.bMo)
             robot.check_target(goal_bMe, speed_m_s, bMe_now=goal_bMe)
         except (SafetyRefusal, UnreachableTarget) as exc:
-            return self._end(Outcome.FAULT, f"{where}, out of the arm's reach: the servo's goal over it is refused ({exc})")
+            refused = f"{where}, out of the arm's reach: the servo's goal over it is refused ({exc})"
+            return self._end(Outcome.FAULT, refused, RunEnd.GOAL_OUT_OF_REACH)
         self._say(Phase.SERVOING, where)
         return start_pose_for_part(job, taught, located.bMo)
 
@@ -426,6 +432,7 @@ class AssemblySequence:
             f"refused before moving on: the part{turned} cannot be picked at any of the taught view's turns its grasp "
             f"symmetry {job.grasp_symmetry} allows, the arm cannot reach them ({'; '.join(refusals)}): "
             "present the part nearer its taught place and turn",
+            RunEnd.GRASP_OUT_OF_REACH,
         )
 
     def _goal_refusal(self, features: ImageFeatures, quarter_turns: int) -> str | None:
@@ -528,9 +535,9 @@ class AssemblySequence:
         if self.servo.converged:
             return self.servo
         if self.settings.estopped():
-            return self._end(Outcome.ESTOPPED, "e-stop pressed")
-        failure = self.servo.failure.value if self.servo.failure else ""
-        return self._end(Outcome.FAULT, f"servo failed: {failure} ({self.servo.reason})")
+            return self._end(Outcome.ESTOPPED, "e-stop pressed", RunEnd.ESTOPPED)
+        failure = self.servo.failure or Failure.ROBOT_STOPPED  # a servo that neither converged nor said why was stopped
+        return self._end(Outcome.FAULT, f"servo failed: {failure.value} ({self.servo.reason})", RunEnd(failure.value))
 
     def _pick(self, servo: ServoOutcome) -> GraspChoice | AssemblyOutcome:
         """Down onto the part at the taught transform from the servo's end (turned about the
@@ -545,6 +552,7 @@ class AssemblySequence:
                 Outcome.FAULT,
                 f"refused before the pick, the arm cannot reach it: {'; '.join(refused)}: "
                 "present the part nearer its taught place and turn",
+                RunEnd.GRASP_OUT_OF_REACH,
             )
         self._say(Phase.PICKING, _grasp_detail(grasp, job.grasp_symmetry))
         self._move(lifted(grasp.bMe_pick, job.approach_m))
@@ -552,7 +560,7 @@ class AssemblySequence:
         self.gripper.set_vacuum(True)
         if not self.gripper.holding():
             self.gripper.set_vacuum(False)
-            return self._end(Outcome.FAULT, "the vacuum sensor reports no part on the cup after suction on")
+            return self._end(Outcome.FAULT, "the vacuum sensor reports no part on the cup after suction on", RunEnd.NO_GRIP)
         self._move(lifted(grasp.bMe_pick, job.approach_m))
         return grasp
 
@@ -584,31 +592,39 @@ class AssemblySequence:
                     Outcome.PLACED,
                     "part released in the metal part (no check view in this job, no placement gauge on this cell: "
                     "placement unknown)",
+                    RunEnd.PLACED,
                 )
             if gauge.inside:
-                return self._end(
-                    Outcome.PLACED, f"part in the metal part, {gauge.error_mm:.2f} mm off centre (gauge)", gauge=gauge
-                )
-            return self._end(Outcome.MISSED, f"part outside the pocket, {gauge.error_mm:.2f} mm off centre (gauge)", gauge=gauge)
+                inside = f"part in the metal part, {gauge.error_mm:.2f} mm off centre (gauge)"
+                return self._end(Outcome.PLACED, inside, RunEnd.PLACED, gauge=gauge)
+            outside = f"part outside the pocket, {gauge.error_mm:.2f} mm off centre (gauge)"
+            return self._end(Outcome.MISSED, outside, RunEnd.OUTSIDE_POCKET, gauge=gauge)
         if not seen.found:
-            return self._end(Outcome.MISSED, "part not found at the check pose", seen, gauge)
+            return self._end(Outcome.MISSED, "part not found at the check pose", RunEnd.NOT_FOUND_AT_CHECK, seen, gauge)
         tolerance = self.job.placement_tolerance_mm
         if seen.error_mm <= tolerance:
             return self._end(
                 Outcome.PLACED,
                 f"part seen {seen.error_mm:.2f} mm from its taught place (tolerance {tolerance:g} mm)",
+                RunEnd.PLACED,
                 seen,
                 gauge,
             )
         return self._end(
             Outcome.MISSED,
             f"part seen {seen.error_mm:.2f} mm from its taught place, beyond the {tolerance:g} mm tolerance",
+            RunEnd.BEYOND_TOLERANCE,
             seen,
             gauge,
         )
 
     def _end(
-        self, outcome: Outcome, reason: str, seen: PlacementCheck | None = None, gauge: PlacementReport | None = None
+        self,
+        outcome: Outcome,
+        reason: str,
+        end: RunEnd,
+        seen: PlacementCheck | None = None,
+        gauge: PlacementReport | None = None,
     ) -> AssemblyOutcome:
         """The run's outcome, said once; a fault or an e-stop first holds the robot."""
         if outcome in (Outcome.FAULT, Outcome.ESTOPPED):
@@ -630,4 +646,5 @@ class AssemblySequence:
             iterations=servo.iterations if servo else 0,
             gauge_placement_error_mm=gauge.error_mm if gauge else None,
             gauge_inside=gauge.inside if gauge else None,
+            end=end,
         )

@@ -33,6 +33,7 @@ from vservo.core.production.assembly import (
 from vservo.core.production.controller_state import EStopLatch, FrameView, Publisher
 from vservo.core.production.jobs import Job, JobError
 from vservo.core.production.protocol import CommandRefused, RunFigures
+from vservo.core.production.protocol.catalogue import Refusal, RunEnd
 from vservo.core.production.retarget import retarget, retarget_note, transfer_refusal
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store, StoreError
@@ -54,10 +55,10 @@ def retargeted_job(store: Store, config: CellConfig, job_name: str) -> tuple[Job
         stored = store.load_job(job_name)
         job = retarget(stored, model)
     except JobError as exc:
-        raise CommandRefused(str(exc)) from exc
+        raise CommandRefused(str(exc), Refusal.JOB_PROBLEM) from exc
     refusal = transfer_refusal(stored, config.model_measured)
     if refusal is not None:
-        raise CommandRefused(refusal)
+        raise CommandRefused(refusal, Refusal.CELL_NOT_COMMISSIONED)
     note = retarget_note(stored, model)
     if note:
         log.info("job %r: %s", job.name, note)
@@ -108,7 +109,7 @@ class AssemblyRun:
         self._last_cycle_at = time.monotonic()
         outcome = self._assemble()
         if outcome.outcome is Outcome.ESTOPPED:
-            outcome = replace(outcome, reason=self.estop.reason)
+            outcome = replace(outcome, reason=self.estop.reason, end=RunEnd.ESTOPPED)
         if self.note:
             outcome = replace(outcome, notes=(*outcome.notes, self.note))
         outcome = self._stored(self._recording_closed(outcome))
@@ -143,12 +144,12 @@ class AssemblyRun:
                 locator=self.rig.locator,
             )
         except CameraSourceError as exc:
-            return AssemblyOutcome(Outcome.FAULT, f"camera: {exc}{hold_after_fault(robot)}", float("nan"), None, 0.0, [], 0)
+            reason = f"camera: {exc}{hold_after_fault(robot)}"
+            return AssemblyOutcome(Outcome.FAULT, reason, float("nan"), None, 0.0, [], 0, end=RunEnd.CAMERA_LOST)
         except Exception as exc:  # a bug must still leave the robot held and the run on record
             log.exception("assembly run %d crashed", self.run_id)
-            return AssemblyOutcome(
-                Outcome.FAULT, f"internal error: {exc!r}{hold_after_fault(robot)}", float("nan"), None, 0.0, [], 0
-            )
+            reason = f"internal error: {exc!r}{hold_after_fault(robot)}"
+            return AssemblyOutcome(Outcome.FAULT, reason, float("nan"), None, 0.0, [], 0, end=RunEnd.INTERNAL_ERROR)
 
     def _on_event(self, event: AssemblyEvent) -> None:
         if isinstance(event, PhaseChange):

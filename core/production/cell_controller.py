@@ -6,6 +6,7 @@ is checked against the current phase, and a refused one raises CommandRefused wi
 reason, never moves the robot. The phases (vservo.core.production.assembly.Phase):
 
     idle --teach--> teaching --save/cancel--> idle   (teaching: jog, suction, test pick, present part)
+    idle --manual--> manual --leave--> idle          (manual: jog and typed moves, nothing else)
     idle --start--> servoing (stages) --> picking --> placing --> done | fault
     idle --commission--> commissioning --> idle | fault
     any  --estop--> e-stopped --reset--> idle
@@ -64,14 +65,17 @@ from vservo.core.production.commissioning_session import CommissioningSession, c
 from vservo.core.production.controller_state import EStopLatch, FrameView, TeachDraft
 from vservo.core.production.fixture import FixtureError
 from vservo.core.production.jobs import Job, JobError, TaughtModel
+from vservo.core.production.manual_moves import home_bMe, move_refused, survey_bMe
 from vservo.core.production.placement_check import CheckView
 from vservo.core.production.protocol import CommandRefused, ControllerState, Phase, RunFigures
+from vservo.core.production.protocol.catalogue import Refusal
 from vservo.core.production.protocol.commands import PART_SIDE_M
+from vservo.core.production.protocol.state import HAND_MOVES, STANDING
 from vservo.core.production.retarget import taught_part_on_table
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import Store, validate_part_id
 from vservo.core.production.teaching_session import TeachingSession
-from vservo.core.robot.backend import MotionStopped, RobotError, apply_increment
+from vservo.core.robot.backend import RobotError, apply_increment
 from vservo.core.robot.safety import SafetyLayer
 
 if TYPE_CHECKING:  # commissioning's calibration (torch, the board finder) is imported when a cell is commissioned
@@ -105,7 +109,7 @@ def _part_origin(centre_mm: Sequence[float], turn_deg: float) -> tuple[float, fl
     ``centre_mm`` turned ``turn_deg``."""
     values = [*np.asarray(centre_mm, float).ravel(), float(turn_deg)]
     if len(values) != 3 or not np.all(np.isfinite(values)):
-        raise CommandRefused(f"a part is presented at a finite X, Y (mm) and turn (deg), got {values}")
+        raise CommandRefused(f"a part is presented at a finite X, Y (mm) and turn (deg), got {values}", Refusal.OUT_OF_RANGE)
     turn = np.deg2rad(turn_deg)
     half = PART_SIDE_M / 2
     corner = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]]) @ [half, half]
@@ -243,7 +247,7 @@ class CellController:
         """
         with self._lock:
             if self.running:
-                raise CommandRefused(f"{self._work} owns the camera")
+                raise CommandRefused(f"{self._work} owns the camera", Refusal.BUSY)
             camera = self.rig.camera
             frame = camera.read_after(self.rig.robot.clock_s()) if fresh else camera.read()
         features, _ = self.rig.extractor.extract(frame.image)
@@ -263,19 +267,20 @@ class CellController:
         line's own client watches it, and a monitor closing must not stop the line."""
         return (self.running and not self._started_by_line) or self._jogging.is_set()
 
-    def _require(self, *phases: Phase) -> None:
+    def _require(self, *phases: Phase, kind: Refusal = Refusal.NOT_NOW) -> None:
+        """Refuse unless the cell is in one of ``phases`` (``kind``: how the refusal is explained)."""
         if self._estop.is_set():
-            raise CommandRefused("e-stop is active: reset it first")
+            raise CommandRefused("e-stop is active: reset it first", Refusal.ESTOP_ACTIVE)
         if self.running:
-            raise CommandRefused(f"{self._work} is under way")
+            raise CommandRefused(f"{self._work} is under way", Refusal.BUSY)
         if self._state.phase not in phases:
             allowed = " or ".join(p.value for p in phases)
-            raise CommandRefused(f"not possible while {self._state.phase.value} (only when {allowed})")
+            raise CommandRefused(f"not possible while {self._state.phase.value} (only when {allowed})", kind)
 
     def _enable_motion(self) -> None:
         status = self.rig.robot.status()
         if status.alarm:
-            raise CommandRefused(f"the robot is in alarm: {status.detail or 'reset the alarm on the JRC'}")
+            raise CommandRefused(f"the robot is in alarm: {status.detail or 'reset the alarm on the JRC'}", Refusal.ROBOT_ALARM)
         if not status.servo_on:
             self.rig.robot.servo(True)
 
@@ -285,17 +290,65 @@ class CellController:
         self._run_thread = _WorkThread(target, args, name)
         self._run_thread.start()
 
-    # -- jogging and the part fixture ---------------------------------------------------
+    # -- manual mode, jogging, Home and Survey, the part fixture --------------------------
+
+    def enter_manual(self) -> None:
+        """Manual mode: the operator moves the arm by hand (jogs, typed moves) until leaving it."""
+        with self._lock:
+            self._require(Phase.IDLE, Phase.DONE)  # after a fault the robot is held: Reset first
+            self.update(phase=Phase.MANUAL, detail="manual mode: jog or type a pose; Leave manual mode when done")
+
+    def leave_manual(self) -> None:
+        with self._lock:
+            self._require(Phase.MANUAL)
+            self.update(phase=Phase.IDLE, detail="manual mode left: ready")
+
+    def go_home(self) -> None:
+        """To the cell file's home joints on a joint-space path (manual_moves.py)."""
+        self._joint_move_to(home_bMe(self.rig.robot.arm, self.rig.config), "home")
+
+    def go_survey(self) -> None:
+        """The camera straight over the table where parts are presented (manual_moves.py)."""
+        target = survey_bMe(self.rig.config)
+        if target is None:
+            raise CommandRefused("the cell file has no [board]: no survey pose is known", Refusal.NOT_NOW)
+        self._joint_move_to(target, "the survey pose: the camera over the table")
+
+    def move_joint(self, bMe_target: Matrix) -> None:
+        """A typed target on a joint-space path, where the straight line cannot go (manual or teaching)."""
+        with self._lock:
+            self._require(*HAND_MOVES, kind=Refusal.NOT_MANUAL)
+            self._joint_move_to(bMe_target, "the target, on a joint path")
+
+    def _joint_move_to(self, bMe_target: Matrix, where: str) -> None:
+        with self._lock:
+            self._require(*STANDING)
+            speed_m_s = self.rig.config.motion.move_speed_m_s
+            self._move(lambda: self.rig.robot.move_joint(np.asarray(bMe_target, float), speed_m_s), bMe_target, speed_m_s)
+            self.update(detail=f"arrived at {where}", **self.robot_readout())
+
+    def _move(self, motion: Callable[[], None], bMe_target: Matrix, speed_m_s: float) -> None:
+        """Carry out a hand move (motion enabled, the channel told the robot moves); a refusal by kind."""
+        self._enable_motion()
+        self._jogging.set()
+        try:
+            motion()
+        except (RobotError, UnreachableTarget) as exc:
+            raise move_refused(self.rig.robot, exc, np.asarray(bMe_target, float), speed_m_s) from exc
+        finally:
+            self._jogging.clear()
 
     def jog(self, translation_m: Matrix, rotation_rad: Matrix | Sequence[float] = (0.0, 0.0, 0.0), frame: str = "base") -> None:
         """Move the flange by a small step: translation and rotation (rad) in the base or tool frame."""
         with self._lock:
-            self._require(Phase.IDLE, Phase.TEACHING, Phase.DONE, Phase.FAULT)
+            self._require(*HAND_MOVES, kind=Refusal.NOT_MANUAL)
             step = np.concatenate([np.asarray(translation_m, float), np.asarray(rotation_rad, float)])
             if step.shape != (6,) or not np.all(np.isfinite(step)):
-                raise CommandRefused(f"a jog takes 3 finite translations and 3 rotations, got {step.tolist()}")
+                raise CommandRefused(
+                    f"a jog takes 3 finite translations and 3 rotations, got {step.tolist()}", Refusal.OUT_OF_RANGE
+                )
             if frame not in ("base", "tool"):
-                raise CommandRefused(f"jog frame {frame!r}: choose base or tool")
+                raise CommandRefused(f"jog frame {frame!r}: choose base or tool", Refusal.OUT_OF_RANGE)
             bMe = self.rig.robot.read_pose()
             # In the base frame: translation added, rotation about the flange's own origin.
             increment = exp_twist(np.concatenate([np.zeros(3), step[3:]]))
@@ -304,19 +357,13 @@ class CellController:
             self.move_to(target)
 
     def move_to(self, bMe_target: Matrix) -> None:
-        """A linear move to a flange pose (the 3D gizmo, or a jog)."""
+        """A linear move to a flange pose (a typed pose, the 3D gizmo, or a jog), while teaching
+        or in manual mode; a target the line cannot reach is refused saying whether a joint
+        path can (manual_moves.py)."""
         with self._lock:
-            self._require(Phase.IDLE, Phase.TEACHING, Phase.DONE, Phase.FAULT)
-            self._enable_motion()
-            self._jogging.set()
-            try:
-                self.rig.robot.move_linear(np.asarray(bMe_target, float), JOG_SPEED_M_S)
-            except MotionStopped as exc:
-                raise CommandRefused(f"the move was stopped: {exc}") from exc
-            except (RobotError, UnreachableTarget) as exc:
-                raise CommandRefused(f"move refused: {exc}") from exc
-            finally:
-                self._jogging.clear()
+            self._require(*HAND_MOVES, kind=Refusal.NOT_MANUAL)
+            target = np.asarray(bMe_target, float)
+            self._move(lambda: self.rig.robot.move_linear(target, JOG_SPEED_M_S), target, JOG_SPEED_M_S)
             self.update(**self.robot_readout())
 
     def present_part(self, centre_mm: Sequence[float] | None = None, turn_deg: float = 0.0, job: str | None = None) -> None:
@@ -328,7 +375,7 @@ class CellController:
         near where the cell's feeder puts parts (the demo job's place). The cup lets go of a
         part it held."""
         with self._lock:
-            self._require(Phase.IDLE, Phase.TEACHING, Phase.DONE, Phase.FAULT)
+            self._require(*STANDING)
             if centre_mm is None and job is not None and self.rig.place_part is not None:
                 centre_mm, turn_deg = self._near_the_taught_part(job)
             try:
@@ -338,10 +385,12 @@ class CellController:
                     x, y = _part_origin(centre_mm, turn_deg)
                     self.rig.place_part(x, y, np.deg2rad(turn_deg))
                 else:
-                    raise CommandRefused("this cell has no part fixture: parts arrive by hand")
+                    raise CommandRefused("this cell has no part fixture: parts arrive by hand", Refusal.NO_FIXTURE)
             except (FixtureError, ValueError) as exc:
-                raise CommandRefused(str(exc)) from None
-            self.update(detail="a new part is on the table", **self.robot_readout())
+                raise CommandRefused(str(exc), Refusal.PART_PLACE) from None
+            # A finished run's verdict is about the part taken away: the cell is ready for this one.
+            phase = Phase.IDLE if self._state.phase is Phase.DONE else self._state.phase
+            self.update(phase=phase, detail="a new part is on the table", **self.robot_readout())
 
     def _near_the_taught_part(self, job_name: str) -> tuple[tuple[float, float], float]:
         """Where a part of ``job_name`` arrives: its taught place moved by a feeder's random
@@ -551,22 +600,22 @@ class CellController:
         """Clear an e-stop or a fault once the run has stopped: open again a device lost
         with the fault (the robot's port, the camera), release the hold, back to idle."""
         if self.running:
-            raise CommandRefused("the run is still stopping; try again")
+            raise CommandRefused("the run is still stopping; try again", Refusal.BUSY)
         with self._lock:
             if self._state.phase not in (Phase.ESTOPPED, Phase.FAULT, Phase.DONE):
-                raise CommandRefused(f"nothing to reset while {self._state.phase.value}")
+                raise CommandRefused(f"nothing to reset while {self._state.phase.value}", Refusal.NOT_NOW)
             try:
                 self.rig.reconnect()
             except RobotError as exc:
-                raise CommandRefused(f"reset failed: the robot link: {exc}") from exc
+                raise CommandRefused(f"reset failed: the robot link: {exc}", Refusal.RESET_FAILED) from exc
             except CameraSourceError as exc:
-                raise CommandRefused(f"reset failed: the camera: {exc}") from exc
+                raise CommandRefused(f"reset failed: the camera: {exc}", Refusal.RESET_FAILED) from exc
             try:
                 self.rig.robot.reset_emergency_stop()
                 self.rig.robot.reset_alarms()
                 self.rig.robot.hold(False)
             except RobotError as exc:
-                raise CommandRefused(f"reset failed: {exc}") from exc
+                raise CommandRefused(f"reset failed: {exc}", Refusal.RESET_FAILED) from exc
             self._estop.release()
             self.update(phase=Phase.IDLE, detail="reset: ready", **self.robot_readout())
 

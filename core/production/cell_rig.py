@@ -26,13 +26,14 @@ from vservo.core.robot.safety import SafetyLayer
 from vservo.core.servo.step_policy import PositionStepPolicy, step_policy_from_config
 
 
-def build_rig(config: CellConfig, seed: int | None = None, backend: str | None = None) -> Rig:
-    """The devices the cell file names. ``seed`` and ``backend`` (an override of [robot]
-    backend) apply to the simulated cell; a real cell has one robot, the JRC."""
+def build_rig(config: CellConfig, seed: int | None = None, backend: str | None = None, time_scale: float | None = None) -> Rig:
+    """The devices the cell file names. ``seed``, ``backend`` (an override of [robot]
+    backend) and ``time_scale`` (the simulated robot's pace: simulated_rig) apply to the
+    simulated cell; a real cell has one robot, the JRC, at its own pace."""
     if not config.real:
         from vservo.core.production.simulated_rig import simulated_rig
 
-        return simulated_rig(config, seed, backend)
+        return simulated_rig(config, seed, backend, time_scale=time_scale)
     if backend not in (None, config.robot_backend):
         raise ConfigError(
             f"{config.source}: a real cell (camera.source.kind = {config.camera_source.kind!r}) "

@@ -37,6 +37,7 @@ import numpy as np
 from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.production.cell_controller import CellController, FrameView
+from vservo.core.production.protocol.catalogue import Refusal, refusal_kind
 from vservo.core.production.protocol.client import (
     MAX_HELLO_BYTES,
     PROTOCOL_VERSION,
@@ -235,11 +236,12 @@ class ControllerServer:
         try:
             command = command_from(name, message.get("args", {}))
             return encode({**reply, "ok": True, "result": command.reply_value(command.carry_out(self.controller))})
-        except VservoError as exc:
-            return encode({**reply, "ok": False, "error": str(exc)})
+        except VservoError as exc:  # the kind (protocol/catalogue.py) is what the page explains
+            advice = getattr(exc, "advice", "")
+            return encode({**reply, "ok": False, "error": str(exc), "kind": refusal_kind(exc).value, "advice": advice})
         except Exception:
             log.exception("command %s: internal error", name)
-            return encode({**reply, "ok": False, "error": f"{name}: {INTERNAL_ERROR}"})
+            return encode({**reply, "ok": False, "error": f"{name}: {INTERNAL_ERROR}", "kind": Refusal.INTERNAL.value})
 
     def _push(self, subscriber: _Subscriber) -> None:
         while True:

@@ -86,7 +86,7 @@ def _cmd_controller(args: argparse.Namespace) -> int:
     config = load_cell(args.cell)
     store = Store.for_controller(args.data or default_data_dir(), config.recordings)
     controller = _controller_on(
-        build_rig(config, args.seed, args.backend), store, seed=args.seed or 0, cycle_period_s=args.cycle_period
+        build_rig(config, args.seed, args.backend, args.time_scale), store, seed=args.seed or 0, cycle_period_s=args.cycle_period
     )
     server = ControllerServer(controller, authkey, port=args.port)
     stop = threading.Event()
@@ -325,6 +325,23 @@ def _stop_when_orphaned(parent_pid: int, stop: threading.Event, period_s: float 
             stop.set()
 
 
+TIME_SCALE_HELP = (
+    "the simulated cell runs S times faster than the real cell (default 1: its pace, a run "
+    "watched as it happens; 0: as fast as this computer can)"
+)
+
+
+def time_scale(text: str) -> float | None:
+    """--time-scale: a non-negative number; 0 (as fast as the host can) is None."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a non-negative number (0: as fast as this computer can), got {text!r}")
+    return value or None
+
+
 def add_production_commands(commands: argparse._SubParsersAction) -> None:
     """Register ``vservo run`` and ``vservo controller`` on the top-level subcommands."""
     run = commands.add_parser("run", help="one headless assembly of a taught job on the cell of --cell (exit 0 when placed)")
@@ -363,6 +380,7 @@ def add_production_commands(commands: argparse._SubParsersAction) -> None:
         metavar="S",
         help="shortest servo cycle in s, so a simulated run can be watched (default 0.05)",
     )
+    controller.add_argument("--time-scale", type=time_scale, default=1.0, metavar="S", help=TIME_SCALE_HELP)
     controller.add_argument(
         "--exit-with-parent",
         action="store_true",

@@ -24,6 +24,7 @@ from vservo.core.production.assembly import hold_after_fault
 from vservo.core.production.controller_state import EStopLatch, FrameView, Publisher
 from vservo.core.production.locate import PartLocator
 from vservo.core.production.protocol import CommandRefused, CommissioningProgress, CommissionSummary, ControllerState, Phase
+from vservo.core.production.protocol.catalogue import Refusal
 from vservo.core.production.protocol.codec import from_json
 from vservo.core.production.protocol.state import ProcedureProgress
 from vservo.core.production.rig import Rig, extractor_for
@@ -48,7 +49,7 @@ DEVICES: dict[str, Callable[[CellConfig], object]] = {
 def _record(state: ControllerState) -> CommissioningProgress:
     """The state's commissioning (``begin`` publishes it before the commissioning's thread starts)."""
     if state.commissioning is None:
-        raise CommandRefused("nothing was commissioned in this session")
+        raise CommandRefused("nothing was commissioned in this session", Refusal.NOT_COMMISSIONED)
     return state.commissioning
 
 
@@ -133,12 +134,16 @@ class CommissioningSession:
         try:
             chosen = [Step(step) for step in steps]
         except ValueError:
-            raise CommandRefused(f"commissioning steps {list(steps)!r}: choose from {', '.join(Step)}") from None
+            raise CommandRefused(
+                f"commissioning steps {list(steps)!r}: choose from {', '.join(Step)}", Refusal.OUT_OF_RANGE
+            ) from None
         if not chosen:
-            raise CommandRefused("choose at least one step to commission")
+            raise CommandRefused("choose at least one step to commission", Refusal.OUT_OF_RANGE)
         out = Path(out_path) if out_path else commissioned_path(self.rig.config.source, self.data_folder)
         if out.exists():
-            raise CommandRefused(f"{out} exists: commissioning writes a new cell file, never over another")
+            raise CommandRefused(
+                f"{out} exists: commissioning writes a new cell file, never over another", Refusal.COMMISSION_SETUP
+            )
         folder = out.with_name(out.stem + "-commissioning")
         rig = replace(self.rig, camera=_ShownCamera(self.rig.camera, self.publisher.publish_frame))
         try:
@@ -146,7 +151,7 @@ class CommissioningSession:
                 rig, folder, settings or CommissionSettings(seed=self.seed), self._on_progress, self.estop.is_set
             )
         except ConfigError as exc:
-            raise CommandRefused(str(exc)) from exc
+            raise CommandRefused(str(exc), Refusal.COMMISSION_SETUP) from exc
         return CommissionPlan(commissioning, chosen, out, folder)
 
     def begin(self, plan: CommissionPlan) -> None:
@@ -213,10 +218,12 @@ class CommissioningSession:
 
         done = self._commissioned
         if done is None:
-            raise CommandRefused("nothing to apply: commission the cell first (a commissioning is applied once)")
+            raise CommandRefused(
+                "nothing to apply: commission the cell first (a commissioning is applied once)", Refusal.NOT_COMMISSIONED
+            )
         retakes = [f"{step}: {r.verdict.reason}" for step, r in done.result.steps.items() if not r.verdict.good]
         if retakes:
-            raise CommandRefused("a step says retake; commission it again: " + "; ".join(retakes))
+            raise CommandRefused("a step says retake; commission it again: " + "; ".join(retakes), Refusal.NOT_COMMISSIONED)
         running = self.rig.config
         try:
             tables, _ = read_cell_data(None if is_shipped_cell(running.source) else running.source)
@@ -231,11 +238,12 @@ class CommissioningSession:
             if changed:
                 raise CommandRefused(
                     f"{done.out_path} is written, but its {', '.join(changed)} differ from the "
-                    f"running cell's: restart the controller with --cell {done.out_path}"
+                    f"running cell's: restart the controller with --cell {done.out_path}",
+                    Refusal.COMMISSION_SETUP,
                 )
             locator = PartLocator.from_config(config)
         except (ConfigError, OSError) as exc:
-            raise CommandRefused(f"apply: {exc}") from exc
+            raise CommandRefused(f"apply: {exc}", Refusal.COMMISSION_SETUP) from exc
         self.rig.config, self.rig.extractor, self.rig.locator = config, extractor_for(config), locator
         self.publisher.update_with(
             lambda state: {

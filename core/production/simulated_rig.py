@@ -40,12 +40,18 @@ JRC_TIME_SCALE = 40.0
 
 
 def simulated_rig(
-    config: CellConfig, seed: int | None = None, backend: str | None = None, jrc_time_scale: float = JRC_TIME_SCALE
+    config: CellConfig,
+    seed: int | None = None,
+    backend: str | None = None,
+    jrc_time_scale: float = JRC_TIME_SCALE,
+    time_scale: float | None = None,
 ) -> Rig:
     """The simulated cell's devices; ``backend`` (default: the cell file's [robot]
     backend) "sim" drives the simulator directly, "jrc" through the JRC link and an
     emulated JRC on a pseudo-terminal (or, for [jrc] transport = "ethernet", as an
-    Ethernet server on a loopback TCP port)."""
+    Ethernet server on a loopback TCP port). ``time_scale``: the "sim" robot's moves take
+    their cell time divided by it on the wall clock (1: the real cell's pace; None: as
+    fast as the host computes them)."""
     backend = backend or config.robot_backend
     if backend not in ROBOT_BACKENDS:
         raise ValueError(f"robot backend {backend!r}: choose one of {', '.join(ROBOT_BACKENDS)}")
@@ -63,7 +69,7 @@ def simulated_rig(
     if backend == "sim":
         if vacuum.device == "jrc_io":
             raise ValueError(f"{config.source}: vacuum.device = 'jrc_io' needs the JRC: use the jrc backend")
-        robot = SafetyLayer.from_config(SimulatedBackend(cell), config)
+        robot = SafetyLayer.from_config(SimulatedBackend(cell, time_scale), config)
     else:
         if not isinstance(policy, PositionStepPolicy):
             raise ValueError(f'{config.source}: the JRC takes position steps; set [motion] mode = "position_steps"')

@@ -27,6 +27,7 @@ from vservo.core.production.part_view import ViewError, ViewMotions, view_part
 from vservo.core.production.placement_check import CheckView
 from vservo.core.production.pocket import PocketFit, flange_in_pocket, part_on_flange, pocket_fit
 from vservo.core.production.protocol import CommandRefused, Phase, Teaching
+from vservo.core.production.protocol.catalogue import Refusal
 from vservo.core.production.protocol.commands import PART_SIDE_M
 from vservo.core.production.rig import Rig
 from vservo.core.production.storage import DEMO_JOB, Store
@@ -55,13 +56,14 @@ class TeachingSession:
     def __init__(self, rig: Rig, store: Store, publisher: Publisher) -> None:
         self.rig, self.store, self.publisher = rig, store, publisher
         self._draft: TeachDraft | None = None
+        self._test_pick_held: bool | None = None  # the last test pick's grip, for the Teach tab's next step
         self._desired_image: np.ndarray | None = None
         self._check_image: np.ndarray | None = None
 
     @property
     def draft(self) -> TeachDraft:
         if self._draft is None:  # the controller's guard lets teach commands through only while teaching
-            raise CommandRefused("nothing is being taught: Teach first")
+            raise CommandRefused("nothing is being taught: Teach first", Refusal.NOT_NOW)
         return self._draft
 
     def begin(self, template: str | None) -> None:
@@ -84,6 +86,7 @@ class TeachingSession:
             )
         self._draft = draft
         self._check_image = None
+        self._test_pick_held = None
         # The job shown is the template taught from; a new job has none until it is saved.
         self.publisher.update(
             phase=Phase.TEACHING, detail="jog to the desired view and capture it", job=template or None, teaching=self._teaching()
@@ -131,10 +134,13 @@ class TeachingSession:
         draft, pocket = self.draft, self.rig.config.metal_part
         eMo = self._part_held(draft)
         if pocket is None or eMo is None or draft.seen_bMo is None:
-            return Teaching(draft.taught, view_bMe=draft.taught_bMe, model_measured=self.rig.config.model_measured)
+            return Teaching(
+                draft.taught, self._test_pick_held, view_bMe=draft.taught_bMe, model_measured=self.rig.config.model_measured
+            )
         fit = self._pocket_fit()
         return Teaching(
             draft.taught,
+            self._test_pick_held,
             view_bMe=draft.taught_bMe,
             pocket_bMe=flange_in_pocket(eMo, pocket, PART_SIDE_M, draft.seen_bMo),
             place_bMo=None if fit is None else fit.bMo,
@@ -165,7 +171,7 @@ class TeachingSession:
         try:
             desired = desired_from_features(features, self.rig.config.nominal.camera, part_side_m)
         except TeachError as exc:
-            raise CommandRefused(str(exc)) from exc
+            raise CommandRefused(str(exc), Refusal.PART_NOT_SEEN) from exc
         self._desired_image = frame.image
         taught_bMe = self.rig.robot.read_pose()
         self._set_draft(
@@ -183,7 +189,9 @@ class TeachingSession:
         here and the part's displacement from these corners is its placement error."""
         if not features.all_corners_visible:
             raise CommandRefused(
-                "the check view must show the part's four top-face corners: put the part in the metal part and the camera over it"
+                "the check view must show the part's four top-face corners: "
+                "put the part in the metal part and the camera over it",
+                Refusal.PART_NOT_SEEN,
             )
         check = CheckView(check_bMe=self.rig.robot.read_pose(), corners_px=features.corners_px)
         self._check_image = frame.image
@@ -229,7 +237,7 @@ class TeachingSession:
         """The cup is on the part now: store the motion from the desired view to here."""
         taught_bMe = self.draft.taught_bMe
         if taught_bMe is None:
-            raise CommandRefused("capture the desired image first: the pick is taught relative to it")
+            raise CommandRefused("capture the desired image first: the pick is taught relative to it", Refusal.NOT_TAUGHT_YET)
         self._set_draft("pick pose set here", eMe_pick=np.linalg.inv(taught_bMe) @ self.rig.robot.read_pose())
 
     def set_place_pose(self) -> None:
@@ -238,7 +246,8 @@ class TeachingSession:
         if not self._holding():
             raise CommandRefused(
                 "the place pose is taught with the part on the cup, and the vacuum sensor "
-                "reports none: at the pick, Suction on, then carry the part into the metal part"
+                "reports none: at the pick, Suction on, then carry the part into the metal part",
+                Refusal.CUP_EMPTY,
             )
         self._draft = replace(self.draft, bMe_place=self.rig.robot.read_pose())
         self._set_draft(f"place pose set here{self._place_words()}")
@@ -247,14 +256,14 @@ class TeachingSession:
         try:
             return self.rig.gripper.holding()
         except RobotError as exc:
-            raise CommandRefused(f"the vacuum sensor cannot be read: {exc}") from exc
+            raise CommandRefused(f"the vacuum sensor cannot be read: {exc}", Refusal.VACUUM_FAULT) from exc
 
     def suction(self, on: bool) -> bool:
         """Switch the cup's suction; whether the vacuum sensor then reports a part."""
         try:
             self.rig.gripper.set_vacuum(on)
         except RobotError as exc:
-            raise CommandRefused(f"suction {'on' if on else 'off'}: {exc}") from exc
+            raise CommandRefused(f"suction {'on' if on else 'off'}: {exc}", Refusal.VACUUM_FAULT) from exc
         holding = self._holding()
         sensor = "a part on the cup" if holding else "no part on the cup"
         self.publisher.update(
@@ -309,9 +318,10 @@ class TeachingSession:
     def test_pick(self, move_to: Callable[[Matrix], None]) -> bool:
         """Try the pick here, the way a run will: suction on, lift TEST_PICK_LIFT_M by
         ``move_to``, read the vacuum sensor, put the part back down where it was and
-        release it. Whether it held."""
+        release it. True when it held; a grip that failed is refused (NO_GRIP, GRIP_WEAK)
+        once the state says so, and the Teach tab offers the test pick again."""
         if self._holding():
-            raise CommandRefused("the cup holds a part already: Suction off first")
+            raise CommandRefused("the cup holds a part already: Suction off first", Refusal.CUP_HOLDS_PART)
         bMe = self.rig.robot.read_pose()
         lifted = bMe.copy()
         lifted[2, 3] += TEST_PICK_LIFT_M
@@ -333,7 +343,10 @@ class TeachingSession:
             else "test pick: no grip: the vacuum sensor reports no part after suction on "
             "(put the cup on the middle of the part's top face, pressed a few mm)"
         )
-        self.publisher.update(detail=detail, **self.publisher.robot_readout())
+        self._test_pick_held = held
+        self.publisher.update(detail=detail, teaching=self._teaching(), **self.publisher.robot_readout())
+        if not held:
+            raise CommandRefused(detail, Refusal.GRIP_WEAK if gripped else Refusal.NO_GRIP)
         return held
 
     def set_settings(self, threshold_px: float, gain: float, approach_m: float, placement_tolerance_mm: float | None) -> None:
@@ -346,7 +359,7 @@ class TeachingSession:
             ("placement_tolerance_mm", tolerance),
         ):
             if not (np.isfinite(value) and value > 0):
-                raise CommandRefused(f"{name} must be a positive number, got {value!r}")
+                raise CommandRefused(f"{name} must be a positive number, got {value!r}", Refusal.OUT_OF_RANGE)
         self._set_draft(
             "settings changed", threshold_px=threshold_px, gain=gain, approach_m=approach_m, placement_tolerance_mm=tolerance
         )
@@ -355,7 +368,9 @@ class TeachingSession:
         """Store the draft as job ``name``; the draft ends."""
         draft = self.draft
         if draft.missing:
-            raise CommandRefused(f"cannot save yet: teach {', '.join(step.value for step in draft.missing)}")
+            raise CommandRefused(
+                f"cannot save yet: teach {', '.join(step.value for step in draft.missing)}", Refusal.NOT_TAUGHT_YET
+            )
         assert draft.desired is not None and draft.taught_bMe is not None  # missing checked them
         assert draft.start_bMe is not None and draft.eMe_pick is not None and draft.bMe_place is not None
         try:
@@ -376,7 +391,7 @@ class TeachingSession:
                 taught_model=draft.taught_model,
             )
         except JobError as exc:
-            raise CommandRefused(str(exc)) from exc
+            raise CommandRefused(str(exc), Refusal.JOB_PROBLEM) from exc
         self.store.save_job(job, self._desired_image, self._check_image if draft.check is not None else None)
         self._draft = None
         self.publisher.update(phase=Phase.IDLE, detail=f"job {name!r} saved", job=name, teaching=None)

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import threading
+import time
+from collections.abc import Callable
+
 import numpy as np
 
 from vservo.core.geometry.spatial import Matrix
@@ -10,21 +14,50 @@ from vservo.core.robot.commands import PositionCommand
 from vservo.core.sim.plant import SimulatedCell
 
 
+class CellPace:
+    """Keeps the wall clock in step with a simulated cell's clock, so a run takes on screen
+    the time it takes on the cell (``time_scale`` times less): each call that advances the
+    cell's clock returns once the wall clock has caught up with it. The host's own work
+    during the call counts toward it; a hold (``wake``) ends the wait at once."""
+
+    def __init__(self, clock_s: Callable[[], float], time_scale: float) -> None:
+        if not (np.isfinite(time_scale) and time_scale > 0):
+            raise ValueError(f"the time scale must be a positive number, got {time_scale!r}")
+        self.clock_s, self.time_scale = clock_s, time_scale
+        self._woken = threading.Event()
+
+    def keep(self, advance: Callable[[], object]) -> None:
+        """Call ``advance`` (a move, a dwell), then wait until the wall clock has followed the cell's."""
+        wall_s, cell_s = time.monotonic(), self.clock_s()
+        self._woken.clear()
+        try:
+            advance()
+        finally:
+            due_s = wall_s + (self.clock_s() - cell_s) / self.time_scale
+            self._woken.wait(max(0.0, due_s - time.monotonic()))
+
+    def wake(self) -> None:
+        self._woken.set()
+
+
 class SimulatedBackend:
     """The kinematic simulator as a robot: moves complete at once, in simulated time.
 
     The plant (SimulatedCell) executes each move through the JRC's nominal IK and
     advances its clock by the move's duration at the commanded speed; a move the IK
-    cannot reach raises UnreachableTarget and leaves the arm where it was.
+    cannot reach raises UnreachableTarget and leaves the arm where it was. With a
+    ``pace`` (CellPace) each move and dwell returns once the wall clock has followed the
+    plant's: a run is watched at the real cell's pace.
     """
 
     name = "sim"
 
-    def __init__(self, cell: SimulatedCell) -> None:
+    def __init__(self, cell: SimulatedCell, time_scale: float | None = None) -> None:
         self.cell = cell
         self._servo_on = False
         self._held = False
         self._connected = False
+        self._pace = None if time_scale is None else CellPace(lambda: self.cell.state.time_s, time_scale)
 
     @classmethod
     def enabled(cls, cell: SimulatedCell) -> SimulatedBackend:
@@ -54,21 +87,29 @@ class SimulatedBackend:
     def hold(self, on: bool) -> None:
         self._require_connection()
         self._held = on
+        if on and self._pace is not None:  # a hold ends the wait of a move under way
+            self._pace.wake()
 
     def reset_alarms(self) -> None:
         self._require_connection()
 
+    def _paced(self, advance: Callable[[], object]) -> None:
+        if self._pace is None:
+            advance()
+        else:
+            self._pace.keep(advance)
+
     def move_to(self, bMe_target: Matrix, speed_m_s: float) -> None:
         self._require_ready()
         bMe_target = np.asarray(bMe_target, dtype=float)
-        self.cell.execute(PositionCommand(bMe_target, speed_m_s, 0.0))
+        self._paced(lambda: self.cell.execute(PositionCommand(bMe_target, speed_m_s, 0.0)))
 
     def move_by(self, bMe_increment: Matrix, speed_m_s: float) -> None:
         self.move_to(apply_increment(self.read_pose(), bMe_increment), speed_m_s)
 
     def move_timed(self, bMe_target: Matrix, duration_s: float) -> None:
         self._require_ready()
-        self.cell.move(np.asarray(bMe_target, dtype=float), duration_s)
+        self._paced(lambda: self.cell.move(np.asarray(bMe_target, dtype=float), duration_s))
 
     def wait_motion(self, timeout_s: float | None = None) -> bool:
         self._require_connection()
@@ -81,7 +122,7 @@ class SimulatedBackend:
         return self.cell.state.time_s
 
     def dwell(self, seconds: float) -> None:
-        self.cell.pass_time(seconds)
+        self._paced(lambda: self.cell.pass_time(seconds))
 
     def _require_connection(self) -> None:
         if not self._connected:

@@ -3,6 +3,8 @@ or leftover poses: without a browser."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -13,6 +15,7 @@ from vservo.app.status import flange_text, status_markdown
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import matrix_from_pose, pose_from_mm_deg, transform
 from vservo.core.production.protocol import ControllerState, Outcome, Phase, RunFigures, RunOutcome
+from vservo.core.production.protocol.catalogue import Action, RunEnd, explain
 from vservo.core.servo.laws.base import Stage
 
 
@@ -142,3 +145,27 @@ def test_a_new_teach_clears_the_last_runs_charts_and_path():
     assert len(session.view().trace.errors_px) == 3 and len(session.view().trace.path_m) == 3
     session.on_state(ControllerState(Phase.TEACHING, run=RunFigures(1), time_s=5.0))
     assert len(session.view().trace.errors_px) == 0 and len(session.view().trace.path_m) == 0
+
+
+def test_a_run_fault_is_said_in_the_catalogues_words_with_what_to_do():
+    reason = "servo failed: camera_retreat (corner area 4920 px^2, first 8403 px^2)"
+    last = RunOutcome(Outcome.FAULT, reason, end=RunEnd.CAMERA_RETREAT)
+    for state in (ControllerState(Phase.FAULT, reason, job="demo", last_outcome=last), _done(Outcome.FAULT, reason)):
+        banner = banner_for(replace(state, last_outcome=last))
+        assert banner.detail == explain(RunEnd.CAMERA_RETREAT).sentence and banner.next_step == Action.COMMISSION.value
+        assert "camera_retreat" not in banner.html()  # the engineer's words are the Engineering fold's
+    status = status_markdown(ControllerState(Phase.FAULT, reason, job="demo", last_outcome=last), True)
+    assert explain(RunEnd.CAMERA_RETREAT).sentence in status and "camera_retreat" not in status
+
+
+def test_the_running_banner_has_no_empty_stage_and_no_formulas():
+    starting = banner_for(ControllerState(Phase.SERVOING, "moving to the start pose", job="shifted", run=RunFigures(3)))
+    assert starting.title == "RUNNING job shifted" and starting.detail == "moving to the start pose"
+    note = "1A -> 2: ||f_id - f|| = 9.36 px"
+    servo = banner_for(ControllerState(Phase.SERVOING, note, job="shifted", run=RunFigures(3, Stage("2"), 12, 9.36)))
+    assert servo.detail == "" and "||" not in servo.html()  # the banner stays still: cycles are the status line's
+
+
+def test_manual_mode_has_its_banner():
+    banner = banner_for(ControllerState(Phase.MANUAL))
+    assert banner.title == "MANUAL" and "Leave manual mode" in banner.next_step

@@ -368,9 +368,11 @@ def test_commissioning_texts():
     assert "- training the network: epoch 40 of at most 60, mse 1.3e-07" in text
     assert commission_text.results_markdown(running) == ""
 
-    assert "**Commissioned**: every step is good. **Apply** writes `/cells/line3-commissioned.toml`." in (
-        commission_text.progress_markdown(record, "/cells/line3.toml")
-    )
+    finished = commission_text.progress_markdown(record, "/cells/line3.toml")
+    assert "**Commissioned**: every step is good. **Apply** writes `/cells/line3-commissioned.toml`." in finished
+    assert "24 of 24 views\n" in finished and "last:" not in finished  # a good step's last note is no failure
+    skipped = replace(running, progress={"tilted": replace(running.progress["tilted"], note="unreachable")})
+    assert "(last: out of the arm's reach, skipped)" in commission_text.progress_markdown(skipped, "/cells/line3.toml")
     plain = commission_text.results_markdown(record)
     assert plain.startswith("- camera: good\n- network (nn): good\n") and "RMS" not in plain and "eMc" not in plain
     assert "the figure to sign off**: mean error **0.010 mm**, max **0.015 mm** over 4 board corners" in plain

@@ -24,8 +24,10 @@ from vservo.core.production.protocol import ControllerState, Phase, Teaching, Te
 
 
 def test_a_typed_pose_reads_back_as_typed_and_bad_text_is_named():
-    text = "-369.10 0.00 7.25 -155.00 0.00 180.00"
+    text = "-369.10 0.00 7.25 205.00 0.00 180.00"
     assert pose_words(parse_pose_mm_deg(text)) == text
+    # Angles as the status line shows them, in [-90, 270): the same pose typed with -155 deg.
+    assert pose_words(parse_pose_mm_deg("-369.10 0.00 7.25 -155.00 0.00 -180.00")) == text
     for bad in ("1 2 3", "1 2 3 4 5 x", "1 2 3 4 5 nan"):
         with pytest.raises(PoseEntryError, match="six numbers"):
             parse_pose_mm_deg(bad)
@@ -81,3 +83,20 @@ def test_a_button_is_live_from_the_typed_state_never_from_its_words():
     after = ControllerState(Phase.TEACHING, detail="reworded", teaching=Teaching(frozenset({TeachStep.DESIRED_IMAGE})))
     assert not pick.live(before) and pick.live(after)
     assert not SAVE.live(after) and SAVE.live(ControllerState(Phase.TEACHING, teaching=Teaching(frozenset(TeachStep))))
+
+
+def test_the_next_step_follows_the_cells_state_not_the_buttons_order():
+    def teaching(*taught: TeachStep, held: bool | None = None, holding: bool = False) -> ControllerState:
+        return ControllerState(Phase.TEACHING, holding_part=holding, teaching=Teaching(frozenset(taught), held))
+
+    desired = TeachStep.DESIRED_IMAGE
+    assert next_button(teaching(desired)) == "Test pick"  # none tried yet
+    assert next_button(teaching(desired, held=False)) == "Test pick"  # a failed test pick: the pick again
+    assert next_button(teaching(desired, held=True)) == "Set pick pose here"
+    picked = (desired, TeachStep.PICK_POSE)
+    assert next_button(teaching(*picked)) == "Suction on"
+    assert next_button(teaching(*picked, holding=True)) == "Set place pose here"
+    placed = (*picked, TeachStep.PLACE_POSE)
+    assert next_button(teaching(*placed, holding=True)) == "Suction off"  # the part still on the cup
+    assert next_button(teaching(*placed)) == "Capture check view"
+    assert next_button(teaching(*TeachStep, holding=True)) == "Suction off"

@@ -78,9 +78,12 @@ def jog(page, button: str, times: int, axis: int, mm: float) -> None:
         wait_until(lambda: abs(flange_of(status_text(page))[axis] - (before + mm)) < 0.05, f"the flange moved {button}")
 
 
-def teach_the_guide_job(page, shot: Callable[[int, str], None], measured: bool) -> None:
+def teach_the_guide_job(
+    page, shot: Callable[[int, str], None], measured: bool, at_the_pick: Callable[[], None] | None = None
+) -> None:
     """The guide's steps 1 .. 8, from (new job) to the job saved as JOB; ``shot`` takes the
-    page's picture at each; ``measured``: the cell's model is commissioned (Part seen within 2 mm)."""
+    page's picture at each; ``measured``: the cell's model is commissioned (Part seen within 2 mm);
+    ``at_the_pick``: what a test does first at step 4, the desired view captured."""
     # 1. Teach tab, Template (new job), Begin teaching.
     page.get_by_role("tab", name="Teach").click()
     choose(page, "Template", "(new job)")
@@ -99,6 +102,8 @@ def teach_the_guide_job(page, shot: Callable[[int, str], None], measured: bool) 
     shot(2, "desired-view")
 
     # 4. The pick: Centre the cup on the part, a test pick, set it, suction on.
+    if at_the_pick is not None:
+        at_the_pick()
     press(page, "Centre the cup on the part", "cup centred on the part", AID_TIMEOUT_S)
     press(page, "Test pick", "grip good")
     press(page, "Set pick pose here", "pick pose set")

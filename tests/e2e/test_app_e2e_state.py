@@ -33,6 +33,7 @@ from vservo.app.browser import (
     wait_for_status,
 )
 from vservo.core.geometry.spatial import transform
+from vservo.core.production.protocol.catalogue import RunEnd, explain
 from vservo.core.production.storage import Store
 
 TOKEN = "e2e-state-token"
@@ -224,7 +225,9 @@ def test_the_banner_says_teaching_missed_and_fault_each_in_its_colour(page):
     choose(page, "Job", "demo")
     page.get_by_role("button", name="Start", exact=True).click()
     fault = wait_for_banner(page, "fault", r"FAULT", timeout_s=120)
-    assert _colour(page) == _rgb(Kind.FAULT) and "not in the image" in fault, fault
+    assert _colour(page) == _rgb(Kind.FAULT), fault
+    lost = explain(RunEnd.FEATURES_LOST)  # in the catalogue's words, with what to do
+    assert lost.sentence in fault and lost.action.value in fault and "servo failed" not in fault, fault
     _shot(page, "banner-fault")
     page.get_by_role("button", name=re.compile("^Reset")).click()
     wait_for_banner(page, "ready", "READY", timeout_s=30)

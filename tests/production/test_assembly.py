@@ -17,6 +17,7 @@ from vservo.core.cell.config import CellConfig, load_cell
 from vservo.core.production.assembly import AssemblyOutcome, FlangeReadout, Outcome, Phase, joint_limited_steps
 from vservo.core.production.cell_controller import CellController, CommandRefused
 from vservo.core.production.protocol import TeachStep
+from vservo.core.production.protocol.catalogue import Refusal
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.safety import SafetyLayer
@@ -90,9 +91,14 @@ def test_a_part_out_of_reach_of_the_cup_is_a_fault_with_the_robot_held(controlle
     assert controller.last_outcome.outcome is Outcome.FAULT
     assert "vacuum" in controller.last_outcome.reason
     assert controller.rig.robot.status().held
-    with pytest.raises(CommandRefused, match="held"):
-        controller.jog([0.0, 0.0, 0.01])
+    with pytest.raises(CommandRefused) as refused:
+        controller.jog([0.0, 0.0, 0.01])  # no hand moves outside teaching and manual mode
+    assert refused.value.kind is Refusal.NOT_MANUAL
+    with pytest.raises(CommandRefused) as refused:
+        controller.enter_manual()  # nor manual mode with the robot held after the fault
+    assert refused.value.kind is Refusal.NOT_NOW
     controller.reset()
+    controller.enter_manual()
     controller.jog([0.0, 0.0, 0.01])
 
 
@@ -125,6 +131,7 @@ def test_estop_stops_the_arm_within_one_cycle_and_refuses_moves_until_reset(thes
     assert np.array_equal(cell.state.q, q)
     controller.reset()
     assert controller.state.phase == Phase.IDLE.value
+    controller.enter_manual()
     controller.jog([0.0, 0.0, 0.005])
     assert not np.array_equal(cell.state.q, q)
 
@@ -183,8 +190,11 @@ def test_teaching_presents_a_part_where_asked_and_a_test_pick_off_the_part_says_
     np.testing.assert_allclose(centre[:2], [-0.360, -0.020], atol=1e-9)
     assert np.degrees(np.arctan2(bMo[1, 0], bMo[0, 0])) == pytest.approx(30.0)
     assert controller.state.phase == Phase.TEACHING.value
-    assert not controller.test_pick()  # the cup is nowhere near it
+    with pytest.raises(CommandRefused, match="no grip") as refused:
+        controller.test_pick()  # the cup is nowhere near it
+    assert refused.value.kind is Refusal.NO_GRIP
     assert "no grip" in controller.state.detail
+    assert controller.state.teaching.test_pick_held is False  # the Teach tab offers the test pick again
     with pytest.raises(CommandRefused, match="X, Y"):
         controller.present_part((float("nan"), 0.0))
 

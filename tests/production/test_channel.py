@@ -24,11 +24,15 @@ from vservo.core.production.protocol import (
     ChannelError,
     CommandRefused,
     ControllerClient,
+    EnterManual,
     Estop,
     GetJob,
+    GoHome,
     Jog,
+    LeaveManual,
     ListJobs,
     ListRuns,
+    MoveJoint,
     MoveTo,
     Phase,
     PresentPart,
@@ -41,6 +45,7 @@ from vservo.core.production.protocol import (
     Suction,
     new_key,
 )
+from vservo.core.production.protocol.catalogue import Refusal
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.backend import RobotError
@@ -86,6 +91,9 @@ def test_commands_state_and_frames_flow(served):
         assert meta.corners_px.shape == (4, 2)
 
         z = controller.rig.robot.read_pose()[2, 3]
+        refused = client.call(Jog(translation_m=(0, 0, 0.01)))  # jogs only while teaching or in manual mode
+        assert not refused.ok and refused.kind is Refusal.NOT_MANUAL
+        assert client.call(EnterManual()).ok
         assert client.call(Jog(translation_m=(0, 0, 0.01))).ok
         assert controller.rig.robot.read_pose()[2, 3] == pytest.approx(z + 0.01, abs=1e-6)
         _raw_command(client, 900, "jog", {"translation_m": [0, float("nan"), 0]})
@@ -231,6 +239,7 @@ def slow_served(tmp_path):
 
 def _jog_in_background(client: ControllerClient) -> tuple[threading.Thread, list]:
     replies: list = []
+    assert client.call(EnterManual()).ok
 
     def jog() -> None:
         try:
@@ -442,7 +451,8 @@ def test_a_number_out_of_the_pages_range_sent_straight_over_the_channel_is_refus
     controller, server, key = served
     client = ControllerClient(server.address, key)
     try:
-        assert client.call(Jog()).ok  # a first readout: the flange pose below is the robot's
+        assert client.call(EnterManual()).ok and client.call(Jog()).ok  # a first readout: the flange pose below is the robot's
+        assert client.call(LeaveManual()).ok
         assert controller.state.phase == "idle"
         bMe = controller.rig.robot.read_pose()
         if name == "set_settings":
@@ -451,7 +461,7 @@ def test_a_number_out_of_the_pages_range_sent_straight_over_the_channel_is_refus
         reply = _reply(client, 1)
         assert not reply["ok"] and reply["error"] == error
         np.testing.assert_array_equal(controller.rig.robot.read_pose(), bMe)  # nothing moved
-        assert client.call(Jog()).ok  # and the connection goes on
+        assert client.call(GoHome()).ok  # and the connection goes on
     finally:
         client.close()
 
@@ -513,6 +523,7 @@ def test_every_command_is_a_controller_method_that_takes_its_fields():
     """One spelling: the command's name on the channel is the controller's method, its fields the method's arguments."""
     samples = {
         MoveTo: MoveTo(np.eye(4)),
+        MoveJoint: MoveJoint(np.eye(4)),
         Suction: Suction(True),
         SetSettings: SetSettings(3.0, 1.0, 0.04),
         SaveJob: SaveJob("bolt"),

@@ -9,7 +9,7 @@ Messages are JSON objects with a ``type``; a camera frame is a ``frame`` object 
 by one binary message, the JPEG. The app's side:
 
     hello {version}                      -> welcome {version, state} | refused {error}
-    command {id, name, args}             -> reply {id, ok, result | error}
+    command {id, name, args}             -> reply {id, ok, result | error, kind, advice}
                                             state {state}            (on every change)
                                             frame {meta} + JPEG      (the live image)
 
@@ -17,7 +17,9 @@ by one binary message, the JPEG. The app's side:
 (core/production/protocol/commands.py), each as ``codec.to_json`` writes it; the client
 decodes each once, on its reader thread, and hands its callbacks the typed values.
 A reply's ``error`` is one line for the operator: the controller's refusal, or
-"internal error" when the command failed otherwise (its traceback is in the controller's log).
+"internal error" when the command failed otherwise (its traceback is in the controller's log);
+its ``kind`` the refusal's kind the page explains (protocol/catalogue.py), its ``advice``
+the operator's words for this case, if any.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from multiprocessing.connection import Client, Connection
 from typing import Any
 
 from vservo.core.errors import VservoError
+from vservo.core.production.protocol.catalogue import Refusal, explain
 from vservo.core.production.protocol.codec import from_json, to_json
 from vservo.core.production.protocol.commands import Command, command_message
 from vservo.core.production.protocol.state import ControllerState, FrameMeta
@@ -79,11 +82,20 @@ def frame_message(meta: FrameMeta) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class Reply:
-    """A command's answer: ok with its result (typed, ``Command.result_type``), or the one-line error."""
+    """A command's answer: ok with its result (typed, ``Command.result_type``), or the one-line
+    error (the engineer's), its kind and the operator's advice for this case."""
 
     ok: bool
     result: Any = None
     error: str | None = None
+    kind: Refusal | None = None
+    advice: str = ""
+
+    def operator_words(self) -> str:
+        """A refusal as the operator reads it: the catalogue's sentence, this case's advice, the action."""
+        explanation = explain(self.kind or Refusal.INTERNAL)
+        advice = f" {self.advice}" if self.advice else ""
+        return f"{explanation.sentence}{advice} {explanation.action.value}"
 
 
 def shut_down(connection: Connection) -> None:
@@ -164,7 +176,14 @@ class ControllerClient:
                 raise ChannelError(f"the controller is gone: {exc}") from exc
         message = self._wait_reply(request, command.command_name, timeout_s)
         if not message.get("ok"):
-            return Reply(False, error=str(message.get("error")))
+            kind = message.get("kind")
+            advice = message.get("advice")
+            return Reply(
+                False,
+                error=str(message.get("error")),
+                kind=Refusal(kind) if isinstance(kind, str) and kind in tuple(Refusal) else Refusal.INTERNAL,
+                advice=advice if isinstance(advice, str) else "",
+            )
         try:
             return Reply(True, command.result(message.get("result")))
         except VservoError as exc:

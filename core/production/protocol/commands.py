@@ -26,12 +26,22 @@ import numpy as np
 
 from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix
+from vservo.core.production.protocol.catalogue import Refusal
 from vservo.core.production.protocol.codec import from_json, to_json
 from vservo.core.production.protocol.state import CommissionStep, Outcome
 
 
 class CommandRefused(VservoError):
-    """A command that cannot be carried out now, or with a field out of range; the message says why."""
+    """A command that cannot be carried out now, or with a field out of range; the message says why.
+
+    ``kind`` is what the catalogue explains to the operator (protocol/catalogue.py; a field
+    out of range unless said); ``advice``, when given, the operator's words for this case
+    (which joint, which way), said beside the kind's sentence."""
+
+    def __init__(self, message: str, kind: Refusal = Refusal.OUT_OF_RANGE, advice: str = "") -> None:
+        super().__init__(message)
+        self.kind = kind
+        self.advice = advice
 
 
 @dataclass(frozen=True)
@@ -246,6 +256,36 @@ class MoveTo(Command):
 
     def __post_init__(self) -> None:
         self._set("bMe_target", _pose("bMe_target", self.bMe_target))
+
+
+@dataclass(frozen=True)
+class MoveJoint(Command):
+    """A move of the flange to bMe_target on a joint-space path (where the straight line cannot go)."""
+
+    bMe_target: Rows
+
+    def __post_init__(self) -> None:
+        self._set("bMe_target", _pose("bMe_target", self.bMe_target))
+
+
+@dataclass(frozen=True)
+class GoHome(Command):
+    """To the cell file's home joints, on a joint-space path."""
+
+
+@dataclass(frozen=True)
+class GoSurvey(Command):
+    """The camera over the table where parts are presented, on a joint-space path."""
+
+
+@dataclass(frozen=True)
+class EnterManual(Command):
+    """Manual mode: jogs and typed moves act until the operator leaves it."""
+
+
+@dataclass(frozen=True)
+class LeaveManual(Command):
+    pass
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ from enum import Enum, StrEnum
 import numpy as np
 
 from vservo.core.geometry.spatial import Matrix
+from vservo.core.production.protocol.catalogue import RunEnd
 from vservo.core.servo.laws.base import Stage
 
 
@@ -24,6 +25,7 @@ class Phase(str, Enum):
     """The states of the cell's sequence (the controller process adds idle, teaching and commissioning)."""
 
     IDLE = "idle"
+    MANUAL = "manual"  # the operator moves the arm by hand (jog, Move there), entered and left on purpose
     TEACHING = "teaching"
     COMMISSIONING = "commissioning"
     SERVOING = "servoing"
@@ -34,8 +36,9 @@ class Phase(str, Enum):
     ESTOPPED = "e-stopped"
 
 
-# Where no run moves the arm: a jog, a move, a part presented (as the controller checks them).
-STANDING = frozenset({Phase.IDLE, Phase.TEACHING, Phase.DONE, Phase.FAULT})
+# Where no run moves the arm: Home, Survey, a part presented (as the controller checks them).
+STANDING = frozenset({Phase.IDLE, Phase.MANUAL, Phase.TEACHING, Phase.DONE, Phase.FAULT})
+HAND_MOVES = frozenset({Phase.MANUAL, Phase.TEACHING})  # where the operator jogs and types moves
 MOVING = frozenset({Phase.SERVOING, Phase.PICKING, Phase.PLACING})  # a run moves the arm
 
 
@@ -93,6 +96,7 @@ class Teaching:
     sets the picked part down centred in its pocket and where the taught place sets it."""
 
     taught: frozenset[TeachStep] = frozenset()
+    test_pick_held: bool | None = None  # the last test pick's grip (None: none tried since the desired image)
     view_bMe: Matrix | None = None
     pocket_bMe: Matrix | None = None
     place_bMo: Matrix | None = None
@@ -145,6 +149,7 @@ class RunOutcome:
     duration_s: float = 0.0
     iterations: int = 0
     notes: tuple[str, ...] = ()  # how the job was run (retargeted, not recorded, ...)
+    end: RunEnd | None = None  # why, as the catalogue explains it (protocol/catalogue.py)
     cell_time_s: float | None = None  # the run on the cell's clock (None where the backend keeps none)
 
 
