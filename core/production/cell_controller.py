@@ -398,7 +398,7 @@ class CellController:
         try:
             job = self.store.load_job(job_name)
         except JobError as exc:
-            raise CommandRefused(str(exc)) from None
+            raise CommandRefused(str(exc), Refusal.JOB_PROBLEM) from None
         centre_m, yaw_rad = taught_part_on_table(
             job, job.taught_model or TaughtModel.of(self.rig.config.nominal), self.rig.config.nominal.eMv
         )

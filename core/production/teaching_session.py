@@ -282,7 +282,7 @@ class TeachingSession:
         try:
             _, moves = view_part(motions, VIEW_SCALE * pattern_scale(demo.desired.corners_px), np.array([k.u0, k.v0]))
         except ViewError as exc:
-            raise CommandRefused(str(exc)) from exc
+            raise CommandRefused(str(exc), Refusal.PART_NOT_SEEN) from exc
         self.publisher.update(
             detail=f"the part in view by the image alone ({moves} moves), the laser spot on its centre: Capture desired image",
             **self.publisher.robot_readout(),
@@ -293,13 +293,13 @@ class TeachingSession:
         vacuum sensor alone (core/production/cup_centring.py), left pressed on it with the
         suction off: the pick pose to test and set, right on a cell never commissioned."""
         if self._holding():
-            raise CommandRefused("the cup holds a part already: Suction off first")
+            raise CommandRefused("the cup holds a part already: Suction off first", Refusal.CUP_HOLDS_PART)
         model = self.rig.config.nominal
         motions = CellMotions(move_to, self.rig.robot.read_pose, corners_px, self._grips)
         try:
             centred = centre_cup(motions, model.eMv, model.eMc)
         except CentringError as exc:
-            raise CommandRefused(str(exc)) from exc
+            raise CommandRefused(str(exc), Refusal.PART_NOT_SEEN) from exc
         self.publisher.update(
             detail=f"cup centred on the part by the camera and the vacuum sensor: moved {1000 * centred.offset_m:.1f} mm "
             f"across, the top face felt at Z {1000 * centred.face_z_m:.1f} mm: Test pick, then Set pick pose here",
