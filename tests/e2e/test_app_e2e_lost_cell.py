@@ -27,6 +27,7 @@ from vservo.app.browser import (
     take_control,
     wait_for_status,
 )
+from vservo.core.production.protocol.catalogue import Refusal, explain
 
 TOKEN = "e2e-lost-cell-token"
 FAULT_SHOWN_WITHIN_S = 2.0
@@ -71,8 +72,9 @@ def test_the_virtual_cell_killed_mid_run_shows_the_fault_and_reset_reconnects_on
             assert "serial port" in fault or "camera" in fault, fault  # the lost device, named
             page.get_by_text(f"Run {run}: FAULT").wait_for(timeout=10_000)
 
-            _reset(page)  # nothing to open yet: refused, the page says which device
-            page.get_by_text(re.compile("reset failed: the (robot link|camera)")).first.wait_for(timeout=30_000)
+            _reset(page)  # nothing to open yet: refused in the catalogue's words; the Engineering fold names the device
+            page.get_by_text(explain(Refusal.RESET_FAILED).sentence).first.wait_for(timeout=30_000)
+            page.get_by_text(re.compile("reset failed: the (robot link|camera)")).first.wait_for(state="attached", timeout=30_000)
             assert "FAULT" in status_text(page)
 
             cell.stop()  # reaps the killed process
