@@ -44,7 +44,9 @@ FAILURE_WINDOW_S = 60.0
 class RoleRefused(VservoError, PermissionError):
     """A browser asked for something only the operator may do; the message says what to do."""
 
-    kind = Refusal.CONTROL  # as the page explains it (protocol/catalogue.py)
+    def __init__(self, message: str, kind: Refusal = Refusal.CONTROL) -> None:
+        super().__init__(message)
+        self.kind = kind  # as the page explains it (protocol/catalogue.py)
 
 
 def new_token() -> str:
@@ -188,7 +190,9 @@ class Roles:
         source = source or f"browser {client_id}"
         wait_s = self.attempts.wait_s(source)
         if wait_s > 0.0:
-            raise RoleRefused(f"too many wrong operator tokens from this address: try again in {math.ceil(wait_s)} s")
+            raise RoleRefused(
+                f"too many wrong operator tokens from this address: try again in {math.ceil(wait_s)} s", Refusal.TOKEN_LOCKOUT
+            )
         if not hmac.compare_digest(token.strip().encode(), self._token):
             failures = self.attempts.failed(source)
             log.warning(

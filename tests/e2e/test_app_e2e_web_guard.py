@@ -18,6 +18,7 @@ from vservo.app.browser import (
     type_into,
 )
 from vservo.app.roles import MAX_TOKEN_FAILURES
+from vservo.core.production.protocol.catalogue import Refusal, explain
 
 TOKEN = "e2e-guard-operator-token"
 # What a page's script gets when it opens the app's WebSocket.
@@ -68,6 +69,7 @@ def test_wrong_tokens_count_against_the_address_across_reloads(app, chromium):
     page.get_by_role("button", name="Take control").wait_for(timeout=90_000)
     type_into(page, "Operator token", TOKEN)
     page.get_by_role("button", name="Take control").click()
-    page.get_by_text("too many wrong operator tokens from this address").first.wait_for(timeout=30_000)
+    page.get_by_text(explain(Refusal.TOKEN_LOCKOUT).sentence).first.wait_for(timeout=30_000)  # the notice
+    page.get_by_text("too many wrong operator tokens from this address").first.wait_for(state="attached", timeout=10_000)
     assert app.stderr().count("wrong operator token from 127.0.0.1") == MAX_TOKEN_FAILURES
     assert page.get_by_text("this browser holds control").count() == 0

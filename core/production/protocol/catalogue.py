@@ -42,6 +42,7 @@ class Action(StrEnum):
     REMOVE_PART = "Take the part out of the metal part, then press Reset."
     NEXT_PART = "Press Reset, present the next part and press Start."
     TAKE_CONTROL = "Enter the operator token and press Take control."
+    WAIT_LOCKOUT = "Wait a minute, then enter the right token again."
     RESTART = "Restart vservo serve."
     NONE = "Nothing to do."
 
@@ -77,6 +78,7 @@ class Refusal(StrEnum):
     CELL_NOT_COMMISSIONED = "cell_not_commissioned"  # a job taught through a measured model, on a cell never commissioned
     COMMISSION_SETUP = "commission_setup"  # the steps, the output file or the board
     CONTROL = "control"  # this browser is a monitor (app/roles.py)
+    TOKEN_LOCKOUT = "token_lockout"  # too many wrong operator tokens from this address (app/roles.py)
     CHANNEL = "channel"  # the controller process is gone or did not answer
     INTERNAL = "internal"  # a bug: the traceback is in the controller's log
 
@@ -159,6 +161,7 @@ REFUSALS: dict[Refusal, Explanation] = {
     ),
     Refusal.COMMISSION_SETUP: _E("Commissioning cannot start as asked.", Action.CALL_INTEGRATOR),
     Refusal.CONTROL: _E("This browser is a read-only monitor.", Action.TAKE_CONTROL),
+    Refusal.TOKEN_LOCKOUT: _E("Too many wrong operator tokens came from this address.", Action.WAIT_LOCKOUT),
     Refusal.CHANNEL: _E("The page has lost the cell's controller.", Action.RESTART),
     Refusal.INTERNAL: _E("The controller failed on this command (a fault in vservo).", Action.CALL_INTEGRATOR),
 }
