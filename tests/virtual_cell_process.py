@@ -46,3 +46,25 @@ class VirtualCellProcess:
         finally:
             self.process.stdout.close()
             self.stderr.close()
+
+
+def long_servo_cell_args(tmp_path: Path, seed: int = 4) -> tuple[str, ...]:
+    """`vservo virtual-cell` arguments for a cell in tmp_path on the thesis's step policy: a
+    servo long enough to stop, kill or unplug something in the middle of."""
+    from tests.jrc_fixtures import thesis_policy_cell_file
+    from vservo.app.browser import free_port
+
+    return (
+        "--seed",
+        str(seed),
+        "--jrc-link",
+        str(tmp_path / "jrc"),
+        "--camera-port",
+        str(free_port()),
+        "--fixture-port",
+        str(free_port()),
+        "--out",
+        str(tmp_path / "cell.toml"),
+        "--cell",
+        thesis_policy_cell_file(tmp_path),
+    )

@@ -34,6 +34,12 @@ class Measurement:
     corner_depths_m: Matrix
     reference_px: Matrix
 
+    @classmethod
+    def flange_only(cls, time_s: float, q: Matrix, bMe: Matrix) -> Measurement:
+        """The robot's readings with nothing seen: a frame's image is measured apart (or not at all)."""
+        unseen = np.full(2, np.nan)
+        return cls(time_s, q, bMe, np.full((4, 2), np.nan), unseen, ObjectRegion(0.0, unseen), np.full(4, np.nan), unseen)
+
     @property
     def corners_visible(self) -> NDArray[np.bool_]:
         return ~np.any(np.isnan(self.corners_px), axis=1)

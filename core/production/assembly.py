@@ -37,7 +37,7 @@ from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.cell.scene import Cube
 from vservo.core.geometry.pose_estimation import PoseEstimationError, pose_from_planar_points
 from vservo.core.geometry.spatial import Matrix
-from vservo.core.perception.features import DesiredImage, ImageFeatures, ObjectRegion
+from vservo.core.perception.features import DesiredImage, ImageFeatures
 from vservo.core.perception.measurement import Measurement
 from vservo.core.perception.vision.pipeline import CameraPerception
 from vservo.core.production.exposure_matched import ExposureMatchedCamera
@@ -193,18 +193,8 @@ class FlangeReadout:
     robot: SafetyLayer
 
     def measure(self, look: bool = False) -> Measurement:
-        unseen = np.full(2, np.nan)
         bMe = self.robot.pose()
-        return Measurement(
-            self.robot.clock_s(),
-            self.robot.model_joints(bMe),
-            bMe,
-            np.full((4, 2), np.nan),
-            unseen,
-            ObjectRegion(0.0, unseen),
-            np.full(4, np.nan),
-            unseen,
-        )
+        return Measurement.flange_only(self.robot.clock_s(), self.robot.model_joints(bMe), bMe)
 
 
 def joint_limited_steps(robot: SafetyLayer) -> JointLimitedSteps:

@@ -12,10 +12,8 @@ that frame's features. The control law then sees features and pose of the same i
 
 from __future__ import annotations
 
-import numpy as np
-
 from vservo.core.perception.camera_source import Frame
-from vservo.core.perception.features import ImageFeatures, ObjectRegion
+from vservo.core.perception.features import ImageFeatures
 from vservo.core.perception.measurement import Measurement
 from vservo.core.perception.vision.pipeline import CameraPerception
 from vservo.core.robot.safety import SafetyLayer
@@ -39,17 +37,7 @@ class ExposureMatchedCamera:
         frame = self._frame = self.perception.source.read_after(self._after_s)
         self._after_s = frame.timestamp_s + NEWER_S
         bMe = self.robot.pose_at(frame.timestamp_s)
-        unseen = np.full(2, np.nan)
-        return Measurement(
-            frame.timestamp_s,
-            self.robot.model_joints(bMe),
-            bMe,
-            np.full((4, 2), np.nan),
-            unseen,
-            ObjectRegion(0.0, unseen),
-            np.full(4, np.nan),
-            unseen,
-        )
+        return Measurement.flange_only(frame.timestamp_s, self.robot.model_joints(bMe), bMe)
 
     def perceive(self, measurement: Measurement, motion_ended_s: float) -> ImageFeatures:
         """The features of the frame ``measure`` took (the stream's own order, not the motion's end)."""

@@ -18,13 +18,11 @@ from datetime import datetime
 from pathlib import Path
 
 from tests.chromium import chromium_or_fail, headless_chromium
-from tests.jrc_fixtures import thesis_policy_cell_file
-from tests.virtual_cell_process import VirtualCellProcess
+from tests.virtual_cell_process import VirtualCellProcess, long_servo_cell_args
 from vservo.app.browser import (
     ServeProcess,
     banner,
     choose,
-    free_port,
     open_pages,
     present_part_and_start,
     take_control,
@@ -67,20 +65,7 @@ def _children(pid: int) -> list[int]:
 
 def test_a_killed_controller_is_shown_within_2_s_and_a_new_one_marks_the_run_interrupted(tmp_path):
     chromium_or_fail()
-    cell = VirtualCellProcess(
-        "--seed",
-        "4",
-        "--jrc-link",
-        str(tmp_path / "jrc"),
-        "--camera-port",
-        str(free_port()),
-        "--fixture-port",
-        str(free_port()),
-        "--out",
-        str(tmp_path / "cell.toml"),
-        "--cell",
-        thesis_policy_cell_file(tmp_path),
-    )  # a servo long enough to kill the controller in
+    cell = VirtualCellProcess(*long_servo_cell_args(tmp_path))  # a servo long enough to kill the controller in
     serve = ServeProcess.start(tmp_path / "data", TOKEN, cycle_period_s=0.0, cell=cell.addresses["cell_file"])
     try:
         with headless_chromium() as chromium:

@@ -15,12 +15,10 @@ import re
 import time
 
 from tests.chromium import chromium_or_fail, headless_chromium
-from tests.jrc_fixtures import thesis_policy_cell_file
-from tests.virtual_cell_process import VirtualCellProcess
+from tests.virtual_cell_process import VirtualCellProcess, long_servo_cell_args
 from vservo.app.browser import (
     ServeProcess,
     choose,
-    free_port,
     open_pages,
     present_part_and_start,
     status_text,
@@ -39,20 +37,7 @@ def _reset(page) -> None:
 
 def test_the_virtual_cell_killed_mid_run_shows_the_fault_and_reset_reconnects_once_it_is_back(tmp_path):
     chromium_or_fail()
-    addresses = (
-        "--seed",
-        "4",
-        "--jrc-link",
-        str(tmp_path / "jrc"),
-        "--camera-port",
-        str(free_port()),
-        "--fixture-port",
-        str(free_port()),
-        "--out",
-        str(tmp_path / "cell.toml"),
-        "--cell",
-        thesis_policy_cell_file(tmp_path),
-    )  # a servo long enough to kill the cell in
+    addresses = long_servo_cell_args(tmp_path)  # a servo long enough to kill the cell in
     cell = VirtualCellProcess(*addresses)
     serve = ServeProcess.start(tmp_path / "data", TOKEN, cycle_period_s=0.0, cell=cell.addresses["cell_file"])
     try:

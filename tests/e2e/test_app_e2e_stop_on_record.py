@@ -22,12 +22,10 @@ from datetime import datetime
 from pathlib import Path
 
 from tests.chromium import chromium_or_fail, headless_chromium
-from tests.jrc_fixtures import thesis_policy_cell_file
-from tests.virtual_cell_process import VirtualCellProcess
+from tests.virtual_cell_process import VirtualCellProcess, long_servo_cell_args
 from vservo.app.browser import (
     ServeProcess,
     choose,
-    free_port,
     open_pages,
     present_part_and_start,
     take_control,
@@ -74,20 +72,7 @@ def _reset(page) -> None:
 
 def test_estop_and_ctrl_c_end_a_run_within_a_second_on_record(tmp_path):
     chromium_or_fail()
-    cell = VirtualCellProcess(
-        "--seed",
-        "4",
-        "--jrc-link",
-        str(tmp_path / "jrc"),
-        "--camera-port",
-        str(free_port()),
-        "--fixture-port",
-        str(free_port()),
-        "--out",
-        str(tmp_path / "cell.toml"),
-        "--cell",
-        thesis_policy_cell_file(tmp_path),
-    )
+    cell = VirtualCellProcess(*long_servo_cell_args(tmp_path))
     data = tmp_path / "data"
     serve = ServeProcess.start(data, TOKEN, cycle_period_s=0.0, cell=cell.addresses["cell_file"])
     ended_after_s = {}
