@@ -19,6 +19,7 @@ Nothing here reads the simulated cell: the view is the controller's picture of t
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -172,6 +173,9 @@ class CellScene:
             "laser": scene.add_cylinder("/cell/tools/laser", LASER_RADIUS_M, LASER_LENGTH_M, LASER_RGB, visible=False),
         }  # shown, like the frustum, once the robot's pose is known
         self.metal: list = []
+        # show_job (a browser's job choice) and update (the display thread) both touch the metal
+        # part's boxes: one at a time, or update meets a box show_job has just removed.
+        self._metal_lock = threading.Lock()
         # The cell file's metal part, drawn while a job is taught (a job's own follows its place pose).
         self.modelled_metal = (
             []
@@ -232,6 +236,10 @@ class CellScene:
 
     def show_job(self, job: JobDetail | None) -> None:
         """The metal part where ``job`` places the part; None hides it."""
+        with self._metal_lock:
+            self._show_job(job)
+
+    def _show_job(self, job: JobDetail | None) -> None:
         for handle in self.metal:
             handle.remove()
         self.metal = []
@@ -278,7 +286,8 @@ class CellScene:
             self.tools[name].wxyz, self.tools[name].position, self.tools[name].visible = _wxyz(bMx), bMx[:3, 3], True
         brackets = np.array([[bMe[:3, 3], bMx[:3, 3]] for bMx in bodies.values()])
         self.server.scene.add_line_segments("/cell/tools/brackets", brackets, BRACKET_RGB, thickness=0.004)
-        self._show_teaching(state)
+        with self._metal_lock:
+            self._show_teaching(state)
         side = self.job.side_m if self.job else PART_SIDE_M
         bMp = placed_part_frame(self.job.bMe_place, self.mount.eMv, side) if self.job else None
         bMo = self.tracker.update(state, overlay, side, bMp)

@@ -439,7 +439,7 @@ class AssemblySequence:
             cMo = pose_from_planar_points(features.corners_px, Cube(np.eye(4), job.part_side_m).corners_o, model.camera)
         except PoseEstimationError:
             return None
-        bMo_now = self.robot.read_pose() @ model.eMc @ cMo
+        bMo_now = self.robot.pose() @ model.eMc @ cMo
         bMo_taught = job.taught_bMe @ taught.eMc @ job.desired.cdMo
         bMe_goal = turned_goal(job.taught_bMe, bMo_taught, bMo_now, job.part_side_m, quarter_turns)
         try:
