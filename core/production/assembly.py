@@ -345,8 +345,6 @@ class AssemblySequence:
             if self.job.check is not None:
                 seen = self._look_at_the_placed_part(self.job.check)
         except (RobotError, UnreachableTarget) as exc:
-            if self.settings.estopped():
-                return self._end(Outcome.ESTOPPED, "e-stop pressed", RunEnd.ESTOPPED)
             return self._end(Outcome.FAULT, f"robot: {exc}", RunEnd.ROBOT_FAULT)
         return self._verdict(seen)
 
@@ -524,8 +522,6 @@ class AssemblySequence:
             self.robot.stop_motion()  # the last twist may still be held: the pick starts from a standing arm
         if self.servo.converged:
             return self.servo
-        if self.settings.estopped():
-            return self._end(Outcome.ESTOPPED, "e-stop pressed", RunEnd.ESTOPPED)
         failure = self.servo.failure or Failure.ROBOT_STOPPED  # a servo that neither converged nor said why was stopped
         return self._end(Outcome.FAULT, f"servo failed: {failure.value} ({self.servo.reason})", RunEnd(failure.value))
 
@@ -616,7 +612,11 @@ class AssemblySequence:
         seen: PlacementCheck | None = None,
         gauge: PlacementReport | None = None,
     ) -> AssemblyOutcome:
-        """The run's outcome, said once; a fault or an e-stop first holds the robot."""
+        """The run's outcome, said once; a fault or an e-stop first holds the robot.
+        A fault met while the e-stop is latched ends the run as e-stopped: the hold made
+        the step fail (a refused move, a refused goal, a stopped servo), whichever noticed."""
+        if outcome is Outcome.FAULT and self.settings.estopped():
+            outcome, reason, end = Outcome.ESTOPPED, "e-stop pressed", RunEnd.ESTOPPED
         if outcome in (Outcome.FAULT, Outcome.ESTOPPED):
             reason += hold_after_fault(self.robot)
             self._say(Phase.ESTOPPED if outcome is Outcome.ESTOPPED else Phase.FAULT, reason)

@@ -14,10 +14,11 @@ from tests.controller_fixtures import simulated_controller
 from tests.jrc_fixtures import with_the_thesis_policy
 from vservo.app.cli import main
 from vservo.core.cell.config import CellConfig, load_cell
-from vservo.core.production.assembly import AssemblyOutcome, FlangeReadout, Outcome, Phase, joint_limited_steps
+from vservo.core.production.assembly import AssemblyOutcome, FlangeReadout, Outcome, Phase, joint_limited_steps, run_assembly
 from vservo.core.production.cell_controller import CellController, CommandRefused
+from vservo.core.production.demo_job import teach_demo_job
 from vservo.core.production.protocol import TeachStep
-from vservo.core.production.protocol.catalogue import Refusal
+from vservo.core.production.protocol.catalogue import Refusal, RunEnd
 from vservo.core.production.simulated_rig import simulated_rig
 from vservo.core.production.storage import Store
 from vservo.core.robot.safety import SafetyLayer
@@ -251,3 +252,29 @@ def test_the_servos_readout_gives_the_arm_models_joints_and_the_bending_keeps_th
     steps = joint_limited_steps(SafetyLayer(rig.robot.robot, margin, rig.robot.arm, config.home_q))
     assert steps.settings.margin_rad > margin.joint_margin_rad
     assert np.allclose(steps.upper, rig.robot.arm.upper - steps.settings.margin_rad)
+
+
+def test_an_estop_pressed_as_the_start_pose_is_seen_ends_the_run_estopped_not_as_a_fault():
+    """The hold refuses the servo goal's reach check that follows the frame: the run still
+    ends by the e-stop, as the operator pressed it, not as a goal out of reach."""
+    config = load_cell()
+    job, _, _ = teach_demo_job(config)
+    rig = simulated_rig(config, seed=0)
+    rig.robot.connect()
+    rig.robot.servo(True)
+    pressed = threading.Event()
+    camera = rig.perception()
+
+    class EStopAtTheFirstFrame:
+        def perceive(self, measurement, motion_ended_s):
+            if not pressed.is_set():
+                pressed.set()
+                rig.robot.emergency_stop("pressed by the operator")
+            return camera.perceive(measurement, motion_ended_s)
+
+    outcome = run_assembly(
+        job, rig.robot, rig.gripper, EStopAtTheFirstFrame(), config.nominal, rig.policy, estopped=pressed.is_set
+    )
+    assert pressed.is_set()
+    assert outcome.outcome is Outcome.ESTOPPED and outcome.end is RunEnd.ESTOPPED
+    assert rig.robot.status().held
