@@ -130,6 +130,18 @@ class ArmKinematics:
         q = self._joint_vector(q)
         return bool(np.all((self.lower <= q) & (q <= self.upper)))
 
+    def unwound(self, q: ArrayLike) -> Matrix:
+        """q with every joint whose range spans more than a turn (the UPJ's wrist roll,
+        +-360 deg) moved by whole turns to the value nearest the middle of its range: the
+        same flange pose, with the most travel left either way. A controller that follows
+        its joints by continuity winds such a joint a turn further whenever half-turns in
+        the same sense add up, run after run, until the servo meets its limit."""
+        q = self._joint_vector(q)
+        middle = (self.lower + self.upper) / 2
+        turns = np.round((q - middle) / (2 * np.pi))
+        unwound = q - 2 * np.pi * turns
+        return np.where((self.upper - self.lower > 2 * np.pi) & (self.lower <= unwound) & (unwound <= self.upper), unwound, q)
+
     def fk(self, q: ArrayLike, frame: str = "flange") -> Matrix:
         """bM<frame>: pose of the frame in the base at joint configuration q (rad)."""
         frame_id = self._frame_id(frame)

@@ -391,10 +391,12 @@ class AssemblySequence:
         self.start_bMe = start_bMe
         self.timer.enter(CellTimePhase.START)
         self._say(Phase.SERVOING, "moving to the start pose")
-        if self.job.survey_bMe is None:
+        # A wrist wound a turn by the runs before would meet its limit in the servo's turn.
+        wound = self.robot.wound(start_bMe)
+        if self.job.survey_bMe is None and not wound:
             self._move(start_bMe)
         else:
-            self.robot.move_joint(start_bMe, self.settings.speed_m_s)
+            self.robot.move_joint(start_bMe, self.settings.speed_m_s, unwind=wound)
 
     def _turned_view(self) -> DesiredImage | AssemblyOutcome:
         """The taught view turned as the part's symmetry allows to turn the camera least,

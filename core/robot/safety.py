@@ -29,7 +29,7 @@ import numpy as np
 
 from vservo.core.cell.config import CellConfig, SafetyConfig
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
-from vservo.core.geometry.spatial import Matrix, exp_twist, interpolate, pose_error
+from vservo.core.geometry.spatial import Matrix, exp_twist, interpolate, pose_error, theta_u, transform
 from vservo.core.robot.backend import (
     RobotBackend,
     RobotError,
@@ -51,6 +51,13 @@ CHECK_TOLERANCE = 1e-6
 # is sampled this finely to place them.
 STEP_FILL = 0.9
 JOINT_SAMPLE_RAD = np.deg2rad(0.5)
+# The most one linear move may turn the flange: near a half turn the short way round is a
+# toss-up, which the controller and the arm's model may call differently (a turn of joint 6
+# apart afterwards); a taught move that turns more goes out as a few moves within this.
+LINEAR_TURN_RAD = np.deg2rad(160.0)
+# Within this of a half turn either way round is as short: the one that leaves the
+# multi-turn joints nearer their ranges' middles (ArmKinematics.unwound) is taken.
+HALF_TURN_TOSS_RAD = np.deg2rad(10.0)
 
 
 class SafetyRefusal(RobotError):
@@ -338,20 +345,35 @@ class SafetyLayer:
         as one linear move (MOVL keeps to the straight line). The whole line is checked
         first, at points within max_step_m / max_step_rad of each other (linear_path), so
         a refusal (SafetyRefusal) moves nothing and the one move needs no step limit of
-        its own; then it is sent and waited for (MotionStopped if the robot stops short)."""
+        its own; then it is sent and waited for (MotionStopped if the robot stops short).
+        A move that turns the flange more than LINEAR_TURN_RAD goes out as that many
+        moves along the same line, so the controller turns the way the checks did."""
         bMe_target = np.array(bMe_target, dtype=float)
-        checked = self._linear_checks(self._current_pose(), bMe_target, speed_m_s)
-        self._refuse_if_stopped("move")  # a stop latched while the path was checked
-        self._q_seed = checked[-1][1]
-        self._sending(bMe_target)
-        self._link(self.robot.move_to, bMe_target, speed_m_s)
-        wait_for_the_end(self)
+        bMe_from = self._current_pose()
+        checked = self._turn_checks(bMe_from, bMe_target, speed_m_s)
+        turned = sum(pose_error(a, b)[1] for a, b in zip([bMe_from, *(bMe for bMe, _ in checked)], (bMe for bMe, _ in checked)))
+        moves = max(1, int(np.ceil(turned / LINEAR_TURN_RAD - 1e-9)))
+        for k in range(1, moves + 1):  # the line's points the checks passed, each way the model turns
+            bMe_segment, self._q_seed = checked[round(k * len(checked) / moves) - 1]
+            bMe_segment = bMe_target if k == moves else bMe_segment
+            self._refuse_if_stopped("move")  # a stop latched while the path was checked
+            self._sending(bMe_segment)
+            self._link(self.robot.move_to, bMe_segment, speed_m_s)
+            wait_for_the_end(self)
 
-    def move_joint(self, bMe_target: Matrix, speed_m_s: float) -> None:
+    def move_joint(self, bMe_target: Matrix, speed_m_s: float, unwind: bool = False) -> None:
         """A long move on the joint-space line (joint_path), checked whole first and sent
         as steps, each a short linear move: the way a transfer between two far poses
-        keeps to the arm's workspace where the straight line between them leaves it."""
-        self._follow(self.joint_path(self._current_pose(), bMe_target, speed_m_s), speed_m_s)
+        keeps to the arm's workspace where the straight line between them leaves it.
+        ``unwind``: end with the multi-turn joints nearest their ranges' middles."""
+        self._follow(self.joint_path(self._current_pose(), bMe_target, speed_m_s, unwind=unwind), speed_m_s)
+
+    def wound(self, bMe_target: Matrix) -> bool:
+        """Whether the joints a move to bMe_target reaches by continuity (model_joints)
+        leave a multi-turn joint a turn or more from the middle of its range
+        (ArmKinematics.unwound): the move to a run's start then unwinds it."""
+        q = self.model_joints(bMe_target)
+        return bool(np.all(np.isfinite(q)) and not np.allclose(self.arm.unwound(q), q))
 
     def linear_path(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float) -> list[Matrix]:
         """The points of a straight move from bMe_from to bMe_target at which it is checked,
@@ -359,7 +381,36 @@ class SafetyLayer:
         the first refused), no motion. The target is checked against the workspace first:
         from the robot's pose to a target in the box, the path's length, and so the work of
         checking it, is bounded whatever was asked."""
-        return [bMe for bMe, _ in self._linear_checks(bMe_from, bMe_target, speed_m_s)]
+        return [bMe for bMe, _ in self._turn_checks(bMe_from, bMe_target, speed_m_s)]
+
+    def _turn_checks(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float) -> list[tuple[Matrix, Matrix]]:
+        """_linear_checks, except that a move within HALF_TURN_TOSS_RAD of a half turn is
+        checked both ways round (the other through the pose halfway that way) and goes the
+        way that passes, of two the one ending with the multi-turn joints nearer their
+        middles: the short way is then a toss-up, and one way may meet joint 6's limit."""
+        bMe_target = np.asarray(bMe_target, dtype=float)
+        self._check_in_workspace(bMe_target)  # a target that is no pose fails here, not in the turn
+        _, rotation = pose_error(bMe_from, bMe_target)
+        if rotation < np.pi - HALF_TURN_TOSS_RAD:
+            return self._linear_checks(bMe_from, bMe_target, speed_m_s)
+        axis = theta_u(bMe_from[:3, :3].T @ bMe_target[:3, :3]) / rotation
+        bMe_halfway = transform(
+            bMe_from[:3, :3] @ exp_twist(np.concatenate([np.zeros(3), -(2 * np.pi - rotation) / 2 * axis]))[:3, :3],
+            (bMe_from[:3, 3] + bMe_target[:3, 3]) / 2,
+        )
+        ways, refusals = [], []
+        for route in ([bMe_target], [bMe_halfway, bMe_target]):
+            try:
+                checked, bMe_before = [], bMe_from
+                for bMe_end in route:
+                    checked += self._linear_checks(bMe_before, bMe_end, speed_m_s)
+                    bMe_before = bMe_end
+                ways.append(checked)
+            except SafetyRefusal as exc:
+                refusals.append(exc)
+        if not ways:
+            raise refusals[0]
+        return min(ways, key=lambda checked: float(np.abs(checked[-1][1] - self.arm.unwound(checked[-1][1])).sum()))
 
     def _linear_checks(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float) -> list[tuple[Matrix, Matrix]]:
         """linear_path's points, each with the joints the nominal IK finds for it."""
@@ -376,7 +427,9 @@ class SafetyLayer:
             checked.append((bMe_waypoint, q))
         return checked
 
-    def joint_path(self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float, q_seed: Matrix | None = None) -> list[Matrix]:
+    def joint_path(
+        self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float, q_seed: Matrix | None = None, unwind: bool = False
+    ) -> list[Matrix]:
         """The steps of a move from bMe_from to bMe_target on the straight line between
         their joints (the nominal IK of each, the target's from the start's), each step
         checked (check_target), no motion.
@@ -389,7 +442,9 @@ class SafetyLayer:
         step ends at the last sample within STEP_FILL of the step limits; the arm goes
         from step to step on short straight lines (the chord of a 45 mm step strays less
         than a millimetre from the joint-space curve). ``q_seed``: where the start's IK
-        starts (the joints of the last move sent by default).
+        starts (the joints of the last move sent by default); ``unwind``: the target's joints
+        moved by whole turns nearest their ranges' middles (ArmKinematics.unwound), the steps
+        small enough that a controller following its joints by continuity turns them back.
         """
         bMe_target = np.asarray(bMe_target, dtype=float)
         self._check_in_workspace(bMe_target)  # before any IK: a far target costs nothing
@@ -398,6 +453,7 @@ class SafetyLayer:
                 bMe_from, self._q_seed if q_seed is None else q_seed, tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE
             ).q
             q_to = self.arm.ik(bMe_target, q_from, tolerance_m=CHECK_TOLERANCE, tolerance_rad=CHECK_TOLERANCE).q
+            q_to = self.arm.unwound(q_to) if unwind else q_to
         except UnreachableTarget as exc:
             raise BeyondJointLimits(f"move refused: no joints within the limits reach the path's ends ({exc})") from exc
         samples = max(1, int(np.ceil(np.max(np.abs(q_to - q_from)) / JOINT_SAMPLE_RAD)))

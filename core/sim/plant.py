@@ -27,7 +27,7 @@ from vservo.core.cell.config import CellConfig, CellModel, ConfigError
 from vservo.core.cell.kinematics import ArmKinematics
 from vservo.core.cell.scene import Scene
 from vservo.core.errors import VservoError
-from vservo.core.geometry.spatial import Matrix, exp_twist, inverse, pose_error, rot_z, transform
+from vservo.core.geometry.spatial import Matrix, exp_twist, interpolate, inverse, pose_error, rot_z, transform
 from vservo.core.perception.features import ObjectRegion, polygon_moments
 from vservo.core.perception.measurement import Measurement
 from vservo.core.robot.commands import PositionCommand, RobotCommand, VelocityCommand
@@ -46,6 +46,8 @@ ROTATION_SPEED_RAD_S = 0.5
 # enough to converge near singularities where 1e-9 takes too many iterations.
 IK_TOLERANCE_M = 1e-7
 IK_TOLERANCE_RAD = 1e-7
+# A linear move's joints are followed along its line at most this turn apart (jrc_ik).
+LINE_IK_STEP_RAD = np.deg2rad(20.0)
 
 
 class CellStateError(VservoError, RuntimeError):
@@ -281,9 +283,19 @@ class SimulatedCell:
         return max(translation / speed_m_s, rotation / ROTATION_SPEED_RAD_S)
 
     def jrc_ik(self, bMe_target: Matrix) -> Matrix:
-        """The joints the JRC computes for a flange target, from where the arm
-        is, with its nominal model; raises UnreachableTarget."""
-        return self.jrc_arm.ik(bMe_target, self.state.q, tolerance_m=IK_TOLERANCE_M, tolerance_rad=IK_TOLERANCE_RAD).q
+        """The joints the JRC ends a linear move to a flange target at, with its nominal
+        model: followed by continuity along the straight line from where it puts the
+        flange, as a MOVL turns the wrist the short way round. Solved at the target alone,
+        a half turn of the wrist could end a turn of joint 6 away from where the line
+        leads. Raises UnreachableTarget."""
+        arm, q = self.jrc_arm, self.state.q
+        bMe_now = arm.fk(q)
+        _, rotation = pose_error(bMe_now, bMe_target)
+        steps = max(1, int(np.ceil(rotation / LINE_IK_STEP_RAD)))
+        for k in range(1, steps + 1):
+            bMe = interpolate(bMe_now, bMe_target, k / steps)
+            q = arm.ik(bMe, q, tolerance_m=IK_TOLERANCE_M, tolerance_rad=IK_TOLERANCE_RAD).q
+        return q
 
     def move(self, bMe_target: Matrix, duration_s: float) -> MoveReport:
         """The arm moves to the JRC's joints for bMe_target in duration_s and settles."""

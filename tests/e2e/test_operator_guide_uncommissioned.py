@@ -100,10 +100,6 @@ def test_the_demo_job_of_the_shipped_cell_is_refused_before_moving(page):
     assert "Servoing" not in status_text(page), (before, status_text(page))
 
 
-# Issue 26's target, not met yet: 16 of 20 placed when measured (the other four faulted in the
-# servo, joint 6 at its limit or the features lost, instead of being refused before the pick).
-# Strict: the day it holds, the suite says so and this mark goes.
-@pytest.mark.xfail(strict=True, reason="issue 26: at least 19 of 20 placed is the target; 16 of 20 measured")
 def test_a_job_taught_as_the_guide_says_places_parts_turned_anyhow_on_a_cell_never_commissioned(page, virtual_cell):
     _, gauge = virtual_cell
     teach_the_guide_job(page, lambda number, name: None, measured=False)

@@ -7,6 +7,7 @@ watchdog hold the robot and refuse every move until they are reset.
 import re
 import time
 from contextlib import contextmanager
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -173,6 +174,45 @@ def test_a_transfer_whose_straight_line_leaves_the_arms_shell_goes_on_the_joint_
     # On the way the flange swung out round the base axis, never in through the hole.
     radii = [np.linalg.norm(after[:2, 3]) for _, after in sent]
     assert min(radii) > 0.389
+
+
+def test_a_taught_half_turn_goes_out_as_moves_the_controller_turns_the_way_the_model_does(safe):
+    """A half turn of the flange is a toss-up for the short way round: sent whole, the
+    controller may turn one way and the arm's model the other, a turn of joint 6 apart
+    after it. It goes out as moves of at most 90 deg along the checked line instead."""
+    robot, cell = safe
+    start = tool_down(-0.36, -0.20, 0.05)
+    robot.move_joint(start, SPEED)
+    sent = []
+    move_to = robot.robot.move_to
+    robot.robot.move_to = lambda bMe, speed: (sent.append((arm_pose(cell), bMe)), move_to(bMe, speed))[1]
+    for half_turns in (1, 2):  # a half turn, and back to the start's orientation the same way or not
+        target = start @ transform(rot_z(np.pi * half_turns))
+        robot.move_linear(target, SPEED)
+        assert pose_error(arm_pose(cell), target)[0] < 1e-4 and pose_error(arm_pose(cell), target)[1] < 1e-4
+        np.testing.assert_allclose(robot.model_joints(robot.pose()), cell.state.q, atol=1e-3)
+    assert len(sent) == 4 and max(pose_error(before, after)[1] for before, after in sent) <= np.radians(90.0) + 1e-6
+
+
+def test_a_wrist_wound_a_turn_is_unwound_by_the_joint_move_that_asks_it(backend_name):
+    """Joint 6 a turn from the middle of its range (the UPJ's +-360 deg) leaves the servo
+    no room to turn one way: move_joint(unwind=True) ends with it nearest the middle, the
+    arm's model and the controller alike."""
+    config = short_timer_cell()
+    arm = SafetyLayer.from_config(SimulatedBackend.enabled(SimulatedCell(config)), config).arm
+    q = np.array(config.home_q, dtype=float)
+    wound = q.copy()
+    wound[5] = q[5] - 2 * np.pi if q[5] > 0 else q[5] + 2 * np.pi
+    np.testing.assert_allclose(arm.unwound(wound), q)
+    np.testing.assert_allclose(arm.unwound(q), q)  # only the multi-turn joints, and only by whole turns
+    with guarded(backend_name, replace(config, home_q=wound)) as (robot, cell):
+        cell.state = replace(cell.state, q=wound)
+        here = robot.read_pose()
+        assert robot.wound(here)
+        robot.move_joint(here, SPEED, unwind=True)
+        np.testing.assert_allclose(cell.state.q, q, atol=1e-3)
+        np.testing.assert_allclose(robot.model_joints(robot.pose()), q, atol=1e-3)
+        assert not robot.wound(here) and pose_error(arm_pose(cell), here)[0] < 1e-4
 
 
 def test_a_joint_move_to_a_pose_out_of_reach_is_refused_and_nothing_moves(safe):
