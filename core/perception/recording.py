@@ -28,7 +28,9 @@ import json
 import logging
 import math
 import os
+import queue
 import re
+import threading
 import time
 from collections.abc import Callable, Generator, Mapping
 from dataclasses import dataclass
@@ -56,7 +58,9 @@ FRAMES_DIR = "frames"
 FRAME_KEY = "frame"  # the key the recorder adds to every cycle line
 
 _FRAME_FILE = re.compile(r"frames/[0-9]{6,}\.png")
-_PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]  # fast: the recorder runs inside the loop
+_PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]  # fast: the recorder runs beside the loop
+# Cycles a RecorderThread holds before record() waits for the disk: a few seconds of frames.
+RECORDER_QUEUE_CYCLES = 64
 
 
 class RecordingError(VservoError, RuntimeError):
@@ -271,6 +275,61 @@ class RunRecorder:
             **extra,
         }
         self._write_meta()
+
+
+class RecorderThread:
+    """A RunRecorder written from a thread of its own: ``record`` hands the cycle over and
+    returns, so a loop servoing at the camera's rate does not wait for the PNG encoding and
+    the disk (OpenCV encodes without Python's lock, on another core). The cycles are written
+    in the order recorded. A write that fails stops the writing; ``record`` and ``close`` then
+    raise its error, saying at which cycle the recording stopped."""
+
+    def __init__(self, recorder: RunRecorder) -> None:
+        self.recorder = recorder
+        self.folder = recorder.folder
+        self.failure: Exception | None = None  # the write that stopped the recording
+        self._queue: queue.Queue[tuple[Frame | None, Mapping[str, Any]] | None] = queue.Queue(RECORDER_QUEUE_CYCLES)
+        self._closed = False
+        self._writer = threading.Thread(target=self._write, name=f"recorder {recorder.folder.name}", daemon=True)
+        self._writer.start()
+
+    def __repr__(self) -> str:
+        return f"RecorderThread({str(self.folder)!r})"
+
+    def _write(self) -> None:
+        while (item := self._queue.get()) is not None:
+            if self.failure is None:
+                try:
+                    self.recorder.record(*item)
+                except Exception as exc:  # the disk, or a value JSON cannot hold: kept for the caller
+                    if not isinstance(exc, (RecordingError, OSError)):
+                        log.exception("%r: a cycle could not be recorded", self)
+                    count = self.recorder.cycle_count
+                    self.failure = RecordingError(f"recording stopped at cycle {count + 1}: {exc}")
+                    self.failure.__cause__ = exc
+
+    def record(self, frame: Frame | None, cycle: Mapping[str, Any]) -> None:
+        """Queue one cycle (RunRecorder.record); raises the failure of an earlier write."""
+        if self.failure is not None:
+            raise self.failure
+        if self._closed:
+            raise RecordingError(f"{self!r} is closed")
+        self._queue.put((frame, cycle))
+
+    def close(self, outcome: Mapping[str, Any] | None = None) -> None:
+        """Write what is queued, then close the recording (RunRecorder.close) with ``outcome``,
+        or after a failed write as aborted, and raise that write's failure. Idempotent."""
+        if not self._closed:
+            self._closed = True
+            self._queue.put(None)
+            self._writer.join()
+        if self.failure is None:
+            self.recorder.close(outcome)
+            return
+        try:
+            self.recorder.close({"aborted": str(self.failure)})
+        finally:
+            raise self.failure
 
 
 @dataclass(frozen=True)

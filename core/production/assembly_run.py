@@ -19,7 +19,7 @@ import numpy as np
 from vservo.core.cell.config import CellConfig
 from vservo.core.geometry.spatial import Matrix
 from vservo.core.perception.camera_source import CameraSourceError
-from vservo.core.perception.recording import RecordingError, RunRecorder
+from vservo.core.perception.recording import RecorderThread, RecordingError, RunRecorder
 from vservo.core.perception.vision.pipeline import CameraPerception
 from vservo.core.production.assembly import (
     AssemblyEvent,
@@ -65,12 +65,13 @@ def retargeted_job(store: Store, config: CellConfig, job_name: str) -> tuple[Job
     return job, note
 
 
-def _closed_quietly(recorder: RunRecorder) -> None:
-    """Close a recorder that failed to write; its close may fail alike (the same full disk)."""
+def _closed_quietly(recorder: RecorderThread) -> None:
+    """Close a recorder that failed to write (as aborted); its close raises that failure, or
+    fails alike (the same full disk)."""
     try:
-        recorder.close({"aborted": "a write failed"})
+        recorder.close()
     except (RecordingError, OSError) as exc:
-        log.warning("closing the failed recording %s: %s", recorder.folder, exc)
+        log.warning("closed the failed recording %s: %s", recorder.folder, exc)
 
 
 class AssemblyRun:
@@ -94,7 +95,7 @@ class AssemblyRun:
         self.part_id = part_id
         self.rig, self.store, self.publisher, self.estop = rig, store, publisher, estop
         self.cycle_period_s = cycle_period_s  # a floor on the servo cycle, so a fast simulator can be watched
-        self._recorder: RunRecorder | None = None
+        self._recorder: RecorderThread | None = None
         self._recording_note: str | None = None
         self._recorded_to: Path | None = None
         self._trail: list[Matrix] = []
@@ -120,7 +121,8 @@ class AssemblyRun:
     def _open_recording(self) -> None:
         folder = self.store.run_folder(self.run_id)
         try:
-            self._recorder = RunRecorder(folder, {"job": self.job.name, "run": self.run_id, "desired": self.job.desired})
+            recorder = RunRecorder(folder, {"job": self.job.name, "run": self.run_id, "desired": self.job.desired})
+            self._recorder = RecorderThread(recorder)  # off the loop's path: the servo may run at the camera's rate
             self._recorded_to = folder
         except (RecordingError, OSError) as exc:  # a full disk, a leftover folder: run, and say so
             self._recording_note = f"not recorded: {exc}"
@@ -165,7 +167,7 @@ class AssemblyRun:
             try:
                 self._recorder.record(frame, cycle_record(cycle))
             except (RecordingError, OSError) as exc:  # the disk filled up: the run goes on unrecorded
-                self._recording_note = f"recording stopped at cycle {cycle.iteration + 1}: {exc}"
+                self._recording_note = str(exc)  # "recording stopped at cycle ...", the write's own cycle
                 log.error("run %d: %s", self.run_id, self._recording_note)
                 _closed_quietly(self._recorder)
                 self._recorder = None
@@ -176,7 +178,7 @@ class AssemblyRun:
             run=RunFigures(self.run_id, cycle.output.stage, cycle.iteration + 1, error_px, cycle.output.cVc, self.part_id),
             **({"detail": note} if note else {}),
             # The cup does not change while the servo runs (suction comes at the pick): no I/O read.
-            **self.publisher.robot_readout(cycle.measurement.bMe, vacuum=False),
+            **self.publisher.robot_readout(cycle.measurement.bMe, vacuum=False, q=cycle.measurement.q),
         )
         if frame is not None:
             corners, spot = cycle.features.corners_px, cycle.features.laser_spot_px
@@ -191,7 +193,8 @@ class AssemblyRun:
             try:
                 self._recorder.close(outcome.summary())
             except (RecordingError, OSError) as exc:
-                self._recording_note = f"the recording's summary was not written: {exc}"
+                failed_write = self._recorder.failure is not None  # a cycle's, seen only now: it says where it stopped
+                self._recording_note = str(exc) if failed_write else f"the recording's summary was not written: {exc}"
         if self._recording_note:
             outcome = replace(outcome, notes=(*outcome.notes, self._recording_note))
         return outcome

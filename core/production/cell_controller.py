@@ -217,20 +217,24 @@ class CellController:
         for subscriber in list(self.frame_subscribers):
             subscriber(view)
 
-    def robot_readout(self, bMe: Matrix | None = None, vacuum: bool = True) -> dict[str, Any]:
+    def robot_readout(self, bMe: Matrix | None = None, vacuum: bool = True, q: Matrix | None = None) -> dict[str, Any]:
         """Flange pose (unless given, where the robot stands: read only when not known,
-        SafetyLayer.pose), joints and (``vacuum``: a JRC's I/O read) the vacuum sensor for the state."""
+        SafetyLayer.pose), joints (``q``: the arm model's joints of a given bMe, which a servo
+        cycle has solved already) and (``vacuum``: a JRC's I/O read) the vacuum sensor for the state."""
         try:
             bMe = self.rig.robot.pose() if bMe is None else bMe
             holding = {"holding_part": self.rig.gripper.holding()} if vacuum else {}
         except RobotError as exc:  # the link is down: the state says so, the last readout stands
             log.warning("robot readout failed: %s", exc)
             return {}
-        return {"bMe": bMe, "q": self._joints_shown(bMe), **holding}
+        return {"bMe": bMe, "q": self._joints_shown(bMe, q), **holding}
 
-    def _joints_shown(self, bMe: Matrix) -> Matrix:
+    def _joints_shown(self, bMe: Matrix, q: Matrix | None) -> Matrix:
         if self.rig.cell is not None:  # the simulated cell's plant: its true joints
             return self.rig.cell.state.q
+        if q is not None and np.all(np.isfinite(q)):  # solved for this bMe by the caller: no second IK
+            self._shown_q = np.asarray(q, dtype=float)
+            return self._shown_q
         try:
             self._shown_q = self.rig.robot.arm.ik(bMe, self._shown_q, tolerance_m=1e-6, tolerance_rad=1e-5, restarts=0).q
         except UnreachableTarget:

@@ -81,9 +81,9 @@ class Publisher(Protocol):
     def update_with(self, changes: Callable[[ControllerState], dict[str, Any] | None]) -> None:
         """Replace the fields ``changes`` computes from the current state (None: nothing) and publish it."""
 
-    def robot_readout(self, bMe: Matrix | None = None, vacuum: bool = True) -> dict[str, Any]:
-        """The flange pose, joints and (``vacuum``) the vacuum sensor as state fields (empty
-        when the link is down)."""
+    def robot_readout(self, bMe: Matrix | None = None, vacuum: bool = True, q: Matrix | None = None) -> dict[str, Any]:
+        """The flange pose, joints (``q`` when the caller has the model's joints of bMe) and
+        (``vacuum``) the vacuum sensor as state fields (empty when the link is down)."""
 
     def publish_frame(self, view: FrameView) -> None:
         """Show a camera frame and what was seen in it."""

@@ -27,7 +27,9 @@ import bisect
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -86,7 +88,7 @@ class UrState:
 
     received_s: float
     timestamp_s: float
-    bMe: Matrix
+    tcp_pose: Sequence[float]  # [x, y, z, rx, ry, rz] as RTDE sends it: made a matrix when read (bMe)
     tcp_speed: Matrix
     robot_mode: int
     safety_mode: int
@@ -94,6 +96,12 @@ class UrState:
     input_bits: int
     output_bits: int
     done_register: int
+
+    @cached_property
+    def bMe(self) -> Matrix:
+        """The TCP pose; computed once, and only for the packages read: the reader keeps
+        every package the controller sends (125 or 500 a second), the loop reads a few."""
+        return ur_script.pose_from_ur(self.tcp_pose)
 
 
 class UrBackend:
@@ -184,7 +192,7 @@ class UrBackend:
             state = UrState(
                 received_s=time.monotonic(),
                 timestamp_s=timestamp,
-                bMe=ur_script.pose_from_ur(receive.getActualTCPPose()),
+                tcp_pose=receive.getActualTCPPose(),
                 tcp_speed=np.asarray(receive.getActualTCPSpeed(), dtype=float),
                 robot_mode=receive.getRobotMode(),
                 safety_mode=receive.getSafetyMode(),
@@ -259,16 +267,16 @@ class UrBackend:
         """The TCP pose at host time t_s, between the two RTDE packages around it (the
         newest if t_s is later, the oldest kept if earlier)."""
         with self._fresh:
-            history = list(self._history)
-        if not history:
+            history = self._history
+            if not history:
+                before = after = None
+            else:
+                k = bisect.bisect_left(history, t_s, key=lambda state: state.received_s)
+                before, after = history[max(k - 1, 0)], history[min(k, len(history) - 1)]
+        if before is None or after is None:
             return self.read_pose()
-        times = [state.received_s for state in history]
-        k = bisect.bisect_left(times, t_s)
-        if k == 0:
-            return history[0].bMe.copy()
-        if k == len(history):
-            return history[-1].bMe.copy()
-        before, after = history[k - 1], history[k]
+        if before is after:  # t_s before the oldest package kept, or after the newest
+            return before.bMe.copy()
         return interpolate(before.bMe, after.bMe, (t_s - before.received_s) / (after.received_s - before.received_s))
 
     def servo(self, on: bool) -> None:

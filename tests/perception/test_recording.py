@@ -17,6 +17,7 @@ from vservo.core.perception.camera_source import CameraSourceError, Frame, Frame
 from vservo.core.perception.recording import (
     FORMAT_VERSION,
     PlaybackSource,
+    RecorderThread,
     Recording,
     RecordingError,
     RunRecorder,
@@ -99,6 +100,29 @@ def test_round_trip_frames_and_cycles(tmp_path: Path) -> None:
         assert got.timestamp_s == want.timestamp_s and got.index == want.index
     assert recording.frame_of(recording.cycles[2]) is None
     np.testing.assert_array_equal(recording.frame_of(recording.cycles[4]).image, recorded[3].image)
+
+
+def test_a_recorder_thread_writes_the_cycles_in_order_and_a_failed_write_stops_it(tmp_path: Path) -> None:
+    frames = make_frames(6)
+    recorder = RecorderThread(RunRecorder(tmp_path / "run", META))
+    for i in range(4):
+        recorder.record(None if i == 2 else frames[i], cycle(i))
+    recorder.close({"placed": True})
+    recording = Recording.open(tmp_path / "run")
+    assert [line["iteration"] for line in recording.cycles] == [0, 1, 2, 3]
+    assert recording.summary["frames"] == 3 and recording.summary["outcome"] == {"placed": True}
+    np.testing.assert_array_equal(recording.frame_of(recording.cycles[1]).image, frames[1].image)
+
+    recorder = RecorderThread(RunRecorder(tmp_path / "failing", META))
+    recorder.record(frames[0], cycle(0))
+    recorder.record(frames[1], {"iteration": 1, "command": object()})  # a value JSON cannot hold: the write fails
+    with pytest.raises(RecordingError, match="recording stopped at cycle 2: .*cannot store a object"):
+        for i in range(2, 200):  # raised by a record once the writer met it
+            recorder.record(frames[i % 6], cycle(i))
+    with pytest.raises(RecordingError, match="recording stopped at cycle 2"):
+        recorder.close({"placed": True})
+    recording = Recording.open(tmp_path / "failing")
+    assert len(recording.cycles) == 1 and recording.summary["outcome"]["aborted"].startswith("recording stopped at cycle 2")
 
 
 def test_cycle_lines_are_strict_json(tmp_path: Path) -> None:
