@@ -3,16 +3,19 @@ process (the UR controller emulator on its RTDE, dashboard and script ports, the
 stream, the fixture), and the product driving it through the cell file it writes, with
 ur-rtde's own clients, exactly as it would drive a real arm.
 
-The virtual cell runs at a fifth of real time (--time-scale 0.2; its camera keeps the
-controller's clock): the machine's two cores are shared, and a servo at the camera's rate
-needs its host to keep up with every frame. Every figure here is on the controller's clock,
-read from its log (the fixture's GET /robot-log).
+The virtual cell runs slower than real time (--time-scale 0.2 here, 0.4 for the ten-part
+acceptance; its camera keeps the controller's clock): the machine's two cores are shared,
+and a servo at the camera's rate needs its host to keep up with every frame. Every figure
+here is on the controller's clock, read from its log (the fixture's GET /robot-log).
 """
 
 import json
+import os
 import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,7 +26,10 @@ from tests.virtual_cell_process import ROOT, VirtualCellProcess
 from vservo.core.cell.config import load_cell
 from vservo.core.geometry.spatial import pose_error
 from vservo.core.production.cell_rig import build_rig
-from vservo.core.production.protocol.state import Outcome
+from vservo.core.production.protocol import KEY_ENVIRONMENT, new_key
+from vservo.core.production.protocol.client import ControllerClient
+from vservo.core.production.protocol.commands import Start
+from vservo.core.production.protocol.state import Outcome, RunOutcome
 from vservo.core.production.storage import Store
 from vservo.core.robot.backend import RobotNotReady
 from vservo.core.robot.ur import UrBackend
@@ -143,45 +149,98 @@ def test_a_stalled_camera_stops_the_arm_within_the_watchdog(ur_cell, controller)
     controller.reset()
 
 
+# The acceptance's pace: 0.4 of real time. The demo's cell time is 4 to 6 s, so its ten runs
+# take about 2 minutes; the servo must still follow every frame of the camera's 30 a second
+# of the controller's clock (12 a second of the host's) while other suites load the
+# machine's two cores (at half of real time and a load average of 5 to 11 a run now and then
+# fell to 20 to 24.7 twists a second).
+ACCEPTANCE_TIME_SCALE = "0.4"
+RUN_TIMEOUT_S = 120.0
+
+
+class ControllerProcess:
+    """`vservo controller` on the cell file, under ``python -X importtime`` (its standard error,
+    the import log and its own log, in a file), and the channel to it."""
+
+    def __init__(self, cell_file: str, data: Path) -> None:
+        self.key = new_key()
+        self.stderr = tempfile.TemporaryFile("w+")
+        self.process = subprocess.Popen(
+            [sys.executable, "-X", "importtime", "-m", "vservo.app.cli", "--cell", cell_file, "controller"]
+            + ["--data", str(data), "--seed", "0", "--cycle-period", "0"],
+            stdout=subprocess.PIPE,
+            stderr=self.stderr,
+            text=True,
+            cwd=ROOT,
+            env={**os.environ, KEY_ENVIRONMENT: self.key.hex()},
+        )
+        line = self.process.stdout.readline()
+        if not line:
+            raise AssertionError(f"the controller did not start: {self.log()[-3000:]}")
+        address = json.loads(line)["controller"]
+        self.channel = ControllerClient((address["host"], address["port"]), self.key)
+
+    def log(self) -> str:
+        self.stderr.seek(0)
+        return self.stderr.read()
+
+    def assemble(self, job_name: str) -> RunOutcome:
+        """Start ``job_name`` on the part on the table; how the run ended."""
+        reply = self.channel.call(Start(job_name))
+        assert reply.ok, reply.error
+        deadline = time.monotonic() + RUN_TIMEOUT_S
+        while (state := self.channel.state).run.run_id != reply.result or state.last_outcome is None:
+            assert time.monotonic() < deadline, f"run {reply.result} has not ended: {state.phase} {state.detail}"
+            time.sleep(0.05)
+        return state.last_outcome
+
+    def stop(self) -> int:
+        self.channel.close()
+        self.process.terminate()
+        try:
+            return self.process.wait(timeout=30)
+        finally:
+            self.process.stdout.close()
+            self.stderr.close()
+
+
 @pytest.fixture
-def fresh_ur_cell():
-    # A tenth of real time: ten runs in a row on cores other test suites load too (a load
-    # average of 20 to 30 on our two) must follow every frame of each.
-    cell = VirtualCellProcess("--seed", "3", "--robot-link", "ur", "--time-scale", "0.1")
+def acceptance_cell(tmp_path):
+    """A virtual UR cell at the acceptance's pace, and one controller process on its cell file."""
+    cell = VirtualCellProcess("--seed", "3", "--robot-link", "ur", "--time-scale", ACCEPTANCE_TIME_SCALE)
+    controller = None
     try:
-        yield cell
+        controller = ControllerProcess(cell.addresses["cell_file"], tmp_path / "data")
+        yield cell, controller
     finally:
+        if controller is not None:
+            assert controller.stop() == 0
         assert cell.stop() == 0
 
 
 @pytest.mark.slow
-def test_the_demo_is_placed_ten_of_ten_streaming_at_the_cameras_rate_and_loads_no_simulator_module(fresh_ur_cell, tmp_path):
-    """The issue's acceptance on the UR: ten seeds placed within 0.3 mm by the virtual cell's
-    gauge, each run within 6 s of the controller's clock, its servo streaming at least 25
-    twists a second of it, and the run process importing no module of the simulator."""
-    ur_cell, figures = fresh_ur_cell, []
+def test_the_demo_is_placed_ten_of_ten_streaming_at_the_cameras_rate_and_loads_no_simulator_module(acceptance_cell):
+    """The issue's acceptance on the UR: ten parts (the fixture's seeds 0 to 9) placed within
+    0.3 mm by the virtual cell's gauge, each run within 6 s of the controller's clock, its
+    servo streaming at least 25 twists a second of it, and the controller process importing
+    no module of the simulator. One controller process runs the ten, as on a line."""
+    ur_cell, controller = acceptance_cell
+    figures = []
     for seed in range(10):
+        status, body = fixture_request(ur_cell.addresses["fixture"] + "/part", "POST", json.dumps({"seed": seed}).encode())
+        assert status == 200, body
         before = len(twists(robot_log(ur_cell)))
-        run = subprocess.run(
-            [sys.executable, "-X", "importtime", "-m", "vservo.app.cli", "run", "--job", "demo"]
-            + ["--cell", ur_cell.addresses["cell_file"], "--json", "--data", str(tmp_path / "data"), "--seed", str(seed)],
-            capture_output=True,
-            text=True,
-            timeout=600,
-            cwd=ROOT,
-        )
-        assert run.returncode == 0, run.stdout + run.stderr[-3000:]
-        summary = json.loads(run.stdout)
+        outcome = controller.assemble("demo")
         released = ur_cell.next_event()
         streamed = twists(robot_log(ur_cell))[before:]
         rate = (len(streamed) - 1) / (streamed[-1] - streamed[0])
-        figures.append(
-            (seed, released["placement_error_mm"], summary["cell_time_s"], rate, summary["cell_time_by_phase_s"]["servo"])
-        )
-        print(seed, summary["cell_time_by_phase_s"], summary["stages"], f"{rate:.1f} twists/s", flush=True)
-        assert summary["outcome"] == "placed" and released["inside"], (summary, released)
+        figures.append((seed, released["placement_error_mm"], outcome.cell_time_s, rate, len(streamed)))
+        print(seed, outcome.outcome, f"{outcome.cell_time_s} s", f"{rate:.1f} twists/s", flush=True)
+        assert outcome.outcome is Outcome.PLACED and released["inside"], (outcome, released)
         assert released["placement_error_mm"] <= 0.3, released
-        assert summary["cell_time_s"] <= 6.0, figures
+        assert outcome.cell_time_s is not None and outcome.cell_time_s <= 6.0, figures
         assert rate >= 25.0, figures
-        assert not loaded_modules(run.stderr) & SIMULATOR_MODULES
-    print("seed, gauge mm, cell time s, twists per s, servo s:", np.round(figures, 3).tolist())
+        assert not loaded_modules(controller.log()) & SIMULATOR_MODULES, sorted(
+            loaded_modules(controller.log()) & SIMULATOR_MODULES
+        )
+    print("seed, gauge mm, cell time s, twists per s, twists:", np.round(figures, 3).tolist())
