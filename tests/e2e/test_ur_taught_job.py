@@ -1,0 +1,64 @@
+"""A job taught on a Universal Robots arm from the page (issue 29's "a job taught on that arm
+from the page", for the UR).
+
+`vservo virtual-cell --robot-link ur` (the UR controller emulator at half of real time, the
+camera stream, the fixture) and `vservo serve` on the cell file it prints: in Chromium the operator
+teaches a new job by docs/operator-guide.md's steps (tests/e2e/guide_steps.py), jogging and
+moving the arm through ur-rtde's clients, then assembles it three times on parts presented
+where it was taught, the servo streamed at the camera's rate: each placed within 0.3 mm by
+the virtual cell's gauge.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.chromium import chromium_or_fail
+from tests.e2e.guide_steps import PART_X_MM, PART_Y_MM, assemble_once, teach_the_guide_job
+from tests.e2e.test_operator_guide_uncommissioned import GAUGE_MM, Gauge
+from tests.virtual_cell_process import VirtualCellProcess
+from vservo.app.browser import ServeProcess, open_pages, take_control
+
+TOKEN = "ur-taught-job-token"
+RUNS = 3
+# Half of real time: the servo matches each frame with the arm's pose at its exposure by the
+# host's clock, which a loaded host reads late; at real time and a load average of 18 a run
+# was placed 0.32 mm off.
+TIME_SCALE = "0.5"
+
+
+@pytest.fixture(scope="module")
+def virtual_cell():
+    cell = VirtualCellProcess("--seed", "3", "--robot-link", "ur", "--time-scale", TIME_SCALE)
+    gauge = Gauge(cell)
+    yield cell, gauge
+    assert cell.stop() == 0, cell.log()[-2000:]
+
+
+@pytest.fixture(scope="module")
+def page(virtual_cell, tmp_path_factory, chromium):
+    chromium_or_fail()
+    with ServeProcess.start(
+        tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.0, cell=virtual_cell[0].addresses["cell_file"]
+    ) as serve:
+        operator = open_pages(chromium, serve.url, [(1600, 1000)])[0]
+        take_control(operator, TOKEN)
+        yield operator
+        assert serve.stop() == 0
+        assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]
+
+
+@pytest.mark.slow
+def test_a_job_taught_on_the_ur_from_the_page_is_placed_three_times(page, virtual_cell):
+    _, gauge = virtual_cell
+    teach_the_guide_job(page, lambda number, name: None, measured=True)
+    gauge.releases(2.0)  # the test pick's and the place's, while teaching
+    run_id, placed = 0, []
+    for run in range(RUNS):
+        assembled = assemble_once(page, PART_X_MM, PART_Y_MM, 0.0, run_id)
+        run_id = assembled.run_id
+        gauged = gauge.releases(10.0)
+        placed.append((run_id, assembled.outcome.splitlines()[0], gauged))
+        assert assembled.placed, placed
+        assert len(gauged) == 1 and gauged[0]["inside"] and gauged[0]["placement_error_mm"] <= GAUGE_MM, placed
+    print("runs:", placed)
