@@ -534,11 +534,7 @@ class AssemblySequence:
         job = self.job
         self.timer.enter(CellTimePhase.PICK)
         self._say(Phase.PICKING, f"servo converged, feature error {servo.final_error_px:.2f} px")
-        # A streamed servo's arm moved on after the frame that converged (the camera's latency,
-        # the last twist's hold, the stop): the part lies as seen from that frame's exposure
-        # pose, where its features matched the desired ones. Look-and-move stands there still.
-        streamed = isinstance(self.policy, StreamedVelocity)
-        grasp, refused = self._grasp(servo.cycles[-1].measurement.bMe if streamed else self.robot.pose())
+        grasp, refused = self._grasp(self.robot.pose())
         if grasp is None:
             return self._end(
                 Outcome.FAULT,
