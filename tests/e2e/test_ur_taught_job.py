@@ -21,9 +21,9 @@ from vservo.app.browser import ServeProcess, open_pages, take_control
 
 TOKEN = "ur-taught-job-token"
 RUNS = 3
-# Half of real time: the servo matches each frame with the arm's pose at its exposure by the
-# host's clock, which a loaded host reads late; at real time and a load average of 18 a run
-# was placed 0.51 mm off.
+# Half of real time: a loaded host answers each frame late, and the streamed arm moves on the
+# further after the frame that converged before it stops where the pick is taken from; at
+# real time and a load average of 18 a run was placed 0.51 mm off.
 TIME_SCALE = "0.5"
 
 
