@@ -282,7 +282,8 @@ class RecorderThread:
     returns, so a loop servoing at the camera's rate does not wait for the PNG encoding and
     the disk (OpenCV encodes without Python's lock, on another core). The cycles are written
     in the order recorded. A write that fails stops the writing; ``record`` and ``close`` then
-    raise its error, saying at which cycle the recording stopped."""
+    raise its error, saying at which cycle the recording stopped. A crash of the process loses
+    the cycles still queued (the disk keeps up: a frame or two)."""
 
     def __init__(self, recorder: RunRecorder) -> None:
         self.recorder = recorder

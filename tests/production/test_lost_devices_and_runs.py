@@ -138,15 +138,17 @@ def _vservo(*args: str, data: Path) -> subprocess.Popen:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _recorded_frames(data: Path) -> int:
-    frames = data / "runs" / "000001" / "frames"
-    return len(list(frames.iterdir())) if frames.is_dir() else 0
+def _recorded_cycles(data: Path) -> int:
+    """The cycles of run 1 recorded so far: whole lines (a line follows its frame's file, and
+    the recorder's thread writes it a moment after the loop moved on)."""
+    cycles = data / "runs" / "000001" / "cycles.jsonl"
+    return cycles.read_bytes().count(b"\n") if cycles.is_file() else 0
 
 
 def test_a_run_killed_with_sigkill_is_marked_interrupted_at_the_next_start_with_its_recording(tmp_path):
     data = tmp_path / "data"
     run = _vservo(data=data)
-    wait_until(lambda: _recorded_frames(data) >= 10 or run.poll() is not None, "10 recorded frames", 120, poll_s=0.01)
+    wait_until(lambda: _recorded_cycles(data) >= 10 or run.poll() is not None, "10 recorded cycles", 120, poll_s=0.01)
     run.kill()
     run.communicate()
     assert run.returncode == -signal.SIGKILL
@@ -175,7 +177,7 @@ def test_an_old_absolute_recording_path_still_reads(tmp_path):
 def test_ctrl_c_on_vservo_run_holds_records_and_exits_130(tmp_path):
     data = tmp_path / "data"
     run = _vservo(data=data)
-    wait_until(lambda: _recorded_frames(data) >= 5 or run.poll() is not None, "5 recorded frames", 120, poll_s=0.01)
+    wait_until(lambda: _recorded_cycles(data) >= 5 or run.poll() is not None, "5 recorded cycles", 120, poll_s=0.01)
     sent = time.time()
     run.send_signal(signal.SIGINT)
     _, stderr = run.communicate(timeout=60)
