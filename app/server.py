@@ -77,7 +77,7 @@ RESTART_RETRY_S = 10.0  # between attempts to start a new controller when one di
 BANNER_HEIGHT_PX = 96
 MAIN_WIDTH_PX = 400
 LIVE_WIDTH_PX = 400
-SAFETY_HEIGHT_PX = 250  # the E-STOP and five lines of status: never cut off
+SAFETY_HEIGHT_PX = 290  # the E-STOP and seven lines of status (a run's); taller when the status needs it
 # Viser stacks notifications at the 3D view's top left; in a narrow window they reach into the
 # right column: they start under the E-STOP's panel instead, clipped at the window's bottom.
 NOTICES_TOP_PX = SAFETY_HEIGHT_PX + 40
@@ -394,7 +394,8 @@ def _estop_style(uuid: str) -> str:
     return (
         f"<style>{button} {{height: 84px !important; font-size: 1.8em; font-weight: 800; letter-spacing: 0.12em}} "
         f"{button} svg {{left: 0 !important}} "
-        f"[data-dock-scroll] > div:has({button}) {{flex: 0 0 {SAFETY_HEIGHT_PX}px !important}} "
+        f"[data-dock-scroll] > div:has({button}) {{flex: 0 0 auto !important; min-height: {SAFETY_HEIGHT_PX}px !important}} "
+        f"[data-dock-leaf]:has({button}) div {{flex-basis: auto !important}} "
         f"[data-dock-region]:has({button}) {{z-index: auto !important}} "
         f"[data-dock-scroll]:has({button}) > div:has([data-dock-leaf]):not(:has({button})) {{flex-grow: 1 !important}} "
         f".mantine-Paper-root:has({button}) {{position: relative; z-index: {ESTOP_Z_INDEX} !important}} "
