@@ -75,6 +75,9 @@ WATCH_PERIOD_S = 0.25  # how often the controller process is looked at: a dead o
 EXIT_WAIT_S = 2.0  # a controller whose channel ended has that long to exit before it counts as alive
 RESTART_RETRY_S = 10.0  # between attempts to start a new controller when one did not come up
 BANNER_HEIGHT_PX = 96
+# The two docked columns (the control panel left; the E-STOP over the live camera right) leave
+# the 3D view between them 216 px of a 1024 px wide window, 472 of 1280 (tests/e2e/test_app_e2e_layout.py);
+# the operator drags a column's edge to widen it.
 MAIN_WIDTH_PX = 400
 LIVE_WIDTH_PX = 400
 SAFETY_HEIGHT_PX = 290  # the E-STOP and seven lines of status (a run's); taller when the status needs it
@@ -129,7 +132,7 @@ class OperatorApp:
         self.live.set_width(LIVE_WIDTH_PX)
         # The E-STOP and the status line in a panel of their own, docked at the top of the right
         # column over the live camera: the same place in every tab, never scrolled away, and
-        # nothing over the 3D view (the arm stays in sight in a window of 1280x720 or less).
+        # nothing over the 3D view (the whole arm in sight down to a 1024x640 window).
         self.safety = server.gui.add_panel()
         with self.safety.add_tab("Cell", viser.Icon.ALERT_TRIANGLE):
             estop = server.gui.add_button(
@@ -388,8 +391,12 @@ class OperatorApp:
 
 def _estop_style(uuid: str) -> str:
     """The E-STOP's style: large (viser has no button size; it sets its icons half their width
-    right of their box, which at this size runs the hand into the label's "E"), and nothing over
-    it: notifications start under its panel, which stays on top of any other element or dialog."""
+    right of their box, which at this size runs the hand into the label's "E"); its panel as tall
+    as its content, at least SAFETY_HEIGHT_PX (viser shares a docked column's height half and
+    half; the E-STOP must never scroll out of its panel), the live camera under it taking the
+    rest; and nothing over it: notifications start under its panel, which stays on top of any
+    other element or dialog (its column is made no stacking context of its own, which would
+    hold the panel under a dialog's overlay)."""
     button = f"button[id='{uuid}']"
     return (
         f"<style>{button} {{height: 84px !important; font-size: 1.8em; font-weight: 800; letter-spacing: 0.12em}} "
