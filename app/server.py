@@ -41,6 +41,7 @@ from vservo.app.client_view import ClientView
 from vservo.app.commands import CommandQueue
 from vservo.app.context import ServeOptions
 from vservo.app.controller_process import ControllerProcess, ControllerStartError
+from vservo.app.heap import hold_the_mmap_threshold
 from vservo.app.history_panel import HistoryPanel
 from vservo.app.roles import RoleRefused, Roles
 from vservo.app.scene3d import CellScene
@@ -526,6 +527,7 @@ def serve(options: ServeOptions, config: CellConfig, announce: Callable[[str], N
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
     threading.excepthook = _log_thread_exception
+    hold_the_mmap_threshold()  # before the first browser: the heap keeps nothing of those that left
     running = start_app(options, config)
     try:
         token = options.token if options.show_token else "(the one given)"
