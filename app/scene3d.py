@@ -202,10 +202,10 @@ class CellScene:
         self.path: viser.LineSegmentsHandle | None = None
         # No shadows: an operator PC without a GPU (and headless Chromium) renders in software.
         server.scene.configure_default_lights(cast_shadow=False)
-        # Aimed above the arm, so the whole cell sits in the view's lower half, under the
-        # floating E-STOP panel that covers the view's upper left.
-        server.initial_camera.position = (0.3, -1.1, 0.85)
-        server.initial_camera.look_at = (-0.22, 0.0, 0.34)
+        # From the front right at the cell's middle, far enough back that the whole arm and the
+        # table fit the narrowest view the page leaves it (some 200 px wide in a 1024x640 window).
+        server.initial_camera.position = (0.3, -1.1, 0.79)
+        server.initial_camera.look_at = (-0.22, 0.0, 0.28)
 
     def _use_model(self, config: CellConfig) -> None:
         """Draw the tools and the camera's view as ``config`` has them."""

@@ -41,6 +41,7 @@ from vservo.app.client_view import ClientView
 from vservo.app.commands import CommandQueue
 from vservo.app.context import ServeOptions
 from vservo.app.controller_process import ControllerProcess, ControllerStartError
+from vservo.app.heap import hold_the_mmap_threshold
 from vservo.app.history_panel import HistoryPanel
 from vservo.app.roles import RoleRefused, Roles
 from vservo.app.scene3d import CellScene
@@ -75,12 +76,15 @@ WATCH_PERIOD_S = 0.25  # how often the controller process is looked at: a dead o
 EXIT_WAIT_S = 2.0  # a controller whose channel ended has that long to exit before it counts as alive
 RESTART_RETRY_S = 10.0  # between attempts to start a new controller when one did not come up
 BANNER_HEIGHT_PX = 96
-SAFETY_WIDTH_PX = 440
-SAFETY_HEIGHT_PX = 310  # the E-STOP and five lines of status: never cut off
-SAFETY_TOP_PX = 10  # under the banner: the page's panels start below it already
-# Viser stacks notifications at the 3D view's top left, where the E-STOP floats: they start
-# under its panel instead, clipped at the window's bottom (the newest shows first).
-NOTICES_TOP_PX = SAFETY_TOP_PX + SAFETY_HEIGHT_PX + 10
+# The two docked columns (the control panel left; the E-STOP over the live camera right) leave
+# the 3D view between them 216 px of a 1024 px wide window, 472 of 1280 (tests/e2e/test_app_e2e_layout.py);
+# the operator drags a column's edge to widen it.
+MAIN_WIDTH_PX = 400
+LIVE_WIDTH_PX = 400
+SAFETY_HEIGHT_PX = 290  # the E-STOP and seven lines of status (a run's); taller when the status needs it
+# Viser stacks notifications at the 3D view's top left; in a narrow window they reach into the
+# right column: they start under the E-STOP's panel instead, clipped at the window's bottom.
+NOTICES_TOP_PX = SAFETY_HEIGHT_PX + 40
 ESTOP_Z_INDEX = 1100  # over the banner (1000), notifications (400) and dialogs (Mantine's modal, 200)
 # The banner sits fixed over the top of the window; viser's root (#root > div) gives it room.
 BANNER_STYLE = f"""<style>
@@ -116,14 +120,20 @@ class OperatorApp:
         )
         server.gui.set_panel_label("vservo cell")
         server.gui.main_panel.dock_left()
-        server.gui.main_panel.set_width(470)
+        server.gui.main_panel.set_width(MAIN_WIDTH_PX)
         # The banner: the cell's state at a glance, full width over the top of every page
         # (app/banner.py); the panels start below it. Viser has no such element: one HTML
         # element, fixed to the window, with the style that makes room for it.
         self.banner = server.gui.add_html(banner_for(session.state).html(), order=-100)
         server.gui.add_html(BANNER_STYLE, order=-99)
-        # The E-STOP and the status line float over the 3D view in a panel of their own, at the
-        # top under the banner: the same place in every tab, and no scrolling ever hides it.
+        self.tabs = server.gui.add_tab_group(order=10)
+        self.scene = CellScene(server, config)
+        self.live = server.gui.add_panel()
+        self.live.dock_right()
+        self.live.set_width(LIVE_WIDTH_PX)
+        # The E-STOP and the status line in a panel of their own, docked at the top of the right
+        # column over the live camera: the same place in every tab, never scrolled away, and
+        # nothing over the 3D view (the whole arm in sight down to a 1024x640 window).
         self.safety = server.gui.add_panel()
         with self.safety.add_tab("Cell", viser.Icon.ALERT_TRIANGLE):
             estop = server.gui.add_button(
@@ -131,13 +141,8 @@ class OperatorApp:
             )
             server.gui.add_html(_estop_style(estop._impl.uuid))
             self.status = server.gui.add_markdown("")
-        self.safety.float(x=15, y=SAFETY_TOP_PX, width=SAFETY_WIDTH_PX, height=SAFETY_HEIGHT_PX)
+        self.safety.dock_above(self.live)
         estop.on_click(lambda event: self.commands.estop(event.client_id, self._estop_reply(event.client_id)))
-        self.tabs = server.gui.add_tab_group(order=10)
-        self.scene = CellScene(server, config)
-        self.live = server.gui.add_panel()
-        self.live.dock_right()
-        self.live.set_width(560)
         self.assemble = AssemblePanel(self, self.tabs.add_tab("Assemble", viser.Icon.PLAYER_PLAY), self.live)
         self.teach = TeachPanel(self, self.tabs.add_tab("Teach", viser.Icon.SCHOOL))
         self.history = HistoryPanel(self, self.tabs.add_tab("History", viser.Icon.HISTORY))
@@ -387,13 +392,21 @@ class OperatorApp:
 
 def _estop_style(uuid: str) -> str:
     """The E-STOP's style: large (viser has no button size; it sets its icons half their width
-    right of their box, which at this size runs the hand into the label's "E"), and nothing over
-    it: notifications start under its panel, which stays on top of any other element or dialog."""
+    right of their box, which at this size runs the hand into the label's "E"); its panel as tall
+    as its content, at least SAFETY_HEIGHT_PX (viser shares a docked column's height half and
+    half; the E-STOP must never scroll out of its panel), the live camera under it taking the
+    rest; and nothing over it: notifications start under its panel, which stays on top of any
+    other element or dialog (its column is made no stacking context of its own, which would
+    hold the panel under a dialog's overlay)."""
     button = f"button[id='{uuid}']"
     return (
         f"<style>{button} {{height: 84px !important; font-size: 1.8em; font-weight: 800; letter-spacing: 0.12em}} "
         f"{button} svg {{left: 0 !important}} "
-        f".mantine-Paper-root:has({button}) {{z-index: {ESTOP_Z_INDEX} !important}} "
+        f"[data-dock-scroll] > div:has({button}) {{flex: 0 0 auto !important; min-height: {SAFETY_HEIGHT_PX}px !important}} "
+        f"[data-dock-leaf]:has({button}) div {{flex-basis: auto !important}} "
+        f"[data-dock-region]:has({button}) {{z-index: auto !important}} "
+        f"[data-dock-scroll]:has({button}) > div:has([data-dock-leaf]):not(:has({button})) {{flex-grow: 1 !important}} "
+        f".mantine-Paper-root:has({button}) {{position: relative; z-index: {ESTOP_Z_INDEX} !important}} "
         f".mantine-Notifications-root {{top: {NOTICES_TOP_PX}px !important; bottom: 0; overflow: hidden}}</style>"
     )
 
@@ -514,6 +527,7 @@ def serve(options: ServeOptions, config: CellConfig, announce: Callable[[str], N
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
     threading.excepthook = _log_thread_exception
+    hold_the_mmap_threshold()  # before the first browser: the heap keeps nothing of those that left
     running = start_app(options, config)
     try:
         token = options.token if options.show_token else "(the one given)"

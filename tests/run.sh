@@ -5,4 +5,6 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash tests/install.sh
-exec python -m pytest "$@"
+# Two worker processes, each test file whole to one (its module fixtures, a virtual cell or a
+# served page, are made once): most of the suite waits on processes, browsers and cells.
+exec python -m pytest -n 2 --dist loadfile "$@"

@@ -61,9 +61,14 @@ NOT_FOUND = PlacementCheck(False, np.full(2, np.nan), float("nan"))
 
 
 def diagonals_crossing(corners: Matrix) -> Matrix:
-    """Where the diagonals 0-2 and 1-3 of a quadrilateral (4, 2) cross: the image of a
-    square's centre under any perspective (the corners' mean is not, off the axis)."""
-    a, b, c, d = np.asarray(corners, dtype=float)
+    """Where the diagonals of a convex quadrilateral (4, 2) cross: the image of a square's
+    centre under any perspective (the corners' mean is not, off the axis). The corners are
+    taken round the face first (by their angle about their mean), whatever order they come
+    in: a tracker may hand them over out of order after the part turned, and the crossing
+    of two sides instead of the diagonals lies far off the face."""
+    corners = np.asarray(corners, dtype=float)
+    around = corners - corners.mean(axis=0)
+    a, b, c, d = corners[np.argsort(np.arctan2(around[:, 1], around[:, 0]))]
     # a + t (c - a) = b + s (d - b), solved for t.
     t, _ = np.linalg.solve(np.column_stack([c - a, b - d]), b - a)
     return a + t * (c - a)

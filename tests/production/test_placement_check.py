@@ -75,6 +75,9 @@ def test_the_check_measures_a_shift_in_the_top_plane_exactly_under_perspective()
     shifted = seen(transform(t=(0.0007, 0.0003, 0.0)))
     reordered = CheckView(np.eye(4), check.corners_px[[2, 1, 0, 3]])
     assert check_placement(reordered, shifted, camera, side).error_mm == pytest.approx(np.hypot(0.7, 0.3), abs=1e-6)
+    # Out of order round the face (corners 1 and 2 swapped, as a tracker may hand them over
+    # after the part turned): still the diagonals' crossing, the same figure.
+    assert check_placement(check, shifted[[0, 2, 1, 3]], camera, side).error_mm == pytest.approx(np.hypot(0.7, 0.3), abs=1e-6)
     unseen = shifted.copy()
     unseen[1] = np.nan
     assert not check_placement(check, unseen, camera, side).found

@@ -22,7 +22,7 @@ def test_readme_opens_with_the_main_job_and_the_test_command():
     assert tests == "bash tests/run.sh"  # which sets up, then runs pytest with its arguments:
     run = (ROOT / "tests" / "run.sh").read_text().splitlines()
     install = (ROOT / "tests" / "install.sh").read_text().splitlines()
-    assert run.index("bash tests/install.sh") < run.index('exec python -m pytest "$@"')
+    assert run.index("bash tests/install.sh") < run.index('exec python -m pytest -n 2 --dist loadfile "$@"')
     assert "python -m pip install -c constraints.txt -e '.[test]'" in install
     assert any("apt-get install" in line and "chromium" in line for line in install)
 
