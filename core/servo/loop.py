@@ -30,8 +30,7 @@ from vservo.core.geometry.laser import LaserPointer
 from vservo.core.geometry.spatial import Matrix, twist_transform
 from vservo.core.perception.features import DesiredImage, ImageFeatures, pattern_scale, polygon_moments
 from vservo.core.perception.measurement import Measurement, features_from_measurement
-from vservo.core.robot.backend import RobotBackend, RobotError, StreamingBackend, carry_out
-from vservo.core.robot.commands import StreamedTwist
+from vservo.core.robot.backend import RobotBackend, RobotError, carry_out
 from vservo.core.robot.safety import SafetyLayer, Watchdog
 from vservo.core.servo.joint_limits import JointBound, JointLimitedSteps
 from vservo.core.servo.laws.base import ControlLaw, ControlOutput, Failure, Stage
@@ -250,8 +249,6 @@ def _servo(
     # The robot stands still when the loop starts (its caller waited for the last move),
     # so the first frame must merely be newer than now; later ones newer than each move.
     motion_ended_s = robot.clock_s()
-    streaming = False  # a streamed twist moves the arm: no frame of it says the goal is reached
-    standing_since_s: float | None = None  # the arm stopped to look: only a frame exposed since counts
 
     def finish(converged: bool, failure: Failure | None, reason: str) -> ServoOutcome:
         if failure is not None:
@@ -260,9 +257,6 @@ def _servo(
 
     for iteration in range(limits.max_iterations):
         measurement = cell.measure(look=perception.uses_projection)
-        while standing_since_s is not None and measurement.time_s < standing_since_s:
-            measurement = cell.measure(look=perception.uses_projection)  # exposed while it stopped
-        standing_since_s = None
         seen = perception.perceive(measurement, motion_ended_s)
         if watchdog is not None:
             watchdog.feed("camera")
@@ -284,17 +278,6 @@ def _servo(
             continue  # no command: the next frame may see the features again
         if output.failure is not None:
             return finish(False, output.failure, output.note)
-        if output.converged and streaming:
-            # Within the threshold on a moving arm (it may be passing through the goal, the
-            # later the host answered the faster): stop it, and judge again on a frame exposed
-            # once it stands, as look-and-move always does.
-            try:
-                if isinstance(robot, StreamingBackend):  # (it is: it took the streamed twist)
-                    robot.stop_motion()
-            except RobotError as exc:
-                return finish(False, Failure.ROBOT_STOPPED, str(exc))
-            streaming, standing_since_s = False, robot.clock_s()
-            continue
         if output.converged:
             return finish(True, None, f"feature error {output.error_px:.3f} px")
         if not np.all(np.isfinite(output.cVc)):
@@ -325,7 +308,6 @@ def _servo(
                 step = joint_limits.limit(command, bMe, measurement.q)
                 command, held = step.command, step.held
             motion_ended_s = carry_out(robot, command, bMe)
-            streaming = isinstance(command, StreamedTwist)
         except UnreachableTarget as exc:
             return finish(False, Failure.UNREACHABLE, str(exc))
         except RobotError as exc:
