@@ -104,9 +104,10 @@ def test_the_demo_job_of_the_shipped_cell_is_refused_before_moving(page):
 # 4 to 5 (commit 5529724); 19 and 18 of 20 under loads of 8 to 21. The four runs that
 # faulted before (the wrist wound to joint 6's limit) are placed now. What remains: under
 # load, one part released inside the pocket (gauge 0.006 to 0.06 mm) is judged about 52 mm
-# off by the check view (52.18 mm twice on run 12, 52.21 mm on run 10), the figure of a
-# frame from before the move to the check pose: the camera reader stamps a frame that waited
-# in a buffer while its thread was starved with the time it read it. Not strict: at a low
+# off by the check view (52.18 mm twice on run 12, 52.21 mm on run 10). The same figure on
+# different runs points to a frame from a fixed pose before the move to the check pose; our
+# guess, not yet shown: the camera reader stamps a frame that waited in a buffer while its
+# thread was starved with the time it read it. Not strict: at a low
 # load the test passes and the suite reports XPASS.
 @pytest.mark.xfail(reason="issue 26: under load the check view may judge a placed part 52 mm off from a stale frame")
 def test_a_job_taught_as_the_guide_says_places_parts_turned_anyhow_on_a_cell_never_commissioned(page, virtual_cell):
