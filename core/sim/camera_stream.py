@@ -29,10 +29,6 @@ import numpy as np
 
 log = logging.getLogger("vservo.sim.camera_stream")
 
-# How late after its time a frame may still leave the camera as exposed (an overloaded
-# host's thread woke late): within the margin the virtual cell adds to the latency it declares.
-LATE_S = 0.02
-
 BOUNDARY = "vservoframe"
 STREAM_PATH = "/stream.mjpg"
 # Room for a frame or two in the kernel per client (Linux doubles it): enough to keep the
@@ -153,10 +149,7 @@ class CameraStream:
         Frames in flight (exposed, not yet sent) wait in ``in_flight``; with a latency longer
         than a frame period several are, as in a real camera's pipeline. A frame the
         clock could not expose in time (an overloaded host) is skipped, keeping the clock
-        steady rather than bunching frames up; one that could not leave within LATE_S of
-        its time is exposed again as it leaves: the host takes a frame's arrival less the
-        latency for the earliest its exposure can be, and an older frame arriving late
-        would pass for a newer one (the arm seen where it stood before its last move).
+        steady rather than bunching frames up.
         """
         period = 1.0 / self.fps
         t0 = time.monotonic()
@@ -167,10 +160,7 @@ class CameraStream:
                 t_exposure = t0 + k * period
                 while in_flight and (not in_flight[0][0] > t_exposure):
                     self._wait_until(in_flight[0][0])
-                    t_send, jpeg = in_flight.popleft()
-                    if time.monotonic() - t_send > LATE_S:  # exposed again as it leaves: never older than declared
-                        jpeg = encode_jpeg(self.render(), self.jpeg_quality)
-                    self._publish(jpeg)
+                    self._publish(in_flight.popleft()[1])
                 self._wait_until(t_exposure)
                 if self._stop.is_set():
                     break
