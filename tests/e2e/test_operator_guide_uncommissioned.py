@@ -15,20 +15,16 @@ $VSERVO_ARTIFACTS/guide-uncommissioned-runs.txt.
 
 from __future__ import annotations
 
-import json
 import os
-import queue
 import re
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.chromium import chromium_or_fail
+from tests.e2e.gauged_cell import GAUGE_MM, gauged_virtual_cell, operator_page_on
 from tests.e2e.guide_steps import PART_X_MM, PART_Y_MM, assemble_once, teach_the_guide_job
-from tests.virtual_cell_process import VirtualCellProcess
-from vservo.app.browser import ServeProcess, choose, open_pages, status_text, take_control, wait_for_status
+from vservo.app.browser import choose, status_text, wait_for_status
 from vservo.core.production.protocol.catalogue import Refusal, explain
 
 TOKEN = "guide-uncommissioned-token"
@@ -36,53 +32,18 @@ TRUTH = Path(__file__).resolve().parents[2] / "static" / "truths" / "table-5-5.t
 ARTIFACTS = Path(os.environ.get("VSERVO_ARTIFACTS", Path(__file__).resolve().parents[2] / "test-artifacts"))
 RUNS = 20
 OFFSET_MM = 30.0
-GAUGE_MM = 0.3
-
-
-class Gauge:
-    """The virtual cell's lines (one per released part) read as they come, by a thread: a
-    select() on its buffered stdout would miss lines already read into the buffer."""
-
-    def __init__(self, cell: VirtualCellProcess) -> None:
-        self.lines: queue.Queue[dict] = queue.Queue()
-        self._thread = threading.Thread(target=self._read, args=(cell,), daemon=True)
-        self._thread.start()
-
-    def _read(self, cell: VirtualCellProcess) -> None:
-        for line in cell.process.stdout:
-            self.lines.put(json.loads(line))
-
-    def releases(self, wait_s: float) -> list[dict]:
-        """The parts the cup let go of since the last call, waiting ``wait_s`` for the first."""
-        events = []
-        try:
-            events.append(self.lines.get(timeout=wait_s))
-            while True:
-                events.append(self.lines.get(timeout=1.0))
-        except queue.Empty:
-            pass
-        return [event for event in events if event.get("event") == "released"]
 
 
 @pytest.fixture(scope="module")
 def virtual_cell():
-    cell = VirtualCellProcess("--seed", "5", "--truth", str(TRUTH))
-    gauge = Gauge(cell)
-    yield cell, gauge
-    assert cell.stop() == 0, cell.log()[-2000:]
+    with gauged_virtual_cell("--seed", "5", "--truth", str(TRUTH)) as cell_and_gauge:
+        yield cell_and_gauge
 
 
 @pytest.fixture(scope="module")
 def page(virtual_cell, tmp_path_factory, chromium):
-    chromium_or_fail()
-    with ServeProcess.start(
-        tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.0, cell=virtual_cell[0].addresses["cell_file"]
-    ) as serve:
-        operator = open_pages(chromium, serve.url, [(1600, 1000)])[0]
-        take_control(operator, TOKEN)
+    with operator_page_on(virtual_cell[0], tmp_path_factory.mktemp("serve-data"), chromium, TOKEN) as operator:
         yield operator
-        assert serve.stop() == 0
-        assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]
 
 
 def test_the_demo_job_of_the_shipped_cell_is_refused_before_moving(page):

@@ -13,11 +13,8 @@ from __future__ import annotations
 
 import pytest
 
-from tests.chromium import chromium_or_fail
+from tests.e2e.gauged_cell import GAUGE_MM, gauged_virtual_cell, operator_page_on
 from tests.e2e.guide_steps import PART_X_MM, PART_Y_MM, assemble_once, teach_the_guide_job
-from tests.e2e.test_operator_guide_uncommissioned import GAUGE_MM, Gauge
-from tests.virtual_cell_process import VirtualCellProcess
-from vservo.app.browser import ServeProcess, open_pages, take_control
 
 TOKEN = "ur-taught-job-token"
 RUNS = 3
@@ -29,23 +26,14 @@ TIME_SCALE = "0.5"
 
 @pytest.fixture(scope="module")
 def virtual_cell():
-    cell = VirtualCellProcess("--seed", "3", "--robot-link", "ur", "--time-scale", TIME_SCALE)
-    gauge = Gauge(cell)
-    yield cell, gauge
-    assert cell.stop() == 0, cell.log()[-2000:]
+    with gauged_virtual_cell("--seed", "3", "--robot-link", "ur", "--time-scale", TIME_SCALE) as cell_and_gauge:
+        yield cell_and_gauge
 
 
 @pytest.fixture(scope="module")
 def page(virtual_cell, tmp_path_factory, chromium):
-    chromium_or_fail()
-    with ServeProcess.start(
-        tmp_path_factory.mktemp("serve-data"), TOKEN, cycle_period_s=0.0, cell=virtual_cell[0].addresses["cell_file"]
-    ) as serve:
-        operator = open_pages(chromium, serve.url, [(1600, 1000)])[0]
-        take_control(operator, TOKEN)
+    with operator_page_on(virtual_cell[0], tmp_path_factory.mktemp("serve-data"), chromium, TOKEN) as operator:
         yield operator
-        assert serve.stop() == 0
-        assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]
 
 
 # Not met every time yet (2026-11-28): alone at a load average of 4 to 13 the three runs were
