@@ -450,17 +450,19 @@ class RunningApp:
         """A new controller process on the same cell and data (it marks the run the old one left
         interrupted), the app reconnected to it; why not, if it did not come up."""
         self.controller.stop()  # reaps the dead one (a live one, whose channel ended, holds the robot and exits)
-        self.lost.clear()
+        # The new channel's own event: the old channel's reader, late under load, or its close
+        # below would otherwise say the new channel ended, and a sound controller be stopped.
+        lost = threading.Event()
         try:
             controller = _start_controller(self.options)
         except ControllerStartError as exc:
             return str(exc)
         try:
-            channel = _connect(controller, self.app.session, self.lost)
+            channel = _connect(controller, self.app.session, lost)
         except ChannelError as exc:
             controller.stop()
             return str(exc)
-        old, self.controller, self.channel = self.channel, controller, channel
+        old, self.controller, self.channel, self.lost = self.channel, controller, channel, lost
         self.app.reconnect(channel)
         old.close()
         log.warning("a new controller process (PID %d) is connected", controller.process.pid)

@@ -149,12 +149,13 @@ def test_a_stalled_camera_stops_the_arm_within_the_watchdog(ur_cell, controller)
     controller.reset()
 
 
-# The acceptance's pace: 0.4 of real time. The demo's cell time is 4 to 6 s, so its ten runs
-# take about 2 minutes; the servo must still follow every frame of the camera's 30 a second
-# of the controller's clock (12 a second of the host's) while other suites load the
-# machine's two cores (at half of real time and a load average of 5 to 11 a run now and then
-# fell to 20 to 24.7 twists a second).
-ACCEPTANCE_TIME_SCALE = "0.4"
+# The acceptance's pace: a quarter of real time. The demo's cell time is 4 to 6 s, so its ten
+# runs take about 3 minutes; the servo must still follow every frame of the camera's 30 a
+# second of the controller's clock (7.5 a second of the host's) while the suite's other
+# worker loads the machine's two cores (at 0.5 of real time and a load average of 5 to 11 a
+# run now and then fell to 20 to 24.7 twists a second; at 0.4, beside the other worker, one
+# run of ten to 17.4).
+ACCEPTANCE_TIME_SCALE = "0.25"
 RUN_TIMEOUT_S = 120.0
 
 
