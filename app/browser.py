@@ -204,6 +204,15 @@ def take_control(page: Any, token: str) -> None:
     page.get_by_text("this browser holds control").wait_for(timeout=30_000)
 
 
+def operator_on_assemble(browser: Any, url: str, token: str, job: str = "demo", size: tuple[int, int] = (1400, 900)) -> Any:
+    """A page holding control, on the Assemble tab with ``job`` chosen: where a run starts."""
+    page = open_pages(browser, url, [size])[0]
+    take_control(page, token)
+    page.get_by_role("tab", name="Assemble").click()
+    choose(page, "Job", job)
+    return page
+
+
 def dismiss_notifications(page: Any) -> None:
     """Close the toasts (software WebGL notice, command replies) before a screenshot."""
     for button in page.locator(".mantine-Notification-closeButton").all():
@@ -261,6 +270,16 @@ def present_part_and_start(page: Any) -> int:
     number = re.search(r"run (\d+)", running)
     assert number is not None  # the status matched it
     return int(number.group(1))
+
+
+def servo_then_estop(page: Any) -> int:
+    """Present a part, start the job, and once its servo has run a few cycles press E-STOP and
+    wait for the page to say E-STOPPED; the run's number."""
+    run = present_part_and_start(page)
+    wait_for_status(page, rf"Servoing .*run {run}.*cycle [2-9]", timeout_s=60)
+    page.get_by_role("button", name="E-STOP", exact=True).click()
+    wait_for_status(page, r"E-STOPPED", timeout_s=10)
+    return run
 
 
 def cycle_of(text: str) -> int | None:

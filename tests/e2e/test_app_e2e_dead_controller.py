@@ -22,10 +22,9 @@ from tests.virtual_cell_process import VirtualCellProcess, long_servo_cell_args
 from vservo.app.browser import (
     ServeProcess,
     banner,
-    choose,
-    open_pages,
+    operator_on_assemble,
     present_part_and_start,
-    take_control,
+    servo_then_estop,
     wait_for_banner,
     wait_for_status,
 )
@@ -69,10 +68,7 @@ def test_a_killed_controller_is_shown_within_2_s_and_a_new_one_marks_the_run_int
     serve = ServeProcess.start(tmp_path / "data", TOKEN, cycle_period_s=0.0, cell=cell.addresses["cell_file"])
     try:
         with headless_chromium() as chromium:
-            page = open_pages(chromium, serve.url, [(1400, 900)])[0]
-            take_control(page, serve.token)
-            page.get_by_role("tab", name="Assemble").click()
-            choose(page, "Job", "demo")
+            page = operator_on_assemble(chromium, serve.url, serve.token)
             run = present_part_and_start(page)
             wait_for_status(page, rf"Servoing .*run {run}.*cycle [2-9]", timeout_s=60)
 
@@ -97,11 +93,7 @@ def test_a_killed_controller_is_shown_within_2_s_and_a_new_one_marks_the_run_int
             assert row.locator("td").first.inner_text().strip() == str(run), row.inner_text()
 
             page.get_by_role("tab", name="Assemble").click()
-            again = present_part_and_start(page)
-            assert again == run + 1
-            wait_for_status(page, rf"Servoing .*run {again}.*cycle [2-9]", timeout_s=60)
-            page.get_by_role("button", name="E-STOP", exact=True).click()
-            wait_for_status(page, r"E-STOPPED", timeout_s=10)
+            assert servo_then_estop(page) == run + 1
     finally:
         assert serve.stop() == 0, serve.stderr()[-3000:]
         cell.stop()

@@ -25,10 +25,8 @@ from tests.chromium import chromium_or_fail, headless_chromium
 from tests.virtual_cell_process import VirtualCellProcess, long_servo_cell_args
 from vservo.app.browser import (
     ServeProcess,
-    choose,
-    open_pages,
+    operator_on_assemble,
     present_part_and_start,
-    take_control,
     wait_for_status,
 )
 
@@ -78,10 +76,7 @@ def test_estop_and_ctrl_c_end_a_run_within_a_second_on_record(tmp_path):
     ended_after_s = {}
     try:
         with headless_chromium() as chromium:
-            page = open_pages(chromium, serve.url, [(1400, 900)])[0]
-            take_control(page, serve.token)
-            page.get_by_role("tab", name="Assemble").click()
-            choose(page, "Job", "demo")
+            page = operator_on_assemble(chromium, serve.url, serve.token)
 
             page.get_by_role("button", name="Present part", exact=True).click()
             wait_for_status(page, r"a new part is on the table")
