@@ -483,10 +483,11 @@ class VideoCaptureSource(BaseSource):
         (as long as the host gives it time: one starved finds frames that waited, see
         STREAM_RECEIVE_BUFFER_BYTES): so a frame arrives at most ``exposure_latency_s``
         after its exposure, and one that arrived at or after t_s + exposure_latency_s was
-        exposed at or after t_s. This returns the newest such frame not handed out before, waiting for the first one when
-        none has arrived yet, whatever the frame rate and however slowly the caller reads;
-        with ``buffer_frames`` it then still discards that many, for a pipeline that holds
-        frames inside however fast it is read (each costs a frame period).
+        exposed at or after t_s. This returns the newest such frame not handed out before,
+        waiting for the first one when none has arrived yet, whatever the frame rate and
+        however slowly the caller reads; with ``buffer_frames`` it then still discards that
+        many, for a pipeline that holds frames inside however fast it is read (each costs a
+        frame period).
 
         A video file's frames are not live: its next frame, as ``read``.
 
