@@ -12,17 +12,11 @@ bounds the latency at 0.1 s), so the check view's first frame is one from before
 from __future__ import annotations
 
 import logging
-import queue
-import socket
-import threading
-import time
-import tomllib
-from pathlib import Path
 
 import pytest
 
+from tests.camera_relays import DelayingRelay, camera_through
 from tests.virtual_cell_process import VirtualCellProcess
-from vservo.core.cell.cell_file import dumps_cell
 from vservo.core.cell.config import load_cell
 from vservo.core.production.assembly import Outcome
 from vservo.core.production.cell_controller import CellController
@@ -33,70 +27,13 @@ LATE_S = 0.5  # five times the cell file's exposure_latency_s, half the confirmi
 pytestmark = pytest.mark.slow  # a virtual cell and a run on it
 
 
-class DelayingRelay:
-    """A TCP relay on loopback that hands what the server sends on ``delay_s`` after it came
-    (none at first): a stream as a reader that fell behind sees it."""
-
-    def __init__(self, upstream: tuple[str, int]) -> None:
-        self.upstream = upstream
-        self.delay_s = 0.0
-        self.listener = socket.create_server(("127.0.0.1", 0))
-        self.port = self.listener.getsockname()[1]
-        self.sockets: list[socket.socket] = []
-        threading.Thread(target=self._accept, daemon=True).start()
-
-    def close(self) -> None:
-        self.listener.close()
-        for sock in self.sockets:
-            sock.close()
-
-    def _accept(self) -> None:
-        while True:
-            try:
-                client, _ = self.listener.accept()
-            except OSError:
-                return
-            server = socket.create_connection(self.upstream)
-            self.sockets += [client, server]
-            held: queue.Queue[tuple[float, bytes]] = queue.Queue()
-            threading.Thread(target=self._pump, args=(client, server, None), daemon=True).start()
-            threading.Thread(target=self._pump, args=(server, None, held), daemon=True).start()
-            threading.Thread(target=self._hand_on, args=(held, client), daemon=True).start()
-
-    def _pump(self, source: socket.socket, sink: socket.socket | None, held: queue.Queue | None) -> None:
-        """Forward at once (the requests), or queue each chunk with when it is due (the frames)."""
-        try:
-            while data := source.recv(65536):
-                if held is not None:
-                    held.put((time.monotonic() + self.delay_s, data))
-                elif sink is not None:
-                    sink.sendall(data)
-        except OSError:
-            pass
-
-    def _hand_on(self, held: queue.Queue, sink: socket.socket) -> None:
-        try:
-            while True:
-                due_s, data = held.get()
-                time.sleep(max(0.0, due_s - time.monotonic()))
-                sink.sendall(data)
-        except OSError:
-            pass
-
-
 @pytest.fixture
 def late_cell(tmp_path):
     """The virtual cell, and a copy of its cell file whose camera is reached through a DelayingRelay."""
     cell = VirtualCellProcess("--seed", "3")
-    camera_url = cell.addresses["camera_url"]
-    host_port = camera_url.split("//")[1].split("/")[0]
-    host, port = host_port.rsplit(":", 1)
-    relay = DelayingRelay((host, int(port)))
-    tables = tomllib.loads(Path(cell.addresses["cell_file"]).read_text())
-    assert tables["camera"]["source"]["exposure_latency_s"] < LATE_S
-    tables["camera"]["source"]["device"] = camera_url.replace(host_port, f"127.0.0.1:{relay.port}")
     cell_file = tmp_path / "cell.toml"
-    cell_file.write_text(dumps_cell(tables))
+    relay = camera_through(cell, DelayingRelay, cell_file)
+    assert load_cell(cell_file).camera_source.exposure_latency_s < LATE_S
     yield cell, cell_file, relay
     relay.close()
     assert cell.stop() == 0
