@@ -26,9 +26,11 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -48,6 +50,15 @@ CLOSE_WAIT_S = 2.0
 # How long a reader waits for a live source's next frame, unless told (the cell file
 # passes its [safety] watchdog_s); at most MAX_FRAME_TIMEOUT_S.
 DEFAULT_FRAME_TIMEOUT_S = 5.0
+# A stream's receive buffer in the kernel, pinned, for streams over TCP. Left to itself Linux
+# grows it to megabytes, hundreds of a small camera's JPEGs: a reader that falls behind (a
+# busy host) then reads frames seconds old, each stamped as just arrived (2.4 s measured at a
+# load average of 19, docs/vision.md). Full, a small buffer makes the sender drop frames
+# instead, as a camera does. Linux doubles the figure; a few 640 x 480 JPEGs fit.
+STREAM_RECEIVE_BUFFER_BYTES = 16 * 1024
+TCP_STREAM_SCHEMES = ("http://", "https://", "tcp://")
+FFMPEG_OPTIONS_VARIABLE = "OPENCV_FFMPEG_CAPTURE_OPTIONS"
+_ffmpeg_options_lock = threading.Lock()  # the environment is the process's: one open at a time
 MAX_FRAME_TIMEOUT_S = 600.0
 
 
@@ -230,6 +241,28 @@ class CaptureLike(Protocol):
     def get(self, prop_id: int, /) -> float: ...
 
 
+@contextmanager
+def _receive_buffer_pinned(spec: str) -> Iterator[None]:
+    """While OpenCV opens ``spec``: FFmpeg's ``recv_buffer_size`` option for a stream over TCP
+    (OpenCV reads FFmpeg's options from OPENCV_FFMPEG_CAPTURE_OPTIONS, "key;value|..."),
+    unless the environment already sets it; the environment is as it was afterwards."""
+    if not spec.lower().startswith(TCP_STREAM_SCHEMES):
+        yield
+        return
+    with _ffmpeg_options_lock:
+        before = os.environ.get(FFMPEG_OPTIONS_VARIABLE)
+        if before is None or "recv_buffer_size;" not in before:
+            pinned = f"recv_buffer_size;{STREAM_RECEIVE_BUFFER_BYTES}"
+            os.environ[FFMPEG_OPTIONS_VARIABLE] = pinned if not before else f"{before}|{pinned}"
+        try:
+            yield
+        finally:
+            if before is None:
+                os.environ.pop(FFMPEG_OPTIONS_VARIABLE, None)
+            else:
+                os.environ[FFMPEG_OPTIONS_VARIABLE] = before
+
+
 def is_video_file(spec: int | str) -> bool:
     """Whether ``spec`` names a video file (or an image sequence such as ``img_%04d.png``).
 
@@ -353,13 +386,15 @@ class VideoCaptureSource(BaseSource):
         return f"video file {self.spec!r}" if self.is_file else f"stream {self.spec!r}"
 
     def _open_capture(self, spec: int | str) -> CaptureLike:
-        """OpenCV's capture of ``spec``; a stream's opens and reads time out at frame_timeout_s."""
+        """OpenCV's capture of ``spec``; a stream's opens and reads time out at frame_timeout_s,
+        and one over TCP gets a small receive buffer (STREAM_RECEIVE_BUFFER_BYTES)."""
         if isinstance(spec, int) or self.is_file:
             return cv2.VideoCapture(spec)
         timeout_ms = int(1000 * self.frame_timeout_s)
-        return cv2.VideoCapture(
-            spec, cv2.CAP_ANY, [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, timeout_ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, timeout_ms]
-        )
+        with _receive_buffer_pinned(spec):
+            return cv2.VideoCapture(
+                spec, cv2.CAP_ANY, [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, timeout_ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, timeout_ms]
+            )
 
     def _open(self) -> tuple[CaptureLike | None, str]:
         """A fresh opened capture, or None and why not."""

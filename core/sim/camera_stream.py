@@ -31,9 +31,10 @@ log = logging.getLogger("vservo.sim.camera_stream")
 
 BOUNDARY = "vservoframe"
 STREAM_PATH = "/stream.mjpg"
-# Room for a frame or two in the kernel per client (Linux doubles it): enough to keep the
-# link busy, too little to hold a backlog of stale frames.
-SEND_BUFFER_BYTES = 64 * 1024
+# Room for a few frames in the kernel per client (Linux doubles it; a 640 x 480 frame is
+# about 9 kB at quality 100): enough to keep the link busy, too little to hold a backlog of
+# stale frames. A client that reads slower than the frame rate skips frames instead.
+SEND_BUFFER_BYTES = 16 * 1024
 
 
 def encode_jpeg(image: np.ndarray, quality: int) -> bytes:

@@ -8,6 +8,7 @@ when any frame it reads was exposed.
 
 from __future__ import annotations
 
+import os
 import socket
 import threading
 import time
@@ -18,7 +19,12 @@ import cv2
 import numpy as np
 import pytest
 
-from vservo.core.perception.camera_source import SourceLost, VideoCaptureSource
+from vservo.core.perception.camera_source import (
+    FFMPEG_OPTIONS_VARIABLE,
+    STREAM_RECEIVE_BUFFER_BYTES,
+    SourceLost,
+    VideoCaptureSource,
+)
 from vservo.core.sim.camera_stream import CameraStream
 
 BITS = 16
@@ -178,6 +184,42 @@ def test_a_slow_client_is_sent_the_newest_frame_not_a_backlog() -> None:
     # then a frame from its second half: the frames between were skipped, not queued.
     assert exposures[-1] > paused_s + 0.25, [round(t - paused_s, 3) for t in exposures]
     assert received < sent - 10  # about 25 frames were sent while it slept
+
+
+def receive_buffers_to(port: int) -> list[int]:
+    """SO_RCVBUF of each of this process's TCP sockets connected to ``port`` (OpenCV's among them)."""
+    sizes = []
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            sock = socket.socket(fileno=os.dup(int(fd)))
+        except OSError:  # not a socket
+            continue
+        with sock:
+            try:
+                if sock.type == socket.SOCK_STREAM and sock.getpeername()[1] == port:
+                    sizes.append(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+            except (OSError, IndexError, TypeError):  # unconnected, or not an IP socket
+                continue
+    return sizes
+
+
+@pytest.mark.parametrize("set_before", [None, "recv_buffer_size;40000"])
+def test_a_stream_is_read_through_a_small_receive_buffer_unless_the_environment_sets_one(monkeypatch, set_before) -> None:
+    """Left to itself the kernel grows a stream's receive buffer to megabytes of waiting frames
+    (docs/vision.md, "A host too busy to read its camera"); the source pins it while OpenCV
+    opens the stream, and leaves the environment as it found it."""
+    if set_before is None:
+        monkeypatch.delenv(FFMPEG_OPTIONS_VARIABLE, raising=False)
+    else:
+        monkeypatch.setenv(FFMPEG_OPTIONS_VARIABLE, set_before)
+    with CameraStream(NumberedScene(), fps=50, exposure_latency_s=0.0) as stream:
+        port = int(stream.url.split(":")[2].split("/")[0])
+        with VideoCaptureSource(stream.url) as source:
+            source.read()
+            buffers = receive_buffers_to(port)
+    # Linux doubles what it is asked for.
+    assert buffers == [2 * (STREAM_RECEIVE_BUFFER_BYTES if set_before is None else 40000)]
+    assert os.environ.get(FFMPEG_OPTIONS_VARIABLE) == set_before
 
 
 def test_a_render_of_the_wrong_kind_ends_the_stream_and_says_why(caplog: pytest.LogCaptureFixture) -> None:
