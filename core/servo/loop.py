@@ -237,6 +237,26 @@ class RetreatTest:
         return None
 
 
+class ProgressTest:
+    """A stage stuck in a local minimum: its error has not fallen by ``progress_fraction``
+    over the last ``progress_window`` cycles of the stage."""
+
+    def __init__(self, limits: LoopLimits) -> None:
+        self.window, self.fraction = limits.progress_window, limits.progress_fraction
+        self.errors: deque[float] = deque(maxlen=limits.progress_window + 1)  # of the current stage
+        self.stage: Stage | None = None
+
+    def __call__(self, output: ControlOutput) -> str | None:
+        """Why the stage is stalled, or None."""
+        if output.stage != self.stage:
+            self.errors.clear()
+        self.stage = output.stage
+        self.errors.append(output.stage_error)
+        if len(self.errors) == self.errors.maxlen and self.errors[-1] > (1.0 - self.fraction) * self.errors[0]:
+            return f"stage {self.stage} error {self.errors[-1]:.2f} after {self.window} cycles"
+        return None
+
+
 def run_servo(
     cell: MeasurementSource,
     law: ControlLaw,
@@ -288,7 +308,7 @@ def _servo(
     stage: Stage | None = None
     last_spot: ImageFeatures | None = None  # the last frame that saw the laser spot
     lost_for = 0  # consecutive cycles held with the features lost
-    recent_errors: deque[float] = deque(maxlen=limits.progress_window + 1)  # of the current stage
+    progress_test = ProgressTest(limits)
     held: tuple[JointBound, ...] = ()  # the joints the last step held at their limits
     # The robot stands still when the loop starts (its caller waited for the last move),
     # so the first frame must merely be newer than now; later ones newer than each move.
@@ -344,12 +364,9 @@ def _servo(
         if retreat is not None:
             return finish(False, Failure.CAMERA_RETREAT, retreat)
 
-        if output.stage != stage:
-            recent_errors.clear()
         stage = output.stage
-        recent_errors.append(output.stage_error)
-        if len(recent_errors) == recent_errors.maxlen and recent_errors[-1] > (1.0 - limits.progress_fraction) * recent_errors[0]:
-            stalled = f"stage {stage} error {recent_errors[-1]:.2f} after {limits.progress_window} cycles"
+        stalled = progress_test(output)
+        if stalled is not None:
             if held:
                 # Stuck against the limits: the goal lies beyond what the arm can reach from here.
                 return finish(False, Failure.UNREACHABLE, f"{stalled}, {', '.join(map(str, held))}")
