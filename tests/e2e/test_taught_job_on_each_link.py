@@ -31,9 +31,9 @@ ARTIFACTS = Path(os.environ.get("VSERVO_ARTIFACTS", Path(__file__).resolve().par
 LINKS = {
     "serial": ("--robot-link", "serial"),
     "ethernet": ("--robot-link", "ethernet"),
-    # The UR at half of real time: the camera at 30 frames a second of it, which a loaded
-    # host follows (at real time it skips frames, and the servo takes longer).
-    "ur": ("--robot-link", "ur", "--time-scale", "1"),
+    # The UR at real time (its default): a loaded host's late frames skip and slow the
+    # stream, and the servo confirms its convergence where the arm will stand.
+    "ur": ("--robot-link", "ur"),
 }
 
 
