@@ -50,6 +50,7 @@ CLOSE_WAIT_S = 2.0
 # How long a reader waits for a live source's next frame, unless told (the cell file
 # passes its [safety] watchdog_s); at most MAX_FRAME_TIMEOUT_S.
 DEFAULT_FRAME_TIMEOUT_S = 5.0
+MAX_FRAME_TIMEOUT_S = 600.0
 # A stream's receive buffer in the kernel, pinned, for streams over TCP. Left to itself Linux
 # grows it to megabytes, hundreds of a small camera's JPEGs: a reader that falls behind (a
 # busy host) then reads frames seconds old, each stamped as just arrived (2.4 s measured at a
@@ -59,7 +60,6 @@ STREAM_RECEIVE_BUFFER_BYTES = 16 * 1024
 TCP_STREAM_SCHEMES = ("http://", "https://", "tcp://")
 FFMPEG_OPTIONS_VARIABLE = "OPENCV_FFMPEG_CAPTURE_OPTIONS"
 _ffmpeg_options_lock = threading.Lock()  # the environment is the process's: one open at a time
-MAX_FRAME_TIMEOUT_S = 600.0
 
 
 class CameraSourceError(VservoError, RuntimeError):
@@ -479,13 +479,15 @@ class VideoCaptureSource(BaseSource):
 
         The capture's frames carry no exposure time we can trust (CAP_PROP_POS_MSEC is a
         position in the stream, not a time on our clock), but the reading thread knows
-        when each frame arrived, and it drains every buffer between the camera and here:
-        so a frame arrives at most ``exposure_latency_s`` after its exposure, and one that
-        arrived at or after t_s + exposure_latency_s was exposed at or after t_s. This
-        returns the newest such frame not handed out before, waiting for the first one when
-        none has arrived yet, whatever the frame rate and however slowly the caller reads;
-        with ``buffer_frames`` it then still discards that many, for a pipeline that holds
-        frames inside however fast it is read (each costs a frame period).
+        when each frame arrived, and it drains every buffer between the camera and here
+        (as long as the host gives it time: one starved finds frames that waited, see
+        STREAM_RECEIVE_BUFFER_BYTES): so a frame arrives at most ``exposure_latency_s``
+        after its exposure, and one that arrived at or after t_s + exposure_latency_s was
+        exposed at or after t_s. This returns the newest such frame not handed out before,
+        waiting for the first one when none has arrived yet, whatever the frame rate and
+        however slowly the caller reads; with ``buffer_frames`` it then still discards that
+        many, for a pipeline that holds frames inside however fast it is read (each costs a
+        frame period).
 
         A video file's frames are not live: its next frame, as ``read``.
 

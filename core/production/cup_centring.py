@@ -49,6 +49,10 @@ TOUCH_STEP_M = 0.004
 TOUCH_STEPS = 8
 PRESS_M = 0.003  # how far the cup is left pressed into its level compensator (as the demo job's pick)
 GRIP_GAP_M = 0.001  # a cup grips from this far above the face (the sensor's window's top)
+# Bounds on what the camera saw, against frames that lag the arm (docs/vision.md): a view of
+# the part is a few tenths of a metre above it, where a 10 mm jog moves it tens of pixels.
+MIN_JOG_PX = 3.0
+MAX_DEPTH_M = 1.0
 
 
 class CentringError(VservoError, RuntimeError):
@@ -81,7 +85,10 @@ def _seen(cell: CellMotions) -> tuple[Matrix, float]:
     corners = np.asarray(cell.corners_px(), dtype=float)
     if not np.all(np.isfinite(corners)):
         raise CentringError("the camera must see the part's four corners to centre the cup on it: go to a view of the part first")
-    return diagonals_crossing(corners), pattern_scale(corners)
+    try:
+        return diagonals_crossing(corners), pattern_scale(corners)
+    except np.linalg.LinAlgError:  # parallel diagonals: no face, whatever the detector said
+        raise CentringError("the part's four corners seen do not make a face (a blurred frame?): try again") from None
 
 
 def _shifted(bMe: Matrix, d_m: Matrix) -> Matrix:
@@ -108,6 +115,12 @@ def part_axis_offset(cell: CellMotions) -> tuple[Matrix, float, float]:
         d[axis] = JOG_M
         cell.move_to(_shifted(bMe0, d))
         J_c[:, axis] = (_seen(cell)[0] - centre0) / JOG_M
+    if np.min(np.linalg.norm(J_c, axis=0)) * JOG_M < MIN_JOG_PX:
+        cell.move_to(bMe0)
+        raise CentringError(
+            f"the part moved less than {MIN_JOG_PX:g} px in the image as the arm moved {1000 * JOG_M:g} mm: the camera's "
+            "frames lag the arm (a busy host) or it is not looking at the part; try again"
+        )
     J = -J_c
     axis_b = bMe0[:3, 3]
     rows, moves = [], []
@@ -121,7 +134,13 @@ def part_axis_offset(cell: CellMotions) -> tuple[Matrix, float, float]:
     cell.move_to(bMe0)
     if not scale1 > scale0:
         raise CentringError("the part did not grow in the image as the camera came down: is the camera looking down at it?")
-    return offset, DESCENT_M * scale1 / (scale1 - scale0), scale0
+    depth_m = DESCENT_M * scale1 / (scale1 - scale0)
+    if depth_m > MAX_DEPTH_M:
+        raise CentringError(
+            f"the part grew too little in the image as the camera came down {1000 * DESCENT_M:g} mm (it would lie "
+            f"{depth_m:.2f} m below the camera): the camera's frames lag the arm (a busy host); try again"
+        )
+    return offset, depth_m, scale0
 
 
 def centre_cup(cell: CellMotions, eMv: Matrix, eMc: Matrix) -> Centred:

@@ -33,6 +33,7 @@ import functools
 import logging
 import math
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -53,6 +54,8 @@ NAMESPACE = "urn:vservo:cell"
 PUBLISH_PERIOD_S = 0.1  # the variables follow the controller's state at most this often
 START_TIMEOUT_S = 60.0
 NO_RUN = -1
+MAX_WRONG_PASSWORDS = 5  # in a row, for one user name (OpcUaUsers)
+LOCKOUT_S = 60.0
 _READY = frozenset({Phase.IDLE, Phase.DONE})  # where a Start is taken (a fault needs Reset first)
 
 
@@ -83,12 +86,21 @@ class _Permissions(PermissionRuleset):
         return user.role is not UserRole.Anonymous or action_type_id not in _WRITES
 
 
-class _Users(UserManager):
-    """The cell file's users by their password hash; an anonymous session as the file allows."""
+class OpcUaUsers(UserManager):
+    """The cell file's users by their password hash; an anonymous session as the file allows.
 
-    def __init__(self, config: OpcUaConfig) -> None:
+    A user name given MAX_WRONG_PASSWORDS wrong passwords in a row is refused for LOCKOUT_S,
+    even with the right one: each guess costs the attacker a PBKDF2 check already, and this
+    leaves a few a minute against a name. (The line's client logs in again after the lockout;
+    names not in the file are not counted, so they cannot fill memory.)
+    """
+
+    def __init__(self, config: OpcUaConfig, clock: Callable[[], float] = time.monotonic) -> None:
         self.config = config
         self.users = {user.name: user for user in config.users}
+        self._clock = clock
+        self._wrong: dict[str, int] = {}  # wrong passwords in a row, by known user name
+        self._locked_until_s: dict[str, float] = {}
 
     def get_user(
         self, iserver: Any, username: str | None = None, password: str | None = None, certificate: Any = None
@@ -98,11 +110,26 @@ class _Users(UserManager):
                 return User(role=UserRole.Anonymous)
             return None
         user = self.users.get(username)
+        now_s = self._clock()
+        if now_s < self._locked_until_s.get(username, -math.inf):
+            log.warning("OPC UA: user %r refused: locked out for %.0f s more", username, self._locked_until_s[username] - now_s)
+            return None
         if user is None or password is None or not user.password.matches(password):
             log.warning("OPC UA: user %r refused (unknown user or wrong password)", username)
+            if user is not None:
+                self._count_wrong(username, now_s)
             return None
+        self._wrong.pop(username, None)
         log.info("OPC UA: user %r logged in", username)
         return User(role=UserRole.User, name=username)
+
+    def _count_wrong(self, username: str, now_s: float) -> None:
+        wrong = self._wrong.get(username, 0) + 1
+        if wrong >= MAX_WRONG_PASSWORDS:
+            self._locked_until_s[username] = now_s + LOCKOUT_S
+            log.warning("OPC UA: user %r locked out for %g s after %d wrong passwords", username, LOCKOUT_S, wrong)
+            wrong = 0
+        self._wrong[username] = wrong
 
 
 @dataclass(frozen=True)
@@ -273,7 +300,7 @@ class CellOpcUaServer:
             await self._publish_until_stopped()
 
     async def _server(self) -> Server:
-        server = Server(user_manager=_Users(self.config))
+        server = Server(user_manager=OpcUaUsers(self.config))
         await server.init()
         server.set_endpoint(self.config.endpoint)
         server.set_server_name("vservo cell")

@@ -24,11 +24,16 @@ def press(page, button: str, done: str, timeout_s: float = 60.0) -> None:
     dismiss_notifications(page)
     page.get_by_role("button", name=button, exact=True).click()
 
-    def said() -> bool:
-        notices = " ".join(page.locator(".mantine-Notification-root").all_inner_texts())
-        return re.search(done, notices + status_text(page)) is not None
+    seen = {"notices": ""}
 
-    wait_until(said, f"{button}: the page never said {done!r}; last {status_text(page)!r}", timeout_s)
+    def said() -> bool:
+        seen["notices"] = " ".join(page.locator(".mantine-Notification-root").all_inner_texts())
+        return re.search(done, seen["notices"] + status_text(page)) is not None
+
+    try:
+        wait_until(said, f"{button}: the page never said {done!r}", timeout_s)
+    except AssertionError as exc:  # what the page did say: a refusal is a notice
+        raise AssertionError(f"{exc}; the status: {status_text(page)!r}; the notices: {seen['notices']!r}") from None
 
 
 def offered(page, words: str) -> str:

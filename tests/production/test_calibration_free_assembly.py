@@ -15,6 +15,7 @@ from vservo.core.cell.config import CommissioningRecord, load_cell, parse_cell, 
 from vservo.core.geometry.spatial import inverse, rot_z, transform
 from vservo.core.production.assembly import Outcome, Phase
 from vservo.core.production.cell_controller import CommandRefused
+from vservo.core.production.cup_centring import CellMotions, CentringError, centre_cup
 from vservo.core.production.demo_job import teach_demo_job
 from vservo.core.production.placement_check import diagonals_crossing
 
@@ -118,3 +119,26 @@ def test_view_the_part_and_centre_the_cup_rest_on_no_calibration(tmp_path):
         with pytest.raises(CommandRefused, match="four corners|felt no part"):
             controller.present_part((-300.0, 150.0), 0.0)
             controller.centre_cup()
+
+
+@pytest.mark.slow
+def test_centring_on_frames_that_lag_the_arm_refuses_and_says_so_with_the_arm_back_at_the_view(tmp_path):
+    """A camera one look behind the arm (a busy host's late frames, docs/vision.md): the part
+    seems not to move as the arm jogs, and centring must say so, not fail inside its
+    arithmetic or drive the arm to a pose made from those frames."""
+    config = parse_cell(*read_cell_data_with_truth(None, TABLE_5_5))
+    with simulated_controller(config, tmp_path / "data") as controller:
+        controller.begin_teach()
+        controller.present_part((-390.0, -40.0), 20.0)
+        controller.view_part()
+        bMe_view = controller.rig.robot.read_pose()
+        looks = []
+
+        def one_look_behind() -> np.ndarray:
+            looks.append(controller.look(fresh=True)[1].corners_px)
+            return looks[-2] if len(looks) > 1 else looks[-1]
+
+        motions = CellMotions(controller.move_to, controller.rig.robot.read_pose, one_look_behind, lambda: False)
+        with pytest.raises(CentringError, match="frames lag the arm"):
+            centre_cup(motions, config.nominal.eMv, config.nominal.eMc)
+        np.testing.assert_allclose(controller.rig.robot.read_pose(), bMe_view, atol=1e-6)

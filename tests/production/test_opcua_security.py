@@ -21,7 +21,14 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from tests.controller_fixtures import simulated_controller
 from vservo.app.browser import free_port
 from vservo.core.cell.config import parse_cell
-from vservo.core.production.opcua_server import NAMESPACE, CellOpcUaServer, OpcUaError
+from vservo.core.production.opcua_server import (
+    LOCKOUT_S,
+    MAX_WRONG_PASSWORDS,
+    NAMESPACE,
+    CellOpcUaServer,
+    OpcUaError,
+    OpcUaUsers,
+)
 
 USER, PASSWORD = "mes", "line-4-secret"
 
@@ -98,3 +105,22 @@ def test_a_port_in_use_is_refused_in_one_line(tmp_path):
             finally:
                 server.close()
             assert not controller.state_subscribers  # the server's subscriber went with it
+
+
+def test_five_wrong_passwords_lock_the_user_out_for_a_minute_and_other_names_are_not_counted(tmp_path):
+    tables = tomllib.loads(resources.files("vservo.static").joinpath("cell.toml").read_text())
+    tables["line"] = {"opcua": {"enabled": True, "port": 0, "users": {USER: {"password": PASSWORD}}}}
+    clock = [100.0]
+    users = OpcUaUsers(parse_cell(tables, "cell.toml", tmp_path).line.opcua, clock=lambda: clock[0])
+    assert users.get_user(None, USER, PASSWORD).name == USER
+    for _ in range(MAX_WRONG_PASSWORDS - 1):
+        assert users.get_user(None, USER, "guess") is None
+    assert users.get_user(None, USER, PASSWORD) is not None  # a right one clears the count
+    for _ in range(MAX_WRONG_PASSWORDS):
+        assert users.get_user(None, USER, "guess") is None
+        assert users.get_user(None, "nobody", "guess") is None
+    clock[0] += LOCKOUT_S - 1.0
+    assert users.get_user(None, USER, PASSWORD) is None  # locked out, the right password or not
+    clock[0] += 1.0
+    assert users.get_user(None, USER, PASSWORD).name == USER
+    assert "nobody" not in users._wrong and set(users._locked_until_s) == {USER}  # unknown names are not kept
