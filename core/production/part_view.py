@@ -15,6 +15,12 @@ a look-and-move servo of the three features f = (c - s, scale) on the translatio
 flange, whose Jacobian J = df/dt is measured by three small jogs and kept up to date by
 Broyden's rule (J += (df - J dt) dt^T / |dt|^2) as the arm moves: t += -gain J^-1 (f - f*).
 Until the spot is seen, the image's centre stands in for it.
+
+A frame that lags the arm (a busy host, docs/vision.md) shows the part where it was before
+a move: a jog would then measure no motion and leave J singular. A move whose frame shows
+less than a third of the motion J predicts (for a jog sideways or down, less than
+MIN_JOG_PX; a step J predicts below MIN_JOG_PX is not judged) is looked at once more; a
+second such frame is a ViewError naming the lag, never a step made from it.
 """
 
 from __future__ import annotations
@@ -34,6 +40,9 @@ GAIN = 0.8
 MAX_STEP_M = 0.030  # no move longer: J is a local measure
 DONE_PX = 0.5  # every feature within this of its target ends the servo
 MAX_MOVES = 25
+# Two frames from one pose differ by the detector's noise, tenths of a pixel; a 10 mm jog
+# sideways from a view of the part (a few tenths of a metre above it) moves it 10 px or more.
+MIN_JOG_PX = 1.0
 
 
 class ViewError(VservoError, RuntimeError):
@@ -66,32 +75,49 @@ def view_part(cell: ViewMotions, target_scale_px: float, image_centre_px: Matrix
 
     spot_seen = False
 
-    def seen_at(translation: Matrix | None) -> Matrix:
+    def look() -> Matrix:
         nonlocal spot_seen
-        if translation is not None:
-            pose = bMe.copy()
-            pose[:3, 3] = translation
-            cell.move_to(pose)
         features = cell.features()
         spot_seen = features.spot_seen
         return view_features(features, image_centre_px)
 
+    def seen_at(translation: Matrix, f_before: Matrix, least_px: float) -> Matrix:
+        """The features once moved to ``translation``, from a frame that shows the image
+        moved by at least ``least_px`` from ``f_before`` (looked at twice at most)."""
+        pose = bMe.copy()
+        pose[:3, 3] = translation
+        cell.move_to(pose)
+        for _ in range(2):
+            f_now = look()
+            if np.linalg.norm(f_now - f_before) >= least_px:
+                return f_now
+        raise ViewError(
+            f"the part moved {np.linalg.norm(f_now - f_before):.1f} px in the image where the move should have moved "
+            f"it {least_px:.1f} px or more: the camera's frames lag the arm (a busy host); try again"
+        )
+
     t = bMe[:3, 3].copy()
-    f = seen_at(None)
+    f = look()
     J = np.empty((3, 3))
+    f_jogged = f
     for axis in range(3):
         jog = np.zeros(3)
         jog[axis] = JOG_M if axis < 2 else -JOG_M  # down, not up: toward the part
-        J[:, axis] = (seen_at(t + jog) - f) / jog[axis]
-    f = seen_at(t)
+        f_jogged = seen_at(t + jog, f_jogged, MIN_JOG_PX)  # each jog from the last one's pose
+        J[:, axis] = (f_jogged - f) / jog[axis]
+    f = seen_at(t, f_jogged, float(np.linalg.norm(f_jogged - f)) / 3.0)  # back by the last jog
     for move in range(MAX_MOVES):
         error = f - target
         if np.all(np.abs(error) < DONE_PX) and spot_seen:
             bMe[:3, 3] = t
             return bMe, move
-        step = -GAIN * np.linalg.solve(J, error)
+        try:
+            step = -GAIN * np.linalg.solve(J, error)
+        except np.linalg.LinAlgError:  # the jogs moved the features along one line: no view to servo on
+            raise ViewError("the part's image did not move as the arm jogged in three directions: try again") from None
         step *= min(1.0, MAX_STEP_M / max(float(np.linalg.norm(step)), 1e-12))
-        f_new = seen_at(t + step)
+        expected_px = float(np.linalg.norm(J @ step))  # a small final step's frame is not judged
+        f_new = seen_at(t + step, f, expected_px / 3.0 if expected_px >= MIN_JOG_PX else 0.0)
         J += np.outer((f_new - f) - J @ step, step) / float(step @ step)
         t, f = t + step, f_new
     raise ViewError(

@@ -124,6 +124,10 @@ class StreamingBackend(Protocol):
         holds it for hold_s at most, then stops the arm, unless the next twist comes first."""
         ...
 
+    def stop_motion(self) -> None:
+        """Bring the streamed motion to a standstill and wait for it."""
+        ...
+
 
 class MotionStopped(RobotError):
     """A motion ended before its target: held, in alarm or without servo power."""

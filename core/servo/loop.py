@@ -10,6 +10,11 @@ operator would: a shrinking image (the camera retreating), an error that stops f
 the iteration budget. It stops the robot (no further command) on the first failure and
 names the cause. Behind a safety layer it arms the watchdog for the run and feeds it
 every camera frame.
+
+A streamed arm (a twist a frame, core/production/exposure_matched.py) moves on while a frame
+is processed: a frame within the threshold is taken as the goal reached only when the twist
+the arm still moves at leaves the error within it where the arm will stand; otherwise the
+arm is stopped and a frame exposed once it stands decides, as look-and-move's always does.
 """
 
 from __future__ import annotations
@@ -26,11 +31,13 @@ import numpy as np
 from vservo.core.cell.config import CellModel
 from vservo.core.cell.kinematics import UnreachableTarget
 from vservo.core.geometry.camera import CameraModel
+from vservo.core.geometry.interaction import pixel_interaction_matrix
 from vservo.core.geometry.laser import LaserPointer
-from vservo.core.geometry.spatial import Matrix, twist_transform
+from vservo.core.geometry.spatial import Matrix, inverse, theta_u, twist_transform
 from vservo.core.perception.features import DesiredImage, ImageFeatures, pattern_scale, polygon_moments
 from vservo.core.perception.measurement import Measurement, features_from_measurement
-from vservo.core.robot.backend import RobotBackend, RobotError, carry_out
+from vservo.core.robot.backend import RobotBackend, RobotError, StreamingBackend, carry_out
+from vservo.core.robot.commands import StreamedTwist
 from vservo.core.robot.safety import SafetyLayer, Watchdog
 from vservo.core.servo.joint_limits import JointBound, JointLimitedSteps
 from vservo.core.servo.laws.base import ControlLaw, ControlOutput, Failure, Stage
@@ -160,6 +167,43 @@ def corner_area_px2(corners_px: Matrix) -> float:
     return polygon_moments(corners_px)[0] if not np.isnan(corners_px).any() else float("nan")
 
 
+def error_after_px(features: ImageFeatures, desired: DesiredImage, camera: CameraModel, c0Mc1: Matrix) -> float:
+    """The feature error once the camera has moved by c0Mc1 since the frame of ``features``,
+    to first order (s_dot = L v, eq. 4-14: the displacement (t, theta u) taken as a twist held
+    1 s; L at the frame's corners and the desired depth). An arm that passes through the goal
+    is predicted past it; one gliding in, short of it."""
+    L = pixel_interaction_matrix(camera, features.corners_px, desired.depth_m)
+    error = (features.corners_px - desired.corners_px).ravel()
+    displacement = np.concatenate((c0Mc1[:3, 3], theta_u(c0Mc1[:3, :3])))
+    return float(np.linalg.norm(error + L @ displacement))
+
+
+def stop_to_confirm(
+    robot: RobotBackend, cycle: Cycle, eMc: Matrix, camera: CameraModel, desired: DesiredImage, threshold_px: float
+) -> float | None:
+    """A converged cycle on a streamed arm: None when the arm, moved on since the frame's
+    exposure, is still within ``threshold_px`` (the goal reached); else the arm stopped, and
+    the robot's clock from which it stands (only a frame exposed since then may confirm).
+
+    The move since the exposure is the robot's (its pose now against the pose at the
+    frame's exposure stamp, which is a bound: a camera's frames are stamped their arrival
+    less the longest latency, so it counts a little of the motion before too). The stop
+    that follows lands within a control period or two: at the speed of a glide-in a
+    fraction of a pixel; an arm passing through the goal at speed is caught before it.
+    """
+    c0Mc1 = inverse(cycle.measurement.bMe @ eMc) @ robot.read_pose() @ eMc
+    standing_px = error_after_px(cycle.features, desired, camera, c0Mc1)
+    if standing_px <= threshold_px:
+        return None
+    if not isinstance(robot, StreamingBackend):
+        raise RobotError(f"the {robot.name} robot took a streamed twist and cannot stop it")
+    log.info(
+        "converged at %.3f px on a moving arm, %.3f px where it is now: stopped to look again", cycle.output.error_px, standing_px
+    )
+    robot.stop_motion()
+    return robot.clock_s()
+
+
 class RetreatTest:
     """The camera backing away from the part (IBVS's retreat, Chaumette 1998).
 
@@ -190,6 +234,26 @@ class RetreatTest:
             self.first_area = area
         if area < self.fraction * min(self.first_area, self.desired_area):
             return f"corner area {area:.0f} px^2, first {self.first_area:.0f} px^2"
+        return None
+
+
+class ProgressTest:
+    """A stage stuck in a local minimum: its error has not fallen by ``progress_fraction``
+    over the last ``progress_window`` cycles of the stage."""
+
+    def __init__(self, limits: LoopLimits) -> None:
+        self.window, self.fraction = limits.progress_window, limits.progress_fraction
+        self.errors: deque[float] = deque(maxlen=limits.progress_window + 1)  # of the current stage
+        self.stage: Stage | None = None
+
+    def __call__(self, output: ControlOutput) -> str | None:
+        """Why the stage is stalled, or None."""
+        if output.stage != self.stage:
+            self.errors.clear()
+        self.stage = output.stage
+        self.errors.append(output.stage_error)
+        if len(self.errors) == self.errors.maxlen and self.errors[-1] > (1.0 - self.fraction) * self.errors[0]:
+            return f"stage {self.stage} error {self.errors[-1]:.2f} after {self.window} cycles"
         return None
 
 
@@ -244,11 +308,13 @@ def _servo(
     stage: Stage | None = None
     last_spot: ImageFeatures | None = None  # the last frame that saw the laser spot
     lost_for = 0  # consecutive cycles held with the features lost
-    recent_errors: deque[float] = deque(maxlen=limits.progress_window + 1)  # of the current stage
+    progress_test = ProgressTest(limits)
     held: tuple[JointBound, ...] = ()  # the joints the last step held at their limits
     # The robot stands still when the loop starts (its caller waited for the last move),
     # so the first frame must merely be newer than now; later ones newer than each move.
     motion_ended_s = robot.clock_s()
+    streaming = False  # the arm moves at a twist not waited for
+    standing_since_s = -np.inf  # the arm stopped to look again: only a frame exposed since counts
 
     def finish(converged: bool, failure: Failure | None, reason: str) -> ServoOutcome:
         if failure is not None:
@@ -257,6 +323,8 @@ def _servo(
 
     for iteration in range(limits.max_iterations):
         measurement = cell.measure(look=perception.uses_projection)
+        while measurement.time_s < standing_since_s:  # exposed before the arm stood
+            measurement = cell.measure(look=perception.uses_projection)
         seen = perception.perceive(measurement, motion_ended_s)
         if watchdog is not None:
             watchdog.feed("camera")
@@ -278,6 +346,14 @@ def _servo(
             continue  # no command: the next frame may see the features again
         if output.failure is not None:
             return finish(False, output.failure, output.note)
+        if output.converged and streaming:
+            try:
+                stood_s = stop_to_confirm(robot, cycle, model.eMc, model.camera, desired, law.final_threshold_px)
+            except RobotError as exc:
+                return finish(False, Failure.ROBOT_STOPPED, str(exc))
+            if stood_s is not None:
+                streaming, standing_since_s = False, stood_s
+                continue
         if output.converged:
             return finish(True, None, f"feature error {output.error_px:.3f} px")
         if not np.all(np.isfinite(output.cVc)):
@@ -288,12 +364,9 @@ def _servo(
         if retreat is not None:
             return finish(False, Failure.CAMERA_RETREAT, retreat)
 
-        if output.stage != stage:
-            recent_errors.clear()
         stage = output.stage
-        recent_errors.append(output.stage_error)
-        if len(recent_errors) == recent_errors.maxlen and recent_errors[-1] > (1.0 - limits.progress_fraction) * recent_errors[0]:
-            stalled = f"stage {stage} error {recent_errors[-1]:.2f} after {limits.progress_window} cycles"
+        stalled = progress_test(output)
+        if stalled is not None:
             if held:
                 # Stuck against the limits: the goal lies beyond what the arm can reach from here.
                 return finish(False, Failure.UNREACHABLE, f"{stalled}, {', '.join(map(str, held))}")
@@ -308,6 +381,7 @@ def _servo(
                 step = joint_limits.limit(command, bMe, measurement.q)
                 command, held = step.command, step.held
             motion_ended_s = carry_out(robot, command, bMe)
+            streaming = isinstance(command, StreamedTwist)
         except UnreachableTarget as exc:
             return finish(False, Failure.UNREACHABLE, str(exc))
         except RobotError as exc:

@@ -13,11 +13,14 @@ import pytest
 from tests.controller_fixtures import simulated_controller
 from vservo.core.cell.config import CommissioningRecord, load_cell, parse_cell, read_cell_data_with_truth
 from vservo.core.geometry.spatial import inverse, rot_z, transform
+from vservo.core.perception.features import ImageFeatures, pattern_scale
 from vservo.core.production.assembly import Outcome, Phase
 from vservo.core.production.cell_controller import CommandRefused
 from vservo.core.production.cup_centring import CellMotions, CentringError, centre_cup
 from vservo.core.production.demo_job import teach_demo_job
+from vservo.core.production.part_view import ViewMotions, view_part
 from vservo.core.production.placement_check import diagonals_crossing
+from vservo.core.production.teaching_session import VIEW_SCALE
 
 TABLE_5_5 = Path(__file__).resolve().parents[2] / "static" / "truths" / "table-5-5.toml"
 
@@ -142,3 +145,28 @@ def test_centring_on_frames_that_lag_the_arm_refuses_and_says_so_with_the_arm_ba
         with pytest.raises(CentringError, match="frames lag the arm"):
             centre_cup(motions, config.nominal.eMv, config.nominal.eMc)
         np.testing.assert_allclose(controller.rig.robot.read_pose(), bMe_view, atol=1e-6)
+
+
+@pytest.mark.parametrize("late", [1, 2, 3, 5])
+def test_view_the_part_looks_again_at_a_frame_from_before_a_jog_and_brings_the_spot_onto_the_part(tmp_path, late):
+    """One frame late (a busy host's, docs/vision.md): the look after a jog (the first, the
+    second, the third, or after the first step) hands over the frame of the look before it.
+    Before, the jog then seemed not to move the part and its Jacobian was singular (a
+    LinAlgError from the page's View the part); now the aid looks again."""
+    config = parse_cell(*read_cell_data_with_truth(None, TABLE_5_5))
+    with simulated_controller(config, tmp_path / "data") as controller:
+        controller.begin_teach()
+        controller.present_part((-390.0, -40.0), 20.0)
+        looks = []
+
+        def once_late() -> ImageFeatures:
+            looks.append(controller.look(fresh=True)[1])
+            return looks[-2] if len(looks) == late + 1 else looks[-1]
+
+        k = config.nominal.camera.intrinsics
+        demo = controller.store.load_job("demo")
+        motions = ViewMotions(controller.move_to, controller.rig.robot.read_pose, once_late)
+        view_part(motions, VIEW_SCALE * pattern_scale(demo.desired.corners_px), np.array([k.u0, k.v0]))
+        features = controller.look(fresh=True)[1]
+        assert features.all_corners_visible and features.spot_seen
+        assert np.linalg.norm(diagonals_crossing(features.corners_px) - features.laser_spot_px) < 1.0

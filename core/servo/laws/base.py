@@ -91,6 +91,11 @@ class ControlLaw(Protocol):
     @property
     def name(self) -> str: ...
 
+    @property
+    def final_threshold_px(self) -> float:
+        """The feature error (px) at or below which it reports convergence."""
+        ...
+
     def step(self, features: ImageFeatures, desired: DesiredImage, stage: Stage | None) -> ControlOutput: ...
 
 
