@@ -54,11 +54,16 @@ def gauged_virtual_cell(*arguments: str) -> Iterator[tuple[VirtualCellProcess, G
 @contextmanager
 def operator_page_on(cell: VirtualCellProcess, data: Path, chromium, token: str) -> Iterator:
     """`vservo serve` on the cell file ``cell`` printed, one page (1600 x 1000) holding control;
-    serve must stop cleanly, with no traceback on its standard error."""
+    serve must stop cleanly, with no traceback on its standard error. The page's browser
+    context is closed after: left open, a page of a stopped server keeps reconnecting and
+    slows the pages the worker's later tests open in the same Chromium."""
     chromium_or_fail()
     with ServeProcess.start(data, token, cycle_period_s=0.0, cell=cell.addresses["cell_file"]) as serve:
         operator = open_pages(chromium, serve.url, [(1600, 1000)])[0]
-        take_control(operator, token)
-        yield operator
+        try:
+            take_control(operator, token)
+            yield operator
+        finally:
+            operator.context.close()
         assert serve.stop() == 0
         assert "Traceback" not in serve.stderr(), serve.stderr()[-3000:]
