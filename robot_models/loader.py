@@ -5,6 +5,12 @@ from example-robot-data, whose meshes resolve through ``package://example-robot-
 against the package's installed share directory. Any other arm is a URDF file with its
 flange frame named after a ``#``: ``/opt/cell/arm.urdf#tool0`` (its joint limits are the
 URDF's; meshes are looked for beside it).
+
+The model's root frame b is vservo's base frame. A robot controller may speak its poses
+in a frame of its own, u: a Universal Robots controller's ``Base`` is a half turn about z
+from the root ``base_link`` of ROS-Industrial's UR descriptions, which name that frame
+``base`` (CONTROLLER_BASE_FRAME). ``controller_base`` gives bMu, the identity for an arm
+without such a frame (the UPJ, whose JRC speaks in its root).
 """
 
 from __future__ import annotations
@@ -14,11 +20,14 @@ import importlib.metadata
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pinocchio as pin
 
 ARM_NAMES: tuple[str, ...] = ("upj", "ur5", "ur10")
 # example-robot-data's URDF of each UR arm; their flange is ROS-Industrial's tool0
 _UR_URDFS = {"ur5": "ur5_robot.urdf", "ur10": "ur10_robot.urdf"}
+# ROS-Industrial's name for the frame the arm's controller reports its poses in, fixed to the root
+CONTROLLER_BASE_FRAME = "base"
 
 
 @dataclass(frozen=True)
@@ -80,8 +89,8 @@ def load_arm(name: str) -> ArmDescription:
 
 
 @functools.cache
-def joint_limits(name: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    """The arm ``name``'s joint limits in rad, (lower, upper): its kinematic model only, no meshes."""
+def _kinematic_model(name: str) -> tuple[pin.Model, str]:
+    """The arm ``name``'s kinematic model (no meshes) and its flange frame."""
     _check_name(name)
     urdf, _, flange_frame = _urdf_and_package_dirs(name)
     if not urdf.is_file():
@@ -89,4 +98,24 @@ def joint_limits(name: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
     model = pin.buildModelFromUrdf(str(urdf))
     if not model.existFrame(flange_frame):
         raise ValueError(f"{urdf} has no frame {flange_frame!r} for the flange of arm {name!r}")
+    return model, flange_frame
+
+
+def joint_limits(name: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The arm ``name``'s joint limits in rad, (lower, upper)."""
+    model, _ = _kinematic_model(name)
     return tuple(model.lowerPositionLimit), tuple(model.upperPositionLimit)
+
+
+def controller_base(name: str) -> np.ndarray:
+    """bMu: the pose in the model's root frame b of the frame u the arm's controller reports
+    and takes its poses in, the URDF's CONTROLLER_BASE_FRAME (identity when it has none).
+    A UR5's zero joints put tool0 at (817.25, 191.45, -5.49) mm in b, and the controller
+    shows (-817.25, -191.45, -5.49) mm: uMe = inverse(bMu) @ bMe."""
+    model, _ = _kinematic_model(name)
+    if not model.existFrame(CONTROLLER_BASE_FRAME):
+        return np.eye(4)
+    frame = model.frames[model.getFrameId(CONTROLLER_BASE_FRAME)]
+    if frame.parentJoint != 0:
+        raise ValueError(f"arm {name!r}: its frame {CONTROLLER_BASE_FRAME!r} moves with joint {model.names[frame.parentJoint]!r}")
+    return np.array(frame.placement.homogeneous)

@@ -51,8 +51,9 @@ def _robot_and_gripper(config: CellConfig, fixture: FixtureClient | None) -> tup
         from vservo.core.robot.ur import UrBackend
         from vservo.core.robot.ur_script import DigitalOutputs
         from vservo.core.robot.ur_vacuum import UrVacuum
+        from vservo.robot_models.loader import controller_base
 
-        ur = UrBackend(config.ur)
+        ur = UrBackend(config.ur, controller_base(config.arm))
         if vacuum.device == "ur_io" and vacuum.suction_output is not None and vacuum.grip_input is not None:
             return ur, UrVacuum(ur, DigitalOutputs(vacuum.io), vacuum.suction_output, vacuum.grip_input)
         return ur, NoVacuum()

@@ -17,6 +17,11 @@ what a controller offers without a program of its own:
 - the dashboard server (``DashboardClient``, 29999): power, brakes, the stop (the host's
   hold and vservo's e-stop), unlocking a protective stop.
 
+The controller speaks its poses and twists in its own base frame u (``Base`` on the
+pendant); vservo's are in the arm model's root frame b, and the backend turns one into
+the other with bMu (robot_models.loader.controller_base: a half turn about z on a UR5 or
+UR10 from example-robot-data, whose root is ROS's ``base_link``).
+
 A protective or safeguard stop reads as held, an emergency stop, a violation or a fault as
 an alarm; the host's own hold (a dashboard "stop") as held until released.
 """
@@ -88,7 +93,7 @@ class UrState:
 
     received_s: float
     timestamp_s: float
-    tcp_pose: Sequence[float]  # [x, y, z, rx, ry, rz] as RTDE sends it: made a matrix when read (bMe)
+    tcp_pose: Sequence[float]  # [x, y, z, rx, ry, rz] as RTDE sends it: made a matrix when read (uMe)
     tcp_speed: Matrix
     robot_mode: int
     safety_mode: int
@@ -98,8 +103,8 @@ class UrState:
     done_register: int
 
     @cached_property
-    def bMe(self) -> Matrix:
-        """The TCP pose; computed once, and only for the packages read: the reader keeps
+    def uMe(self) -> Matrix:
+        """The TCP pose in the controller's base frame u; computed once, and only for the packages read: the reader keeps
         every package the controller sends (125 or 500 a second), the loop reads a few."""
         return ur_script.pose_from_ur(self.tcp_pose)
 
@@ -107,15 +112,18 @@ class UrState:
 class UrBackend:
     """The controller of [ur]; ``connect`` opens its three ports. Thread-safe: programs go
     out one at a time, and a hold from another thread (e-stop, watchdog) goes straight to
-    the dashboard."""
+    the dashboard. ``bMu``: the controller's base frame u in vservo's base frame b, the
+    arm model's root (robot_models.loader.controller_base of the cell's arm)."""
 
     name = "ur"
     # movel keeps the TCP on the straight line however long the move: the safety layer
     # checks a taught move's steps and sends it whole (SafetyLayer.move_linear)
     linear_segments = True
 
-    def __init__(self, config: UrConfig) -> None:
+    def __init__(self, config: UrConfig, bMu: Matrix) -> None:
         self.config = config
+        self.bMu = np.array(bMu, dtype=float)
+        self.uMb = inverse(self.bMu)
         self.acceleration_m_s2 = config.acceleration_m_s2
         # ur-rtde's clients (its modules come without type information)
         self._receive: Any = None
@@ -261,7 +269,7 @@ class UrBackend:
         )
 
     def read_pose(self) -> Matrix:
-        return self._state().bMe.copy()
+        return self.bMu @ self._state().uMe
 
     def pose_at(self, t_s: float) -> Matrix:
         """The TCP pose at host time t_s, between the two RTDE packages around it (the
@@ -276,8 +284,8 @@ class UrBackend:
         if before is None or after is None:
             return self.read_pose()
         if before is after:  # t_s before the oldest package kept, or after the newest
-            return before.bMe.copy()
-        return interpolate(before.bMe, after.bMe, (t_s - before.received_s) / (after.received_s - before.received_s))
+            return self.bMu @ before.uMe
+        return self.bMu @ interpolate(before.uMe, after.uMe, (t_s - before.received_s) / (after.received_s - before.received_s))
 
     def servo(self, on: bool) -> None:
         if not on:
@@ -310,7 +318,7 @@ class UrBackend:
 
     def move_to(self, bMe_target: Matrix, speed_m_s: float) -> None:
         self._refuse_unless_ready()
-        self._last = self._send([ur_script.movel(bMe_target, self.acceleration_m_s2, speed_m_s)])
+        self._last = self._send([ur_script.movel(self.uMb @ bMe_target, self.acceleration_m_s2, speed_m_s)])
 
     def move_by(self, bMe_increment: Matrix, speed_m_s: float) -> None:
         self.move_to(apply_increment(self.read_pose(), bMe_increment), speed_m_s)
@@ -320,11 +328,12 @@ class UrBackend:
         from pinocchio import SE3, log6
 
         self._refuse_unless_ready()
-        bMe = self.read_pose()
-        eVe = log6(SE3(inverse(bMe) @ np.asarray(bMe_target, dtype=float))).vector / duration_s
-        bVe = self._in_base(bMe, eVe)
+        uMe = self._state().uMe
+        eVe = log6(SE3(inverse(self.bMu @ uMe) @ np.asarray(bMe_target, dtype=float))).vector / duration_s
         acceleration = self.acceleration_m_s2
-        self._last = self._send([ur_script.speedl(bVe, acceleration, duration_s), ur_script.stopl(acceleration)])
+        self._last = self._send(
+            [ur_script.speedl(self._in_base(uMe, eVe), acceleration, duration_s), ur_script.stopl(acceleration)]
+        )
 
     def stream_twist(self, eVe: Matrix, hold_s: float) -> None:
         """Move the flange at the body twist eVe (v, w in E) from now on, without waiting:
@@ -332,7 +341,7 @@ class UrBackend:
         state = self._state()
         if self._host_held or state.safety_mode not in NORMAL_SAFETY_MODES or state.robot_mode != ROBOT_MODE_RUNNING:
             self._refuse_unless_ready()
-        self._last = self._send([ur_script.speedl(self._in_base(state.bMe, eVe), self.acceleration_m_s2, hold_s)])
+        self._last = self._send([ur_script.speedl(self._in_base(state.uMe, eVe), self.acceleration_m_s2, hold_s)])
 
     def stop_motion(self) -> None:
         """Decelerate to a standstill (stopl) and wait for it."""
@@ -340,9 +349,10 @@ class UrBackend:
         self.wait_motion(timeout_s=5.0)
 
     @staticmethod
-    def _in_base(bMe: Matrix, eVe: Matrix) -> list[float]:
-        """The flange's body twist as speedl takes it: v and w in the base frame (the TCP's origin moving)."""
-        R = np.asarray(bMe, dtype=float)[:3, :3]
+    def _in_base(uMe: Matrix, eVe: Matrix) -> list[float]:
+        """The flange's body twist as speedl takes it: v and w in the controller's base frame u
+        (the TCP's origin moving), the TCP at uMe."""
+        R = np.asarray(uMe, dtype=float)[:3, :3]
         eVe = np.asarray(eVe, dtype=float)
         return [*(R @ eVe[:3]), *(R @ eVe[3:])]
 

@@ -14,8 +14,9 @@ sends a small set of statements (the URScript manual's names and arguments):
   program's last statement writes its sequence number there, the sign that it ran to its end.
 
 A pose ``p[x, y, z, rx, ry, rz]`` is in metres, its rotation a rotation vector (axis times
-angle, rad) in the robot's base frame; vservo's flange pose bMe is the controller's TCP
-pose with a zero TCP offset (set it so on the pendant).
+angle, rad) in the controller's base frame u (``Base`` on the pendant); with a zero TCP
+offset (set it so on the pendant) the controller's TCP is vservo's flange E, its pose uMe.
+The backend (core/robot/ur.py) turns vservo's base-frame poses bMe into uMe and back.
 """
 
 from __future__ import annotations
@@ -45,10 +46,10 @@ INPUT_BIT_OFFSET = {DigitalOutputs.STANDARD: 0, DigitalOutputs.TOOL: 16}
 OUTPUT_BIT_OFFSET = {DigitalOutputs.STANDARD: 0, DigitalOutputs.TOOL: 16}
 
 
-def ur_pose(bMe: Matrix) -> list[float]:
+def ur_pose(uMe: Matrix) -> list[float]:
     """[x, y, z, rx, ry, rz] of a pose: metres and a rotation vector (rad)."""
-    bMe = np.asarray(bMe, dtype=float)
-    return [*map(float, bMe[:3, 3]), *map(float, theta_u(bMe[:3, :3]))]
+    uMe = np.asarray(uMe, dtype=float)
+    return [*map(float, uMe[:3, 3]), *map(float, theta_u(uMe[:3, :3]))]
 
 
 def pose_from_ur(values: Sequence[float]) -> Matrix:
@@ -63,13 +64,13 @@ def _numbers(values: Sequence[float]) -> str:
     return ", ".join(f"{float(v):.7g}" for v in values)
 
 
-def movel(bMe: Matrix, acceleration_m_s2: float, speed_m_s: float) -> str:
-    return f"movel(p[{_numbers(ur_pose(bMe))}], a={acceleration_m_s2:.6g}, v={speed_m_s:.6g})"
+def movel(uMe: Matrix, acceleration_m_s2: float, speed_m_s: float) -> str:
+    return f"movel(p[{_numbers(ur_pose(uMe))}], a={acceleration_m_s2:.6g}, v={speed_m_s:.6g})"
 
 
-def speedl(bVe: Sequence[float], acceleration_m_s2: float, hold_s: float) -> str:
-    """The TCP at the twist bVe (v, w in the base frame) for at most hold_s."""
-    return f"speedl([{_numbers(bVe)}], {acceleration_m_s2:.6g}, {hold_s:.6g})"
+def speedl(uVe: Sequence[float], acceleration_m_s2: float, hold_s: float) -> str:
+    """The TCP at the twist uVe (v, w in the controller's base frame) for at most hold_s."""
+    return f"speedl([{_numbers(uVe)}], {acceleration_m_s2:.6g}, {hold_s:.6g})"
 
 
 def stopl(acceleration_m_s2: float) -> str:

@@ -13,6 +13,10 @@ hold, vservo's e-stop) aborts the program and stops the arm at the next control 
 
 Its log (``log``) keeps every program it received and every stop, on the controller's
 clock: the figures of a run (commands per second, how long a stop took) are read there.
+
+It speaks its poses and twists in its own base frame u, as a real controller does (a
+UR's ``Base``, a half turn about z from the URDF root ``base_link`` that the plant's arm
+model is in: robot_models.loader.controller_base).
 """
 
 from __future__ import annotations
@@ -30,9 +34,10 @@ import numpy as np
 from vservo.core.cell.config import VacuumDeviceConfig
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
 from vservo.core.errors import VservoError
-from vservo.core.geometry.spatial import Matrix, exp_twist, interpolate, pose_error, theta_u
+from vservo.core.geometry.spatial import Matrix, exp_twist, interpolate, inverse, pose_error, theta_u
 from vservo.core.robot.ur_script import BANK_SIZE, INPUT_BIT_OFFSET, OUTPUT_BIT_OFFSET, DigitalOutputs, pose_from_ur
 from vservo.core.sim.plant import SimulatedCell
+from vservo.robot_models.loader import controller_base
 
 log = logging.getLogger("vservo.ur_controller")
 
@@ -174,7 +179,9 @@ class UrController:
         self.vacuum = vacuum if vacuum is not None and vacuum.device == "ur_io" else None
         self.state = ControllerState()
         self.program: list[Statement] = []
-        self.twist_b = np.zeros(6)  # the twist a speedl or stopl drives the TCP at (v, w in the base frame)
+        self.bMu = controller_base(cell.jrc_arm.name)  # its base frame u in the arm model's root b
+        self.uMb = inverse(self.bMu)
+        self.twist_u = np.zeros(6)  # the twist a speedl or stopl drives the TCP at (v, w in u)
         self.tcp_speed = np.zeros(6)  # the TCP's velocity over the last period, whatever moved it (RTDE's)
         self.time_s = 0.0  # the controller's clock
         self.log: list[LogEntry] = []
@@ -196,8 +203,8 @@ class UrController:
         return self.cell.state.q
 
     def tcp_pose(self) -> Matrix:
-        """The TCP (flange) pose the controller computes from its joints, with its model."""
-        return self.arm.fk(self.cell.state.q)
+        """uMe: the TCP (flange) pose the controller computes from its joints, with its model."""
+        return self.uMb @ self.arm.fk(self.cell.state.q)
 
     @property
     def running(self) -> bool:
@@ -206,7 +213,7 @@ class UrController:
     @property
     def motion(self) -> object | None:
         """Something while the arm moves (a program runs or the arm still has speed), else None."""
-        return True if self.program or np.any(self.twist_b != 0.0) or np.any(self.tcp_speed != 0.0) else None
+        return True if self.program or np.any(self.twist_u != 0.0) or np.any(self.tcp_speed != 0.0) else None
 
     def advance(self) -> None:
         """The plant is brought up to date by the ticks themselves."""
@@ -244,7 +251,7 @@ class UrController:
 
     def _halt(self, kind: str) -> None:
         """The arm stops where it is: no period after this one moves it."""
-        self.twist_b = np.zeros(6)
+        self.twist_u = np.zeros(6)
         self.log.append(LogEntry(self.time_s, kind, ""))
 
     def power(self, on: bool) -> None:
@@ -300,21 +307,21 @@ class UrController:
     def tick(self) -> None:
         """One control period: the program's statement runs on, the arm moves."""
         dt = self.period_s
-        bMe_before = self.tcp_pose()
+        uMe_before = self.tcp_pose()
         while self.program:
             statement = self.program[0]
             if not self._step(statement, dt):
                 break  # the statement goes on next period
             self.program.pop(0)
-        if not self.program and np.any(self.twist_b != 0.0):
+        if not self.program and np.any(self.twist_u != 0.0):
             # The program has ended (a speedl's time ran out) with the arm still moving: it stops.
             self._decelerate(self.limits.max_acceleration_m_s2, dt)
         self.time_s += dt
         if self._moved_this_tick:
             self.last_moved_s = self.time_s
-            bMe = self.tcp_pose()
-            turn = theta_u(bMe[:3, :3] @ bMe_before[:3, :3].T)
-            self.tcp_speed = np.r_[bMe[:3, 3] - bMe_before[:3, 3], turn] / dt
+            uMe = self.tcp_pose()
+            turn = theta_u(uMe[:3, :3] @ uMe_before[:3, :3].T)
+            self.tcp_speed = np.r_[uMe[:3, 3] - uMe_before[:3, 3], turn] / dt
         else:
             self.cell.pass_time(dt)
             self.tcp_speed = np.zeros(6)
@@ -332,7 +339,7 @@ class UrController:
             return statement.elapsed_s >= hold_s
         if kind == "stopl":
             self._decelerate(values[0], dt)
-            return not np.any(self.twist_b != 0.0)
+            return not np.any(self.twist_u != 0.0)
         if kind == "digital_out":
             self._set_output(
                 DigitalOutputs.STANDARD if values[0] == 0.0 else DigitalOutputs.TOOL, int(values[1]), bool(values[2])
@@ -366,14 +373,14 @@ class UrController:
 
     def _accelerate_to(self, twist: Matrix, acceleration: float, dt: float) -> None:
         twist = self._within_speed_limits(twist)
-        change = twist - self.twist_b
+        change = twist - self.twist_u
         # The angular part ramps as the linear one does, scaled by the ratio of the limits.
         reach = (
             np.array([acceleration] * 3 + [acceleration * self.limits.max_rotation_rad_s / self.limits.max_speed_m_s] * 3) * dt
         )
         linear, angular = np.linalg.norm(change[:3]), np.linalg.norm(change[3:])
         scale = min(1.0, reach[0] / linear if linear > 0 else 1.0, reach[3] / angular if angular > 0 else 1.0)
-        self._move_by_twist(self.twist_b + scale * change, dt)
+        self._move_by_twist(self.twist_u + scale * change, dt)
 
     def _decelerate(self, acceleration: float, dt: float) -> None:
         self._accelerate_to(np.zeros(6), acceleration, dt)
@@ -385,20 +392,21 @@ class UrController:
         scale = min(scale, self.limits.max_rotation_rad_s / rotation if rotation > 0 else 1.0)
         return twist * scale
 
-    def _move_by_twist(self, twist_b: Matrix, dt: float) -> None:
+    def _move_by_twist(self, twist_u: Matrix, dt: float) -> None:
         """Hold the base-frame twist for dt: p += v dt, R = exp(w dt) R, through the model's IK."""
-        self.twist_b = twist_b
-        if not np.any(twist_b != 0.0):
+        self.twist_u = twist_u
+        if not np.any(twist_u != 0.0):
             return
-        bMe = self.tcp_pose()
-        target = bMe.copy()
-        target[:3, 3] += twist_b[:3] * dt
-        target[:3, :3] = exp_twist(np.r_[0.0, 0.0, 0.0, twist_b[3:] * dt])[:3, :3] @ bMe[:3, :3]
+        uMe = self.tcp_pose()
+        target = uMe.copy()
+        target[:3, 3] += twist_u[:3] * dt
+        target[:3, :3] = exp_twist(np.r_[0.0, 0.0, 0.0, twist_u[3:] * dt])[:3, :3] @ uMe[:3, :3]
         self._move_to(target, dt, settle=False)
 
-    def _move_to(self, target: Matrix, dt: float, settle: bool) -> bool:
+    def _move_to(self, uMe_target: Matrix, dt: float, settle: bool) -> bool:
+        """The TCP to uMe_target (in the controller's base frame) this period, through the model's IK."""
         try:
-            q = self.arm.ik(target, self.q, tolerance_m=IK_TOLERANCE, tolerance_rad=IK_TOLERANCE, restarts=0).q
+            q = self.arm.ik(self.bMu @ uMe_target, self.q, tolerance_m=IK_TOLERANCE, tolerance_rad=IK_TOLERANCE, restarts=0).q
         except UnreachableTarget as exc:
             self._protective_stop(f"the TCP cannot go on: {exc}")
             return False

@@ -31,8 +31,10 @@ from vservo.core.production.protocol.client import ControllerClient
 from vservo.core.production.protocol.commands import Start
 from vservo.core.production.protocol.state import Outcome, RunOutcome
 from vservo.core.production.storage import Store
+from vservo.core.robot import ur_script
 from vservo.core.robot.backend import RobotNotReady
 from vservo.core.robot.ur import UrBackend
+from vservo.robot_models.loader import controller_base
 
 TIME_SCALE = "0.2"
 
@@ -59,7 +61,7 @@ def twists(log: dict) -> list[float]:
 def test_the_ur_backend_moves_reads_back_and_refuses_to_move_while_held(ur_cell):
     config = load_cell(ur_cell.addresses["cell_file"])
     assert config.robot_backend == "ur" and config.vacuum_device.device == "ur_io" and config.motion.mode == "streaming"
-    ur = UrBackend(config.ur)
+    ur = UrBackend(config.ur, controller_base(config.arm))
     ur.connect()
     try:
         ur.servo(True)
@@ -81,6 +83,45 @@ def test_the_ur_backend_moves_reads_back_and_refuses_to_move_while_held(ur_cell)
         assert ur.wait_motion(timeout_s=20.0)
     finally:
         ur.close()
+
+
+def test_on_a_ur5_the_backend_speaks_the_urdfs_frame_and_the_controller_its_own_base():
+    """A real UR5 reports its TCP in its Base, a half turn about z from example-robot-data's
+    root base_link, vservo's base frame: RTDE's pose (read here with ur-rtde's own client)
+    has x and y of the opposite sign of the backend's, and a move along +x of vservo's
+    base frame moves RTDE's x the other way."""
+    import rtde_receive
+
+    cell = VirtualCellProcess("--seed", "3", "--robot-link", "ur", "--time-scale", TIME_SCALE, "--cell", "static/cell-ur5.toml")
+    try:
+        config = load_cell(cell.addresses["cell_file"])
+        assert config.arm == "ur5"
+        ur = UrBackend(config.ur, controller_base(config.arm))
+        ur.connect()
+        rtde = rtde_receive.RTDEReceiveInterface(config.ur.host, -1.0, ["timestamp", "actual_TCP_pose"])
+        try:
+            ur.servo(True)
+            half_turn = np.diag([-1.0, -1.0, 1.0])
+
+            def agree() -> None:
+                bMe, uMe = ur.read_pose(), ur_script.pose_from_ur(rtde.getActualTCPPose())
+                assert np.allclose(uMe[:3, 3], half_turn @ bMe[:3, 3], atol=1e-6)
+                assert np.allclose(uMe[:3, :3], half_turn @ bMe[:3, :3], atol=1e-6)
+
+            agree()
+            x_before = rtde.getActualTCPPose()[0]
+            target = ur.read_pose()
+            target[:3, 3] += [0.01, 0.0, 0.0]
+            ur.move_to(target, 0.1)
+            assert ur.wait_motion(timeout_s=20.0)
+            assert pose_error(ur.read_pose(), target)[0] < 1e-5
+            assert rtde.getActualTCPPose()[0] == pytest.approx(x_before - 0.01, abs=1e-5)
+            agree()
+        finally:
+            rtde.disconnect()
+            ur.close()
+    finally:
+        assert cell.stop() == 0
 
 
 @pytest.fixture

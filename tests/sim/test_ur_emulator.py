@@ -3,7 +3,7 @@
 dashboard server's text lines, and the URScript programs of the script port moving the plant.
 
 ur-rtde's own clients are driven against the emulator in a separate process
-(tests/robot/test_ur_backend.py): its RTDE constructor holds Python's lock while it waits
+(tests/production/test_ur_cell.py): its RTDE constructor holds Python's lock while it waits
 for the controller's answers, so an emulator in the same process could never answer it.
 """
 
@@ -11,6 +11,7 @@ import re
 import socket
 import struct
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +22,9 @@ from vservo.core.robot import ur_script
 from vservo.core.sim.plant import SimulatedCell
 from vservo.core.sim.ur_controller import SafetyMode, ScriptError, UrController, UrLimits, parse_program
 from vservo.core.sim.ur_emulator import DASHBOARD_PORT, RTDE_PORT, SECONDARY_PORT, UrEmulator
+from vservo.robot_models.loader import controller_base
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture
@@ -152,7 +156,7 @@ def test_a_dashboard_stop_halts_the_arm_at_the_next_control_period(emulator):
     dashboard(emulator, "power on", "brake release")
     controller = emulator.controller
     send_program(emulator, ur_script.program("p", [ur_script.speedl([0.1, 0, 0, 0, 0, 0], 1.2, 5.0)], 1))
-    wait_for(lambda: np.linalg.norm(controller.twist_b[:3]) > 0.09)
+    wait_for(lambda: np.linalg.norm(controller.twist_u[:3]) > 0.09)
     assert dashboard(emulator, "stop") == ["Stopped"]
     with emulator.lock:
         (stop,) = [entry for entry in controller.log if entry.kind == "stop"]
@@ -210,4 +214,29 @@ def test_the_controllers_speed_limit_caps_a_streamed_twist():
     for _ in range(5):
         controller.tick()
     assert controller.state.safety_mode is SafetyMode.NORMAL
-    assert np.linalg.norm(controller.twist_b[:3]) == pytest.approx(0.05)
+    assert np.linalg.norm(controller.twist_u[:3]) == pytest.approx(0.05)
+
+
+def test_a_ur5_speaks_in_its_controllers_base_frame_half_a_turn_from_the_urdfs_root():
+    """At zero joints a real UR5 shows its TCP at (-817.25, -191.45, -5.49) mm in its Base
+    (a2 + a3, -(d4 + d6), d1 - d5 of Universal Robots' DH table); example-robot-data's model
+    puts it at (817.25, 191.45, -5.49) mm in its root base_link."""
+    config = load_cell(ROOT / "static" / "cell-ur5.toml")
+    cell = SimulatedCell(config, 1)
+    controller = UrController(cell)
+    cell.move_joints(np.zeros(6), 0.0)
+    uMe = controller.tcp_pose()
+    assert np.allclose(uMe[:3, 3], [-0.81725, -0.19145, -0.00549], atol=1e-5)
+    assert np.allclose(cell.jrc_arm.fk(cell.state.q)[:3, 3], [0.81725, 0.19145, -0.00549], atol=1e-5)
+    # from the cell's home (the zero joints are singular), a movel to a pose in Base: the arm
+    # model's flange ends at that pose carried into base_link
+    cell.move_joints(config.home_q, 0.0)
+    target = controller.tcp_pose()
+    target[:3, 3] += [0.03, -0.02, 0.04]
+    controller.power(True)
+    controller.run_program(ur_script.program("p", [ur_script.movel(target, 1.2, 0.25)], 1))
+    while controller.running:
+        controller.tick()
+    assert controller.state.safety_mode is SafetyMode.NORMAL
+    translation, rotation = pose_error(cell.jrc_arm.fk(cell.state.q), controller_base("ur5") @ target)
+    assert translation < 1e-6 and rotation < 1e-6
