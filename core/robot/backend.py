@@ -129,6 +129,37 @@ class StreamingBackend(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class JointLine:
+    """A joint-space line the safety layer has checked whole (SafetyLayer.joint_path): the
+    joints at its ends (rad, the arm model's joints; ``q_from`` where the controller reported
+    its joints) and the flange's path along it, for the controller's timing: its length and
+    the peak over the line of |dp/ds|, the flange's speed per unit of the line's parameter s
+    in [0, 1] (m), both over the checked samples."""
+
+    q_from: Matrix
+    q_to: Matrix
+    tcp_length_m: float
+    tcp_peak_m: float
+
+
+@runtime_checkable
+class JointMotionBackend(Protocol):
+    """A robot that runs a checked joint-space line to joint targets as one motion (a UR's
+    movej), where the others (the JRC, the kinematic simulator) follow it as short linear
+    moves, each sent and waited for."""
+
+    def read_joints(self) -> Matrix:
+        """The joints as the controller reports them (rad, the arm model's joints)."""
+        ...
+
+    def move_joints(self, line: JointLine, speed_m_s: float) -> None:
+        """Start the move of every joint on the straight line from where they stand to
+        line.q_to, timed so that the flange's speed along it stays within speed_m_s;
+        ``wait_motion`` waits for its end."""
+        ...
+
+
 class MotionStopped(RobotError):
     """A motion ended before its target: held, in alarm or without servo power."""
 
@@ -187,6 +218,8 @@ def apply_increment(bMe: Matrix, bMe_increment: Matrix) -> Matrix:
 
 
 __all__ = [
+    "JointLine",
+    "JointMotionBackend",
     "MotionStopped",
     "RobotBackend",
     "RobotError",

@@ -31,6 +31,8 @@ from vservo.core.cell.config import CellConfig, SafetyConfig
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
 from vservo.core.geometry.spatial import Matrix, exp_twist, interpolate, pose_error, theta_u, transform
 from vservo.core.robot.backend import (
+    JointLine,
+    JointMotionBackend,
     RobotBackend,
     RobotError,
     RobotStatus,
@@ -55,6 +57,10 @@ JOINT_SAMPLE_RAD = np.deg2rad(0.5)
 # toss-up, which the controller and the arm's model may call differently (a turn of joint 6
 # apart afterwards); a taught move that turns more goes out as a few moves within this.
 LINEAR_TURN_RAD = np.deg2rad(160.0)
+# A joint-space line sent as one motion starts at the joints the controller reports: the
+# model's joints for its pose must be these (a turn or another branch apart, the line run
+# would not be the line checked); a degree allows the controller's own calibrated model.
+JOINTS_AGREE_RAD = np.deg2rad(1.0)
 # Within this of a half turn either way round is as short: the one that leaves the
 # multi-turn joints nearer their ranges' middles (ArmKinematics.unwound) is taken.
 HALF_TURN_TOSS_RAD = np.deg2rad(10.0)
@@ -362,11 +368,33 @@ class SafetyLayer:
             wait_for_the_end(self)
 
     def move_joint(self, bMe_target: Matrix, speed_m_s: float, unwind: bool = False) -> None:
-        """A long move on the joint-space line (joint_path), checked whole first and sent
-        as steps, each a short linear move: the way a transfer between two far poses
-        keeps to the arm's workspace where the straight line between them leaves it.
-        ``unwind``: end with the multi-turn joints nearest their ranges' middles."""
-        self._follow(self.joint_path(self._current_pose(), bMe_target, speed_m_s, unwind=unwind), speed_m_s)
+        """A long move on the joint-space line (joint_path), checked whole first (a refusal,
+        SafetyRefusal, moves nothing): the way a transfer between two far poses keeps to the
+        arm's workspace where the straight line between them leaves it. A robot that runs a
+        joint-space line as one motion (JointMotionBackend, a UR's movej) is sent its end
+        joints once, the line starting at the joints it reports; any other follows the
+        line's steps, each a short linear move. Either is waited for (MotionStopped if the
+        robot stops short). ``unwind``: end with the multi-turn joints nearest their ranges'
+        middles."""
+        bMe_from = self._current_pose()
+        if not isinstance(self.robot, JointMotionBackend):
+            self._follow(self.joint_path(bMe_from, bMe_target, speed_m_s, unwind=unwind), speed_m_s)
+            return
+        q_now = np.asarray(self._link(self.robot.read_joints), dtype=float)
+        _, line = self._joint_line(bMe_from, bMe_target, speed_m_s, q_now, unwind)
+        apart = np.abs(line.q_from - q_now)
+        if apart.max() > JOINTS_AGREE_RAD:  # the line checked would not be the one the controller runs
+            worst = int(np.argmax(apart))
+            raise BeyondJointLimits(
+                f"move refused: the controller reports joint {self.arm.joint_names[worst]} at "
+                f"{np.degrees(q_now[worst]):.2f} deg, {np.degrees(apart[worst]):.2f} deg from the arm model's "
+                f"{np.degrees(line.q_from[worst]):.2f} deg for its pose (at most {np.degrees(JOINTS_AGREE_RAD):g} deg)"
+            )
+        self._refuse_if_stopped("move")  # a stop latched while the path was checked
+        self._q_seed = line.q_to
+        self._sending(np.asarray(bMe_target, dtype=float))
+        self._link(self.robot.move_joints, line, speed_m_s)
+        wait_for_the_end(self)
 
     def wound(self, bMe_target: Matrix) -> bool:
         """Whether the joints a move to bMe_target reaches by continuity (model_joints)
@@ -446,6 +474,16 @@ class SafetyLayer:
         moved by whole turns nearest their ranges' middles (ArmKinematics.unwound), the steps
         small enough that a controller following its joints by continuity turns them back.
         """
+        steps, _ = self._joint_line(bMe_from, bMe_target, speed_m_s, q_seed, unwind)
+        return steps
+
+    def _joint_line(
+        self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float, q_seed: Matrix | None, unwind: bool
+    ) -> tuple[list[Matrix], JointLine]:
+        """joint_path's steps, and the line they lie on: its end joints and the flange's
+        path along it at the samples (its length, and the peak of |dp/ds| from each chord
+        of JOINT_SAMPLE_RAD of the leading joint, within a fraction of a per cent of the
+        derivative's peak on an arm's smooth kinematics)."""
         bMe_target = np.asarray(bMe_target, dtype=float)
         self._check_in_workspace(bMe_target)  # before any IK: a far target costs nothing
         try:
@@ -470,7 +508,10 @@ class SafetyLayer:
             bMe_last = poses[k]
         for bMe_before, bMe_step, q in steps:
             self.check_target(bMe_step, speed_m_s, bMe_before, q)
-        return [bMe_step for _, bMe_step, _ in steps]
+        points = np.array([np.asarray(bMe_from, dtype=float)[:3, 3], *(bMe[:3, 3] for bMe in poses)])
+        chords = np.linalg.norm(np.diff(points, axis=0), axis=1)
+        line = JointLine(q_from, q_to, float(chords.sum()), float(chords.max(initial=0.0) * samples))
+        return [bMe_step for _, bMe_step, _ in steps], line
 
     def _follow(self, waypoints: list[Matrix], speed_m_s: float) -> None:
         for bMe_waypoint in waypoints:

@@ -41,12 +41,13 @@ import numpy as np
 
 from vservo.core.cell.config import UrConfig
 from vservo.core.geometry.spatial import Matrix, interpolate, inverse
-from vservo.core.robot import ur_script
-from vservo.core.robot.backend import RobotError, RobotNotReady, RobotStatus, apply_increment
+from vservo.core.robot import trapezoid, ur_script
+from vservo.core.robot.backend import JointLine, RobotError, RobotNotReady, RobotStatus, apply_increment
 from vservo.core.robot.ur_script import DONE_REGISTER, DigitalOutputs
 
 RTDE_VARIABLES = [
     "timestamp",
+    "actual_q",
     "actual_TCP_pose",
     "actual_TCP_speed",
     "robot_mode",
@@ -79,6 +80,10 @@ NORMAL_SAFETY_MODES = frozenset({1, 2})
 HISTORY_S = 2.0
 # How often the reader looks for a new RTDE package: a quarter of a CB3's period (8 ms).
 POLL_S = 0.002
+# The fastest a movej turns its leading joint: a UR5's datasheet, all joints 180 deg/s (the
+# controller slows a faster one to its own limits; this bounds a turn the flange's speed
+# does not, a wrist turning in place).
+JOINT_SPEED_RAD_S = np.pi
 # Below this TCP speed the arm stands still (m/s, rad/s).
 STANDING_SPEED = 1e-6
 
@@ -93,6 +98,7 @@ class UrState:
 
     received_s: float
     timestamp_s: float
+    q: Sequence[float]  # the joints (rad), as RTDE sends them
     tcp_pose: Sequence[float]  # [x, y, z, rx, ry, rz] as RTDE sends it: made a matrix when read (uMe)
     tcp_speed: Matrix
     robot_mode: int
@@ -200,6 +206,7 @@ class UrBackend:
             state = UrState(
                 received_s=time.monotonic(),
                 timestamp_s=timestamp,
+                q=receive.getActualQ(),
                 tcp_pose=receive.getActualTCPPose(),
                 tcp_speed=np.asarray(receive.getActualTCPSpeed(), dtype=float),
                 robot_mode=receive.getRobotMode(),
@@ -319,6 +326,34 @@ class UrBackend:
     def move_to(self, bMe_target: Matrix, speed_m_s: float) -> None:
         self._refuse_unless_ready()
         self._last = self._send([ur_script.movel(self.uMb @ bMe_target, self.acceleration_m_s2, speed_m_s)])
+
+    def read_joints(self) -> Matrix:
+        """The joints RTDE reports (actual_q, rad): the arm model's joints, example-robot-data's
+        UR joint zeros being the real arm's (and the UPJ's, the model's, when a UR plays it)."""
+        return np.array(self._state().q, dtype=float)
+
+    def move_joints(self, line: JointLine, speed_m_s: float) -> None:
+        """One movej to line.q_to, timed so that the flange keeps within speed_m_s along the line.
+
+        On the line q(s) = q_from + s (q_to - q_from) the flange moves at |dp/ds| ds/dt, at
+        most D ds/dt (D = line.tcp_peak_m, the peak of |dp/ds| over the checked samples,
+        at least the path's length line.tcp_length_m). With ds/dt within speed / D and
+        d2s/dt2 within acceleration / D (the [ur] acceleration) the flange's speed stays
+        within speed_m_s and its acceleration along the path within the movel's: s then runs
+        the trapezoid of a movel D long at the move's speed and acceleration, as long as
+        that movel takes. The leading joint (L = max |q_to - q_from|) runs it at
+        v = speed L / D and a = acceleration L / D, v at most JOINT_SPEED_RAD_S (a with it,
+        the ramps as long as the flange's), and t is that trapezoid's own time: sent with
+        a and v, the controller runs the same move whichever it takes first.
+        """
+        self._refuse_unless_ready()
+        q_to = np.asarray(line.q_to, dtype=float)
+        turn = float(np.max(np.abs(q_to - np.asarray(line.q_from, dtype=float))))
+        speed = JOINT_SPEED_RAD_S if line.tcp_peak_m <= 0.0 else min(speed_m_s * turn / line.tcp_peak_m, JOINT_SPEED_RAD_S)
+        speed = max(speed, np.finfo(float).tiny)  # no turn: a move of no length, at any speed
+        acceleration = speed * self.acceleration_m_s2 / speed_m_s
+        duration_s = trapezoid.duration(turn, speed, acceleration)
+        self._last = self._send([ur_script.movej(q_to.tolist(), acceleration, speed, duration_s)])
 
     def move_by(self, bMe_increment: Matrix, speed_m_s: float) -> None:
         self.move_to(apply_increment(self.read_pose(), bMe_increment), speed_m_s)

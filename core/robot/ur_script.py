@@ -5,6 +5,10 @@ secondary interface (TCP port 30002), and a new program replaces the one running
 sends a small set of statements (the URScript manual's names and arguments):
 
 - ``movel(p[x, y, z, rx, ry, rz], a=..., v=...)``: a linear move of the TCP to a pose;
+- ``movej([q1, ..., q6], a=..., v=..., t=...)``: every joint on the straight line in joint
+  space to the joints q (rad), on a trapezoid of the leading joint's acceleration a
+  (rad/s^2) and speed v (rad/s), or lasting t seconds when t is not 0 (the time comes
+  first: "the time setting has priority over speed and acceleration");
 - ``speedl([vx, vy, vz, wx, wy, wz], a, t)``: the TCP at a twist in the base frame,
   reached at acceleration a, for at most t seconds, after which the controller stops the
   arm (a twist streamed every frame that stops coming stops the arm by itself);
@@ -66,6 +70,13 @@ def _numbers(values: Sequence[float]) -> str:
 
 def movel(uMe: Matrix, acceleration_m_s2: float, speed_m_s: float) -> str:
     return f"movel(p[{_numbers(ur_pose(uMe))}], a={acceleration_m_s2:.6g}, v={speed_m_s:.6g})"
+
+
+def movej(q: Sequence[float], acceleration_rad_s2: float, speed_rad_s: float, duration_s: float) -> str:
+    """Every joint on the straight line in joint space to q (rad, the controller's joints),
+    the leading joint at acceleration_rad_s2 and speed_rad_s, the move lasting duration_s
+    (0: as long as that trapezoid takes)."""
+    return f"movej([{_numbers(q)}], a={acceleration_rad_s2:.6g}, v={speed_rad_s:.6g}, t={duration_s:.6g})"
 
 
 def speedl(uVe: Sequence[float], acceleration_m_s2: float, hold_s: float) -> str:

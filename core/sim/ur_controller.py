@@ -3,7 +3,8 @@
 It runs the URScript subset vservo sends (core/robot/ur_script.py) one control period at a
 time (125 Hz, a CB3's rate; 500 Hz an e-Series'), moving the plant's joints with its
 NOMINAL arm model, as a real controller moves its arm with its own: ``movel`` on a
-trapezoidal profile along the straight line, ``speedl`` by integrating the twist (reached
+trapezoidal profile along the straight line, ``movej`` on one along the straight line in
+joint space (a target beyond the joint limits a protective stop before it moves), ``speedl`` by integrating the twist (reached
 at the program's acceleration, held for at most its time), ``stopl`` by decelerating. A
 new program replaces the running one and the arm keeps its velocity into it. It limits
 the TCP's speed to its own safety limits, and a motion that would take a joint out of its
@@ -35,6 +36,7 @@ from vservo.core.cell.config import VacuumDeviceConfig
 from vservo.core.cell.kinematics import ArmKinematics, UnreachableTarget
 from vservo.core.errors import VservoError
 from vservo.core.geometry.spatial import Matrix, exp_twist, interpolate, inverse, pose_error, theta_u
+from vservo.core.robot import trapezoid
 from vservo.core.robot.ur_script import BANK_SIZE, INPUT_BIT_OFFSET, OUTPUT_BIT_OFFSET, DigitalOutputs, pose_from_ur
 from vservo.core.sim.plant import SimulatedCell
 from vservo.robot_models.loader import controller_base
@@ -75,6 +77,8 @@ class UrLimits:
     max_rotation_rad_s: float = np.pi  # a UR's wrist joints turn at 180 deg/s
     max_acceleration_m_s2: float = 5.0
     max_rotation_acceleration_rad_s2: float = 4.0 * np.pi
+    max_joint_speed_rad_s: float = np.pi  # a UR5's datasheet: all joints 180 deg/s
+    max_joint_acceleration_rad_s2: float = 4.0 * np.pi
 
 
 @dataclass(frozen=True)
@@ -96,6 +100,9 @@ _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 _LIST = rf"\[\s*({_NUMBER}(?:\s*,\s*{_NUMBER})*)\s*\]"
 _STATEMENTS: dict[str, re.Pattern[str]] = {
     "movel": re.compile(rf"movel\(\s*p{_LIST}\s*,\s*a\s*=\s*({_NUMBER})\s*,\s*v\s*=\s*({_NUMBER})\s*\)$"),
+    "movej": re.compile(
+        rf"movej\(\s*{_LIST}\s*,\s*a\s*=\s*({_NUMBER})\s*,\s*v\s*=\s*({_NUMBER})\s*(?:,\s*t\s*=\s*({_NUMBER})\s*)?\)$"
+    ),
     "speedl": re.compile(rf"speedl\(\s*{_LIST}\s*,\s*({_NUMBER})\s*,\s*({_NUMBER})\s*\)$"),
     "stopl": re.compile(rf"stopl\(\s*({_NUMBER})\s*\)$"),
     "digital_out": re.compile(r"set_(standard|tool)_digital_out\(\s*(\d+)\s*,\s*(True|False)\s*\)$"),
@@ -107,9 +114,9 @@ _STATEMENTS: dict[str, re.Pattern[str]] = {
 class Statement:
     kind: str
     values: tuple[float, ...]
-    target: Matrix | None = None
+    target: Matrix | None = None  # movel: the pose uMe; movej: the joints (rad)
     elapsed_s: float = 0.0
-    # movel: the straight line's start, and its duration on the trapezoidal profile
+    # movel, movej: the straight line's start (the pose, the joints), and its duration on the trapezoidal profile
     start: Matrix | None = None
     duration_s: float = 0.0
     profile: tuple[float, float, float] = (0.0, 1.0, 1.0)  # the trapezoid's length, top speed, acceleration
@@ -135,6 +142,12 @@ def _statement(line: str) -> Statement:
             if len(pose) != 6:
                 raise ScriptError(f"{line!r}: a pose has 6 numbers")
             return Statement(kind, (float(match.group(2)), float(match.group(3))), target=pose_from_ur(pose))
+        if kind == "movej":
+            q = [float(v) for v in match.group(1).split(",")]
+            if len(q) != 6:
+                raise ScriptError(f"{line!r}: a joint position has 6 numbers (rad)")
+            a, v, t = (float(g) if g is not None else 0.0 for g in match.groups()[1:])
+            return Statement(kind, (a, v, t), target=np.array(q))
         if kind == "speedl":
             twist = [float(v) for v in match.group(1).split(",")]
             if len(twist) != 6:
@@ -332,6 +345,8 @@ class UrController:
         kind, values = statement.kind, statement.values
         if kind == "movel":
             return self._movel(statement, dt)
+        if kind == "movej":
+            return self._movej(statement, dt)
         if kind == "speedl":
             *twist, acceleration, hold_s = values
             statement.elapsed_s += dt
@@ -434,33 +449,58 @@ class UrController:
             limits = self.limits
             by_length = (translation, speed, acceleration)
             by_turn = (rotation, limits.max_rotation_rad_s, limits.max_rotation_acceleration_rad_s2)
-            statement.profile = max(by_length, by_turn, key=lambda profile: _trapezoid_duration(*profile))
-            statement.duration_s = _trapezoid_duration(*statement.profile)
+            statement.profile = max(by_length, by_turn, key=lambda profile: trapezoid.duration(*profile))
+            statement.duration_s = trapezoid.duration(*statement.profile)
         length = statement.profile[0]
         statement.elapsed_s = min(statement.elapsed_s + dt, statement.duration_s)
         done = statement.elapsed_s >= statement.duration_s
-        s = 1.0 if done or length == 0.0 else _trapezoid_distance(statement.elapsed_s, *statement.profile) / length
+        s = 1.0 if done or length == 0.0 else trapezoid.distance(statement.elapsed_s, *statement.profile) / length
         if not self._move_to(interpolate(statement.start, target, s), dt, settle=done):
             return False
         return done
 
+    def _movej(self, statement: Statement, dt: float) -> bool:
+        """Every joint on the straight line to the target joints, on the leading joint's
+        trapezoid (_joint_profile); a target beyond the joint limits is a protective stop
+        before the arm moves (the line between joints within a box stays within it)."""
+        q_target = statement.target
+        if q_target is None:
+            raise ScriptError("movej without target joints")
+        if statement.start is None:
+            acceleration, speed, _ = statement.values
+            if q_target.shape != self.q.shape or not (acceleration > 0.0 and speed > 0.0):
+                self._fault(
+                    f"movej: {q_target.size} joints at a={acceleration:g}, v={speed:g} (this arm: {self.q.size}, a and v > 0)"
+                )
+                return False
+            beyond = (q_target < self.arm.lower) | (q_target > self.arm.upper)
+            if beyond.any():
+                k = int(np.argmax(beyond))
+                self._protective_stop(
+                    f"movej: joint {self.arm.joint_names[k]} to {np.degrees(q_target[k]):.2f} deg, beyond its limits "
+                    f"{np.degrees(self.arm.lower[k]):.2f} .. {np.degrees(self.arm.upper[k]):.2f} deg"
+                )
+                return False
+            statement.start = self.q.copy()
+            self.twist_u = np.zeros(6)  # the joint move takes the arm over from any twist
+            statement.profile = self._joint_profile(float(np.max(np.abs(q_target - statement.start))), *statement.values)
+            statement.duration_s = trapezoid.duration(*statement.profile)
+        length = statement.profile[0]
+        statement.elapsed_s = min(statement.elapsed_s + dt, statement.duration_s)
+        done = statement.elapsed_s >= statement.duration_s
+        s = 1.0 if done or length == 0.0 else trapezoid.distance(statement.elapsed_s, *statement.profile) / length
+        self.cell.move_joints(statement.start + s * (q_target - statement.start), dt, settle=done)
+        self._moved_this_tick = True
+        return done
 
-def _trapezoid_duration(length: float, speed: float, acceleration: float) -> float:
-    if length <= 0.0:
-        return 0.0
-    ramp = speed / acceleration
-    if acceleration * ramp * ramp >= length:  # a triangle: the top speed is never reached
-        return 2.0 * np.sqrt(length / acceleration)
-    return length / speed + ramp
-
-
-def _trapezoid_distance(t: float, length: float, speed: float, acceleration: float) -> float:
-    duration = _trapezoid_duration(length, speed, acceleration)
-    top = min(speed, np.sqrt(length * acceleration))
-    ramp = top / acceleration
-    if t <= ramp:
-        return 0.5 * acceleration * t * t
-    if t >= duration - ramp:
-        left = max(duration - t, 0.0)
-        return length - 0.5 * acceleration * left * left
-    return 0.5 * acceleration * ramp * ramp + top * (t - ramp)
+    def _joint_profile(
+        self, length_rad: float, acceleration: float, speed: float, duration_s: float
+    ) -> tuple[float, float, float]:
+        """The leading joint's trapezoid for a movej: of its a and v, scaled in time to last
+        t when t is given (the time has priority), within the controller's joint speed and
+        acceleration (a move that would exceed them takes longer)."""
+        if duration_s > 0.0 and length_rad > 0.0:
+            k = trapezoid.duration(length_rad, speed, acceleration) / duration_s
+            speed, acceleration = speed * k, acceleration * k * k
+        limits = self.limits
+        return length_rad, min(speed, limits.max_joint_speed_rad_s), min(acceleration, limits.max_joint_acceleration_rad_s2)

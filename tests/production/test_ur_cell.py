@@ -14,6 +14,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -24,7 +25,7 @@ from tests.production.test_real_cell import SIMULATOR_MODULES, loaded_modules
 from tests.sim.test_virtual_cell import fixture_request
 from tests.virtual_cell_process import ROOT, VirtualCellProcess
 from vservo.core.cell.config import load_cell
-from vservo.core.geometry.spatial import pose_error
+from vservo.core.geometry.spatial import pose_error, rot_z, transform
 from vservo.core.production.cell_rig import build_rig
 from vservo.core.production.protocol import KEY_ENVIRONMENT, new_key
 from vservo.core.production.protocol.client import ControllerClient
@@ -33,10 +34,12 @@ from vservo.core.production.protocol.state import Outcome, RunOutcome
 from vservo.core.production.storage import Store
 from vservo.core.robot import ur_script
 from vservo.core.robot.backend import RobotNotReady
+from vservo.core.robot.safety import BeyondJointLimits, SafetyLayer
 from vservo.core.robot.ur import UrBackend
 from vservo.robot_models.loader import controller_base
 
 TIME_SCALE = "0.2"
+SPEED_M_S = 0.25
 
 
 @pytest.fixture(scope="module")
@@ -83,6 +86,58 @@ def test_the_ur_backend_moves_reads_back_and_refuses_to_move_while_held(ur_cell)
         assert ur.wait_motion(timeout_s=20.0)
     finally:
         ur.close()
+
+
+def programs(log: dict, since_s: float) -> list[str]:
+    return [entry["what"] for entry in log["log"] if entry["kind"] == "program" and entry["time_s"] >= since_s]
+
+
+def test_the_safety_layer_sends_a_checked_joint_path_to_the_ur_as_one_movej_within_the_speed(ur_cell):
+    """move_joint checks the whole joint-space line, then sends the UR its end joints once
+    (one movej program, none of the stepped movel's); the flange's speed on the way, read by
+    ur-rtde's own client, stays within the move's. A refused move sends nothing."""
+    import rtde_receive
+
+    config = load_cell(ur_cell.addresses["cell_file"])
+    robot = SafetyLayer.from_config(UrBackend(config.ur, controller_base(config.arm)), config)
+    robot.connect()
+    rtde = rtde_receive.RTDEReceiveInterface(config.ur.host, -1.0, ["timestamp", "actual_TCP_speed"])
+    speeds: list[float] = []
+    moving = threading.Event()
+
+    def sample() -> None:
+        while moving.is_set():
+            speeds.append(float(np.linalg.norm(rtde.getActualTCPSpeed()[:3])))
+            time.sleep(0.002)
+
+    try:
+        robot.servo(True)
+        home = robot.read_pose()
+        target = transform(t=(0.08, -0.10, 0.03)) @ home @ transform(rot_z(np.radians(30.0)))
+        assert len(robot.joint_path(home, target, SPEED_M_S)) > 1  # the JRC would take it in steps
+        since_s = robot_log(ur_cell)["time_s"]
+        moving.set()
+        sampler = threading.Thread(target=sample)
+        sampler.start()
+        try:
+            robot.move_joint(target, SPEED_M_S)
+        finally:
+            moving.clear()
+            sampler.join()
+        assert programs(robot_log(ur_cell), since_s) == ["movej"]
+        translation, rotation = pose_error(robot.read_pose(), target)
+        assert translation < 1e-5 and rotation < 1e-5
+        assert 0.5 * SPEED_M_S < max(speeds) <= 1.01 * SPEED_M_S
+        since_s = robot_log(ur_cell)["time_s"]
+        with pytest.raises(BeyondJointLimits, match="no joints within the limits reach the path's ends"):
+            robot.move_joint(transform(t=(-0.60, 0.0, 0.05)) @ np.diag([1.0, -1.0, -1.0, 1.0]), SPEED_M_S)  # beyond the reach
+        assert programs(robot_log(ur_cell), since_s) == []
+        assert pose_error(robot.read_pose(), target)[0] < 1e-5
+        robot.move_joint(home, SPEED_M_S)
+        assert pose_error(robot.read_pose(), home)[0] < 1e-5
+    finally:
+        rtde.disconnect()
+        robot.close()
 
 
 def test_on_a_ur5_the_backend_speaks_the_urdfs_frame_and_the_controller_its_own_base():

@@ -14,6 +14,7 @@ import pytest
 
 from tests.jrc_fixtures import jrc_link, short_timer_cell
 from vservo.core.geometry.spatial import pose_error, rot_z, transform
+from vservo.core.robot.backend import JointMotionBackend
 from vservo.core.robot.safety import (
     BeyondJointLimits,
     OutsideWorkspace,
@@ -166,6 +167,7 @@ def test_a_transfer_whose_straight_line_leaves_the_arms_shell_goes_on_the_joint_
     sent = []
     move_to = robot.robot.move_to
     robot.robot.move_to = lambda bMe, speed: (sent.append((arm_pose(cell), bMe)), move_to(bMe, speed))[1]
+    assert not isinstance(robot.robot, JointMotionBackend)  # a look-and-move controller: the line in steps
     robot.move_joint(there, SPEED)
     assert pose_error(arm_pose(cell), there)[0] < 1e-4 and pose_error(arm_pose(cell), there)[1] < 1e-4
     assert len(sent) == 9  # 350 mm of chord, a longer arc, in steps of at most 45 mm

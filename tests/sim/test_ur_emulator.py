@@ -18,7 +18,7 @@ import pytest
 
 from vservo.core.cell.config import VacuumDeviceConfig, load_cell
 from vservo.core.geometry.spatial import pose_error
-from vservo.core.robot import ur_script
+from vservo.core.robot import trapezoid, ur_script
 from vservo.core.sim.plant import SimulatedCell
 from vservo.core.sim.ur_controller import SafetyMode, ScriptError, UrController, UrLimits, parse_program
 from vservo.core.sim.ur_emulator import DASHBOARD_PORT, RTDE_PORT, SECONDARY_PORT, UrEmulator
@@ -240,3 +240,52 @@ def test_a_ur5_speaks_in_its_controllers_base_frame_half_a_turn_from_the_urdfs_r
     assert controller.state.safety_mode is SafetyMode.NORMAL
     translation, rotation = pose_error(cell.jrc_arm.fk(cell.state.q), controller_base("ur5") @ target)
     assert translation < 1e-6 and rotation < 1e-6
+
+
+def run_to_the_end(controller: UrController) -> list[tuple[float, np.ndarray]]:
+    """Tick until the program has ended and the arm stands; each period's clock and joints."""
+    ticks = []
+    while controller.running or controller.motion is not None:
+        controller.tick()
+        ticks.append((controller.time_s, controller.q.copy()))
+    return ticks
+
+
+@pytest.mark.parametrize("duration_s", [1.5, 0.0])
+def test_a_movej_runs_every_joint_on_the_straight_line_to_its_target_in_its_time(duration_s):
+    """t given: the move lasts t; t = 0: the leading joint's trapezoid of a and v. On the
+    way every joint is on the straight line from the start's to the target's, the TCP
+    reported (in the controller's Base) is where the model puts the flange at those joints."""
+    cell = SimulatedCell(load_cell(), 1)
+    controller = UrController(cell)
+    controller.power(True)
+    q_from = cell.state.q.copy()
+    q_to = np.array([float(f"{q:.7g}") for q in q_from + np.radians([20.0, -10.0, 15.0, 5.0, -30.0, 60.0])])  # as sent
+    acceleration, speed = 2.0, 0.8
+    controller.run_program(ur_script.program("p", [ur_script.movej(q_to, acceleration, speed, duration_s)], 7))
+    started_s = controller.time_s
+    ticks = run_to_the_end(controller)
+    assert controller.state.safety_mode is SafetyMode.NORMAL and controller.state.registers[ur_script.DONE_REGISTER] == 7
+    np.testing.assert_allclose(controller.q, q_to, atol=1e-9)
+    along = [np.dot(q - q_from, q_to - q_from) / np.dot(q_to - q_from, q_to - q_from) for _, q in ticks]
+    off_the_line = max(np.linalg.norm(q - q_from - s * (q_to - q_from)) for s, (_, q) in zip(along, ticks))
+    assert off_the_line < 1e-9 and np.all(np.diff(along) >= 0.0)
+    moved_s = controller.last_moved_s - started_s
+    expected_s = duration_s or trapezoid.duration(float(np.max(np.abs(q_to - q_from))), speed, acceleration)
+    assert expected_s <= moved_s <= expected_s + controller.period_s
+    translation, rotation = pose_error(controller_base(cell.jrc_arm.name) @ controller.tcp_pose(), cell.jrc_arm.fk(q_to))
+    assert translation < 1e-9 and rotation < 1e-9
+
+
+def test_a_movej_beyond_the_joint_limits_is_a_protective_stop_before_the_arm_moves():
+    cell = SimulatedCell(load_cell(), 1)
+    controller = UrController(cell)
+    controller.power(True)
+    q_from = cell.state.q.copy()
+    q_to = q_from.copy()
+    q_to[2] = cell.jrc_arm.upper[2] + np.radians(1.0)
+    controller.run_program(ur_script.program("p", [ur_script.movej(q_to, 1.4, 1.05, 0.0)], 3))
+    run_to_the_end(controller)
+    assert controller.state.safety_mode is SafetyMode.PROTECTIVE_STOP
+    assert controller.state.registers.get(ur_script.DONE_REGISTER) != 3
+    assert np.array_equal(cell.state.q, q_from)
