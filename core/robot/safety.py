@@ -8,7 +8,9 @@ cup) stay inside the workspace box, the size of the step from where the robot is
 that the NOMINAL arm's IK finds joints within their limits less a margin. A refused move
 raises a SafetyRefusal subclass naming the limit and the values, and nothing moves. A
 taught move of any length (move_linear) passes the same checks at points of its straight
-line no further apart than one step may be, and then goes out as one linear move.
+line no further apart than one step may be, and then goes out as one linear move; a
+transfer on the joint-space line (move_joint) is checked whole the same way, and goes out
+as one joint move to a robot that runs one (JointMotionBackend), else in steps.
 
 The e-stop holds the robot at once and refuses every move, servo power on and hold
 release until it is reset. The watchdog does the same when, during a servo, the camera
