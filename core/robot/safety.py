@@ -80,6 +80,11 @@ class BeyondJointLimits(SafetyRefusal):
     """The target needs joints beyond their limits (less the margin), or no joints reach it."""
 
 
+class JointsDisagree(SafetyRefusal):
+    """The controller reports joints other than the arm model's for its pose (a turn or another
+    branch apart): a joint-space line checked from the model's would not be the one it runs."""
+
+
 class StepTooLarge(SafetyRefusal):
     """The move is larger than one step may be."""
 
@@ -387,7 +392,7 @@ class SafetyLayer:
         apart = np.abs(line.q_from - q_now)
         if apart.max() > JOINTS_AGREE_RAD:  # the line checked would not be the one the controller runs
             worst = int(np.argmax(apart))
-            raise BeyondJointLimits(
+            raise JointsDisagree(
                 f"move refused: the controller reports joint {self.arm.joint_names[worst]} at "
                 f"{np.degrees(q_now[worst]):.2f} deg, {np.degrees(apart[worst]):.2f} deg from the arm model's "
                 f"{np.degrees(line.q_from[worst]):.2f} deg for its pose (at most {np.degrees(JOINTS_AGREE_RAD):g} deg)"
