@@ -110,8 +110,9 @@ class UrState:
 
     @cached_property
     def uMe(self) -> Matrix:
-        """The TCP pose in the controller's base frame u; computed once, and only for the packages read: the reader keeps
-        every package the controller sends (125 or 500 a second), the loop reads a few."""
+        """The TCP pose in the controller's base frame u; computed once, and only for the
+        packages read: the reader keeps every package the controller sends (125 or 500 a
+        second), the loop reads a few."""
         return ur_script.pose_from_ur(self.tcp_pose)
 
 
