@@ -41,7 +41,7 @@ import numpy as np
 
 from vservo.core.cell.config import UrConfig
 from vservo.core.geometry.spatial import Matrix, interpolate, inverse
-from vservo.core.robot import trapezoid, ur_script
+from vservo.core.robot import ur_script
 from vservo.core.robot.backend import JointLine, RobotError, RobotNotReady, RobotStatus, apply_increment
 from vservo.core.robot.ur_script import DONE_REGISTER, DigitalOutputs
 
@@ -344,8 +344,9 @@ class UrBackend:
         the trapezoid of a movel D long at the move's speed and acceleration, as long as
         that movel takes. The leading joint (L = max |q_to - q_from|) runs it at
         v = speed L / D and a = acceleration L / D, v at most JOINT_SPEED_RAD_S (a with it,
-        the ramps as long as the flange's), and t is that trapezoid's own time: sent with
-        a and v, the controller runs the same move whichever it takes first.
+        the ramps as long as the flange's). No time t is sent: with t the manual says the
+        time has priority but not how the controller then shapes the ramps, and a longer
+        ramp would raise the peak speed; a and v alone are the trapezoid it documents.
         """
         self._refuse_unless_ready()
         q_to = np.asarray(line.q_to, dtype=float)
@@ -353,8 +354,7 @@ class UrBackend:
         speed = JOINT_SPEED_RAD_S if line.tcp_peak_m <= 0.0 else min(speed_m_s * turn / line.tcp_peak_m, JOINT_SPEED_RAD_S)
         speed = max(speed, np.finfo(float).tiny)  # no turn: a move of no length, at any speed
         acceleration = speed * self.acceleration_m_s2 / speed_m_s
-        duration_s = trapezoid.duration(turn, speed, acceleration)
-        self._last = self._send([ur_script.movej(q_to.tolist(), acceleration, speed, duration_s)])
+        self._last = self._send([ur_script.movej(q_to.tolist(), acceleration, speed)])
 
     def move_by(self, bMe_increment: Matrix, speed_m_s: float) -> None:
         self.move_to(apply_increment(self.read_pose(), bMe_increment), speed_m_s)

@@ -72,7 +72,7 @@ def movel(uMe: Matrix, acceleration_m_s2: float, speed_m_s: float) -> str:
     return f"movel(p[{_numbers(ur_pose(uMe))}], a={acceleration_m_s2:.6g}, v={speed_m_s:.6g})"
 
 
-def movej(q: Sequence[float], acceleration_rad_s2: float, speed_rad_s: float, duration_s: float) -> str:
+def movej(q: Sequence[float], acceleration_rad_s2: float, speed_rad_s: float, duration_s: float = 0.0) -> str:
     """Every joint on the straight line in joint space to q (rad, the controller's joints),
     the leading joint at acceleration_rad_s2 and speed_rad_s, the move lasting duration_s
     (0: as long as that trapezoid takes)."""

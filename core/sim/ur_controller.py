@@ -4,8 +4,9 @@ It runs the URScript subset vservo sends (core/robot/ur_script.py) one control p
 time (125 Hz, a CB3's rate; 500 Hz an e-Series'), moving the plant's joints with its
 NOMINAL arm model, as a real controller moves its arm with its own: ``movel`` on a
 trapezoidal profile along the straight line, ``movej`` on one along the straight line in
-joint space (a target beyond the joint limits a protective stop before it moves), ``speedl`` by integrating the twist (reached
-at the program's acceleration, held for at most its time), ``stopl`` by decelerating. A
+joint space (a target beyond the joint limits a protective stop before it moves),
+``speedl`` by integrating the twist (reached at the program's acceleration, held for at
+most its time), ``stopl`` by decelerating. A
 new program replaces the running one and the arm keeps its velocity into it. It limits
 the TCP's speed to its own safety limits, and a motion that would take a joint out of its
 limits or the TCP out of reach is a protective stop: the arm stops at once and waits for
