@@ -26,6 +26,7 @@ from vservo.core.production.protocol.catalogue import Refusal
 from vservo.core.robot.backend import MotionStopped, RobotError, RobotNotReady
 from vservo.core.robot.safety import (
     BeyondJointLimits,
+    JointsDisagree,
     OutsideWorkspace,
     SafetyLayer,
     SafetyRefusal,
@@ -49,6 +50,7 @@ SAFETY_REFUSALS: dict[type[SafetyRefusal], Refusal] = {
     StepTooLarge: Refusal.STEP_TOO_LARGE,
     TooFast: Refusal.TOO_FAST,
     SafetyStopActive: Refusal.ESTOP_ACTIVE,
+    JointsDisagree: Refusal.JOINTS_DISAGREE,
 }
 
 

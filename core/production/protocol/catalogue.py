@@ -62,6 +62,7 @@ class Refusal(StrEnum):
     OUTSIDE_WORKSPACE = "outside_workspace"
     STEP_TOO_LARGE = "step_too_large"
     TOO_FAST = "too_fast"
+    JOINTS_DISAGREE = "joints_disagree"  # the controller's joints are not the arm model's for its pose
     MOVE_STOPPED = "move_stopped"  # the robot stopped short of the target
     NO_FIXTURE = "no_fixture"  # the cell cannot put a part down
     PART_PLACE = "part_place"  # the fixture refused the place (off the table, on the metal part)
@@ -140,6 +141,10 @@ REFUSALS: dict[Refusal, Explanation] = {
     Refusal.OUTSIDE_WORKSPACE: _E("That pose puts the arm or a tool outside the cell's safe box.", Action.MOVE_TARGET),
     Refusal.STEP_TOO_LARGE: _E("That move is larger than one step may be.", Action.SMALLER_STEP),
     Refusal.TOO_FAST: _E("That move is faster than the cell allows.", Action.CALL_INTEGRATOR),
+    Refusal.JOINTS_DISAGREE: _E(
+        "The robot's controller reports its joints other than the cell's arm model puts them for its pose.",
+        Action.CALL_INTEGRATOR,
+    ),
     Refusal.MOVE_STOPPED: _E("The robot stopped before it reached the target.", Action.RESET),
     Refusal.NO_FIXTURE: _E("This cell cannot put a part down: parts arrive by hand.", Action.MOVE_PART),
     Refusal.PART_PLACE: _E("A part cannot lie there (off the table, or on the metal part).", Action.CORRECT_VALUE),
