@@ -16,6 +16,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,7 @@ from vservo.core.production.protocol.state import Outcome, RunOutcome
 from vservo.core.production.storage import Store
 from vservo.core.robot import ur_script
 from vservo.core.robot.backend import RobotNotReady
-from vservo.core.robot.safety import BeyondJointLimits, SafetyLayer
+from vservo.core.robot.safety import BeyondJointLimits, JointsDisagree, SafetyLayer
 from vservo.core.robot.ur import UrBackend
 from vservo.robot_models.loader import controller_base
 
@@ -144,7 +145,8 @@ def test_on_a_ur5_the_backend_speaks_the_urdfs_frame_and_the_controller_its_own_
     """A real UR5 reports its TCP in its Base, a half turn about z from example-robot-data's
     root base_link, vservo's base frame: RTDE's pose (read here with ur-rtde's own client)
     has x and y of the opposite sign of the backend's, and a move along +x of vservo's
-    base frame moves RTDE's x the other way."""
+    base frame moves RTDE's x the other way. A cell file naming the wrong arm is caught by
+    the first joint move."""
     import rtde_receive
 
     cell = VirtualCellProcess("--seed", "3", "--robot-link", "ur", "--time-scale", TIME_SCALE, "--cell", "static/cell-ur5.toml")
@@ -175,6 +177,18 @@ def test_on_a_ur5_the_backend_speaks_the_urdfs_frame_and_the_controller_its_own_
         finally:
             rtde.disconnect()
             ur.close()
+        # The cell file naming the wrong arm (a UR10 where a UR5 stands): the model's joints for
+        # the pose RTDE reports are not the controller's, so a joint move is refused unsent.
+        wrong = replace(config, arm="ur10", home_q=load_cell(ROOT / "static" / "cell-ur10.toml").home_q)
+        robot = SafetyLayer.from_config(UrBackend(config.ur, controller_base(wrong.arm)), wrong)
+        robot.connect()
+        try:
+            since_s = robot_log(cell)["time_s"]
+            with pytest.raises(JointsDisagree, match=r"the controller reports joint \w+ at .* from the arm model's"):
+                robot.move_joint(transform(t=(0.03, -0.02, 0.02)) @ robot.read_pose(), 0.1)
+            assert programs(robot_log(cell), since_s) == []
+        finally:
+            robot.close()
     finally:
         assert cell.stop() == 0
 
