@@ -26,11 +26,15 @@ From a pose where the camera sees the part (the desired view):
    PRESS_M into its level compensator with the suction off.
 
 The flange keeps its orientation throughout; the result is the pick pose for Set pick
-pose here.
+pose here. Steps 1 .. 3 seen on frames that cannot be the arm's motion (a busy host's late
+frames, docs/vision.md: FramesLagged) are made again from the view after a pause; only
+when they lag every time is the operator told to try again.
 """
 
 from __future__ import annotations
 
+import logging
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -53,10 +57,20 @@ GRIP_GAP_M = 0.001  # a cup grips from this far above the face (the sensor's win
 # the part is a few tenths of a metre above it, where a 10 mm jog moves it tens of pixels.
 MIN_JOG_PX = 3.0
 MAX_DEPTH_M = 1.0
+# Steps 1 .. 3 seen on lagging frames are made again from the view, after a pause of the
+# host's time in which a starved camera reader catches up, this many times before refusing.
+LAGGED_RETRIES = 2
+LOOK_AGAIN_AFTER_S = 1.0
+
+log = logging.getLogger("vservo.cup_centring")
 
 
 class CentringError(VservoError, RuntimeError):
     """The cup could not be put on the part; the message says why and what to do."""
+
+
+class FramesLagged(CentringError):
+    """What the camera saw cannot be the arm's motion: its frames lag the arm (a busy host)."""
 
 
 @dataclass(frozen=True)
@@ -88,7 +102,7 @@ def _seen(cell: CellMotions) -> tuple[Matrix, float]:
     try:
         return diagonals_crossing(corners), pattern_scale(corners)
     except np.linalg.LinAlgError:  # parallel diagonals: no face, whatever the detector said
-        raise CentringError("the part's four corners seen do not make a face (a blurred frame?): try again") from None
+        raise FramesLagged("the part's four corners seen do not make a face (a blurred frame?): try again") from None
 
 
 def _shifted(bMe: Matrix, d_m: Matrix) -> Matrix:
@@ -117,7 +131,7 @@ def part_axis_offset(cell: CellMotions) -> tuple[Matrix, float, float]:
         J_c[:, axis] = (_seen(cell)[0] - centre0) / JOG_M
     if np.min(np.linalg.norm(J_c, axis=0)) * JOG_M < MIN_JOG_PX:
         cell.move_to(bMe0)
-        raise CentringError(
+        raise FramesLagged(
             f"the part moved less than {MIN_JOG_PX:g} px in the image as the arm moved {1000 * JOG_M:g} mm: the camera's "
             "frames lag the arm (a busy host) or it is not looking at the part; try again"
         )
@@ -133,14 +147,30 @@ def part_axis_offset(cell: CellMotions) -> tuple[Matrix, float, float]:
     scale1 = _seen(cell)[1]
     cell.move_to(bMe0)
     if not scale1 > scale0:
-        raise CentringError("the part did not grow in the image as the camera came down: is the camera looking down at it?")
+        raise FramesLagged(
+            "the part did not grow in the image as the camera came down: the camera's frames lag the arm (a busy host), "
+            "or it is not looking down at the part; try again"
+        )
     depth_m = DESCENT_M * scale1 / (scale1 - scale0)
     if depth_m > MAX_DEPTH_M:
-        raise CentringError(
+        raise FramesLagged(
             f"the part grew too little in the image as the camera came down {1000 * DESCENT_M:g} mm (it would lie "
             f"{depth_m:.2f} m below the camera): the camera's frames lag the arm (a busy host); try again"
         )
     return offset, depth_m, scale0
+
+
+def _measured_from(cell: CellMotions, bMe0: Matrix) -> tuple[Matrix, float, float]:
+    """part_axis_offset from the view bMe0, made again (LAGGED_RETRIES) when its frames lagged
+    the arm: back at the view, after LOOK_AGAIN_AFTER_S."""
+    for attempt in range(LAGGED_RETRIES):
+        try:
+            return part_axis_offset(cell)
+        except FramesLagged as exc:
+            log.info("centring, look %d: %s; looking again in %g s", attempt + 1, exc, LOOK_AGAIN_AFTER_S)
+            cell.move_to(bMe0)
+            time.sleep(LOOK_AGAIN_AFTER_S)
+    return part_axis_offset(cell)
 
 
 def centre_cup(cell: CellMotions, eMv: Matrix, eMc: Matrix) -> Centred:
@@ -148,7 +178,7 @@ def centre_cup(cell: CellMotions, eMv: Matrix, eMc: Matrix) -> Centred:
     model's) only places the camera's height for the touch-down's start: an error of it
     costs steps, not accuracy."""
     bMe0 = cell.read_pose()
-    from_flange, depth_m, _ = part_axis_offset(cell)
+    from_flange, depth_m, _ = _measured_from(cell, bMe0)
     offset = from_flange - ((bMe0 @ eMv)[:2, 3] - bMe0[:2, 3])
     camera_z = float((bMe0 @ eMc)[2, 3])
     face_z = camera_z - depth_m

@@ -19,21 +19,31 @@ POSE = r"((?:-?[\d.]+ ){5}-?[\d.]+)"
 AID_TIMEOUT_S = 180.0  # View the part and Centre the cup on the part: tens of moves over the JRC link
 
 
+class PageRefused(AssertionError):
+    """The page refused what a step pressed: its notice, in full."""
+
+
 def press(page, button: str, done: str, timeout_s: float = 60.0) -> None:
     """Press ``button`` and wait for the page to say ``done`` (a notice or the status line)."""
     dismiss_notifications(page)
     page.get_by_role("button", name=button, exact=True).click()
 
-    seen = {"notices": ""}
+    notices: list[str] = []  # every notice shown meanwhile (a refusal's closes itself after 12 s)
 
     def said() -> bool:
-        seen["notices"] = " ".join(page.locator(".mantine-Notification-root").all_inner_texts())
-        return re.search(done, seen["notices"] + status_text(page)) is not None
+        shown = page.locator(".mantine-Notification-root").all_inner_texts()
+        notices.extend(text for text in shown if text not in notices)
+        refused = [text for text in shown if text.startswith(f"{button}: refused")]
+        if refused:
+            raise PageRefused(f"{button}: {refused[0]!r}; the status: {status_text(page)!r}")
+        return re.search(done, " ".join(shown) + status_text(page)) is not None
 
     try:
         wait_until(said, f"{button}: the page never said {done!r}", timeout_s)
-    except AssertionError as exc:  # what the page did say: a refusal is a notice
-        raise AssertionError(f"{exc}; the status: {status_text(page)!r}; the notices: {seen['notices']!r}") from None
+    except PageRefused:
+        raise
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}; the status: {status_text(page)!r}; the notices meanwhile: {notices!r}") from None
 
 
 def offered(page, words: str) -> str:

@@ -147,6 +147,28 @@ def test_centring_on_frames_that_lag_the_arm_refuses_and_says_so_with_the_arm_ba
         np.testing.assert_allclose(controller.rig.robot.read_pose(), bMe_view, atol=1e-6)
 
 
+def test_centring_looks_again_when_its_first_jog_was_seen_on_a_late_frame_and_puts_the_cup_on_the_part(tmp_path):
+    """The look after the first jog hands over the frame from before it (a busy host's): the
+    part seems not to move, and the measurement is made again from the view, not refused."""
+    config = parse_cell(*read_cell_data_with_truth(None, TABLE_5_5))
+    with simulated_controller(config, tmp_path / "data") as controller:
+        cell = controller.rig.cell
+        controller.begin_teach()
+        controller.present_part((-390.0, -40.0), 20.0)
+        controller.view_part()
+        looks = []
+
+        def late_once() -> np.ndarray:
+            looks.append(controller.look(fresh=True)[1].corners_px)
+            return looks[0] if len(looks) == 2 else looks[-1]
+
+        motions = CellMotions(controller.move_to, controller.rig.robot.read_pose, late_once, controller._teaching._grips)
+        centre_cup(motions, config.nominal.eMv, config.nominal.eMc)
+        assert len(looks) == 3 + 6  # the first try stopped after its jogs; the second: the view, two jogs, two turns, a descent
+        oMv = inverse(cell.state.scene.cube.bMo) @ cell.ground_truth_bMe() @ config.plant().truth.eMv
+        np.testing.assert_allclose(1000.0 * oMv[:2, 3], [10.0, 10.0], atol=0.5)  # the top face's centre
+
+
 @pytest.mark.parametrize("late", [1, 2, 3, 5])
 def test_view_the_part_looks_again_at_a_frame_from_before_a_jog_and_brings_the_spot_onto_the_part(tmp_path, late):
     """One frame late (a busy host's, docs/vision.md): the look after a jog (the first, the
