@@ -26,9 +26,10 @@ From a pose where the camera sees the part (the desired view):
    PRESS_M into its level compensator with the suction off.
 
 The flange keeps its orientation throughout; the result is the pick pose for Set pick
-pose here. Steps 1 .. 3 seen on frames that cannot be the arm's motion (a busy host's late
-frames, docs/vision.md: FramesLagged) are made again from the view after a pause; only
-when they lag every time is the operator told to try again.
+pose here. Steps 1 .. 3 are made twice from the view, and again until two in a row agree:
+a look on a frame that lagged the arm (a busy host's, docs/vision.md) makes one differ, or
+shows as motion the arm cannot have made (FramesLagged, made again after a pause); only
+when no two agree is the operator told to try again.
 """
 
 from __future__ import annotations
@@ -57,9 +58,13 @@ GRIP_GAP_M = 0.001  # a cup grips from this far above the face (the sensor's win
 # the part is a few tenths of a metre above it, where a 10 mm jog moves it tens of pixels.
 MIN_JOG_PX = 3.0
 MAX_DEPTH_M = 1.0
-# Steps 1 .. 3 seen on lagging frames are made again from the view, after a pause of the
-# host's time in which a starved camera reader catches up, this many times before refusing.
-LAGGED_RETRIES = 2
+# Steps 1 .. 3 are made from the view until two in a row agree this closely (a look on a
+# frame that lagged the arm makes one differ), MEASUREMENTS times at most; one whose own
+# bounds show lagging frames is made again after a pause of the host's time, in which a
+# starved camera reader catches up.
+MEASUREMENTS = 4
+AGREE_OFFSET_M = 0.001
+AGREE_DEPTH = 0.03
 LOOK_AGAIN_AFTER_S = 1.0
 
 log = logging.getLogger("vservo.cup_centring")
@@ -161,16 +166,31 @@ def part_axis_offset(cell: CellMotions) -> tuple[Matrix, float, float]:
 
 
 def _measured_from(cell: CellMotions, bMe0: Matrix) -> tuple[Matrix, float, float]:
-    """part_axis_offset from the view bMe0, made again (LAGGED_RETRIES) when its frames lagged
-    the arm: back at the view, after LOOK_AGAIN_AFTER_S."""
-    for attempt in range(LAGGED_RETRIES):
+    """part_axis_offset from the view bMe0 until two in a row agree (AGREE_OFFSET_M, AGREE_DEPTH);
+    one that trips its own bounds (FramesLagged) is made again after LOOK_AGAIN_AFTER_S."""
+    last: tuple[Matrix, float, float] | None = None
+    why = ""
+    for attempt in range(MEASUREMENTS):
         try:
-            return part_axis_offset(cell)
+            measured = part_axis_offset(cell)
         except FramesLagged as exc:
-            log.info("centring, look %d: %s; looking again in %g s", attempt + 1, exc, LOOK_AGAIN_AFTER_S)
+            why = str(exc)
+            log.info("centring, measurement %d: %s; again in %g s", attempt + 1, exc, LOOK_AGAIN_AFTER_S)
             cell.move_to(bMe0)
             time.sleep(LOOK_AGAIN_AFTER_S)
-    return part_axis_offset(cell)
+            continue
+        if last is not None:
+            apart_m = float(np.linalg.norm(measured[0] - last[0]))
+            if apart_m <= AGREE_OFFSET_M and abs(measured[1] / last[1] - 1.0) <= AGREE_DEPTH:
+                return measured
+            why = (
+                f"two measurements from the same view disagree ({1000 * apart_m:.1f} mm apart across, the face "
+                f"{1000 * last[1]:.0f} and {1000 * measured[1]:.0f} mm below the camera): the camera's frames lag the "
+                "arm (a busy host); try again"
+            )
+            log.info("centring, measurement %d: %s", attempt + 1, why)
+        last = measured
+    raise FramesLagged(why)
 
 
 def centre_cup(cell: CellMotions, eMv: Matrix, eMc: Matrix) -> Centred:
