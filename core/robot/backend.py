@@ -133,13 +133,12 @@ class StreamingBackend(Protocol):
 class JointLine:
     """A joint-space line the safety layer has checked whole (SafetyLayer.joint_path): the
     joints at its ends (rad, the arm model's joints; ``q_from`` where the controller reported
-    its joints) and the flange's path along it, for the controller's timing: its length and
-    the peak over the line of |dp/ds|, the flange's speed per unit of the line's parameter s
-    in [0, 1] (m), both over the checked samples."""
+    its joints) and, for the controller's timing, the peak over the line of |dp/ds|, the
+    flange's speed per unit of the line's parameter s in [0, 1] (m, over the checked samples;
+    at least the flange's path length)."""
 
     q_from: Matrix
     q_to: Matrix
-    tcp_length_m: float
     tcp_peak_m: float
 
 

@@ -487,10 +487,9 @@ class SafetyLayer:
     def _joint_line(
         self, bMe_from: Matrix, bMe_target: Matrix, speed_m_s: float, q_seed: Matrix | None, unwind: bool
     ) -> tuple[list[Matrix], JointLine]:
-        """joint_path's steps, and the line they lie on: its end joints and the flange's
-        path along it at the samples (its length, and the peak of |dp/ds| from each chord
-        of JOINT_SAMPLE_RAD of the leading joint, within a fraction of a per cent of the
-        derivative's peak on an arm's smooth kinematics)."""
+        """joint_path's steps, and the line they lie on: its end joints and the peak of the
+        flange's |dp/ds| from each chord of JOINT_SAMPLE_RAD of the leading joint (within a
+        fraction of a per cent of the derivative's peak on an arm's smooth kinematics)."""
         bMe_target = np.asarray(bMe_target, dtype=float)
         self._check_in_workspace(bMe_target)  # before any IK: a far target costs nothing
         try:
@@ -517,7 +516,7 @@ class SafetyLayer:
             self.check_target(bMe_step, speed_m_s, bMe_before, q)
         points = np.array([np.asarray(bMe_from, dtype=float)[:3, 3], *(bMe[:3, 3] for bMe in poses)])
         chords = np.linalg.norm(np.diff(points, axis=0), axis=1)
-        line = JointLine(q_from, q_to, float(chords.sum()), float(chords.max(initial=0.0) * samples))
+        line = JointLine(q_from, q_to, float(chords.max(initial=0.0) * samples))
         return [bMe_step for _, bMe_step, _ in steps], line
 
     def _follow(self, waypoints: list[Matrix], speed_m_s: float) -> None:

@@ -338,7 +338,7 @@ class UrBackend:
 
         On the line q(s) = q_from + s (q_to - q_from) the flange moves at |dp/ds| ds/dt, at
         most D ds/dt (D = line.tcp_peak_m, the peak of |dp/ds| over the checked samples,
-        at least the path's length line.tcp_length_m). With ds/dt within speed / D and
+        at least the path's length). With ds/dt within speed / D and
         d2s/dt2 within acceleration / D (the [ur] acceleration) the flange's speed stays
         within speed_m_s and its acceleration along the path within the movel's: s then runs
         the trapezoid of a movel D long at the move's speed and acceleration, as long as

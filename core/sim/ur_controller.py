@@ -122,6 +122,14 @@ class Statement:
     duration_s: float = 0.0
     profile: tuple[float, float, float] = (0.0, 1.0, 1.0)  # the trapezoid's length, top speed, acceleration
 
+    def advance(self, dt: float) -> tuple[bool, float]:
+        """A movel's or movej's profile one period on: whether it has ended, and the fraction
+        of the line it has covered."""
+        self.elapsed_s = min(self.elapsed_s + dt, self.duration_s)
+        done = self.elapsed_s >= self.duration_s
+        length = self.profile[0]
+        return done, 1.0 if done or length == 0.0 else trapezoid.distance(self.elapsed_s, *self.profile) / length
+
 
 def parse_program(text: str) -> list[Statement]:
     """The statements of one program: ``def name():`` ... ``end``, or a single statement."""
@@ -452,10 +460,7 @@ class UrController:
             by_turn = (rotation, limits.max_rotation_rad_s, limits.max_rotation_acceleration_rad_s2)
             statement.profile = max(by_length, by_turn, key=lambda profile: trapezoid.duration(*profile))
             statement.duration_s = trapezoid.duration(*statement.profile)
-        length = statement.profile[0]
-        statement.elapsed_s = min(statement.elapsed_s + dt, statement.duration_s)
-        done = statement.elapsed_s >= statement.duration_s
-        s = 1.0 if done or length == 0.0 else trapezoid.distance(statement.elapsed_s, *statement.profile) / length
+        done, s = statement.advance(dt)
         if not self._move_to(interpolate(statement.start, target, s), dt, settle=done):
             return False
         return done
@@ -486,10 +491,7 @@ class UrController:
             self.twist_u = np.zeros(6)  # the joint move takes the arm over from any twist
             statement.profile = self._joint_profile(float(np.max(np.abs(q_target - statement.start))), *statement.values)
             statement.duration_s = trapezoid.duration(*statement.profile)
-        length = statement.profile[0]
-        statement.elapsed_s = min(statement.elapsed_s + dt, statement.duration_s)
-        done = statement.elapsed_s >= statement.duration_s
-        s = 1.0 if done or length == 0.0 else trapezoid.distance(statement.elapsed_s, *statement.profile) / length
+        done, s = statement.advance(dt)
         self.cell.move_joints(statement.start + s * (q_target - statement.start), dt, settle=done)
         self._moved_this_tick = True
         return done

@@ -4,6 +4,8 @@ on no calibration (core/production/grasp.py)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -11,11 +13,11 @@ import numpy as np
 import pytest
 
 from tests.controller_fixtures import simulated_controller
-from vservo.core.cell.config import CommissioningRecord, load_cell, parse_cell, read_cell_data_with_truth
+from vservo.core.cell.config import CellConfig, CommissioningRecord, load_cell, parse_cell, read_cell_data_with_truth
 from vservo.core.geometry.spatial import inverse, rot_z, transform
 from vservo.core.perception.features import ImageFeatures, pattern_scale
 from vservo.core.production.assembly import Outcome, Phase
-from vservo.core.production.cell_controller import CommandRefused
+from vservo.core.production.cell_controller import CellController, CommandRefused
 from vservo.core.production.cup_centring import CellMotions, CentringError, centre_cup
 from vservo.core.production.demo_job import teach_demo_job
 from vservo.core.production.part_view import ViewMotions, view_part
@@ -23,6 +25,24 @@ from vservo.core.production.placement_check import diagonals_crossing
 from vservo.core.production.teaching_session import VIEW_SCALE
 
 TABLE_5_5 = Path(__file__).resolve().parents[2] / "static" / "truths" / "table-5-5.toml"
+
+
+@contextmanager
+def viewing_the_guides_part(tmp_path: Path) -> Iterator[tuple[CellConfig, CellController]]:
+    """A controller on the cell Table 5-5's errors from its file, teaching, the camera brought
+    over the guide's part by View the part."""
+    config = parse_cell(*read_cell_data_with_truth(None, TABLE_5_5))
+    with simulated_controller(config, tmp_path / "data") as controller:
+        controller.begin_teach()
+        controller.present_part((-390.0, -40.0), 20.0)
+        controller.view_part()
+        yield config, controller
+
+
+def cup_in_the_part_mm(config: CellConfig, controller: CellController) -> np.ndarray:
+    """Where the cup truly is in the part's frame O (a top-face corner), mm: the test's gauge."""
+    cell = controller.rig.cell
+    return 1000.0 * (inverse(cell.state.scene.cube.bMo) @ cell.ground_truth_bMe() @ config.plant().truth.eMv)[:3, 3]
 
 
 @pytest.mark.slow
@@ -93,12 +113,8 @@ def test_view_the_part_and_centre_the_cup_rest_on_no_calibration(tmp_path):
     """On the cell Table 5-5's errors from its model: the camera brought over the part by the
     image alone, the spot on its centre; the cup put on the middle of its top face by the camera
     and the vacuum sensor, where the model's "Cup on it" would miss the part."""
-    config = parse_cell(*read_cell_data_with_truth(None, TABLE_5_5))
-    with simulated_controller(config, tmp_path / "data") as controller:
+    with viewing_the_guides_part(tmp_path) as (config, controller):
         cell = controller.rig.cell
-        controller.begin_teach()
-        controller.present_part((-390.0, -40.0), 20.0)
-        controller.view_part()
         features = controller.look(fresh=True)[1]
         assert features.all_corners_visible and features.spot_seen
         crossing = diagonals_crossing(features.corners_px)
@@ -106,9 +122,9 @@ def test_view_the_part_and_centre_the_cup_rest_on_no_calibration(tmp_path):
         controller.capture_desired()
         controller.centre_cup()
         assert "cup centred on the part" in controller.state.detail
-        oMv = inverse(cell.state.scene.cube.bMo) @ cell.ground_truth_bMe() @ config.plant().truth.eMv
-        np.testing.assert_allclose(1000.0 * oMv[:2, 3], [10.0, 10.0], atol=0.5)  # the top face's centre
-        assert -6.0 < 1000.0 * oMv[2, 3] < 0.0  # pressed into the compensator, within its stroke
+        cup_mm = cup_in_the_part_mm(config, controller)
+        np.testing.assert_allclose(cup_mm[:2], [10.0, 10.0], atol=0.5)  # the top face's centre
+        assert -6.0 < cup_mm[2] < 0.0  # pressed into the compensator, within its stroke
         assert not controller.state.holding_part and controller.test_pick()
         # The model's own cup pose for the part it sees is off the part.
         seen = controller.state.teaching
@@ -129,11 +145,7 @@ def test_centring_on_frames_that_lag_the_arm_refuses_and_says_so_with_the_arm_ba
     """A camera one look behind the arm (a busy host's late frames, docs/vision.md): the part
     seems not to move as the arm jogs, and centring must say so, not fail inside its
     arithmetic or drive the arm to a pose made from those frames."""
-    config = parse_cell(*read_cell_data_with_truth(None, TABLE_5_5))
-    with simulated_controller(config, tmp_path / "data") as controller:
-        controller.begin_teach()
-        controller.present_part((-390.0, -40.0), 20.0)
-        controller.view_part()
+    with viewing_the_guides_part(tmp_path) as (config, controller):
         bMe_view = controller.rig.robot.read_pose()
         looks = []
 
@@ -151,12 +163,7 @@ def test_centring_looks_again_when_its_first_jog_was_seen_on_a_late_frame_and_pu
     """The look after the first jog hands over the frame from before it (a busy host's): the
     part seems not to move, and the measurement is made again from the view, not refused.
     Without a late frame it is made twice, and the two agree."""
-    config = parse_cell(*read_cell_data_with_truth(None, TABLE_5_5))
-    with simulated_controller(config, tmp_path / "data") as controller:
-        cell = controller.rig.cell
-        controller.begin_teach()
-        controller.present_part((-390.0, -40.0), 20.0)
-        controller.view_part()
+    with viewing_the_guides_part(tmp_path) as (config, controller):
         looks = []
 
         def late_once() -> np.ndarray:
@@ -167,8 +174,7 @@ def test_centring_looks_again_when_its_first_jog_was_seen_on_a_late_frame_and_pu
         centre_cup(motions, config.nominal.eMv, config.nominal.eMc)
         # the first stopped after its jogs; two more agreed (each: the view, two jogs, two turns, a descent)
         assert len(looks) == 3 + 6 + 6
-        oMv = inverse(cell.state.scene.cube.bMo) @ cell.ground_truth_bMe() @ config.plant().truth.eMv
-        np.testing.assert_allclose(1000.0 * oMv[:2, 3], [10.0, 10.0], atol=0.5)  # the top face's centre
+        np.testing.assert_allclose(cup_in_the_part_mm(config, controller)[:2], [10.0, 10.0], atol=0.5)  # the face's centre
 
 
 @pytest.mark.parametrize("late", [1, 2, 3, 5])
